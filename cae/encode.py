@@ -1,0 +1,50 @@
+"""Images -> L2-normalised codes, numpy in and numpy out."""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from .model import CODE_DIM, Encoder
+from .preprocess import preprocess
+
+__all__ = ["encode_images", "normalize_codes"]
+
+
+def normalize_codes(codes: np.ndarray) -> np.ndarray:
+    """Row-wise L2 normalisation, ``(B, D)`` -> ``(B, D)`` float32 (all-zero rows stay zero)."""
+    codes = np.asarray(codes, dtype=np.float32)
+    norms = np.linalg.norm(codes, axis=1, keepdims=True)
+    return codes / np.maximum(norms, 1e-12)
+
+
+@torch.inference_mode()
+def encode_images(encoder: Encoder, images: Sequence[np.ndarray] | np.ndarray, batch_size: int = 32,
+                  half: bool = False) -> np.ndarray:
+    """Encodes images as OpenCV reads them.
+
+    Args:
+        encoder: from ``cae.load_encoder``.
+        images: a sequence of images, or one image (grey/BGR, 8/16-bit, any size).
+        batch_size: images per forward pass.
+        half: run in float16 (CUDA only; ignored on CPU, where it is slower).
+
+    Returns:
+        ``(B, 4096)`` float32, each row of unit L2 norm; ``(0, 4096)`` for no images.
+    """
+    if isinstance(images, np.ndarray):
+        images = [images]
+    device = next(encoder.parameters()).device
+    use_half = half and device.type == "cuda"
+    out = [np.empty((0, CODE_DIM), np.float32)]
+    for start in range(0, len(images), batch_size):
+        x = preprocess(images[start:start + batch_size]).to(device)
+        if use_half:
+            with torch.autocast("cuda", dtype=torch.float16):
+                codes = encoder(x)
+        else:
+            codes = encoder(x)
+        out.append(codes.float().cpu().numpy())
+    return normalize_codes(np.concatenate(out))

@@ -1,0 +1,92 @@
+"""The convolutional autoencoder of Leonardi & Stahl (IFAC 2018), exactly as the paper describes it.
+
+Shapes (B = batch):
+
+    image  (B, 3, 256, 256) float in [0, 1]
+      Encoder: 4 x [conv 3x3 (32, 32, 32, 16 filters, zero padding) + ReLU + max-pool 2x2]
+    code   (B, 16, 16, 16)  -> flattened (B, 4096), channel-major (C, H, W) order
+      Decoder: 4 x [nearest-neighbour resize x2 + conv 3x3x32 + ReLU], then conv 3x3x3
+    logits (B, 3, 256, 256)  (sigmoid at inference; the loss takes logits)
+
+Weights are initialised from N(0, 0.05), biases at zero, as in the paper.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+__all__ = ["Encoder", "Decoder", "ConvAutoencoder", "INPUT_SIZE", "CODE_SHAPE", "CODE_DIM"]
+
+INPUT_SIZE = 256  #: side of the square network input, pixels
+CODE_SHAPE = (16, 16, 16)  #: (channels, height, width) of the bottleneck
+CODE_DIM = 16 * 16 * 16  #: length of the flattened code
+
+
+def _init(module: nn.Module, std: float = 0.05) -> None:
+    for m in module.modules():
+        if isinstance(m, nn.Conv2d):
+            nn.init.normal_(m.weight, 0.0, std)
+            nn.init.zeros_(m.bias)
+
+
+class Encoder(nn.Module):
+    """Image -> 4096-d code.
+
+    Input ``(B, 3, 256, 256)`` float in [0, 1]; output ``(B, 4096)`` (not normalised; the retrieval stage
+    L2-normalises). Accepts channels-last input, which is faster on CPU.
+    """
+
+    filters = (32, 32, 32, 16)
+
+    def __init__(self) -> None:
+        super().__init__()
+        layers: list[nn.Module] = []
+        c_in = 3
+        for c_out in self.filters:
+            layers += [nn.Conv2d(c_in, c_out, 3, padding=1), nn.ReLU(inplace=True), nn.MaxPool2d(2)]
+            c_in = c_out
+        self.features = nn.Sequential(*layers)
+        _init(self)
+
+    def forward_map(self, x: torch.Tensor) -> torch.Tensor:
+        """``(B, 3, 256, 256)`` -> the code as a feature map ``(B, 16, 16, 16)``."""
+        return self.features(x)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.forward_map(x).reshape(x.shape[0], -1)
+
+
+class Decoder(nn.Module):
+    """Code map ``(B, 16, 16, 16)`` -> reconstruction logits ``(B, 3, 256, 256)``."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        layers: list[nn.Module] = []
+        c_in = CODE_SHAPE[0]
+        for _ in range(4):
+            layers += [nn.Upsample(scale_factor=2, mode="nearest"), nn.Conv2d(c_in, 32, 3, padding=1), nn.ReLU(inplace=True)]
+            c_in = 32
+        layers.append(nn.Conv2d(32, 3, 3, padding=1))
+        self.layers = nn.Sequential(*layers)
+        _init(self)
+
+    def forward(self, code_map: torch.Tensor) -> torch.Tensor:
+        return self.layers(code_map)
+
+
+class ConvAutoencoder(nn.Module):
+    """Encoder + decoder; ``forward`` returns reconstruction logits ``(B, 3, 256, 256)``."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.encoder = Encoder()
+        self.decoder = Decoder()
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.decoder(self.encoder.forward_map(x))
+
+    @torch.no_grad()
+    def reconstruct(self, x: torch.Tensor) -> torch.Tensor:
+        """Reconstruction in [0, 1] (sigmoid of the logits), ``(B, 3, 256, 256)``."""
+        return torch.sigmoid(self(x))

@@ -1,0 +1,109 @@
+"""Checkpoints and the shipped default weights.
+
+A checkpoint is ``{"format_version": 1, "conf": <training conf>, "state_dict": <ConvAutoencoder or Encoder>}``
+written with ``torch.save``; it is always loaded with ``strict=True``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from .conf import ConfigError
+from .model import ConvAutoencoder, Encoder
+
+__all__ = ["DEFAULT_WEIGHTS", "CHECKPOINT_VERSION", "save_checkpoint", "load_checkpoint", "load_encoder",
+           "load_autoencoder", "encoder_identity", "resolve_device"]
+
+log = logging.getLogger(__name__)
+
+DEFAULT_WEIGHTS = Path(__file__).with_name("weights") / "cae_kitti.pt"  #: shipped, trained on ../shared KITTI
+CHECKPOINT_VERSION = 1
+
+
+def resolve_device(device: str | torch.device | None = None) -> torch.device:
+    """``None``/``"auto"`` -> CUDA when available, else CPU."""
+    if device is None or str(device) == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(device)
+
+
+def save_checkpoint(path: str | Path, model: torch.nn.Module, conf: dict[str, Any], **extra: Any) -> None:
+    """Writes ``{"format_version", "conf", "state_dict", **extra}`` atomically (temp file, then rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
+    torch.save({"format_version": CHECKPOINT_VERSION, "conf": conf, "state_dict": state, **extra}, tmp)
+    tmp.replace(path)
+
+
+def load_checkpoint(path: str | Path) -> dict[str, Any]:
+    """Reads a checkpoint dict (tensors on CPU).
+
+    Raises:
+        ConfigError: missing file, unreadable file, or not a checkpoint of this project.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"weights file not found: {path}")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # torch raises many types for a damaged file
+        raise ConfigError(f"cannot read weights file {path}: {err.__class__.__name__}: {str(err)[:200]}") from None
+    if not isinstance(ckpt, dict) or "state_dict" not in ckpt:
+        raise ConfigError(f"{path} is not a cae-loop-closure checkpoint (no 'state_dict')")
+    return ckpt
+
+
+def _encoder_state(state_dict: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    if any(k.startswith("encoder.") for k in state_dict):
+        return {k[len("encoder."):]: v for k, v in state_dict.items() if k.startswith("encoder.")}
+    return state_dict
+
+
+def load_autoencoder(path: str | Path | None = None, device: str | torch.device | None = None) -> ConvAutoencoder:
+    """The full autoencoder from a checkpoint (default: the shipped weights), in eval mode."""
+    ckpt = load_checkpoint(path or DEFAULT_WEIGHTS)
+    model = ConvAutoencoder()
+    try:
+        model.load_state_dict(ckpt["state_dict"], strict=True)
+    except RuntimeError as err:
+        raise ConfigError(f"weights {path} do not fit the autoencoder: {str(err).splitlines()[0]}") from None
+    return model.to(resolve_device(device)).eval()
+
+
+def load_encoder(path: str | Path | None = None, device: str | torch.device | None = None) -> Encoder:
+    """The encoder, ready for inference.
+
+    Args:
+        path: a checkpoint written by ``train.py`` (full autoencoder or encoder only); ``None`` loads the weights
+            shipped inside the package (no network access).
+        device: ``"cpu"``, ``"cuda"``, ... ; ``None`` picks CUDA when available.
+
+    Returns:
+        ``Encoder`` in eval mode, channels-last, mapping ``(B, 3, 256, 256)`` in [0, 1] to ``(B, 4096)``.
+        Its ``identity`` attribute is a short hash of the weights (stored in keyframe databases).
+    """
+    ckpt = load_checkpoint(path or DEFAULT_WEIGHTS)
+    encoder = Encoder()
+    try:
+        encoder.load_state_dict(_encoder_state(ckpt["state_dict"]), strict=True)
+    except RuntimeError as err:
+        raise ConfigError(f"weights {path} do not fit the encoder: {str(err).splitlines()[0]}") from None
+    encoder.identity = encoder_identity(encoder)
+    dev = resolve_device(device)
+    return encoder.to(dev, memory_format=torch.channels_last).eval()
+
+
+def encoder_identity(encoder: torch.nn.Module) -> str:
+    """A 16-hex-digit hash of the encoder's parameters: equal weights give an equal identity."""
+    h = hashlib.sha256()
+    for name, tensor in sorted(encoder.state_dict().items()):
+        h.update(name.encode())
+        h.update(tensor.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()[:16]

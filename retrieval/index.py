@@ -1,0 +1,170 @@
+"""Cosine top-k over stored codes (faiss), and the keyframe index that excludes recent frames.
+
+Codes are L2-normalised, so the inner product is the cosine similarity. faiss-contrib conventions: numpy in and
+out, ``xq`` queries ``(nq, d)``, ``xb`` database ``(nb, d)``, ``k``; ``D`` scores ``(nq, k)`` and ``I`` positions
+``(nq, k)``, ``-1`` where fewer than ``k`` codes exist.
+
+Index types, by registry name (``index.name``):
+
+- ``flat``: exact, float32 (4 bytes per dimension).
+- ``fp16``: exact up to float16 rounding (2 bytes per dimension).
+- ``hnsw``: approximate graph search over float32 codes (HNSW, Malkov & Yashunin), for very large maps.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from typing import Any
+
+import faiss
+import numpy as np
+
+from cae.conf import Registry, merge_conf
+
+__all__ = ["CodeIndex", "FlatIndex", "FP16Index", "HNSWIndex", "INDEXES", "create_index", "KeyframeIndex",
+           "brute_force_search"]
+
+
+def brute_force_search(xq: np.ndarray, xb: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Reference top-k by inner product in plain numpy (ties broken by lower position). Returns ``D, I``."""
+    xq = np.asarray(xq, np.float32).reshape(len(xq), -1)
+    nq = len(xq)
+    D = np.full((nq, k), -np.inf, np.float32)
+    I = np.full((nq, k), -1, np.int64)
+    if len(xb) == 0 or nq == 0:
+        return D, I
+    sims = xq @ np.asarray(xb, np.float32).T
+    order = np.argsort(-sims, axis=1, kind="stable")[:, :k]
+    D[:, : order.shape[1]] = np.take_along_axis(sims, order, 1)
+    I[:, : order.shape[1]] = order
+    return D, I
+
+
+class CodeIndex:
+    """Base: a faiss inner-product index built from ``factory`` (subclasses set it and their conf)."""
+
+    default_conf: dict[str, Any] = {"name": "flat"}
+    factory = "Flat"
+
+    def __init__(self, dim: int, conf: dict[str, Any] | None = None) -> None:
+        self.conf = merge_conf(self.default_conf, conf, "index")
+        self.dim = dim
+        self.index = faiss.index_factory(dim, self.factory, faiss.METRIC_INNER_PRODUCT)
+        self._configure()
+
+    def _configure(self) -> None:
+        """Hook for subclasses to set search parameters."""
+
+    @property
+    def ntotal(self) -> int:
+        return int(self.index.ntotal)
+
+    def add(self, xb: np.ndarray) -> None:
+        """Appends ``(n, d)`` codes; their positions continue from ``ntotal``."""
+        xb = np.ascontiguousarray(xb, np.float32).reshape(-1, self.dim)
+        if len(xb):
+            self.index.add(xb)
+
+    def search(self, xq: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Top-``k`` by inner product: ``D (nq, k)`` float32, ``I (nq, k)`` int64 (``-1`` padding)."""
+        xq = np.ascontiguousarray(xq, np.float32).reshape(-1, self.dim)
+        if len(xq) == 0 or k <= 0:
+            return np.zeros((len(xq), max(k, 0)), np.float32), np.full((len(xq), max(k, 0)), -1, np.int64)
+        D, I = self.index.search(xq, k)
+        D[I < 0] = -np.inf
+        return D, I.astype(np.int64)
+
+    def bytes_per_code(self) -> float:
+        """Memory of the stored codes per vector (serialised index size / ntotal, at least one code)."""
+        return faiss.serialize_index(self.index).nbytes / max(1, self.ntotal)
+
+
+INDEXES: Registry[CodeIndex] = Registry("index")
+
+
+@INDEXES.register("flat")
+class FlatIndex(CodeIndex):
+    default_conf: dict[str, Any] = {"name": "flat"}  # exact search over float32 codes
+    factory = "Flat"
+
+
+@INDEXES.register("fp16")
+class FP16Index(CodeIndex):
+    default_conf: dict[str, Any] = {"name": "fp16"}  # exact search over float16-rounded codes, half the memory
+    factory = "SQfp16"
+
+
+@INDEXES.register("hnsw")
+class HNSWIndex(CodeIndex):
+    default_conf: dict[str, Any] = {
+        "name": "hnsw",
+        "m": 32,  # graph degree (faiss HNSW M): more = better recall, more memory
+        "ef_search": 128,  # candidate list size at search time: more = better recall, slower
+        "ef_construction": 64,  # candidate list size while inserting
+    }
+
+    def __init__(self, dim: int, conf: dict[str, Any] | None = None) -> None:
+        self.factory = f"HNSW{merge_conf(self.default_conf, conf, 'index')['m']}"
+        super().__init__(dim, conf)
+
+    def _configure(self) -> None:
+        self.index.hnsw.efSearch = self.conf["ef_search"]
+        self.index.hnsw.efConstruction = self.conf["ef_construction"]
+
+
+def create_index(dim: int, conf: dict[str, Any] | None = None) -> CodeIndex:
+    """The index named by ``conf["name"]`` (default ``"flat"``)."""
+    return INDEXES.get((conf or {}).get("name", "flat"))(dim, conf)
+
+
+class KeyframeIndex:
+    """Keyframe codes searchable by cosine, with recent frames excluded.
+
+    A code becomes searchable only once it is old enough relative to the query: at least ``exclude_recent`` frames
+    earlier and, when timestamps are given, ``exclude_recent_s`` seconds earlier. Codes wait in a queue until then,
+    so the exclusion costs nothing at search time and works with every index type (none needs deletion).
+    Frames are expected in increasing ``frame_id`` (and timestamp) order, as a camera delivers them.
+    """
+
+    def __init__(self, dim: int, index_conf: dict[str, Any] | None = None, exclude_recent: int = 0,
+                 exclude_recent_s: float | None = None) -> None:
+        self.index = create_index(dim, index_conf)
+        self.exclude_recent = int(exclude_recent)
+        self.exclude_recent_s = exclude_recent_s
+        self.frame_ids: list[int] = []  # position in the index -> frame id
+        self._pending: deque[tuple[int, float | None, np.ndarray]] = deque()
+
+    def __len__(self) -> int:
+        return len(self.frame_ids) + len(self._pending)
+
+    def add(self, frame_id: int, code: np.ndarray, timestamp: float | None = None) -> None:
+        """Queues a keyframe's unit-norm ``(d,)`` code."""
+        self._pending.append((int(frame_id), timestamp, np.asarray(code, np.float32).reshape(-1)))
+
+    def _release(self, frame_id: int, timestamp: float | None) -> None:
+        ready = []
+        while self._pending:
+            fid, ts, code = self._pending[0]
+            if frame_id - fid < self.exclude_recent:
+                break
+            if self.exclude_recent_s is not None and timestamp is not None and ts is not None \
+                    and timestamp - ts < self.exclude_recent_s:
+                break
+            self._pending.popleft()
+            self.frame_ids.append(fid)
+            ready.append(code)
+        if ready:
+            self.index.add(np.stack(ready))
+
+    def search(self, code: np.ndarray, frame_id: int, k: int,
+               timestamp: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Top-``k`` keyframes for a query frame, recent ones excluded.
+
+        Returns:
+            ``scores (m,)`` float32 cosine similarities, best first, and ``frame_ids (m,)`` int64, ``m <= k``.
+        """
+        self._release(frame_id, timestamp)
+        D, I = self.index.search(np.asarray(code, np.float32).reshape(1, -1), k)
+        keep = I[0] >= 0
+        ids = np.asarray(self.frame_ids, np.int64)
+        return D[0][keep], ids[I[0][keep]] if len(ids) else np.zeros(0, np.int64)

@@ -1,0 +1,103 @@
+"""Local features, computed once per keyframe and kept (SIFT now; other extractors plug in by name).
+
+``Features`` is the contract between extraction, storage and matching:
+
+    keypoints    (N, 2) float32   x, y in pixels of the ORIGINAL image (whatever scale extraction ran at)
+    descriptors  (N, D) float32 for SIFT (D = 128), uint8 for binary descriptors
+    scales       (N,)   float32   keypoint diameter in original-image pixels
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+
+from cae.conf import Registry, merge_conf
+from cae.preprocess import to_gray_u8
+
+__all__ = ["Features", "FeatureExtractor", "SIFT", "FEATURES", "create_extractor"]
+
+
+@dataclass
+class Features:
+    keypoints: np.ndarray
+    descriptors: np.ndarray
+    scales: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.keypoints)
+
+    @classmethod
+    def empty(cls, dim: int = 128, dtype: type = np.float32) -> "Features":
+        return cls(np.zeros((0, 2), np.float32), np.zeros((0, dim), dtype), np.zeros((0,), np.float32))
+
+
+class FeatureExtractor:
+    """Base: ``extract(image) -> Features``. Subclasses set ``default_conf`` and implement ``_detect``."""
+
+    default_conf: dict[str, Any] = {}
+    descriptor_dim = 0
+    descriptor_dtype: type = np.float32
+
+    def __init__(self, conf: dict[str, Any] | None = None) -> None:
+        self.conf = merge_conf(self.default_conf, conf, "features")
+
+    def extract(self, image: np.ndarray) -> Features:
+        """Any accepted image (grey/BGR, 8/16-bit, any size) -> ``Features`` (empty, right shapes, if none found)."""
+        gray = to_gray_u8(image)
+        scale = 1.0
+        resize_max = self.conf.get("resize_max")
+        if resize_max and max(gray.shape) > resize_max:
+            scale = resize_max / max(gray.shape)
+            gray = cv2.resize(gray, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+        kps, desc = self._detect(gray)
+        if not kps:
+            return Features.empty(self.descriptor_dim, self.descriptor_dtype)
+        pts = np.array([k.pt for k in kps], np.float32) / scale
+        sizes = np.array([k.size for k in kps], np.float32) / scale
+        return Features(pts, np.ascontiguousarray(desc, dtype=self.descriptor_dtype), sizes)
+
+    def _detect(self, gray: np.ndarray) -> tuple[list, np.ndarray | None]:
+        raise NotImplementedError
+
+
+FEATURES: Registry[FeatureExtractor] = Registry("feature extractor")
+
+
+@FEATURES.register("sift")
+class SIFT(FeatureExtractor):
+    """OpenCV SIFT (Lowe 2004), optionally RootSIFT-normalised."""
+
+    default_conf: dict[str, Any] = {
+        "name": "sift",  # extractor, by registry name
+        "resize_max": 640,  # downscale so the longer side is at most this (None: full resolution); never upscales
+        "max_features": 1000,  # keep at most this many keypoints, strongest first
+        "contrast_threshold": 0.04,  # SIFT DoG contrast threshold (OpenCV default)
+        "edge_threshold": 10,  # SIFT edge-response threshold (OpenCV default)
+        "n_octave_layers": 3,  # scales per octave (OpenCV default)
+        "root_sift": False,  # L1-normalise then square-root descriptors (Arandjelovic & Zisserman 2012)
+    }
+    descriptor_dim = 128
+
+    def __init__(self, conf: dict[str, Any] | None = None) -> None:
+        super().__init__(conf)
+        c = self.conf
+        self._sift = cv2.SIFT_create(nfeatures=c["max_features"], nOctaveLayers=c["n_octave_layers"],
+                                     contrastThreshold=c["contrast_threshold"], edgeThreshold=c["edge_threshold"])
+
+    def _detect(self, gray: np.ndarray) -> tuple[list, np.ndarray | None]:
+        kps, desc = self._sift.detectAndCompute(gray, None)
+        if desc is not None and len(kps) > self.conf["max_features"]:  # OpenCV may keep ties beyond the cap
+            kps, desc = kps[: self.conf["max_features"]], desc[: self.conf["max_features"]]
+        if desc is not None and self.conf["root_sift"]:
+            desc = np.sqrt(desc / np.maximum(desc.sum(axis=1, keepdims=True), 1e-12)) * 512.0
+        return list(kps), desc
+
+
+def create_extractor(conf: dict[str, Any] | None = None) -> FeatureExtractor:
+    """The extractor named by ``conf["name"]`` (default ``"sift"``), configured by the rest of ``conf``."""
+    name = (conf or {}).get("name", "sift")
+    return FEATURES.get(name)(conf)

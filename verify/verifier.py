@@ -1,0 +1,91 @@
+"""Judging candidate pairs: a verifier matches descriptors (subclass) and runs the geometric check once (base).
+
+Subclasses implement only ``match_many``; the base class turns matches into points, runs ``GeometricVerifier``
+and reports a ``Verification`` per candidate. New matchers plug in by name through ``VERIFIERS``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import numpy as np
+
+from cae.conf import Registry, merge_conf
+
+from .features import Features
+from .geometry import GeometricVerifier, GeometryResult
+from .matching import match_ratio_many
+
+__all__ = ["Verification", "Verifier", "RatioTestVerifier", "VERIFIERS", "create_verifier"]
+
+
+@dataclass
+class Verification:
+    matches: int  #: putative matches after the ratio test (and mutual check)
+    inliers: int  #: geometric inliers (0 when geometry is off or fails)
+    geometry: GeometryResult = field(repr=False)
+    pairs: np.ndarray = field(repr=False)  #: (matches, 2) int64 (query_index, candidate_index)
+
+
+class Verifier:
+    """Base: ``verify(query, candidates, K)``; subclasses provide ``match_many``."""
+
+    default_conf: dict[str, Any] = {}
+
+    def __init__(self, conf: dict[str, Any] | None = None, geometry: dict[str, Any] | None = None) -> None:
+        self.conf = merge_conf(self.default_conf, conf, "matching")
+        self.geometry = GeometricVerifier(geometry)
+
+    def match_many(self, query: Features, candidates: Sequence[Features]) -> list[np.ndarray]:
+        """Putative matches of ``query`` against each candidate, ``(M_i, 2)`` int64 each."""
+        raise NotImplementedError
+
+    def verify(self, query: Features, candidates: Sequence[Features], K: np.ndarray | None = None,
+               min_matches: int = 0, min_inliers: int = 0) -> list[Verification]:
+        """Matches, then checks geometry for each candidate.
+
+        Args:
+            query: the query frame's features.
+            candidates: features of each candidate keyframe.
+            K: ``(3, 3)`` intrinsics (both frames from the same camera), or None.
+            min_matches: skip RANSAC when there are fewer putative matches (the pair cannot pass anyway).
+            min_inliers: lets the geometric check stop early on a pair that cannot reach this many inliers.
+
+        Returns:
+            One ``Verification`` per candidate, in order; ``[]`` for no candidates.
+        """
+        if not candidates:
+            return []
+        out = []
+        for cand, pairs in zip(candidates, self.match_many(query, candidates)):
+            if len(pairs) < max(min_matches, min_inliers, 1):
+                geo = GeometryResult(0, np.zeros(len(pairs), bool), "skipped")
+            else:
+                geo = self.geometry(query.keypoints[pairs[:, 0]], cand.keypoints[pairs[:, 1]], K, min_inliers)
+            out.append(Verification(len(pairs), geo.inliers, geo, pairs))
+        return out
+
+
+VERIFIERS: Registry[Verifier] = Registry("matcher")
+
+
+@VERIFIERS.register("ratio")
+class RatioTestVerifier(Verifier):
+    """Nearest neighbour + Lowe's ratio test (L2 for float descriptors, Hamming for binary ones)."""
+
+    default_conf: dict[str, Any] = {
+        "name": "ratio",  # matcher, by registry name
+        "ratio": 0.8,  # Lowe's ratio: keep a match when d1 < ratio * d2
+        "mutual": False,  # also require mutual nearest neighbours
+    }
+
+    def match_many(self, query: Features, candidates: Sequence[Features]) -> list[np.ndarray]:
+        metric = "hamming" if query.descriptors.dtype == np.uint8 else "l2"
+        return match_ratio_many(query.descriptors, [c.descriptors for c in candidates], self.conf["ratio"],
+                                self.conf["mutual"], metric)
+
+
+def create_verifier(matching: dict[str, Any] | None = None, geometry: dict[str, Any] | None = None) -> Verifier:
+    """The verifier named by ``matching["name"]`` (default ``"ratio"``)."""
+    return VERIFIERS.get((matching or {}).get("name", "ratio"))(matching, geometry)
