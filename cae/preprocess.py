@@ -18,7 +18,7 @@ import torch
 
 from .model import INPUT_SIZE
 
-__all__ = ["IMAGE_EXTENSIONS", "ImageError", "read_image", "to_uint8", "to_gray_u8", "to_rgb_u8", "resize_square", "preprocess"]
+__all__ = ["IMAGE_EXTENSIONS", "ImageError", "read_image", "to_uint8", "to_gray_u8", "to_rgb_u8", "resize_square", "to_network_u8", "preprocess"]
 
 log = logging.getLogger(__name__)
 
@@ -96,6 +96,15 @@ def resize_square(image: np.ndarray, size: int = INPUT_SIZE) -> np.ndarray:
     return cv2.resize(image, (size, size), interpolation=interp)
 
 
+def to_network_u8(image: np.ndarray, size: int = INPUT_SIZE) -> np.ndarray:
+    """Any accepted image -> the network's image before scaling, ``(size, size, 3)`` uint8 RGB.
+
+    Resizes first (one channel for grey input), then expands to RGB: cheaper than the other way round.
+    """
+    _check_layout(image)
+    return to_rgb_u8(resize_square(to_uint8(image), size))
+
+
 def preprocess(images: np.ndarray | Sequence[np.ndarray], size: int = INPUT_SIZE) -> torch.Tensor:
     """Images as OpenCV reads them -> the network input.
 
@@ -110,7 +119,7 @@ def preprocess(images: np.ndarray | Sequence[np.ndarray], size: int = INPUT_SIZE
         images = [images]
     if len(images) == 0:
         return torch.empty((0, 3, size, size), dtype=torch.float32).contiguous(memory_format=torch.channels_last)
-    batch = np.stack([resize_square(to_rgb_u8(img), size) for img in images])  # (B, S, S, 3) uint8
+    batch = np.stack([to_network_u8(img, size) for img in images])  # (B, S, S, 3) uint8
     # (B, S, S, 3) -> (B, 3, S, S) view whose memory is already channels-last: no copy.
     x = torch.from_numpy(batch).permute(0, 3, 1, 2)
     return x.to(torch.float32).div_(255.0)

@@ -25,7 +25,7 @@ from tqdm import tqdm
 from .cli import run_cli
 from .conf import ConfigError, dump_conf, load_conf_file, merge_conf
 from .model import INPUT_SIZE, ConvAutoencoder
-from .preprocess import IMAGE_EXTENSIONS, ImageError, read_image, resize_square, to_rgb_u8
+from .preprocess import IMAGE_EXTENSIONS, ImageError, read_image, to_network_u8
 from .weights import load_checkpoint, resolve_device, save_checkpoint
 
 __all__ = ["default_conf", "list_images", "load_image_folder", "main"]
@@ -69,7 +69,7 @@ def load_image_folder(files: Sequence[Path]) -> tuple[np.ndarray, list[Path]]:
     arrays, used = [], []
     for path in tqdm(files, desc="loading images", unit="img", leave=False):
         try:
-            arrays.append(resize_square(to_rgb_u8(read_image(path)), INPUT_SIZE))
+            arrays.append(to_network_u8(read_image(path), INPUT_SIZE))
             used.append(path)
         except ImageError as err:
             log.warning("skipping %s", err)

@@ -1,10 +1,28 @@
-"""Ground-truth loop pairs: read from a pairs file, or derived from poses with a radius and a minimum gap."""
+"""Ground-truth loop pairs: read from a pairs file, or derived from poses with a radius and a minimum gap.
+
+Two file kinds are accepted as ground truth (``load_ground_truth`` tells them apart by their content):
+
+- a pairs file: ``i j`` per line (0-based frame indices, ``i`` later than ``j``; ``#`` comments allowed), e.g.
+  ``sequences/90/loops.txt``;
+- a KITTI poses file: 12 numbers per line (3x4 camera-to-world, row-major, row ``n`` = frame ``n``), from which
+  the pairs are derived with ``loops_from_poses``.
+"""
 
 from __future__ import annotations
 
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
 import numpy as np
 
-__all__ = ["loops_from_poses"]
+from cae.conf import ConfigError
+
+__all__ = ["GroundTruth", "loops_from_poses", "load_ground_truth", "pair_matrix", "sniff_ground_truth"]
+
+log = logging.getLogger(__name__)
+
+_CHUNK = 1024  # rows of the distance matrix computed at once (bounds memory on long sequences)
 
 
 def loops_from_poses(poses: np.ndarray, radius: float = 5.0, min_gap: int = 50,
@@ -20,18 +38,147 @@ def loops_from_poses(poses: np.ndarray, radius: float = 5.0, min_gap: int = 50,
 
     Returns:
         ``(P, 2)`` int64 pairs ``(i, j)`` with ``i > j``, sorted by ``i`` then ``j``; ``(0, 2)`` when none.
+
+    Raises:
+        ConfigError: ``timestamps`` given with ``min_gap_s`` but of another length than ``poses``.
     """
     poses = np.asarray(poses, np.float64).reshape(-1, 3, 4)
     n = len(poses)
     if n == 0:
         return np.zeros((0, 2), np.int64)
+    use_time = min_gap_s is not None and timestamps is not None
+    if use_time:
+        t = np.asarray(timestamps, np.float64).reshape(-1)
+        if len(t) != n:
+            raise ConfigError(f"{len(t)} timestamps for {n} poses; the time gap needs one timestamp per pose")
     xz = poses[:, [0, 2], 3]
-    d = np.linalg.norm(xz[:, None, :] - xz[None, :, :], axis=2)
-    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
-    if min_gap_s is not None and timestamps is not None:
-        t = np.asarray(timestamps, np.float64)
-        far = (t[:, None] - t[None, :]) >= min_gap_s
-    else:
-        far = (i - j) >= min_gap
-    sel = (d < radius) & far & (i > j)
-    return np.stack([i[sel], j[sel]], axis=1).astype(np.int64)
+    out = []
+    for start in range(0, n, _CHUNK):
+        rows = np.arange(start, min(n, start + _CHUNK))
+        d = np.linalg.norm(xz[rows, None, :] - xz[None, :, :], axis=2)
+        i, j = np.meshgrid(rows, np.arange(n), indexing="ij")
+        far = (t[rows, None] - t[None, :]) >= min_gap_s if use_time else (i - j) >= min_gap
+        sel = (d < radius) & far & (i > j)
+        out.append(np.stack([i[sel], j[sel]], axis=1))
+    return np.concatenate(out).astype(np.int64).reshape(-1, 2)
+
+
+@dataclass
+class GroundTruth:
+    """Ground truth of one sequence.
+
+    Attributes:
+        pairs: ``(P, 2)`` int64 ``(later, earlier)`` true loop pairs, sorted.
+        kind: ``"pairs"`` (read from a pairs file) or ``"poses"`` (derived from a KITTI poses file).
+        path: the file it came from.
+        poses: ``(N, 3, 4)`` camera-to-world poses when ``kind == "poses"``, else None.
+    """
+
+    pairs: np.ndarray
+    kind: str
+    path: Path
+    poses: np.ndarray | None = None
+
+    @property
+    def queries(self) -> np.ndarray:
+        """``(Q,)`` int64 frames that have at least one true loop (the recall denominator), sorted."""
+        return np.unique(self.pairs[:, 0]) if len(self.pairs) else np.zeros(0, np.int64)
+
+
+def _numeric_rows(path: Path) -> list[list[str]]:
+    if not path.is_file():
+        raise ConfigError(f"ground-truth file not found: {path}")
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as err:
+        raise ConfigError(f"cannot read ground-truth file {path}: {err}") from None
+    return [line.split() for line in text.splitlines() if line.strip() and not line.lstrip().startswith("#")]
+
+
+def _is_int(s: str) -> bool:
+    try:
+        int(s)
+    except ValueError:
+        return False
+    return True
+
+
+def _is_float(s: str) -> bool:
+    try:
+        float(s)
+    except ValueError:
+        return False
+    return True
+
+
+def sniff_ground_truth(path: str | Path) -> str:
+    """Tells a pairs file (``"pairs"``: 2 integers a line) from a KITTI poses file (``"poses"``: 12 numbers a line).
+
+    An empty file (or only comments) is a pairs file with no pair.
+
+    Raises:
+        ConfigError: missing file, or lines that are neither (the message names the first offending line).
+    """
+    path = Path(path)
+    rows = _numeric_rows(path)
+    if not rows:
+        return "pairs"
+    if len(rows[0]) == 12 and all(len(r) == 12 and all(map(_is_float, r)) for r in rows):
+        return "poses"
+    if all(len(r) == 2 and all(map(_is_int, r)) for r in rows):
+        return "pairs"
+    bad = next((n for n, r in enumerate(rows, 1) if not (len(r) == 2 and all(map(_is_int, r)))
+                and not (len(r) == 12 and all(map(_is_float, r)))), None)
+    what = ("mixes pair lines and pose lines" if bad is None
+            else f"data line {bad} is {' '.join(rows[bad - 1])[:60]!r}")
+    raise ConfigError(f"{path}: not a ground-truth file (need 'i j' integer pairs, or KITTI poses with 12 numbers "
+                      f"a line); {what}")
+
+
+def load_ground_truth(path: str | Path, radius: float = 5.0, min_gap: int = 50,
+                      timestamps: np.ndarray | None = None, min_gap_s: float | None = None) -> GroundTruth:
+    """Reads ground-truth pairs from a pairs file, or derives them from a KITTI poses file.
+
+    Args:
+        path: pairs file or KITTI poses file (detected from the content, see ``sniff_ground_truth``).
+        radius: metres, for poses (pairs strictly closer on the x-z plane are loops).
+        min_gap: minimum frame gap, for poses.
+        timestamps: ``(N,)`` seconds per pose row, for ``min_gap_s``.
+        min_gap_s: minimum time gap in seconds; replaces ``min_gap`` when ``timestamps`` are given.
+
+    Returns:
+        ``GroundTruth`` with pairs ``(P, 2)`` as ``(later, earlier)``, unique and sorted.
+
+    Raises:
+        ConfigError: missing or unrecognised file, or negative frame indices.
+    """
+    path = Path(path)
+    kind = sniff_ground_truth(path)
+    if kind == "poses":
+        poses = np.loadtxt(path, ndmin=2).reshape(-1, 3, 4)
+        if min_gap_s is not None and timestamps is None:
+            log.warning("min_gap_s=%s given without timestamps; using the frame gap %d instead", min_gap_s, min_gap)
+        pairs = loops_from_poses(poses, radius, min_gap, timestamps, min_gap_s)
+        return GroundTruth(pairs, "poses", path, poses)
+    rows = _numeric_rows(path)
+    pairs = np.array(rows, np.int64).reshape(-1, 2)
+    if len(pairs) and pairs.min() < 0:
+        raise ConfigError(f"{path}: negative frame index in the pairs")
+    if len(pairs):
+        pairs = np.unique(np.stack([pairs.max(1), pairs.min(1)], axis=1), axis=0)
+    return GroundTruth(pairs, "pairs", path)
+
+
+def pair_matrix(pairs: np.ndarray, n: int) -> np.ndarray:
+    """Symmetric boolean ``(n, n)`` matrix, True at every pair (pairs with an index >= n are dropped).
+
+    Args:
+        pairs: ``(P, 2)`` int frame-index pairs, either order.
+        n: number of frames.
+    """
+    m = np.zeros((max(0, n), max(0, n)), bool)
+    p = np.asarray(pairs, np.int64).reshape(-1, 2)
+    p = p[(p >= 0).all(1) & (p < n).all(1)]
+    m[p[:, 0], p[:, 1]] = True
+    m[p[:, 1], p[:, 0]] = True
+    return m

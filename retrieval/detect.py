@@ -113,7 +113,7 @@ def main(path: str | Path | None = None, out: str | Path | None = None, conf: di
         gated = len(det.db.gated())
         keyframes = len(det.db)
     summary: dict[str, Any] = {
-        "sequence": str(seq.root), "frames": len(seq), "processed_this_run": len(timings), "resumed_at": start,
+        "sequence": str(seq.root.resolve()), "frames": len(seq), "processed_this_run": len(timings), "resumed_at": start,
         "keyframes": keyframes, "gated_out": gated, "unreadable": len(unreadable), "unreadable_files": unreadable,
         "loops": len(loops), "ms_per_frame": stage_stats(timings), "out": str(out),
     }

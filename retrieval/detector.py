@@ -65,7 +65,7 @@ default_conf: dict[str, Any] = {
     "geometry": GeometricVerifier.default_conf,  # RANSAC model and thresholds
     "policy": {
         "min_matches": 5,  # putative (ratio-test) matches a candidate needs (paper: 5)
-        "min_inliers": 0,  # geometric inliers a candidate needs (0: no geometric requirement)
+        "min_inliers": 50,  # geometric inliers a candidate needs (0: none); chosen on KITTI, see BENCHMARKS.md
     },
     "runtime": {
         "threads": None,  # CPU threads for torch/OpenCV; None = all cores
