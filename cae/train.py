@@ -157,9 +157,9 @@ def main(images: str | Path | Sequence[str | Path], out: str | Path = "runs/trai
         state = load_checkpoint(last_path)
         model.load_state_dict(state["state_dict"], strict=True)
         optim.load_state_dict(state["optimizer"])
-        start_epoch, best_val, best_epoch = state["epoch"] + 1, state["best_val_loss"], state["best_epoch"]
+        start_epoch, best_val, best_epoch = state["epoch"], state["best_val_loss"], state["best_epoch"]
         history = state["history"]
-        log.info("resuming from %s after epoch %d (best validation loss %.5f)", last_path, state["epoch"], best_val)
+        log.info("resuming from %s after epoch %d (best validation loss %.5f)", last_path, start_epoch, best_val)
     else:
         history.append({"epoch": 0, "train_loss": float("nan"),
                         "val_loss": _evaluate(model, val_set, conf["batch_size"], device), "seconds": 0.0})
@@ -186,7 +186,7 @@ def main(images: str | Path | Sequence[str | Path], out: str | Path = "runs/trai
         if val < best_val - conf["min_delta"]:
             best_val, best_epoch = val, epoch + 1
             save_checkpoint(out / "best.pt", model, conf, epoch=epoch + 1, val_loss=val)
-        save_checkpoint(last_path, model, conf, epoch=epoch, optimizer=optim.state_dict(), best_val_loss=best_val,
+        save_checkpoint(last_path, model, conf, epoch=epoch + 1, optimizer=optim.state_dict(), best_val_loss=best_val,
                         best_epoch=best_epoch, history=history)
         _plot_history(history, out / "loss.png")
         bar.set_postfix(train=f"{history[-1]['train_loss']:.4f}", val=f"{val:.4f}", best=f"{best_val:.4f}")

@@ -11,7 +11,7 @@ from cae.cli import run_cli
 __all__ = ["main", "SUBCOMMANDS"]
 
 #: modules that contribute a subcommand through ``add_parser(subparsers)``
-SUBCOMMANDS = ("retrieval.detect", "evaluation.evaluate")
+SUBCOMMANDS = ("retrieval.detect", "evaluation.evaluate", "evaluation.bench")
 
 
 def build_parser() -> argparse.ArgumentParser:

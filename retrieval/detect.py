@@ -14,8 +14,9 @@ from __future__ import annotations
 import csv
 import json
 import logging
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 from tqdm import tqdm
@@ -62,6 +63,23 @@ def stage_stats(timings: list[dict[str, float]]) -> dict[str, dict[str, float]]:
             for s in STAGES if full and all(s in t for t in full)}
 
 
+def _read_or_error(path: Path) -> np.ndarray | ImageError:
+    try:
+        return read_image(path)
+    except ImageError as err:
+        return err
+
+
+def _prefetch(paths: list[Path]) -> Iterator[np.ndarray | ImageError]:
+    """Decodes the next image in a worker thread while the current one is processed (one frame ahead)."""
+    with ThreadPoolExecutor(1, thread_name_prefix="read") as pool:
+        pending = pool.submit(_read_or_error, paths[0]) if paths else None
+        for nxt in [*paths[1:], None]:
+            current = pending.result()
+            pending = pool.submit(_read_or_error, nxt) if nxt is not None else None
+            yield current
+
+
 def _default_out(seq: Sequence) -> Path:
     return Path("runs") / ("sample" if seq.root.resolve() == SAMPLE_DIR.resolve() else seq.root.name)
 
@@ -97,11 +115,9 @@ def main(path: str | Path | None = None, out: str | Path | None = None, conf: di
         bar = tqdm(range(start, len(seq)), desc=f"detect {seq.root.name}", unit="frame", disable=not progress,
                    initial=start, total=len(seq))
         n_loops = 0
-        for i in bar:
-            try:
-                image = read_image(seq.frames[i])
-            except ImageError as err:
-                log.warning("skipping frame %d: %s", i, err)
+        for i, image in zip(bar, _prefetch(seq.frames[start:])):
+            if isinstance(image, ImageError):
+                log.warning("skipping frame %d: %s", i, image)
                 unreadable.append(seq.frames[i].name)
                 continue
             res = det.process(image, i, None if seq.timestamps is None else float(seq.timestamps[i]),

@@ -30,16 +30,14 @@ import numpy as np
 import torch
 
 from cae.conf import ConfigError, merge_conf
-from cae.encode import encode_images
-from cae.model import CODE_DIM
 from cae.preprocess import to_gray_u8
-from cae.weights import load_encoder
 from verify.features import FEATURES, Features, create_extractor
 from verify.gate import EdgeGate
 from verify.geometry import GeometricVerifier
 from verify.verifier import VERIFIERS, Verification, create_verifier
 
 from .database import KeyframeDatabase, KeyframeRecord
+from .descriptors import DESCRIPTORS, create_descriptor
 from .index import INDEXES, KeyframeIndex
 
 __all__ = ["Candidate", "FrameResult", "LoopDetector", "default_conf", "resolve_conf"]
@@ -48,11 +46,7 @@ log = logging.getLogger(__name__)
 
 default_conf: dict[str, Any] = {
     "gate": EdgeGate.default_conf,  # image-quality gate (Canny edge ratio)
-    "encoder": {
-        "weights": None,  # checkpoint path; None = the weights shipped in the package
-        "device": "cpu",  # "cpu", "cuda", "auto"; per-frame batch-1 encoding is fastest on the CPU for this net
-        "half": False,  # float16 inference (CUDA only)
-    },
+    "encoder": {"name": "cae"},  # global descriptor by registry name (cae; baselines) and its options
     "index": {"name": "flat"},  # code index by registry name (flat, fp16, hnsw) and its options
     "search": {
         "k": 10,  # candidates retrieved per query (paper: top-10)
@@ -74,7 +68,7 @@ default_conf: dict[str, Any] = {
     },
 }
 
-_REGISTRY_SECTIONS = {"index": INDEXES, "features": FEATURES, "matching": VERIFIERS}
+_REGISTRY_SECTIONS = {"encoder": DESCRIPTORS, "index": INDEXES, "features": FEATURES, "matching": VERIFIERS}
 _NOT_PERSISTED = ("runtime",)  # sections that may change between a run and its resumption
 
 
@@ -141,7 +135,7 @@ class LoopDetector:
         K: ``(3, 3)`` camera intrinsics; enables the essential-matrix check (``geometry.model: auto``).
         database: path of an HDF5 keyframe database to write (resumed if it exists), or None to keep
             keyframes in memory only.
-        encoder: an already loaded ``cae.Encoder`` (skips loading ``conf.encoder.weights``).
+        encoder: an already loaded ``cae.Encoder`` for the ``cae`` descriptor (skips loading its weights).
     """
 
     def __init__(self, conf: dict[str, Any] | None = None, K: np.ndarray | None = None,
@@ -153,19 +147,19 @@ class LoopDetector:
         cv2.setNumThreads(threads)
         self.K = None if K is None else np.asarray(K, np.float64).reshape(3, 3)
         self.gate = EdgeGate(c["gate"])
-        self.encoder = encoder if encoder is not None else load_encoder(c["encoder"]["weights"], c["encoder"]["device"])
+        extra = {"encoder": encoder} if encoder is not None else {}
+        self.descriptor = create_descriptor(c["encoder"], **extra)
         self.extractor = create_extractor(c["features"])
         self.verifier = create_verifier(c["matching"], c["geometry"])
         self.verifier.geometry.model_for(self.K)  # fail now, not at the first loop, if E is asked without K
-        self.index = KeyframeIndex(CODE_DIM, c["index"], c["search"]["exclude_recent"], c["search"]["exclude_recent_s"])
+        self.index = KeyframeIndex(self.descriptor.dim, c["index"], c["search"]["exclude_recent"], c["search"]["exclude_recent_s"])
         self.features: dict[int, Features] = {}
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="features") if c["runtime"]["parallel"] else None
         self._next_id = 0
         self.db: KeyframeDatabase | None = None
         if database is not None:
             persisted = {k: v for k, v in c.items() if k not in _NOT_PERSISTED}
-            self.db = KeyframeDatabase(database, persisted, getattr(self.encoder, "identity", ""),
-                                       c["runtime"]["flush_every"])
+            self.db = KeyframeDatabase(database, persisted, self.descriptor.identity, c["runtime"]["flush_every"])
             self._load(self.db)
 
     def _load(self, db: KeyframeDatabase) -> None:
@@ -210,9 +204,13 @@ class LoopDetector:
             ms["total"] = (time.perf_counter() - t_start) * 1e3
             return FrameResult(fid, True, gate.edge_ratio, ms=ms)
 
-        future = self._pool.submit(self._timed_extract, gray) if self._pool is not None else None
+        parallel = self._pool is not None and not self.descriptor.needs_features
+        future = self._pool.submit(self._timed_extract, gray) if parallel else None
+        feats = None
+        if self.descriptor.needs_features:
+            feats, ms["features"] = self._timed_extract(gray)
         t0 = time.perf_counter()
-        code = encode_images(self.encoder, [image], half=c["encoder"]["half"])[0]
+        code = self.descriptor(image, feats)
         ms["encode"] = (time.perf_counter() - t0) * 1e3
         t0 = time.perf_counter()
         scores, ids = self.index.search(code, fid, c["search"]["k"], timestamp)
@@ -220,7 +218,10 @@ class LoopDetector:
         candidates = [Candidate(int(i), float(s)) for s, i in zip(scores[keep], ids[keep])]
         ms["search"] = (time.perf_counter() - t0) * 1e3
         t0 = time.perf_counter()
-        feats, ms["features"] = future.result() if future is not None else self._timed_extract(gray)
+        if future is not None:
+            feats, ms["features"] = future.result()
+        elif feats is None:
+            feats, ms["features"] = self._timed_extract(gray)
         ms["features_wait"] = (time.perf_counter() - t0) * 1e3
 
         t0 = time.perf_counter()

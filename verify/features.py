@@ -73,8 +73,8 @@ class SIFT(FeatureExtractor):
 
     default_conf: dict[str, Any] = {
         "name": "sift",  # extractor, by registry name
-        "resize_max": 640,  # downscale so the longer side is at most this (None: full resolution); never upscales
-        "max_features": 1000,  # keep at most this many keypoints, strongest first
+        "resize_max": 512,  # downscale so the longer side is at most this (None: full resolution); never upscales
+        "max_features": 500,  # keep at most this many keypoints, strongest first
         "contrast_threshold": 0.04,  # SIFT DoG contrast threshold (OpenCV default)
         "edge_threshold": 10,  # SIFT edge-response threshold (OpenCV default)
         "n_octave_layers": 3,  # scales per octave (OpenCV default)

@@ -1,0 +1,124 @@
+"""Shared pieces of ``cae-lcd bench``: the time budget, detection runs (optionally in a fresh process, for a clean
+peak-memory reading), the metrics of a run, and Markdown tables."""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import resource
+import shutil
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from .evaluate import CANDIDATE_COLUMNS, KS, read_csv_table
+from .metrics import best_per_query, pr_curve, recall_at_k
+
+__all__ = ["Budget", "detect_run", "run_metrics", "md_table", "fmt", "REPO"]
+
+log = logging.getLogger(__name__)
+
+REPO = Path(__file__).resolve().parents[1]  #: the project checkout (configs/ lives here)
+
+
+class Budget:
+    """Wall-clock budget of one bench run: what is left decides whether optional parts still run."""
+
+    def __init__(self, seconds: float) -> None:
+        self.seconds = float(seconds)
+        self.start = time.perf_counter()
+
+    def elapsed(self) -> float:
+        """Seconds since the bench started."""
+        return time.perf_counter() - self.start
+
+    def left(self) -> float:
+        """Seconds left (negative once overrun)."""
+        return self.seconds - self.elapsed()
+
+    def allows(self, estimate_s: float) -> bool:
+        """True when an estimated ``estimate_s`` seconds still fit."""
+        return estimate_s <= self.left()
+
+
+def _detect_child(path: str, out: str, conf: dict[str, Any]) -> tuple[dict[str, Any], int]:
+    """Runs ``retrieval.detect.main`` in this (fresh) process; returns its summary and peak RSS in bytes."""
+    import retrieval.baselines  # noqa: F401  (registers the baseline descriptors)
+    from retrieval.detect import main as detect
+
+    summary = detect(path, out, conf, progress=False)
+    return summary, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
+def detect_run(path: str | Path, out: str | Path, conf: dict[str, Any] | None = None,
+               isolate: bool = False) -> dict[str, Any]:
+    """A fresh ``cae-lcd detect`` run (the run folder is emptied first).
+
+    Args:
+        path: sequence folder.
+        out: run folder (deleted and rewritten).
+        conf: detector overrides.
+        isolate: run in a freshly spawned process, so that ``peak_rss_bytes`` is the detector's own peak memory
+            (resident set size: numpy and torch buffers included) and not this process's.
+
+    Returns:
+        ``retrieval.detect.main``'s summary plus ``wall_s`` and, when isolated, ``peak_rss_bytes``.
+    """
+    out = Path(out)
+    shutil.rmtree(out, ignore_errors=True)
+    t0 = time.perf_counter()
+    if isolate:
+        with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
+            summary, rss = pool.submit(_detect_child, str(path), str(out), conf or {}).result()
+        summary["peak_rss_bytes"] = rss
+    else:
+        import retrieval.baselines  # noqa: F401
+        from retrieval.detect import main as detect
+
+        summary = detect(path, out, conf or {}, progress=False)
+    summary["wall_s"] = time.perf_counter() - t0
+    return summary
+
+
+def run_metrics(out: str | Path, ground_truth: np.ndarray | None, min_matches: int,
+                score: str = "inliers") -> dict[str, Any]:
+    """Operating point, max recall at 100 % precision (sweep on ``score``) and retrieval Recall@k of a run folder.
+
+    Args:
+        out: run folder written by ``retrieval.detect.main``.
+        ground_truth: ``(P, 2)`` true pairs, or None (then only the loop count is known).
+        min_matches: the run's ``policy.min_matches`` (candidates below it are ineligible in the sweep).
+        score: ``"inliers"`` or ``"cosine"``.
+    """
+    import json
+
+    summary = json.loads((Path(out) / "summary.json").read_text())
+    ms_total = summary["ms_per_frame"].get("total", {}).get("median")
+    res: dict[str, Any] = {"loops": summary["loops"], "ms_total": ms_total, "score": score}
+    if ground_truth is None:
+        return res
+    cands = read_csv_table(Path(out) / "candidates.csv", CANDIDATE_COLUMNS)
+    best, scores = best_per_query(cands, score, min_matches)
+    r100, t100 = pr_curve(best, scores, ground_truth).max_recall_at_precision_1()
+    res.update(summary["ground_truth"])
+    res.update({"r100": r100, "t100": t100, "recall_at_k": recall_at_k(cands, ground_truth, KS)})
+    return res
+
+
+def fmt(v: Any, digits: int = 3) -> str:
+    """A table cell: floats rounded, None/nan as ``n/a``."""
+    if v is None or (isinstance(v, float) and np.isnan(v)):
+        return "n/a"
+    if isinstance(v, float):
+        return f"{v:.{digits}f}"
+    return str(v)
+
+
+def md_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
+    """A GitHub Markdown table (cells through ``fmt`` unless already strings)."""
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    lines += ["| " + " | ".join(c if isinstance(c, str) else fmt(c) for c in row) + " |" for row in rows]
+    return "\n".join(lines)

@@ -1,0 +1,224 @@
+"""Index scaling: search latency, recall@10 against exact search and bytes per code, for 10k to 1M stored codes.
+
+Codes are synthetic but shaped like real ones: each is a real CAE code of a KITTI frame plus noise, passed through
+the ReLU and re-normalised (``normalize(relu(real[i] + sigma * noise))``), so neighbours are as close as adjacent
+real frames (cosine ~0.97) and the set has the real codes' structure instead of the flat similarity of random unit
+vectors. Queries are perturbed copies (noise ``sigma / 2``) of stored codes. Codes are generated chunk by chunk and
+added to every index still running, and the exact top-k of each query is kept over the chunks, so no full float32
+copy of the largest set is ever held. An index whose memory or build/search time would exceed the budget at a size
+is skipped there (and above), with the reason in the table.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+
+from retrieval.index import brute_force_search, create_index
+
+from .bench_common import Budget, md_table
+
+__all__ = ["synth_codes", "index_scaling", "index_table", "INDEX_CONFS"]
+
+log = logging.getLogger(__name__)
+
+_INT8_STD = math.sqrt((256**2 - 1) / 12)  # std of uniform random int8
+
+#: the indexes offered (retrieval.index), with the conf the bench runs them with
+INDEX_CONFS: dict[str, dict[str, Any]] = {"flat": {"name": "flat"}, "fp16": {"name": "fp16"},
+                                          "sq8": {"name": "sq8"}, "hnsw": {"name": "hnsw"}}
+
+
+def synth_codes(base: np.ndarray, n: int, sigma: float, rng: np.random.Generator,
+                sources: np.ndarray | None = None) -> np.ndarray:
+    """``normalize(relu(base[i] + noise))`` for ``n`` random (or given) rows ``i``; noise uniform, std ``sigma``.
+
+    Returns:
+        ``(n, D)`` float32, unit rows.
+    """
+    d = base.shape[1]
+    idx = rng.integers(0, len(base), n) if sources is None else np.asarray(sources)
+    x = torch.from_numpy(np.ascontiguousarray(base, np.float32))[torch.from_numpy(idx)]
+    noise = torch.frombuffer(bytearray(rng.bytes(n * d)), dtype=torch.int8).view(n, d)
+    x.add_(noise, alpha=sigma / _INT8_STD).clamp_(min=0)
+    x.div_(torch.linalg.vector_norm(x, dim=1, keepdim=True).clamp_(min=1e-12))
+    return x.numpy()
+
+
+def _merge_topk(D: np.ndarray, I: np.ndarray, D2: np.ndarray, I2: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    Dc, Ic = np.concatenate([D, D2], 1), np.concatenate([I, I2], 1)
+    order = np.argsort(-Dc, axis=1, kind="stable")[:, :k]
+    return np.take_along_axis(Dc, order, 1), np.take_along_axis(Ic, order, 1)
+
+
+def _bytes_estimate(name: str, dim: int) -> float:
+    """Bytes per code before anything is built (replaced by the measured value once an index exists)."""
+    return {"flat": 4 * dim, "fp16": 2 * dim, "sq8": dim, "hnsw": 4 * dim + 2 * 32 * 4 * 1.1}.get(name, 4 * dim)
+
+
+def _pilot(conf: dict[str, Any], base: np.ndarray, sigma: float, rng: np.random.Generator,
+           n: int = 500) -> dict[str, Any]:
+    """Estimates from a throw-away index of ``n`` codes: add seconds per code, one-query latency, bytes per code,
+    and the seconds per code of generating codes plus exact ground truth."""
+    t0 = time.perf_counter()
+    x = synth_codes(base, n, sigma, rng)
+    brute_force_search(x[:50], x, 10)
+    gen = (time.perf_counter() - t0) / n
+    index = create_index(base.shape[1], {**conf, "train_size": n} if conf["name"] == "sq8" else conf)
+    t0 = time.perf_counter()
+    index.add(x)
+    add = (time.perf_counter() - t0) / n
+    lat = []
+    for q in x[:5]:
+        t0 = time.perf_counter()
+        index.search(q[None], 10)
+        lat.append(time.perf_counter() - t0)
+    return {"add_per_code": add, "lat_s": float(np.median(lat)), "lat_n": n, "gen_per_code": gen, "add_s": 0.0,
+            "bytes_per_code": _bytes_estimate(conf["name"], base.shape[1])}
+
+
+def index_scaling(base: np.ndarray, sizes: Sequence[int] = (10_000, 100_000, 1_000_000),
+                  names: Sequence[str] = ("flat", "fp16", "sq8", "hnsw"), n_queries: int = 50, k: int = 10,
+                  sigma: float = 0.004, chunk: int = 10_000, memory_gib: float = 6.0, cell_time_s: float = 90.0,
+                  budget: Budget | None = None, seed: int = 0, base_label: str = "KITTI 00 + 07") -> dict[str, Any]:
+    """Measures every index at every size (nested: the first ``sizes[i]`` codes of one stream).
+
+    Args:
+        base: ``(B, D)`` real unit codes the synthetic ones are drawn around.
+        sizes: stored-code counts, increasing.
+        names: index registry names.
+        n_queries: queries with exact ground truth (each is timed alone, as the detector searches).
+        k: recall@k cut-off.
+        sigma: per-dimension noise std of the stored codes.
+        chunk: codes generated at a time.
+        memory_gib: an index larger than this is skipped at that size.
+        cell_time_s: an index whose estimated build + search time at a size exceeds this is skipped there.
+        budget: the bench's overall budget: a size that would not fit in what is left is skipped.
+        seed: seeds codes and queries.
+        base_label: where ``base`` comes from (for the table's note).
+
+    Returns:
+        ``{"cells": {(name, size): {...}}, "sizes", "names", "sigma", "k", "exact_sims": {size: (top1, topk)}}``.
+    """
+    sizes = sorted(int(s) for s in sizes)
+    rng = np.random.default_rng(seed)
+    dim = base.shape[1]
+    chunk = min(chunk, sizes[0])
+    confs = {n: dict(INDEX_CONFS.get(n, {"name": n})) for n in names}
+    if "sq8" in confs:  # learn the quantiser from the first chunk, so every size reported is quantised
+        confs["sq8"]["train_size"] = min(chunk, 1000)
+    st = {n: _pilot(confs[n], base, sigma, rng) for n in names}  # add s/code, latency, bytes/code: estimates
+    gen_per_code = st[names[0]]["gen_per_code"] if names else 0.0
+    alive = {n: create_index(dim, c) for n, c in confs.items()}
+    cells: dict[tuple[str, int], dict[str, Any]] = {}
+    exact_sims: dict[int, tuple[float, float]] = {}
+    xq = D_gt = I_gt = None
+    pos = 0
+    for size in sizes:
+        # ---- who goes on to this size: memory, then estimated build + search time
+        est_total = gen_per_code * (size - pos)
+        for n in list(alive):
+            e = st[n]
+            mem = e["bytes_per_code"] * size
+            build = e["add_per_code"] * (size - pos) * (math.log(size) / math.log(max(pos, e["lat_n"], 2))
+                                                         if n == "hnsw" else 1.0)
+            per_q = e["lat_s"] * size / e["lat_n"]
+            nq = int(min(n_queries, max(5, cell_time_s / 3 / max(per_q, 1e-6))))
+            reason = None
+            if mem > memory_gib * 2**30:
+                reason = f"skipped: {mem / 2**30:.1f} GiB > memory budget {memory_gib:g} GiB"
+            elif build + per_q * nq > cell_time_s:
+                reason = f"skipped: build + search ~{build + per_q * nq:.0f} s > time budget {cell_time_s:g} s"
+            if reason:
+                cells[(n, size)] = {"skipped": reason}
+                del alive[n]
+            else:
+                e["nq"] = nq
+                est_total += build + per_q * nq
+        if budget is not None and alive and not budget.allows(est_total):
+            for n in alive:
+                cells[(n, size)] = {"skipped": f"skipped: ~{est_total:.0f} s > bench time left ({budget.left():.0f} s)"}
+            alive = {}
+        if not alive:
+            break
+        # ---- grow to this size, chunk by chunk
+        t_gen, grown = 0.0, size - pos
+        while pos < size:
+            m = min(chunk, size - pos)
+            t0 = time.perf_counter()
+            x = synth_codes(base, m, sigma, rng)
+            if xq is None:  # queries: perturbed copies of stored codes of the first chunk
+                src = rng.choice(m, min(n_queries, m), replace=False)
+                xq = synth_codes(x, len(src), sigma / 2, rng, sources=src)
+                D_gt = np.full((len(xq), k), -np.inf, np.float32)
+                I_gt = np.full((len(xq), k), -1, np.int64)
+            D2, I2 = brute_force_search(xq, x, k)
+            D_gt, I_gt = _merge_topk(D_gt, I_gt, D2, np.where(I2 >= 0, I2 + pos, -1), k)
+            t_gen += time.perf_counter() - t0
+            for n, index in alive.items():
+                t0 = time.perf_counter()
+                index.add(x)
+                st[n]["add_s"] += time.perf_counter() - t0
+            pos += m
+            del x, index
+        gen_per_code = t_gen / grown
+        exact_sims[size] = (float(D_gt[:, 0].mean()), float(D_gt[:, k - 1].mean()))
+        # ---- measure, one query at a time
+        for n, index in alive.items():
+            e = st[n]
+            if "measured_bytes" not in e:  # serialising is a copy: do it once, at the smallest size
+                e["bytes_per_code"] = e["measured_bytes"] = index.bytes_per_code()
+            lat, found = [], []
+            for q in xq[: e["nq"]]:
+                t0 = time.perf_counter()
+                found.append(index.search(q[None], k)[1][0])
+                lat.append(time.perf_counter() - t0)
+            I_arr = np.stack(found)
+            recall = float(np.mean([len(set(a) & set(b)) / k for a, b in zip(I_arr, I_gt[: len(I_arr)])]))
+            top1 = float(np.mean(I_arr[:, 0] == I_gt[: len(I_arr), 0]))
+            e.update(add_per_code=e["add_s"] / size, lat_s=float(np.median(lat)), lat_n=size)
+            cells[(n, size)] = {"ms": e["lat_s"] * 1e3, "recall": recall, "top1": top1, "queries": len(I_arr),
+                                "bytes_per_code": e["bytes_per_code"], "build_s": e["add_s"],
+                                "gib": e["bytes_per_code"] * size / 2**30}
+            log.info("index %s @ %d: %.2f ms/query, recall@%d %.3f (%d queries)", n, size, e["lat_s"] * 1e3, k,
+                     recall, len(I_arr))
+        del index
+    for n in names:
+        for s in sizes:
+            cells.setdefault((n, s), {"skipped": "skipped (see the size below)"})
+    return {"cells": cells, "sizes": sizes, "names": list(names), "sigma": sigma, "k": k, "exact_sims": exact_sims,
+            "n_queries": n_queries, "base": len(base), "base_label": base_label, "memory_gib": memory_gib,
+            "cell_time_s": cell_time_s}
+
+
+def _size_label(n: int) -> str:
+    return f"{n // 1_000_000}M" if n >= 1_000_000 and n % 1_000_000 == 0 else (
+        f"{n // 1000}k" if n >= 1000 and n % 1000 == 0 else str(n))
+
+
+def index_table(res: dict[str, Any]) -> str:
+    """Markdown: one row per index and size."""
+    k = res["k"]
+    rows = []
+    for n in res["names"]:
+        for s in res["sizes"]:
+            c = res["cells"].get((n, s), {"skipped": "not run"})
+            if "skipped" in c:
+                rows.append([n, _size_label(s), c["skipped"], "", "", "", ""])
+            else:
+                rows.append([n, _size_label(s), f"{c['ms']:.2f}", f"{c['recall']:.3f}", f"{c['top1']:.2f}",
+                             f"{c['bytes_per_code']:.0f}", f"{c['gib']:.2f} GiB, built in {c['build_s']:.1f} s, "
+                             f"{c['queries']} queries"])
+    sims = ", ".join(f"{_size_label(s)}: {a:.3f} / {b:.3f}" for s, (a, b) in res["exact_sims"].items())
+    return (md_table(["index", "codes", "ms/query (median)", f"recall@{k}", "top-1 = exact", "bytes/code", "notes"],
+                     rows)
+            + f"\n\n- {res['base']} real CAE codes ({res['base_label']}) as centres, noise sigma {res['sigma']:g} per "
+            f"dimension; queries = stored codes + noise sigma/2. recall@{k} = overlap of the index's top-{k} with the "
+            f"exact float32 top-{k} (brute force over all chunks). Mean exact cosine of the top-1 / top-{k}: {sims}.\n"
+            f"- One query at a time (as the detector searches). Budgets: {res['memory_gib']:g} GiB per index, "
+            f"{res['cell_time_s']:g} s per index and size (estimated from the size below).")

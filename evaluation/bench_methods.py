@@ -1,0 +1,179 @@
+"""Methods side by side on the same frames: the paper's config, the default config, and two baselines (thumbnail
+cosine, tf-idf bag of visual words), all followed by the same verification; and "does training help?" (shipped,
+random and other-data weights)."""
+
+from __future__ import annotations
+
+import copy
+import logging
+import re
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from cae.conf import load_conf_file
+from retrieval.baselines import build_vocabulary
+from retrieval.detector import resolve_conf
+from retrieval.sequences import open_sequence
+
+from .bench_common import REPO, Budget, detect_run, md_table, run_metrics
+
+__all__ = ["slug", "deep_update", "method_confs", "method_metrics", "run_methods", "false_loops", "methods_table",
+           "training_study", "training_table"]
+
+log = logging.getLogger(__name__)
+
+
+def deep_update(base: dict[str, Any], override: dict[str, Any] | None) -> dict[str, Any]:
+    """A copy of ``base`` with ``override`` merged in recursively (no key checking; ``resolve_conf`` does that)."""
+    out = copy.deepcopy(base)
+    for key, value in (override or {}).items():
+        out[key] = deep_update(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) \
+            else copy.deepcopy(value)
+    return out
+
+
+def method_confs(vocabulary: str | Path, override: dict[str, Any] | None = None) -> dict[str, dict[str, Any]]:
+    """Detector confs by method label: paper, default, thumbnail and bovw (each + ``override``)."""
+    paper_file = REPO / "configs" / "paper.yaml"
+    confs: dict[str, dict[str, Any]] = {}
+    if paper_file.is_file():
+        confs["paper (configs/paper.yaml)"] = load_conf_file(paper_file)
+    else:
+        log.warning("%s not found: the paper row is left out", paper_file)
+    confs["default (CAE)"] = {}
+    confs["thumbnail 64x48 + verification"] = {"encoder": {"name": "thumbnail"}}
+    confs["bovw tf-idf + verification"] = {"encoder": {"name": "bovw", "vocabulary": str(vocabulary)}}
+    return {label: deep_update(c, override) for label, c in confs.items()}
+
+
+def slug(label: str) -> str:
+    """A folder name for a method label (``"paper (configs/paper.yaml)"`` -> ``"paper"``)."""
+    return re.sub(r"[^a-z0-9]+", "_", label.lower().split(" (")[0]).strip("_")[:40] or "method"
+
+
+def method_metrics(out: str | Path, conf: dict[str, Any], ground_truth: np.ndarray | None) -> dict[str, Any]:
+    """``run_metrics`` with the run's own ``min_matches``; swept on inliers, or on cosine when geometry is off."""
+    resolved = resolve_conf(conf)
+    score = "cosine" if resolved["geometry"]["model"] == "none" else "inliers"
+    return run_metrics(out, ground_truth, resolved["policy"]["min_matches"], score)
+
+
+def run_methods(sequence: str | Path, run_dir: str | Path, confs: dict[str, dict[str, Any]],
+                done: dict[str, dict[str, Any]] | None = None) -> dict[str, dict[str, Any]]:
+    """Runs each method over ``sequence`` (skipping those in ``done``: label -> existing run folder's summary).
+
+    Returns:
+        label -> metrics (``run_metrics``) plus ``dim``, ``wall_s`` and ``out``.
+    """
+    seq = open_sequence(sequence)
+    res = {}
+    for label, conf in confs.items():
+        out = Path(run_dir) / slug(label)
+        summary = (done or {}).get(label)
+        if summary is None:
+            log.info("method %s on %s", label, seq.root.name)
+            summary = detect_run(sequence, out, conf)
+        out = Path(summary["out"])
+        res[label] = {**method_metrics(out, conf, seq.loops), "wall_s": summary["wall_s"], "out": str(out),
+                      "frames": summary["frames"]}
+    return res
+
+
+def false_loops(sequences: dict[str, str | Path], run_dir: str | Path, confs: dict[str, dict[str, Any]],
+                ms_per_frame: dict[str, float], budget: Budget) -> dict[tuple[str, str], int | str]:
+    """Loops reported on sequences without any revisit (all false), per (method, sequence), while time allows.
+
+    ``ms_per_frame`` (label -> measured median) estimates each run; a run that would not fit is marked
+    ``"not run (time)"``.
+    """
+    out: dict[tuple[str, str], int | str] = {}
+    for name, path in sequences.items():
+        n = len(open_sequence(path))
+        for label, conf in confs.items():
+            est = 1.3 * ms_per_frame.get(label, 500.0) * n / 1e3 + 5.0
+            if not budget.allows(est):
+                out[(label, name)] = "not run (time)"
+                continue
+            summary = detect_run(path, Path(run_dir) / name / slug(label), conf)
+            out[(label, name)] = int(summary["loops"])
+    return out
+
+
+def _dim(conf: dict[str, Any]) -> str:
+    enc = resolve_conf(conf)["encoder"]
+    if enc["name"] == "thumbnail":
+        return str(enc["width"] * enc["height"])
+    if enc["name"] == "bovw":
+        from retrieval.baselines import load_vocabulary
+        return str(len(load_vocabulary(enc["vocabulary"])[0]))
+    return "4096"
+
+
+def methods_table(res: dict[str, dict[str, Any]], confs: dict[str, dict[str, Any]],
+                  fl: dict[tuple[str, str], int | str] | None = None, fl_names: tuple[str, ...] = ()) -> str:
+    """Markdown: one row per method."""
+    rows = []
+    for label, r in res.items():
+        rk = r.get("recall_at_k", {})
+        r100 = "n/a" if r.get("r100") is None else f"{r['r100']:.3f}" + (" (cosine)" if r["score"] == "cosine" else "")
+        row = [label, _dim(confs[label]), f"{r['precision']:.3f} ({r['true_positives']}/{r['detections']})",
+               "n/a" if r.get("recall") is None else f"{r['recall']:.3f}", r100,
+               " / ".join(f"{rk.get(k, float('nan')):.2f}" for k in (1, 5, 10)), f"{r['ms_total']:.0f}"]
+        row += [str((fl or {}).get((label, s), "not run")) for s in fl_names]
+        rows.append(row)
+    header = ["method", "dim", "precision (TP/detections)", "recall", "max recall @ 100% P", "Recall@1/5/10",
+              "ms/frame (median)"] + [f"false loops on {s}" for s in fl_names]
+    return md_table(header, rows)
+
+
+def training_study(sequence: str | Path, train_images: str | Path, run_dir: str | Path, epochs: int = 5,
+                   max_images: int | None = None) -> dict[str, dict[str, Any]]:
+    """Retrieval Recall@k and max recall at 100 % precision with shipped, random and other-data weights.
+
+    Args:
+        sequence: evaluated sequence (with ground truth), e.g. KITTI 90.
+        train_images: images for the "trained elsewhere" weights, e.g. KITTI 07's ``image_0``.
+        run_dir: folder for the checkpoints, the training run and the detect runs.
+        epochs: training epochs for the other-data weights.
+        max_images: train on at most this many images (None = all).
+    """
+    import time
+
+    from cae.model import Encoder
+    from cae.train import main as train
+    from cae.weights import save_checkpoint
+
+    run_dir = Path(run_dir)
+    torch.manual_seed(0)
+    random_ckpt = run_dir / "random_encoder.pt"
+    save_checkpoint(random_ckpt, Encoder(), {"init": "N(0, 0.05), torch.manual_seed(0)"})
+    t0 = time.perf_counter()
+    trained = train(train_images, run_dir / "train_other", {"epochs": epochs, "max_images": max_images},
+                    restart=True)
+    train_s = time.perf_counter() - t0
+    variants = {"shipped weights (cae/weights/cae_kitti.pt)": (None, ""),
+                "random init (seed 0, untrained)": (str(random_ckpt), ""),
+                f"trained on {Path(train_images).parent.name} only, {trained['epochs_run']} epochs":
+                    (trained["best"], f"val loss {trained['first_val_loss']:.4f} -> {trained['best_val_loss']:.4f}, "
+                                      f"{train_s:.0f} s")}
+    seq = open_sequence(sequence)
+    res = {}
+    for i, (label, (weights, note)) in enumerate(variants.items()):
+        conf = {"encoder": {"weights": weights}} if weights else {}
+        summary = detect_run(sequence, run_dir / f"w{i}", conf)
+        res[label] = {**method_metrics(summary["out"], conf, seq.loops), "note": note}
+    return res
+
+
+def training_table(res: dict[str, dict[str, Any]]) -> str:
+    """Markdown: one row per weights variant."""
+    rows = []
+    for label, r in res.items():
+        rk = r["recall_at_k"]
+        rows.append([label, f"{rk[1]:.3f}", f"{rk[5]:.3f}", f"{rk[10]:.3f}", f"{r['r100']:.3f}",
+                     f"{r['precision']:.3f} / {r['recall']:.3f}", r["note"]])
+    return md_table(["weights", "Recall@1", "Recall@5", "Recall@10", "max recall @ 100% P",
+                     "precision / recall (default policy)", "notes"], rows)

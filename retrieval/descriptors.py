@@ -1,0 +1,66 @@
+"""Global image descriptors that the index searches: the CAE code by default; baselines plug in by name.
+
+A descriptor maps one image (and, when ``needs_features``, its local features) to a unit-norm ``(dim,)`` float32
+vector whose inner products are similarities. ``identity`` names the weights or vocabulary, so a keyframe database
+is never resumed with a different descriptor.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+from cae.conf import Registry, merge_conf
+from cae.encode import encode_images
+from cae.model import CODE_DIM
+from cae.weights import load_encoder
+from verify.features import Features
+
+__all__ = ["GlobalDescriptor", "CAEDescriptor", "DESCRIPTORS", "create_descriptor"]
+
+
+class GlobalDescriptor:
+    """Base class: set ``default_conf``, ``dim``, ``needs_features`` and implement ``__call__``."""
+
+    default_conf: dict[str, Any] = {"name": ""}
+    needs_features = False  #: True when ``__call__`` uses the frame's local features
+
+    def __init__(self, conf: dict[str, Any] | None = None) -> None:
+        self.conf = merge_conf(self.default_conf, conf, "encoder")
+        self.dim = 0
+        self.identity = ""
+
+    def __call__(self, image: np.ndarray, features: Features | None = None) -> np.ndarray:
+        """``image`` (any accepted layout) -> ``(dim,)`` float32 unit-norm vector."""
+        raise NotImplementedError
+
+
+DESCRIPTORS: Registry[GlobalDescriptor] = Registry("global descriptor")
+
+
+@DESCRIPTORS.register("cae")
+class CAEDescriptor(GlobalDescriptor):
+    """The convolutional autoencoder's 4096-d code (Leonardi & Stahl)."""
+
+    default_conf: dict[str, Any] = {
+        "name": "cae",  # global descriptor, by registry name
+        "weights": None,  # checkpoint path; None = the weights shipped in the package
+        "device": "cpu",  # "cpu", "cuda", "auto"; batch-1 encoding of this small net is fastest on the CPU
+        "half": False,  # float16 inference (CUDA only)
+    }
+
+    def __init__(self, conf: dict[str, Any] | None = None, encoder: torch.nn.Module | None = None) -> None:
+        super().__init__(conf)
+        self.encoder = encoder if encoder is not None else load_encoder(self.conf["weights"], self.conf["device"])
+        self.dim = CODE_DIM
+        self.identity = getattr(self.encoder, "identity", "")
+
+    def __call__(self, image: np.ndarray, features: Features | None = None) -> np.ndarray:
+        return encode_images(self.encoder, [image], half=self.conf["half"])[0]
+
+
+def create_descriptor(conf: dict[str, Any] | None = None, **kwargs: Any) -> GlobalDescriptor:
+    """The descriptor named by ``conf["name"]`` (default ``"cae"``)."""
+    return DESCRIPTORS.get((conf or {}).get("name", "cae"))(conf, **kwargs)
