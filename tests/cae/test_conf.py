@@ -1,0 +1,157 @@
+import copy
+from pathlib import Path
+
+import pytest
+import yaml
+
+from cae.conf import ConfigError, Registry, dump_conf, load_conf_file, merge_conf
+
+REPO = Path(__file__).parents[2]
+
+DEFAULTS = {
+    "a": 1,
+    "section": {"x": 1.0, "y": "text", "inner": {"deep": [1, 2]}},
+    "maybe": None,
+}
+
+
+class TestMergeConf:
+    def test_recursive_merge(self):
+        out = merge_conf(DEFAULTS, {"a": 2, "section": {"inner": {"deep": [3]}}})
+        assert out == {"a": 2, "section": {"x": 1.0, "y": "text", "inner": {"deep": [3]}}, "maybe": None}
+
+    def test_none_override_and_none_section(self):
+        assert merge_conf(DEFAULTS, None) == DEFAULTS
+        assert merge_conf(DEFAULTS, {"section": None}) == DEFAULTS
+
+    def test_unknown_key_names_dotted_path_and_allowed_keys(self):
+        with pytest.raises(ConfigError) as err:
+            merge_conf(DEFAULTS, {"section": {"inner": {"deap": 1}}})
+        msg = str(err.value)
+        assert "section.inner.deap" in msg
+        assert "deep" in msg
+        with pytest.raises(ConfigError) as err:
+            merge_conf(DEFAULTS, {"bogus": 1})
+        assert "'bogus'" in str(err.value)
+        for key in ("a", "maybe", "section"):
+            assert key in str(err.value)
+
+    def test_where_prefix(self):
+        with pytest.raises(ConfigError, match="gate.nope"):
+            merge_conf({"x": 1}, {"nope": 2}, where="gate")
+
+    def test_plain_value_for_section(self):
+        with pytest.raises(ConfigError, match="section.inner"):
+            merge_conf(DEFAULTS, {"section": {"inner": 5}})
+
+    def test_inputs_not_mutated(self):
+        before = copy.deepcopy(DEFAULTS)
+        override = {"section": {"inner": {"deep": [9]}}, "maybe": {"k": [1]}}
+        override_before = copy.deepcopy(override)
+        out = merge_conf(DEFAULTS, override)
+        assert DEFAULTS == before and override == override_before
+        out["section"]["inner"]["deep"].append(7)
+        out["maybe"]["k"].append(2)
+        assert DEFAULTS == before and override == override_before
+
+
+class TestLoadConfFile:
+    def test_yaml_and_empty(self, tmp_path):
+        (tmp_path / "a.yaml").write_text("policy:\n  min_inliers: 30\n")
+        assert load_conf_file(tmp_path / "a.yaml") == {"policy": {"min_inliers": 30}}
+        (tmp_path / "empty.yaml").write_text("")
+        assert load_conf_file(tmp_path / "empty.yaml") == {}
+
+    def test_errors(self, tmp_path):
+        with pytest.raises(ConfigError, match="not found"):
+            load_conf_file(tmp_path / "missing.yaml")
+        (tmp_path / "list.yaml").write_text("- 1\n- 2\n")
+        with pytest.raises(ConfigError, match="mapping"):
+            load_conf_file(tmp_path / "list.yaml")
+        (tmp_path / "broken.yaml").write_text("a: [1, 2\n")
+        with pytest.raises(ConfigError, match="cannot parse"):
+            load_conf_file(tmp_path / "broken.yaml")
+
+
+class TestDumpConf:
+    def test_round_trip_keeps_order(self, tmp_path):
+        conf = {"z": 1, "a": {"c": None, "b": [1.5, 2]}}
+        dump_conf(conf, tmp_path / "c.yaml")
+        text = (tmp_path / "c.yaml").read_text()
+        assert text.index("z:") < text.index("a:")
+        assert yaml.safe_load(text) == conf
+
+
+class TestRegistry:
+    def test_register_get_names(self):
+        reg = Registry("widget")
+
+        @reg.register("b")
+        class B:
+            pass
+
+        @reg.register("a")
+        class A:
+            pass
+
+        assert reg.get("a") is A and reg.get("b") is B
+        assert reg.names() == ["a", "b"]
+        with pytest.raises(ConfigError, match="unknown widget 'c'; available: a, b"):
+            reg.get("c")
+        with pytest.raises(ValueError, match="twice"):
+            reg.register("a")(B)
+
+
+class TestResolveConf:
+    """``retrieval.detector.resolve_conf``: registry sections merge onto the named unit's defaults."""
+
+    def test_hnsw_options_allowed_only_for_hnsw(self):
+        from retrieval.detector import resolve_conf
+
+        conf = resolve_conf({"index": {"name": "hnsw", "m": 16}})
+        assert conf["index"] == {"name": "hnsw", "m": 16, "ef_search": 128, "ef_construction": 64}
+        with pytest.raises(ConfigError, match="index.m"):
+            resolve_conf({"index": {"name": "flat", "m": 16}})
+        with pytest.raises(ConfigError, match="unknown index 'nope'"):
+            resolve_conf({"index": {"name": "nope"}})
+
+    def test_defaults_and_unknown_keys(self):
+        from retrieval.detector import default_conf, resolve_conf
+
+        before = copy.deepcopy(default_conf)
+        conf = resolve_conf({"policy": {"min_inliers": 30}, "features": {"max_features": 123}})
+        assert conf["policy"] == {"min_matches": 5, "min_inliers": 30}
+        from verify.features import SIFT
+
+        assert conf["features"]["max_features"] == 123
+        assert conf["features"]["resize_max"] == SIFT.default_conf["resize_max"]  # the rest from SIFT's defaults
+        assert default_conf == before
+        assert resolve_conf(conf) == conf  # idempotent
+        with pytest.raises(ConfigError) as err:
+            resolve_conf({"policy": {"bogus": 1}})
+        assert "policy.bogus" in str(err.value) and "min_inliers" in str(err.value)
+
+    @pytest.mark.parametrize("name", sorted(p.name for p in (REPO / "configs").glob("*.yaml") if p.name != "train.yaml"))
+    def test_detector_presets_resolve(self, name):
+        from retrieval.detector import resolve_conf
+
+        user = load_conf_file(REPO / "configs" / name)
+        conf = resolve_conf(user)
+        for section, values in user.items():
+            if isinstance(values, dict):
+                for key, value in values.items():
+                    assert conf[section][key] == value
+
+    def test_default_preset_equals_code_defaults(self):
+        from retrieval.detector import resolve_conf
+
+        path = REPO / "configs" / "default.yaml"
+        if not path.is_file():
+            pytest.skip("configs/default.yaml not present")
+        assert resolve_conf(load_conf_file(path)) == resolve_conf({})
+
+    def test_train_preset_resolves(self):
+        from cae.train import default_conf
+
+        user = load_conf_file(REPO / "configs" / "train.yaml")
+        assert merge_conf(default_conf, user) == {**default_conf, **user}

@@ -1,0 +1,49 @@
+import numpy as np
+import pytest
+
+from cae.conf import ConfigError
+from verify.features import Features
+from verify.verifier import VERIFIERS, RatioTestVerifier, Verification, create_verifier
+
+
+class TestRatioTestVerifier:
+    def test_true_vs_far_candidates(self, sift_features, sample_K):
+        v = RatioTestVerifier()
+        out = v.verify(sift_features(55), [sift_features(5), sift_features(30)], sample_K)
+        assert len(out) == 2 and all(isinstance(o, Verification) for o in out)
+        true, far = out
+        assert true.matches == len(true.pairs) > 150
+        assert true.inliers > 150 and far.inliers < 30
+        assert true.geometry.model == "essential"
+        assert true.pairs.shape == (true.matches, 2) and true.pairs.dtype == np.int64
+
+    def test_min_matches_skips_geometry(self, sift_features, sample_K):
+        v = RatioTestVerifier()
+        far = v.verify(sift_features(55), [sift_features(30)], sample_K, min_matches=1000)[0]
+        assert far.geometry.model == "skipped" and far.inliers == 0 and far.matches > 0
+
+    def test_no_candidates_and_empty_features(self, sift_features, sample_K):
+        v = RatioTestVerifier()
+        assert v.verify(sift_features(55), [], sample_K) == []
+        out = v.verify(Features.empty(), [sift_features(5)], sample_K)
+        assert out[0].matches == 0 and out[0].inliers == 0 and out[0].pairs.shape == (0, 2)
+        out = v.verify(sift_features(55), [Features.empty()], sample_K)
+        assert out[0].matches == 0 and out[0].inliers == 0
+
+    def test_mutual_option(self, sift_features):
+        plain = RatioTestVerifier().match_many(sift_features(55), [sift_features(5)])[0]
+        mutual = RatioTestVerifier({"mutual": True}).match_many(sift_features(55), [sift_features(5)])[0]
+        assert set(map(tuple, mutual.tolist())) <= set(map(tuple, plain.tolist()))
+        assert 0 < len(mutual) < len(plain)
+
+
+class TestCreateVerifier:
+    def test_by_name_and_errors(self):
+        v = create_verifier({"name": "ratio", "ratio": 0.7}, {"model": "fundamental"})
+        assert isinstance(v, RatioTestVerifier)
+        assert v.conf["ratio"] == 0.7 and v.geometry.conf["model"] == "fundamental"
+        assert "ratio" in VERIFIERS.names()
+        with pytest.raises(ConfigError, match="unknown matcher 'lightglue'"):
+            create_verifier({"name": "lightglue"})
+        with pytest.raises(ConfigError, match="matching.ratios"):
+            create_verifier({"ratios": 0.7})
