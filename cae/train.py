@@ -136,11 +136,11 @@ def main(images: str | Path | Sequence[str | Path], out: str | Path = "runs/trai
     if conf["max_images"] and len(files) > conf["max_images"]:
         files = sorted(rng.choice(np.array(files, dtype=object), conf["max_images"], replace=False).tolist())
     data, files = load_image_folder(files)
+    if len(data) < 2:
+        raise ConfigError(f"need at least 2 readable images to train with a validation split; found {len(data)}")
     order = np.random.default_rng(conf["seed"]).permutation(len(data))
-    n_val = max(1, int(round(conf["val_fraction"] * len(data)))) if len(data) > 1 else 0
+    n_val = min(len(data) - 1, max(1, int(round(conf["val_fraction"] * len(data)))))
     val_idx, train_idx = order[:n_val], order[n_val:]
-    if len(train_idx) == 0:
-        raise ConfigError(f"need at least 2 images to train with a validation split; found {len(data)}")
     train_set, val_set = data[np.sort(train_idx)], data[np.sort(val_idx)]
     (out / "split.json").write_text(json.dumps({"train": [str(files[i]) for i in sorted(train_idx)],
                                                 "val": [str(files[i]) for i in sorted(val_idx)]}, indent=1))

@@ -156,8 +156,12 @@ class KeyframeDatabase:
     def encoder(self) -> str:
         return str(self.file.attrs["encoder"])
 
+    def _names(self) -> list[str]:
+        """Complete keyframe groups in frame-id order (a half-written one from a killed run is never listed)."""
+        return [n for n in self.file["keyframes"] if not n.startswith(".")]
+
     def __len__(self) -> int:
-        return len(self.file["keyframes"])
+        return len(self._names())
 
     def gated(self) -> np.ndarray:
         """Frame ids the gate rejected, ``(n,)`` int64."""
@@ -165,14 +169,14 @@ class KeyframeDatabase:
 
     def last_frame_id(self) -> int:
         """The largest frame id stored (keyframe or gated), -1 when empty."""
-        names = list(self.file["keyframes"].keys())
+        names = self._names()
         last_kf = int(names[-1]) if names else -1  # groups are listed in name order: zero-padded ids
         gated = self.gated()
         return max(last_kf, int(gated.max()) if len(gated) else -1)
 
     def __iter__(self) -> Iterator[KeyframeRecord]:
         """Keyframes in frame-id order."""
-        for name in self.file["keyframes"]:
+        for name in self._names():
             yield self._read(self.file["keyframes"][name])
 
     def _read(self, grp: h5py.Group) -> KeyframeRecord:
@@ -185,9 +189,15 @@ class KeyframeDatabase:
                               source=str(a["source"]), edge_ratio=float(a["edge_ratio"]),
                               candidates=grp["candidates"][()], loop=int(a["loop"]))
 
+    def results(self) -> Iterator[tuple[int, np.ndarray, int]]:
+        """``(frame_id, candidates (k, 4), loop)`` per keyframe in frame-id order, without reading features."""
+        for name in self._names():
+            grp = self.file["keyframes"][name]
+            yield int(grp.attrs["frame_id"]), grp["candidates"][()], int(grp.attrs["loop"])
+
     def codes(self) -> tuple[np.ndarray, np.ndarray]:
         """All codes, ``(n, 4096)`` float32, with their frame ids ``(n,)``."""
-        grps = [self.file["keyframes"][n] for n in self.file["keyframes"]]
+        grps = [self.file["keyframes"][n] for n in self._names()]
         if not grps:
             return np.zeros((0, 0), np.float32), np.zeros(0, np.int64)
         return np.stack([g["code"][()] for g in grps]), np.array([g.attrs["frame_id"] for g in grps], np.int64)

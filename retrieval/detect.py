@@ -44,10 +44,8 @@ def write_tables(db: KeyframeDatabase, out: Path) -> np.ndarray:
         wl, wc = csv.writer(f_loops), csv.writer(f_c)
         wl.writerow(["query", "match", "score", "matches", "inliers"])
         wc.writerow(["query", "candidate", "score", "matches", "inliers", "accepted"])
-        for grp_name in db.file["keyframes"]:
-            grp = db.file["keyframes"][grp_name]
-            q, loop = int(grp.attrs["frame_id"]), int(grp.attrs["loop"])
-            for cid, score, matches, inliers in grp["candidates"][()]:
+        for q, candidates, loop in db.results():
+            for cid, score, matches, inliers in candidates:
                 row = [q, int(cid), f"{score:.6f}", int(matches), int(inliers)]
                 wc.writerow(row + [int(int(cid) == loop)])
                 if int(cid) == loop:
@@ -103,10 +101,10 @@ def main(path: str | Path | None = None, out: str | Path | None = None, conf: di
     out = Path(out) if out is not None else _default_out(seq)
     out.mkdir(parents=True, exist_ok=True)
     resolved = resolve_conf(conf)
-    dump_conf(resolved, out / "conf.yaml")
     unreadable: list[str] = []
     timings: list[dict[str, float]] = []
     with LoopDetector(resolved, K=seq.K, database=out / "keyframes.h5") as det:
+        dump_conf(resolved, out / "conf.yaml")  # only once the database accepted this conf: nothing is overwritten
         start = det.next_frame_id
         if start >= len(seq):
             log.info("%s already holds all %d frames; rewriting the tables", out / "keyframes.h5", len(seq))

@@ -62,7 +62,7 @@ default_conf: dict[str, Any] = {
         "min_inliers": 50,  # geometric inliers a candidate needs (0: none); chosen on KITTI, see BENCHMARKS.md
     },
     "runtime": {
-        "threads": None,  # CPU threads for torch/OpenCV; None = all cores
+        "threads": None,  # CPU threads for torch/OpenCV (halved for each side when parallel); None = all cores
         "parallel": True,  # extract local features in a worker thread while the encoder and search run
         "flush_every": 1,  # flush the database every this many frames (1: a killed run loses nothing)
     },
@@ -143,6 +143,8 @@ class LoopDetector:
         self.conf = resolve_conf(conf)
         c = self.conf
         threads = c["runtime"]["threads"] or os.cpu_count() or 1
+        if c["runtime"]["parallel"]:  # the feature worker and the encoder run at once: split the cores between them
+            threads = max(1, threads // 2)
         torch.set_num_threads(threads)
         cv2.setNumThreads(threads)
         self.K = None if K is None else np.asarray(K, np.float64).reshape(3, 3)

@@ -1,0 +1,170 @@
+"""The HDF5 keyframe database: round trips, resumption, refusal of damaged or mismatched files."""
+
+import h5py
+import numpy as np
+import pytest
+
+from cae.conf import ConfigError
+from retrieval.database import FORMAT_VERSION, KeyframeDatabase, KeyframeRecord
+from verify.features import Features
+
+CONF = {"policy": {"min_inliers": 30}, "index": {"name": "flat"}}
+ENCODER_ID = "0123456789abcdef"
+
+
+@pytest.fixture(scope="module")
+def records(sift_features, sample_seq, encoder, sample_image):
+    """Three keyframes of real sample frames (codes, SIFT features, poses, times); the last one has no features."""
+    from cae.encode import encode_images
+
+    ids = (3, 7, 12)
+    codes = encode_images(encoder, [sample_image(i) for i in ids])
+    recs = []
+    for n, (i, code) in enumerate(zip(ids, codes)):
+        feats = sift_features(i) if n < 2 else Features.empty()
+        recs.append(KeyframeRecord(
+            frame_id=i, code=code, features=feats, timestamp=float(sample_seq.timestamps[i]),
+            pose=sample_seq.poses[i] if n != 1 else None, source=f"{i:06d}.jpg", edge_ratio=0.1 + n,
+            candidates=np.array([[0, 0.9, 12, 8]]) if n == 1 else None, loop=0 if n == 1 else -1))
+    return recs
+
+
+@pytest.fixture()
+def db_path(tmp_path, records):
+    path = tmp_path / "keyframes.h5"
+    with KeyframeDatabase(path, CONF, ENCODER_ID) as db:
+        for rec in records:
+            db.append(rec)
+        db.add_gated(13)
+        db.add_gated(14)
+    return path
+
+
+class TestKeyframeDatabase:
+    def test_round_trip(self, db_path, records):
+        with KeyframeDatabase(db_path, CONF, ENCODER_ID) as db:
+            assert len(db) == 3
+            assert db.conf == CONF and db.encoder == ENCODER_ID
+            back = list(db)
+            codes, ids = db.codes()
+            np.testing.assert_array_equal(db.gated(), [13, 14])
+            assert db.last_frame_id() == 14
+        assert [r.frame_id for r in back] == [3, 7, 12]
+        np.testing.assert_array_equal(ids, [3, 7, 12])
+        for rec, got, code in zip(records, back, codes):
+            np.testing.assert_array_equal(got.code, rec.code)
+            np.testing.assert_array_equal(code, rec.code)
+            assert got.code.dtype == np.float32
+            np.testing.assert_array_equal(got.features.keypoints, rec.features.keypoints)
+            np.testing.assert_array_equal(got.features.scales, rec.features.scales)
+            # SIFT descriptors are stored as uint8 (lossless) and come back as equal float32 values
+            assert got.features.descriptors.dtype == np.float32
+            np.testing.assert_array_equal(got.features.descriptors, rec.features.descriptors)
+            assert got.timestamp == rec.timestamp
+            assert got.source == rec.source and got.edge_ratio == pytest.approx(rec.edge_ratio)
+            assert got.loop == rec.loop
+            if rec.pose is None:
+                assert got.pose is None
+            else:
+                np.testing.assert_array_equal(got.pose, rec.pose)
+                assert got.pose.shape == (3, 4)
+        np.testing.assert_array_equal(back[1].candidates, [[0, 0.9, 12, 8]])
+        assert back[0].candidates.shape == (0, 4)
+        # the empty keyframe keeps the right shapes
+        assert back[2].features.keypoints.shape == (0, 2) and back[2].features.descriptors.shape == (0, 128)
+
+    def test_storage_layout(self, db_path, records):
+        with h5py.File(db_path, "r") as f:
+            assert int(f.attrs["format_version"]) == FORMAT_VERSION == 1
+            assert f.attrs["encoder"] == ENCODER_ID
+            assert sorted(f["keyframes"]) == ["00000003", "00000007", "00000012"]
+            grp = f["keyframes/00000003"]
+            assert grp["descriptors"].dtype == np.uint8  # 4x smaller than float32
+            assert grp["descriptors"].shape == (len(records[0].features), 128)
+            assert grp["keypoints"].shape == (len(records[0].features), 2)
+            assert grp["code"].shape == (4096,)
+
+    def test_float_descriptors_kept_when_not_integral(self, tmp_path, sift_features):
+        f = sift_features(3)
+        root = Features(f.keypoints, np.sqrt(f.descriptors), f.scales)  # RootSIFT-like, not integral
+        with KeyframeDatabase(tmp_path / "r.h5", CONF) as db:
+            db.append(KeyframeRecord(0, np.zeros(4096, np.float32), root))
+        with KeyframeDatabase(tmp_path / "r.h5", CONF) as db:
+            got = next(iter(db))
+        assert got.features.descriptors.dtype == np.float32
+        np.testing.assert_array_equal(got.features.descriptors, root.descriptors)
+
+    def test_append_after_reopen(self, db_path, records):
+        with KeyframeDatabase(db_path, CONF, ENCODER_ID) as db:
+            db.append(KeyframeRecord(20, records[0].code, records[0].features))
+        with KeyframeDatabase(db_path, CONF, ENCODER_ID, mode="r") as db:
+            assert len(db) == 4 and db.last_frame_id() == 20
+
+    def test_empty_database(self, tmp_path):
+        with KeyframeDatabase(tmp_path / "e.h5", CONF) as db:
+            assert len(db) == 0 and db.last_frame_id() == -1
+            assert db.gated().shape == (0,)
+            codes, ids = db.codes()
+            assert len(codes) == 0 and ids.shape == (0,)
+            assert list(db) == []
+
+    def test_different_conf_refused(self, db_path):
+        before = db_path.read_bytes()
+        with pytest.raises(ConfigError, match="different configuration"):
+            KeyframeDatabase(db_path, {**CONF, "policy": {"min_inliers": 10}}, ENCODER_ID)
+        assert db_path.read_bytes() == before
+
+    def test_other_encoder_refused(self, db_path):
+        with pytest.raises(ConfigError, match="encoder weights"):
+            KeyframeDatabase(db_path, CONF, "fedcba9876543210")
+
+    def test_truncated_file_refused_and_untouched(self, db_path):
+        data = db_path.read_bytes()
+        db_path.write_bytes(data[: len(data) // 2])
+        before = db_path.read_bytes()
+        with pytest.raises(ConfigError, match="truncated or damaged") as err:
+            KeyframeDatabase(db_path, CONF, ENCODER_ID)
+        assert str(db_path) in str(err.value)
+        assert db_path.read_bytes() == before and db_path.stat().st_size == len(data) // 2
+
+    def test_not_hdf5_refused(self, tmp_path):
+        path = tmp_path / "notes.h5"
+        path.write_text("plain text, not HDF5\n" * 20)
+        with pytest.raises(ConfigError):
+            KeyframeDatabase(path, CONF)
+        assert path.read_text().startswith("plain text")
+
+    def test_foreign_hdf5_refused(self, tmp_path):
+        path = tmp_path / "other.h5"
+        with h5py.File(path, "w") as f:
+            f.create_dataset("x", data=np.arange(3))
+        with pytest.raises(ConfigError, match="not a keyframe database"):
+            KeyframeDatabase(path, CONF)
+
+    def test_other_format_version_refused(self, db_path):
+        with h5py.File(db_path, "a") as f:
+            f.attrs["format_version"] = 2
+        with pytest.raises(ConfigError, match="format_version 2"):
+            KeyframeDatabase(db_path, CONF, ENCODER_ID)
+
+    def test_half_written_keyframe_dropped_on_resume(self, db_path):
+        with h5py.File(db_path, "a") as f:
+            f.create_group("keyframes/.incomplete").create_dataset("code", data=np.zeros(4096, np.float32))
+        with KeyframeDatabase(db_path, CONF, ENCODER_ID) as db:
+            assert len(db) == 3 and db.last_frame_id() == 14
+            assert [r.frame_id for r in db] == [3, 7, 12]
+        with h5py.File(db_path, "r") as f:
+            assert ".incomplete" not in f["keyframes"]
+
+    def test_half_written_keyframe_invisible_read_only(self, db_path):
+        with h5py.File(db_path, "a") as f:
+            f.create_group("keyframes/.incomplete").create_dataset("code", data=np.zeros(4096, np.float32))
+        with KeyframeDatabase(db_path, mode="r") as db:
+            assert len(db) == 3
+            assert [r.frame_id for r in db] == [3, 7, 12]
+            assert db.codes()[1].tolist() == [3, 7, 12]
+
+    def test_read_mode_on_missing_file(self, tmp_path):
+        with pytest.raises(ConfigError):
+            KeyframeDatabase(tmp_path / "missing.h5", mode="r")
+        assert not (tmp_path / "missing.h5").exists()

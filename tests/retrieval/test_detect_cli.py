@@ -1,0 +1,221 @@
+"""``cae-lcd detect`` end to end: in-process through ``retrieval.cli.main``, plus one real subprocess."""
+
+import csv
+import json
+import shutil
+import subprocess
+import sys
+
+import cv2
+import h5py
+import numpy as np
+import pytest
+import yaml
+
+from cae.preprocess import read_image
+from retrieval.cli import main
+from retrieval.database import KeyframeDatabase, KeyframeRecord
+from retrieval.detector import resolve_conf
+
+
+def read_csv(path):
+    with open(path, newline="") as f:
+        return list(csv.reader(f))
+
+
+def run_detect(args, capsys):
+    """Runs ``cae-lcd detect ARGS --no-progress`` in-process; returns (exit code, stderr)."""
+    capsys.readouterr()
+    code = main(["detect", *map(str, args), "--no-progress"])
+    return code, capsys.readouterr().err
+
+
+def assert_one_line_error(code, err, *fragments):
+    assert code == 2
+    assert "Traceback" not in err
+    lines = [line for line in err.splitlines() if line.startswith("error: ")]
+    assert len(lines) == 1, err
+    for fragment in fragments:
+        assert fragment in lines[0]
+    return lines[0]
+
+
+class TestDetectSample:
+    def test_tables_and_summary(self, cli_sample_run):
+        code, out = cli_sample_run
+        assert code == 0
+        loops = read_csv(out / "loops.csv")
+        assert loops[0] == ["query", "match", "score", "matches", "inliers"]
+        cands = read_csv(out / "candidates.csv")
+        assert cands[0] == ["query", "candidate", "score", "matches", "inliers", "accepted"]
+        summary = json.loads((out / "summary.json").read_text())
+        gt = summary["ground_truth"]
+        assert gt["precision"] == 1.0
+        assert gt["recall"] >= 0.9
+        assert summary["frames"] == 100 and summary["keyframes"] == 100 and summary["resumed_at"] == 0
+        assert summary["unreadable"] == 0 and summary["gated_out"] == 0
+        assert summary["loops"] == len(loops) - 1 == gt["detections"]
+        assert set(summary["ms_per_frame"]) >= {"encode", "features", "verify", "total"}
+
+    def test_loops_consistent_with_candidates(self, cli_sample_run, detect_conf):
+        _, out = cli_sample_run
+        policy = resolve_conf(detect_conf)["policy"]
+        assert policy["min_inliers"] >= 30  # a geometric requirement, not the paper's matches-only rule
+        loops = [tuple(r) for r in read_csv(out / "loops.csv")[1:]]
+        accepted = [tuple(r[:5]) for r in read_csv(out / "candidates.csv")[1:] if r[5] == "1"]
+        assert sorted(loops) == sorted(accepted)
+        for q, m, score, matches, inliers in loops:
+            assert int(q) - int(m) >= 50
+            assert int(matches) >= policy["min_matches"] and int(inliers) >= policy["min_inliers"]
+            assert 0 < float(score) <= 1
+        queries = [q for q, *_ in loops]
+        assert len(queries) == len(set(queries))  # at most one loop per query
+
+    def test_resolved_conf_and_database(self, cli_sample_run, detect_conf):
+        _, out = cli_sample_run
+        saved = yaml.safe_load((out / "conf.yaml").read_text())
+        assert saved == resolve_conf(detect_conf)
+        with KeyframeDatabase(out / "keyframes.h5", mode="r") as db:
+            assert len(db) == 100 and db.last_frame_id() == 99
+            assert db.conf == {k: v for k, v in saved.items() if k != "runtime"}
+
+    def test_resume_after_interruption(self, cli_sample_run, detect_config_args, tmp_path, capsys):
+        """Simulates a run killed after frame 89 by deleting the tail of its database, then runs again."""
+        _, out = cli_sample_run
+        run = tmp_path / "run"
+        shutil.copytree(out, run)
+        with h5py.File(run / "keyframes.h5", "a") as f:
+            for name in list(f["keyframes"]):
+                if int(name) >= 90:
+                    del f["keyframes"][name]
+        code, err = run_detect(["--out", run, *detect_config_args], capsys)
+        assert code == 0, err
+        summary = json.loads((run / "summary.json").read_text())
+        assert summary["resumed_at"] == 90
+        assert summary["processed_this_run"] == 10
+        assert summary["keyframes"] == 100
+        assert read_csv(run / "loops.csv") == read_csv(out / "loops.csv")
+        assert summary["ground_truth"] == json.loads((out / "summary.json").read_text())["ground_truth"]
+
+
+@pytest.fixture(scope="module")
+def short_conf_file(tmp_path_factory):
+    """Short exclusion window, so that a few frames already produce loops."""
+    path = tmp_path_factory.mktemp("short_conf") / "short.yaml"
+    path.write_text(yaml.safe_dump({"search": {"exclude_recent": 3}}))
+    return path
+
+
+# sample frames 0, 1, 2 and their revisits 50, 51, 52: renumbered 0..5, so 3->0, 4->1, 5->2 are true loops
+FOLDER_FRAMES = [0, 1, 2, 50, 51, 52]
+
+
+@pytest.fixture(scope="module")
+def folder_runs(tmp_path_factory, copy_sample_frames, short_conf_file):
+    """The same six frames as grey JPEG, colour (BGR) PNG and 16-bit PNG folders, each run through detect."""
+    root = tmp_path_factory.mktemp("formats")
+    variants = {
+        "grey": dict(transform=None, ext=".jpg"),
+        "colour": dict(transform=lambda g: cv2.cvtColor(g, cv2.COLOR_GRAY2BGR), ext=".png"),
+        "16bit": dict(transform=lambda g: g.astype(np.uint16) * 257, ext=".png"),
+    }
+    runs = {}
+    for name, kw in variants.items():
+        copy_sample_frames(FOLDER_FRAMES, root / name, **kw)
+        out = root / f"{name}_out"
+        code = main(["detect", str(root / name), "--out", str(out), "--config", str(short_conf_file),
+                     "--no-progress"])
+        runs[name] = (code, root / name, out)
+    return runs
+
+
+class TestDetectFolders:
+    def test_inputs_are_what_they_claim(self, folder_runs):
+        assert read_image(folder_runs["colour"][1] / "000000.png").shape == (188, 620, 3)
+        img16 = read_image(folder_runs["16bit"][1] / "000000.png")
+        assert img16.dtype == np.uint16 and img16.max() > 255
+
+    @pytest.mark.parametrize("name", ["grey", "colour", "16bit"])
+    def test_format_runs(self, folder_runs, name):
+        code, _, out = folder_runs[name]
+        assert code == 0
+        summary = json.loads((out / "summary.json").read_text())
+        assert summary["frames"] == 6 and summary["keyframes"] == 6
+        assert summary["unreadable"] == 0 and summary["gated_out"] == 0
+        assert "ground_truth" not in summary  # a plain folder has none
+        loops = {(int(r[0]), int(r[1])) for r in read_csv(out / "loops.csv")[1:]}
+        assert loops == {(3, 0), (4, 1), (5, 2)}
+
+    def test_formats_give_same_codes(self, folder_runs):
+        codes = {}
+        for name, (_, _, out) in folder_runs.items():
+            with KeyframeDatabase(out / "keyframes.h5", mode="r") as db:
+                codes[name] = db.codes()[0]
+        np.testing.assert_allclose(codes["colour"], codes["grey"], atol=1e-6)
+        np.testing.assert_allclose(codes["16bit"], codes["grey"], atol=1e-6)
+
+    def test_corrupt_image_skipped(self, tmp_path, copy_sample_frames, capsys, caplog):
+        copy_sample_frames(range(12), tmp_path / "imgs")
+        (tmp_path / "imgs" / "000005b.jpg").write_bytes(b"\xff\xd8\xff garbage, not a JPEG" * 20)
+        code, err = run_detect([tmp_path / "imgs", "--out", tmp_path / "out"], capsys)
+        assert code == 0, err
+        summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+        assert summary["frames"] == 13
+        assert summary["unreadable"] == 1 and summary["unreadable_files"] == ["000005b.jpg"]
+        assert summary["keyframes"] == 12
+        assert "000005b.jpg" in caplog.text and "skipping frame 6" in caplog.text
+        with KeyframeDatabase(tmp_path / "out" / "keyframes.h5", mode="r") as db:
+            assert [r.frame_id for r in db] == [0, 1, 2, 3, 4, 5, 7, 8, 9, 10, 11, 12]
+
+
+class TestDetectErrors:
+    def test_missing_folder(self, tmp_path, capsys):
+        code, err = run_detect([tmp_path / "missing", "--out", tmp_path / "out"], capsys)
+        assert_one_line_error(code, err, "not found", "missing")
+
+    def test_empty_folder(self, tmp_path, capsys):
+        (tmp_path / "empty").mkdir()
+        code, err = run_detect([tmp_path / "empty", "--out", tmp_path / "out"], capsys)
+        assert_one_line_error(code, err, "no images")
+
+    def test_unknown_config_key(self, tmp_path, capsys):
+        bad = tmp_path / "bad.yaml"
+        bad.write_text("policy: {bogus: 1}\n")
+        code, err = run_detect(["--config", bad, "--out", tmp_path / "out"], capsys)
+        line = assert_one_line_error(code, err, "policy.bogus")
+        assert "min_inliers" in line  # the allowed keys are named
+
+    def test_missing_config_file(self, tmp_path, capsys):
+        code, err = run_detect(["--config", tmp_path / "nope.yaml", "--out", tmp_path / "out"], capsys)
+        assert_one_line_error(code, err, "nope.yaml")
+
+    def test_truncated_database(self, tmp_path, capsys, sift_features):
+        out = tmp_path / "out"
+        out.mkdir()
+        db_path = out / "keyframes.h5"
+        with KeyframeDatabase(db_path, {}) as db:
+            for i in range(3):
+                db.append(KeyframeRecord(i, np.zeros(4096, np.float32), sift_features(5)))
+        data = db_path.read_bytes()
+        db_path.write_bytes(data[: len(data) // 2])
+        before = db_path.read_bytes()
+        code, err = run_detect(["--out", out], capsys)
+        assert_one_line_error(code, err, "keyframes.h5", "truncated or damaged")
+        assert db_path.read_bytes() == before
+
+    def test_garbage_weights(self, tmp_path, capsys, copy_sample_frames):
+        copy_sample_frames([0, 1], tmp_path / "imgs")
+        (tmp_path / "w.pt").write_bytes(b"not a checkpoint" * 10)
+        code, err = run_detect([tmp_path / "imgs", "--weights", tmp_path / "w.pt", "--out", tmp_path / "out"],
+                               capsys)
+        assert_one_line_error(code, err, "w.pt")
+
+    def test_console_script_subprocess(self, tmp_path):
+        bad = tmp_path / "bad.yaml"
+        bad.write_text("policy: {bogus: 1}\n")
+        proc = subprocess.run([sys.executable, "-m", "retrieval.cli", "detect", "--config", str(bad), "--out",
+                               str(tmp_path / "out"), "--no-progress"], capture_output=True, text=True, timeout=120)
+        assert proc.returncode == 2
+        assert "Traceback" not in proc.stderr
+        errors = [line for line in proc.stderr.splitlines() if line.startswith("error: ")]
+        assert len(errors) == 1 and "policy.bogus" in errors[0]

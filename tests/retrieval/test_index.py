@@ -1,0 +1,205 @@
+"""faiss indexes against the numpy brute-force reference, and the keyframe index's recent-frame exclusion."""
+
+import numpy as np
+import pytest
+
+from cae.conf import ConfigError
+from retrieval.index import (INDEXES, FlatIndex, FP16Index, HNSWIndex, KeyframeIndex, brute_force_search,
+                             create_index)
+
+D = 64
+
+
+def unit(rng, n, d=D):
+    x = rng.normal(size=(n, d)).astype(np.float32)
+    return x / np.linalg.norm(x, axis=1, keepdims=True)
+
+
+@pytest.fixture(scope="module")
+def data():
+    rng = np.random.default_rng(0)
+    return unit(rng, 2000), unit(rng, 50)
+
+
+def recall_at_k(I, I_ref):
+    return np.mean([len(set(a) & set(b)) / len(b) for a, b in zip(I, I_ref)])
+
+
+class TestBruteForceSearch:
+    def test_against_sort(self, data):
+        xb, xq = data
+        D_, I = brute_force_search(xq, xb, 5)
+        sims = xq @ xb.T
+        np.testing.assert_array_equal(I, np.argsort(-sims, axis=1)[:, :5])
+        np.testing.assert_allclose(D_, np.sort(sims, axis=1)[:, ::-1][:, :5], rtol=1e-6)
+
+    def test_padding_and_empty(self, data):
+        xb, xq = data
+        D_, I = brute_force_search(xq[:2], xb[:3], 5)
+        assert I.shape == (2, 5) and (I[:, 3:] == -1).all() and np.isneginf(D_[:, 3:]).all()
+        D_, I = brute_force_search(xq[:2], xb[:0], 4)
+        assert (I == -1).all() and I.shape == (2, 4)
+
+
+class TestFlatIndex:
+    def test_equals_brute_force(self, data):
+        xb, xq = data
+        index = FlatIndex(D)
+        index.add(xb[:1000])
+        index.add(xb[1000:])  # positions continue
+        assert index.ntotal == 2000
+        Df, If = index.search(xq, 10)
+        Db, Ib = brute_force_search(xq, xb, 10)
+        assert If.dtype == np.int64 and If.shape == (50, 10)
+        np.testing.assert_array_equal(If, Ib)
+        np.testing.assert_allclose(Df, Db, rtol=1e-5, atol=1e-6)
+
+    def test_fewer_codes_than_k(self, data):
+        xb, xq = data
+        index = FlatIndex(D)
+        index.add(xb[:3])
+        Df, If = index.search(xq[:4], 6)
+        Db, Ib = brute_force_search(xq[:4], xb[:3], 6)
+        np.testing.assert_array_equal(If, Ib)
+        assert (If[:, 3:] == -1).all() and np.isneginf(Df[:, 3:]).all()
+
+    def test_empty_index_and_empty_query(self, data):
+        xb, xq = data
+        index = FlatIndex(D)
+        Df, If = index.search(xq[:2], 5)
+        assert If.shape == (2, 5) and (If == -1).all()
+        index.add(xb[:0])
+        assert index.ntotal == 0
+        Df, If = index.search(xq[:0], 5)
+        assert Df.shape == (0, 5) and If.shape == (0, 5)
+
+
+class TestFP16Index:
+    def test_close_to_brute_force(self, data):
+        xb, xq = data
+        index = FP16Index(D)
+        index.add(xb)
+        Df, If = index.search(xq, 10)
+        Db, Ib = brute_force_search(xq, xb, 10)
+        np.testing.assert_allclose(Df, Db, atol=2e-3)
+        assert recall_at_k(If, Ib) >= 0.98
+        assert (If[:, 0] == Ib[:, 0]).mean() >= 0.98
+
+    def test_half_the_memory(self, data):
+        xb, _ = data
+        flat, fp16 = FlatIndex(D), FP16Index(D)
+        flat.add(xb)
+        fp16.add(xb)
+        assert flat.bytes_per_code() == pytest.approx(4 * D, rel=0.05)
+        assert fp16.bytes_per_code() == pytest.approx(2 * D, rel=0.05)
+
+
+class TestHNSWIndex:
+    def test_recall(self, data):
+        xb, xq = data
+        index = HNSWIndex(D, {"m": 16})
+        assert index.conf["m"] == 16 and index.index.hnsw.efSearch == 128
+        index.add(xb)
+        Dh, Ih = index.search(xq, 10)
+        _, Ib = brute_force_search(xq, xb, 10)
+        assert recall_at_k(Ih, Ib) >= 0.95
+        assert (Ih >= 0).all()
+
+    def test_unknown_option(self):
+        with pytest.raises(ConfigError, match="index.M"):
+            HNSWIndex(D, {"M": 16})
+
+
+@pytest.mark.skipif("sq8" not in INDEXES.names(), reason="no sq8 index in this version")
+class TestSQ8Index:
+    def test_exact_until_trained_then_close(self, data):
+        xb, xq = data
+        index = create_index(D, {"name": "sq8", "train_size": 500})
+        index.add(xb[:300])
+        assert index.ntotal == 300 and not index.index.is_trained
+        Ds, Is = index.search(xq, 10)
+        Db, Ib = brute_force_search(xq, xb[:300], 10)
+        np.testing.assert_array_equal(Is, Ib)  # below train_size the codes are kept exact
+        assert index.bytes_per_code() == 4 * D
+        index.add(xb[300:600])  # crosses train_size: the quantiser is learned, every code quantised
+        index.add(xb[600:])
+        assert index.ntotal == 2000 and index.index.is_trained
+        Ds, Is = index.search(xq, 10)
+        Db, Ib = brute_force_search(xq, xb, 10)  # positions continue across the training point
+        assert recall_at_k(Is, Ib) >= 0.9
+        np.testing.assert_allclose(Ds, Db, atol=0.03)
+        assert index.bytes_per_code() == pytest.approx(D, rel=0.1)
+
+    def test_empty(self, data):
+        _, xq = data
+        index = create_index(D, {"name": "sq8"})
+        Ds, Is = index.search(xq[:2], 3)
+        assert Is.shape == (2, 3) and (Is == -1).all()
+
+
+class TestCreateIndex:
+    def test_by_name(self):
+        assert isinstance(create_index(D), FlatIndex)
+        assert isinstance(create_index(D, {"name": "fp16"}), FP16Index)
+        assert isinstance(create_index(D, {"name": "hnsw", "ef_search": 64}), HNSWIndex)
+        assert {"flat", "fp16", "hnsw"} <= set(INDEXES.names())
+        with pytest.raises(ConfigError, match="unknown index 'ivf'"):
+            create_index(D, {"name": "ivf"})
+        with pytest.raises(ConfigError, match="index.m"):
+            create_index(D, {"name": "flat", "m": 16})
+
+
+class TestKeyframeIndex:
+    @pytest.fixture()
+    def codes(self):
+        return unit(np.random.default_rng(5), 40)
+
+    @pytest.mark.parametrize("conf", [{"name": "flat"}, {"name": "fp16"}, {"name": "hnsw", "m": 8}])
+    def test_exclude_recent_frames(self, codes, conf):
+        kf = KeyframeIndex(D, conf, exclude_recent=5)
+        for i in range(10):
+            kf.add(i, codes[i])
+        assert len(kf) == 10
+        # the query is a copy of frame 8's code, so frame 8 would be the best match if it were searchable
+        scores, ids = kf.search(codes[8], frame_id=10, k=10)
+        assert ids.dtype == np.int64 and len(scores) == len(ids)
+        assert set(ids.tolist()) == set(range(0, 6))  # frames 6..10 are too recent
+        _, Ib = brute_force_search(codes[8:9], codes[:6], 10)
+        np.testing.assert_array_equal(ids, Ib[0][Ib[0] >= 0])
+        assert np.all(np.diff(scores) <= 1e-6)  # best first
+
+    def test_exclusion_follows_query_frame(self, codes):
+        kf = KeyframeIndex(D, exclude_recent=5)
+        assert kf.search(codes[0], frame_id=0, k=3)[1].size == 0  # empty index: no results
+        for i in range(20):
+            _, ids = kf.search(codes[i], frame_id=i, k=50)
+            assert set(ids.tolist()) == set(range(0, max(0, i - 4)))
+            kf.add(i, codes[i])
+
+    def test_zero_exclusion_returns_self(self, codes):
+        kf = KeyframeIndex(D)
+        for i in range(5):
+            kf.add(i, codes[i])
+        scores, ids = kf.search(codes[3], frame_id=3, k=1)
+        assert ids.tolist() == [3] and scores[0] == pytest.approx(1.0, abs=1e-5)
+
+    def test_exclude_recent_seconds(self, codes):
+        kf = KeyframeIndex(D, exclude_recent=0, exclude_recent_s=2.0)
+        times = np.arange(20) * 0.5  # 2 frames a second
+        for i in range(10):
+            kf.add(i, codes[i], timestamp=float(times[i]))
+        _, ids = kf.search(codes[9], frame_id=10, k=20, timestamp=float(times[10]))
+        assert set(ids.tolist()) == set(range(0, 7))  # 5.0 - t >= 2.0  ->  t <= 3.0  ->  frames 0..6
+        # the frame rule applies too when both are set
+        kf2 = KeyframeIndex(D, exclude_recent=6, exclude_recent_s=2.0)
+        for i in range(10):
+            kf2.add(i, codes[i], timestamp=float(times[i]))
+        _, ids = kf2.search(codes[9], frame_id=10, k=20, timestamp=float(times[10]))
+        assert set(ids.tolist()) == set(range(0, 5))
+
+    def test_k_larger_than_available(self, codes):
+        kf = KeyframeIndex(D, exclude_recent=2)
+        for i in range(4):
+            kf.add(i, codes[i])
+        scores, ids = kf.search(codes[0], frame_id=4, k=10)
+        assert sorted(ids.tolist()) == [0, 1, 2] and np.isfinite(scores).all()
