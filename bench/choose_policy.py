@@ -31,7 +31,7 @@ def study(shared: Path, out: Path, conf: dict | None = None,
     for name in sequences:
         root = shared / "datasets/kitti/sequences" / name
         run = out / name
-        detect(root, run, {**(conf or {}), "policy": {"min_inliers": 0}}, progress=False)
+        detect(root, run, {**(conf or {}), "policy": {"min_inliers": 0, "check_all": True}}, progress=False)
         gt = open_sequence(root).loops
         gt = np.zeros((0, 2), np.int64) if gt is None else gt
         cands = read_csv_table(run / "candidates.csv", CANDIDATE_COLUMNS)

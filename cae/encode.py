@@ -8,7 +8,7 @@ import numpy as np
 import torch
 
 from .model import CODE_DIM, Encoder
-from .preprocess import preprocess
+from .preprocess import network_tensor, preprocess
 
 __all__ = ["encode_images", "normalize_codes"]
 
@@ -22,7 +22,7 @@ def normalize_codes(codes: np.ndarray) -> np.ndarray:
 
 @torch.inference_mode()
 def encode_images(encoder: Encoder, images: Sequence[np.ndarray] | np.ndarray, batch_size: int = 32,
-                  half: bool = False) -> np.ndarray:
+                  half: bool = False, prepared: bool = False) -> np.ndarray:
     """Encodes images as OpenCV reads them.
 
     Args:
@@ -30,6 +30,7 @@ def encode_images(encoder: Encoder, images: Sequence[np.ndarray] | np.ndarray, b
         images: a sequence of images, or one image (grey/BGR, 8/16-bit, any size).
         batch_size: images per forward pass.
         half: run in float16 (CUDA only; ignored on CPU, where it is slower).
+        prepared: the images are already ``cae.preprocess.to_network_u8`` output (256x256x3 uint8 RGB).
 
     Returns:
         ``(B, 4096)`` float32, each row of unit L2 norm; ``(0, 4096)`` for no images.
@@ -40,7 +41,8 @@ def encode_images(encoder: Encoder, images: Sequence[np.ndarray] | np.ndarray, b
     use_half = half and device.type == "cuda"
     out = [np.empty((0, CODE_DIM), np.float32)]
     for start in range(0, len(images), batch_size):
-        x = preprocess(images[start:start + batch_size]).to(device)
+        chunk = images[start:start + batch_size]
+        x = (network_tensor(np.stack(chunk)) if prepared else preprocess(chunk)).to(device)
         if use_half:
             with torch.autocast("cuda", dtype=torch.float16):
                 codes = encoder(x)

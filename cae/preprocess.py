@@ -18,7 +18,7 @@ import torch
 
 from .model import INPUT_SIZE
 
-__all__ = ["IMAGE_EXTENSIONS", "ImageError", "read_image", "to_uint8", "to_gray_u8", "to_rgb_u8", "resize_square", "to_network_u8", "preprocess"]
+__all__ = ["IMAGE_EXTENSIONS", "ImageError", "read_image", "to_uint8", "to_gray_u8", "to_rgb_u8", "resize_square", "to_network_u8", "network_tensor", "preprocess"]
 
 log = logging.getLogger(__name__)
 
@@ -119,7 +119,11 @@ def preprocess(images: np.ndarray | Sequence[np.ndarray], size: int = INPUT_SIZE
         images = [images]
     if len(images) == 0:
         return torch.empty((0, 3, size, size), dtype=torch.float32).contiguous(memory_format=torch.channels_last)
-    batch = np.stack([to_network_u8(img, size) for img in images])  # (B, S, S, 3) uint8
-    # (B, S, S, 3) -> (B, 3, S, S) view whose memory is already channels-last: no copy.
-    x = torch.from_numpy(batch).permute(0, 3, 1, 2)
+    return network_tensor(np.stack([to_network_u8(img, size) for img in images]))
+
+
+def network_tensor(batch: np.ndarray) -> torch.Tensor:
+    """``(B, S, S, 3)`` uint8 RGB (``to_network_u8`` output) -> ``(B, 3, S, S)`` float32 in [0, 1], channels-last."""
+    # (B, S, S, 3) -> (B, 3, S, S) view whose memory is already channels-last: no copy before the cast.
+    x = torch.from_numpy(np.ascontiguousarray(batch)).permute(0, 3, 1, 2)
     return x.to(torch.float32).div_(255.0)

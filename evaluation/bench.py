@@ -227,7 +227,7 @@ def main(out: str | Path = "BENCHMARKS.md", run_dir: str | Path = "runs/bench", 
         train_src = q["vocab"][0].parent if quick else Path(vocab_src) / "image_0"
         log.info("training study (trains on %s for %d epochs)", train_src, training_epochs)
         r = training_study(seq_loop["path"], train_src, run_dir / "training", 1 if quick else training_epochs,
-                           max_images=24 if quick else None)
+                           max_images=24 if quick else None, override=override)
         results["training"] = r
         md["training"] = (f"### Does training help? {seq_loop['name']}, default config, only the weights differ\n\n"
                           + training_table(r) + "\n\n- Recall@k: retrieval stage alone (before verification). Max "

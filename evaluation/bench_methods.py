@@ -130,7 +130,7 @@ def methods_table(res: dict[str, dict[str, Any]], confs: dict[str, dict[str, Any
 
 
 def training_study(sequence: str | Path, train_images: str | Path, run_dir: str | Path, epochs: int = 5,
-                   max_images: int | None = None) -> dict[str, dict[str, Any]]:
+                   max_images: int | None = None, override: dict[str, Any] | None = None) -> dict[str, dict[str, Any]]:
     """Retrieval Recall@k and max recall at 100 % precision with shipped, random and other-data weights.
 
     Args:
@@ -139,6 +139,7 @@ def training_study(sequence: str | Path, train_images: str | Path, run_dir: str 
         run_dir: folder for the checkpoints, the training run and the detect runs.
         epochs: training epochs for the other-data weights.
         max_images: train on at most this many images (None = all).
+        override: detector conf overrides applied to every run.
     """
     import time
 
@@ -162,7 +163,7 @@ def training_study(sequence: str | Path, train_images: str | Path, run_dir: str 
     seq = open_sequence(sequence)
     res = {}
     for i, (label, (weights, note)) in enumerate(variants.items()):
-        conf = {"encoder": {"weights": weights}} if weights else {}
+        conf = deep_update({"encoder": {"weights": weights}} if weights else {}, override)
         summary = detect_run(sequence, run_dir / f"w{i}", conf)
         res[label] = {**method_metrics(summary["out"], conf, seq.loops), "note": note}
     return res

@@ -66,7 +66,8 @@ class ThumbnailDescriptor(GlobalDescriptor):
         self.dim = w * h
         self.identity = f"thumbnail:{w}x{h}:blur{float(self.conf['blur']):g}"
 
-    def __call__(self, image: np.ndarray, features: Features | None = None) -> np.ndarray:
+    def __call__(self, image: np.ndarray, features: Features | None = None,
+                 network_image: np.ndarray | None = None) -> np.ndarray:
         small = cv2.resize(to_gray_u8(image), self.size, interpolation=cv2.INTER_AREA).astype(np.float32)
         if self.conf["blur"]:
             small = cv2.GaussianBlur(small, (0, 0), float(self.conf["blur"]))
@@ -201,7 +202,8 @@ class BoVWDescriptor(GlobalDescriptor):
         d = np.ascontiguousarray(descriptors, np.float32).reshape(-1, self.centroids.shape[1])
         return self.quantizer.search(d, 1)[1][:, 0] if len(d) else np.zeros(0, np.int64)
 
-    def __call__(self, image: np.ndarray, features: Features | None = None) -> np.ndarray:
+    def __call__(self, image: np.ndarray, features: Features | None = None,
+                 network_image: np.ndarray | None = None) -> np.ndarray:
         if features is None:  # used on its own, outside the detector: extract SIFT with the defaults
             self._extractor = self._extractor or create_extractor(None)
             features = self._extractor.extract(image)

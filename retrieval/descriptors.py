@@ -32,8 +32,16 @@ class GlobalDescriptor:
         self.dim = 0
         self.identity = ""
 
-    def __call__(self, image: np.ndarray, features: Features | None = None) -> np.ndarray:
-        """``image`` (any accepted layout) -> ``(dim,)`` float32 unit-norm vector."""
+    def __call__(self, image: np.ndarray, features: Features | None = None,
+                 network_image: np.ndarray | None = None) -> np.ndarray:
+        """One frame -> ``(dim,)`` float32 unit-norm vector.
+
+        Args:
+            image: the frame as given (any accepted layout).
+            features: its local features (passed when ``needs_features``).
+            network_image: the same frame already resized for the network, ``(256, 256, 3)`` uint8 RGB
+                (``cae.preprocess.to_network_u8``), when the caller has it: saves a second resize.
+        """
         raise NotImplementedError
 
 
@@ -57,7 +65,10 @@ class CAEDescriptor(GlobalDescriptor):
         self.dim = CODE_DIM
         self.identity = getattr(self.encoder, "identity", "")
 
-    def __call__(self, image: np.ndarray, features: Features | None = None) -> np.ndarray:
+    def __call__(self, image: np.ndarray, features: Features | None = None,
+                 network_image: np.ndarray | None = None) -> np.ndarray:
+        if network_image is not None:
+            return encode_images(self.encoder, [network_image], half=self.conf["half"], prepared=True)[0]
         return encode_images(self.encoder, [image], half=self.conf["half"])[0]
 
 

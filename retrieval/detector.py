@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from cae.conf import ConfigError, merge_conf
-from cae.preprocess import to_gray_u8
+from cae.preprocess import to_gray_u8, to_network_u8
 from verify.features import FEATURES, Features, create_extractor
 from verify.gate import EdgeGate
 from verify.geometry import GeometricVerifier
@@ -47,7 +47,7 @@ log = logging.getLogger(__name__)
 default_conf: dict[str, Any] = {
     "gate": EdgeGate.default_conf,  # image-quality gate (Canny edge ratio)
     "encoder": {"name": "cae"},  # global descriptor by registry name (cae; baselines) and its options
-    "index": {"name": "flat"},  # code index by registry name (flat, fp16, hnsw) and its options
+    "index": {"name": "flat"},  # code index by registry name (flat, fp16, sq8, hnsw) and its options
     "search": {
         "k": 10,  # candidates retrieved per query (paper: top-10)
         "exclude_recent": 50,  # frames younger than this many frames are not searched (paper: 9)
@@ -60,10 +60,11 @@ default_conf: dict[str, Any] = {
     "policy": {
         "min_matches": 5,  # putative (ratio-test) matches a candidate needs (paper: 5)
         "min_inliers": 50,  # geometric inliers a candidate needs (0: none); chosen on KITTI, see BENCHMARKS.md
+        "check_all": False,  # True: geometric check on every candidate; False: skip those that cannot win (same loops)
     },
     "runtime": {
         "threads": None,  # CPU threads for torch/OpenCV (halved for each side when parallel); None = all cores
-        "parallel": True,  # extract local features in a worker thread while the encoder and search run
+        "parallel": False,  # features in a worker thread while the encoder runs (cores split); slower on 2 cores
         "flush_every": 1,  # flush the database every this many frames (1: a killed run loses nothing)
     },
 }
@@ -93,7 +94,7 @@ class Candidate:
     frame_id: int  #: the keyframe retrieved
     score: float  #: cosine similarity of the codes
     matches: int = 0  #: putative matches after the ratio test
-    inliers: int = 0  #: geometric inliers
+    inliers: int = 0  #: geometric inliers; -1 when the check did not run (the pair could not pass or win)
 
     def as_row(self) -> tuple[int, float, int, int]:
         return (self.frame_id, self.score, self.matches, self.inliers)
@@ -198,7 +199,9 @@ class LoopDetector:
         ms: dict[str, float] = {}
         t_start = t0 = time.perf_counter()
         gray = to_gray_u8(image)
-        gate = self.gate(gray)
+        net = to_network_u8(image)  # one resize serves the gate and the encoder
+        is_grey = image.ndim == 2 or image.shape[2] == 1  # then the three channels are equal
+        gate = self.gate(net[:, :, 0] if is_grey else cv2.cvtColor(net, cv2.COLOR_RGB2GRAY))
         ms["gate"] = (time.perf_counter() - t0) * 1e3
         if not gate.passed:
             if self.db is not None:
@@ -212,7 +215,7 @@ class LoopDetector:
         if self.descriptor.needs_features:
             feats, ms["features"] = self._timed_extract(gray)
         t0 = time.perf_counter()
-        code = self.descriptor(image, feats)
+        code = self.descriptor(image, feats, network_image=net)
         ms["encode"] = (time.perf_counter() - t0) * 1e3
         t0 = time.perf_counter()
         scores, ids = self.index.search(code, fid, c["search"]["k"], timestamp)
@@ -228,7 +231,7 @@ class LoopDetector:
 
         t0 = time.perf_counter()
         checks = self.verifier.verify(feats, [self.features[cd.frame_id] for cd in candidates], self.K,
-                                      c["policy"]["min_matches"], c["policy"]["min_inliers"])
+                                      c["policy"]["min_matches"], c["policy"]["min_inliers"], c["policy"]["check_all"])
         for cand, check in zip(candidates, checks):
             cand.matches, cand.inliers = check.matches, check.inliers
         loop, best = self._decide(candidates, checks)

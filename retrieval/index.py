@@ -22,7 +22,7 @@ import numpy as np
 
 from cae.conf import Registry, merge_conf
 
-__all__ = ["CodeIndex", "FlatIndex", "FP16Index", "HNSWIndex", "INDEXES", "create_index", "KeyframeIndex",
+__all__ = ["CodeIndex", "FlatIndex", "FP16Index", "SQ8Index", "HNSWIndex", "INDEXES", "create_index", "KeyframeIndex",
            "brute_force_search"]
 
 

@@ -17,13 +17,16 @@ from .features import Features
 from .geometry import GeometricVerifier, GeometryResult
 from .matching import match_ratio_many
 
-__all__ = ["Verification", "Verifier", "RatioTestVerifier", "VERIFIERS", "create_verifier"]
+__all__ = ["NOT_CHECKED", "Verification", "Verifier", "RatioTestVerifier", "VERIFIERS", "create_verifier"]
+
+
+NOT_CHECKED = -1  #: inlier count of a candidate whose geometry was not checked (it could not pass or win)
 
 
 @dataclass
 class Verification:
     matches: int  #: putative matches after the ratio test (and mutual check)
-    inliers: int  #: geometric inliers (0 when geometry is off or fails)
+    inliers: int  #: geometric inliers (0 when geometry is off or fails; NOT_CHECKED when it did not run)
     geometry: GeometryResult = field(repr=False)
     pairs: np.ndarray = field(repr=False)  #: (matches, 2) int64 (query_index, candidate_index)
 
@@ -42,29 +45,39 @@ class Verifier:
         raise NotImplementedError
 
     def verify(self, query: Features, candidates: Sequence[Features], K: np.ndarray | None = None,
-               min_matches: int = 0, min_inliers: int = 0) -> list[Verification]:
-        """Matches, then checks geometry for each candidate.
+               min_matches: int = 0, min_inliers: int = 0, check_all: bool = True) -> list[Verification]:
+        """Matches, then checks geometry for each candidate that could still matter.
 
         Args:
             query: the query frame's features.
             candidates: features of each candidate keyframe.
             K: ``(3, 3)`` intrinsics (both frames from the same camera), or None.
-            min_matches: skip RANSAC when there are fewer putative matches (the pair cannot pass anyway).
-            min_inliers: lets the geometric check stop early on a pair that cannot reach this many inliers.
+            min_matches: no geometric check for fewer putative matches (the pair cannot pass anyway).
+            min_inliers: likewise, and lets the geometric check stop early on a pair that cannot reach it.
+            check_all: False = branch and bound: candidates are checked in decreasing match count, and one whose
+                matches are fewer than the best inlier count so far is not checked (inliers <= matches, so it
+                cannot win). The best candidate, and so the accepted loop, is the same either way.
 
         Returns:
-            One ``Verification`` per candidate, in order; ``[]`` for no candidates.
+            One ``Verification`` per candidate, in the input order; ``inliers == NOT_CHECKED`` (-1) where no
+            geometric check ran. ``[]`` for no candidates.
         """
         if not candidates:
             return []
-        out = []
-        for cand, pairs in zip(candidates, self.match_many(query, candidates)):
-            if len(pairs) < max(min_matches, min_inliers, 1):
-                geo = GeometryResult(0, np.zeros(len(pairs), bool), "skipped")
+        all_pairs = self.match_many(query, candidates)
+        out: list[Verification | None] = [None] * len(candidates)
+        order = np.argsort([-len(p) for p in all_pairs], kind="stable")
+        best = -1
+        for i in order:
+            pairs = all_pairs[i]
+            if len(pairs) < max(min_matches, min_inliers, 1) or (not check_all and best > len(pairs)):
+                geo = GeometryResult(NOT_CHECKED, np.zeros(len(pairs), bool), "not checked")
             else:
-                geo = self.geometry(query.keypoints[pairs[:, 0]], cand.keypoints[pairs[:, 1]], K, min_inliers)
-            out.append(Verification(len(pairs), geo.inliers, geo, pairs))
-        return out
+                geo = self.geometry(query.keypoints[pairs[:, 0]], candidates[i].keypoints[pairs[:, 1]], K,
+                                    min_inliers)
+                best = max(best, geo.inliers)
+            out[i] = Verification(len(pairs), geo.inliers, geo, pairs)
+        return out  # type: ignore[return-value]
 
 
 VERIFIERS: Registry[Verifier] = Registry("matcher")
