@@ -120,7 +120,7 @@ class TestResolveConf:
 
         before = copy.deepcopy(default_conf)
         conf = resolve_conf({"policy": {"min_inliers": 30}, "features": {"max_features": 123}})
-        assert conf["policy"] == {"min_matches": 5, "min_inliers": 30}
+        assert conf["policy"] == {"min_matches": 5, "min_inliers": 30, "check_all": False}
         from verify.features import SIFT
 
         assert conf["features"]["max_features"] == 123

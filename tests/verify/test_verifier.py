@@ -3,7 +3,7 @@ import pytest
 
 from cae.conf import ConfigError
 from verify.features import Features
-from verify.verifier import VERIFIERS, RatioTestVerifier, Verification, create_verifier
+from verify.verifier import NOT_CHECKED, VERIFIERS, RatioTestVerifier, Verification, create_verifier
 
 
 class TestRatioTestVerifier:
@@ -20,15 +20,28 @@ class TestRatioTestVerifier:
     def test_min_matches_skips_geometry(self, sift_features, sample_K):
         v = RatioTestVerifier()
         far = v.verify(sift_features(55), [sift_features(30)], sample_K, min_matches=1000)[0]
-        assert far.geometry.model == "skipped" and far.inliers == 0 and far.matches > 0
+        assert far.geometry.model == "not checked" and far.inliers == NOT_CHECKED and far.matches > 0
 
     def test_no_candidates_and_empty_features(self, sift_features, sample_K):
         v = RatioTestVerifier()
         assert v.verify(sift_features(55), [], sample_K) == []
         out = v.verify(Features.empty(), [sift_features(5)], sample_K)
-        assert out[0].matches == 0 and out[0].inliers == 0 and out[0].pairs.shape == (0, 2)
+        assert out[0].matches == 0 and out[0].inliers == NOT_CHECKED and out[0].pairs.shape == (0, 2)
         out = v.verify(sift_features(55), [Features.empty()], sample_K)
-        assert out[0].matches == 0 and out[0].inliers == 0
+        assert out[0].matches == 0 and out[0].inliers == NOT_CHECKED
+
+    def test_branch_and_bound_keeps_the_best(self, sift_features, sample_K):
+        """Skipping candidates that cannot win changes no winner: same best as checking all."""
+        v = RatioTestVerifier()
+        cands = [sift_features(i) for i in (30, 5, 6, 4, 40)]
+        full = v.verify(sift_features(55), cands, sample_K, min_inliers=50, check_all=True)
+        fast = v.verify(sift_features(55), cands, sample_K, min_inliers=50, check_all=False)
+        assert [f.matches for f in full] == [f.matches for f in fast]
+        best = max(range(len(cands)), key=lambda i: (full[i].inliers, full[i].matches))
+        assert max(range(len(cands)), key=lambda i: (fast[i].inliers, fast[i].matches)) == best
+        assert fast[best].inliers == full[best].inliers > 50
+        skipped = [f for f in fast if f.inliers == NOT_CHECKED]
+        assert skipped and all(f.matches < fast[best].inliers for f in skipped)
 
     def test_mutual_option(self, sift_features):
         plain = RatioTestVerifier().match_many(sift_features(55), [sift_features(5)])[0]
