@@ -23,7 +23,7 @@ __all__ = ["system_info", "stage_benchmark", "stage_table", "encoder_throughput"
 log = logging.getLogger(__name__)
 
 STAGE_NAMES = {"gate": "gate (Canny edge ratio)", "encode": "encode (preprocess + CAE)",
-               "features": "SIFT features (worker thread)", "search": "search (faiss)",
+               "features": "SIFT features", "search": "search (faiss)",
                "verify": "match + verify (ratio test, RANSAC)", "insert": "insert (index + HDF5)",
                "total": "end to end"}
 
@@ -60,8 +60,8 @@ def stage_table(summary: dict[str, Any], image_size: str) -> str:
     rss = summary.get("peak_rss_bytes")
     notes = [
         f"- {summary['frames']} frames ({image_size}), {summary['keyframes']} keyframes, {summary['wall_s']:.0f} s "
-        f"wall for the run. SIFT runs in a worker thread while the encoder and search run, so the stages add up to "
-        f"more than the end-to-end time.",
+        f"wall for the run, default runtime (stages one after another on all cores; the end-to-end time also holds "
+        f"the conversions between stages, and each column's median is taken on its own).",
         f"- Peak memory (max RSS of the detect process, Python + torch + faiss included): "
         f"{'n/a' if rss is None else f'{rss / 2**20:.0f} MiB'}.",
         f"- Stored per keyframe (keyframes.h5 size / keyframes: code + SIFT keypoints and descriptors): "
