@@ -209,11 +209,12 @@ class LoopDetector:
             ms["total"] = (time.perf_counter() - t_start) * 1e3
             return FrameResult(fid, True, gate.edge_ratio, ms=ms)
 
-        parallel = self._pool is not None and not self.descriptor.needs_features
-        future = self._pool.submit(self._timed_extract, gray) if parallel else None
-        feats = None
+        # local features: first when the descriptor needs them, else in the worker thread (parallel) or after search
+        feats, pending = None, None
         if self.descriptor.needs_features:
             feats, ms["features"] = self._timed_extract(gray)
+        elif self._pool is not None:
+            pending = self._pool.submit(self._timed_extract, gray)
         t0 = time.perf_counter()
         code = self.descriptor(image, feats, network_image=net)
         ms["encode"] = (time.perf_counter() - t0) * 1e3
@@ -222,12 +223,10 @@ class LoopDetector:
         keep = scores >= c["search"]["min_score"]
         candidates = [Candidate(int(i), float(s)) for s, i in zip(scores[keep], ids[keep])]
         ms["search"] = (time.perf_counter() - t0) * 1e3
-        t0 = time.perf_counter()
-        if future is not None:
-            feats, ms["features"] = future.result()
-        elif feats is None:
-            feats, ms["features"] = self._timed_extract(gray)
-        ms["features_wait"] = (time.perf_counter() - t0) * 1e3
+        if feats is None:
+            t0 = time.perf_counter()
+            feats, ms["features"] = pending.result() if pending is not None else self._timed_extract(gray)
+            ms["features_wait"] = (time.perf_counter() - t0) * 1e3  # what the frame waited for them
 
         t0 = time.perf_counter()
         checks = self.verifier.verify(feats, [self.features[cd.frame_id] for cd in candidates], self.K,
