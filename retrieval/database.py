@@ -118,14 +118,12 @@ class KeyframeDatabase:
         grp.create_dataset("code", data=np.asarray(rec.code, np.float32))
         feats = rec.features
         grp.create_dataset("keypoints", data=feats.keypoints.astype(np.float32))
-        desc = feats.descriptors
-        lossless_u8 = desc.dtype != np.uint8 and desc.size and np.all((desc >= 0) & (desc <= 255) & (desc == np.round(desc)))
-        grp.create_dataset("descriptors", data=desc.astype(np.uint8) if lossless_u8 else desc)
+        grp.create_dataset("descriptors", data=feats.compact().descriptors)
         grp.create_dataset("scales", data=feats.scales.astype(np.float32))
         cands = np.zeros((0, 4)) if rec.candidates is None else np.asarray(rec.candidates, np.float64)
         grp.create_dataset("candidates", data=cands.reshape(-1, 4))
         attrs = {"frame_id": int(rec.frame_id), "source": rec.source, "edge_ratio": float(rec.edge_ratio),
-                 "loop": int(rec.loop), "descriptor_dtype": np.dtype(desc.dtype).name}
+                 "loop": int(rec.loop), "descriptor_dtype": np.dtype(feats.descriptors.dtype).name}
         if rec.timestamp is not None:
             attrs["timestamp"] = float(rec.timestamp)
         if rec.pose is not None:

@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from cae.conf import ConfigError, merge_conf
-from cae.preprocess import to_gray_u8, to_network_u8
+from cae.preprocess import to_gray_u8, to_network_u8, to_uint8
 from verify.features import FEATURES, Features, create_extractor
 from verify.gate import EdgeGate
 from verify.geometry import GeometricVerifier
@@ -120,14 +120,6 @@ class FrameResult:
                 "ms": self.ms}
 
 
-def _compact(features: Features) -> Features:
-    """Keeps SIFT-like descriptors as uint8 in memory when that is lossless (4x less RAM)."""
-    d = features.descriptors
-    if d.dtype != np.uint8 and d.size and d.min() >= 0 and d.max() <= 255 and np.array_equal(d, np.round(d)):
-        return Features(features.keypoints, d.astype(np.uint8), features.scales)
-    return features
-
-
 class LoopDetector:
     """Appearance-based loop-closure detection, streaming.
 
@@ -169,7 +161,7 @@ class LoopDetector:
         n = 0
         for rec in db:
             self.index.add(rec.frame_id, rec.code, rec.timestamp)
-            self.features[rec.frame_id] = _compact(rec.features)
+            self.features[rec.frame_id] = rec.features.compact()
             n += 1
         self._next_id = db.last_frame_id() + 1
         if n:
@@ -198,8 +190,9 @@ class LoopDetector:
         c = self.conf
         ms: dict[str, float] = {}
         t_start = t0 = time.perf_counter()
-        gray = to_gray_u8(image)
-        net = to_network_u8(image)  # one resize serves the gate and the encoder
+        image8 = to_uint8(image)  # once: 16-bit and float frames are scanned and scaled here only
+        gray = to_gray_u8(image8)
+        net = to_network_u8(image8)  # one resize serves the gate and the encoder
         is_grey = image.ndim == 2 or image.shape[2] == 1  # then the three channels are equal
         gate = self.gate(net[:, :, 0] if is_grey else cv2.cvtColor(net, cv2.COLOR_RGB2GRAY))
         ms["gate"] = (time.perf_counter() - t0) * 1e3
@@ -238,7 +231,7 @@ class LoopDetector:
 
         t0 = time.perf_counter()
         self.index.add(fid, code, timestamp)
-        self.features[fid] = _compact(feats)
+        self.features[fid] = feats.compact()  # in memory as uint8 when exact; the database compacts on its own
         if self.db is not None:
             self.db.append(KeyframeRecord(fid, code, feats, timestamp, pose, source, gate.edge_ratio,
                                           np.array([cd.as_row() for cd in candidates], np.float64).reshape(-1, 4),

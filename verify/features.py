@@ -30,6 +30,14 @@ class Features:
     def __len__(self) -> int:
         return len(self.keypoints)
 
+    def compact(self) -> "Features":
+        """The same features with float descriptors stored as uint8 when that is exact (SIFT's are integers in
+        0..255): 4x less memory and disk, same matches. Other descriptors are returned unchanged."""
+        d = self.descriptors
+        if d.dtype != np.uint8 and d.size and d.min() >= 0 and d.max() <= 255 and np.array_equal(d, np.round(d)):
+            return Features(self.keypoints, d.astype(np.uint8), self.scales)
+        return self
+
     @classmethod
     def empty(cls, dim: int = 128, dtype: type = np.float32) -> "Features":
         return cls(np.zeros((0, 2), np.float32), np.zeros((0, dim), dtype), np.zeros((0,), np.float32))

@@ -23,6 +23,22 @@ class TestFeatures:
         assert b.descriptors.shape == (0, 32) and b.descriptors.dtype == np.uint8
 
 
+class TestFeaturesCompact:
+    def test_sift_descriptors_become_uint8_exactly(self, sift_features):
+        f = sift_features(10)
+        c = f.compact()
+        assert f.descriptors.dtype == np.float32 and c.descriptors.dtype == np.uint8
+        np.testing.assert_array_equal(c.descriptors.astype(np.float32), f.descriptors)
+        assert c.keypoints is f.keypoints and len(c) == len(f)
+
+    def test_non_integer_descriptors_unchanged(self, sample_image):
+        f = SIFT({"root_sift": True}).extract(sample_image(10))
+        assert f.compact() is f
+
+    def test_empty(self):
+        assert Features.empty().compact().descriptors.shape == (0, 128)
+
+
 @pytest.fixture(scope="module")
 def kitti_full(kitti_image):
     return kitti_image("00", 10)  # (376, 1241)
