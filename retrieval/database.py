@@ -40,6 +40,20 @@ FORMAT_VERSION = 1
 _TMP = "keyframes/.incomplete"
 
 
+def _diff(a: Any, b: Any, where: str = "") -> list[str]:
+    """Dotted keys whose values differ between two nested dicts."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        return [d for k in sorted(set(a) | set(b), key=str)
+                for d in _diff(a.get(k), b.get(k), f"{where}.{k}" if where else str(k))]
+    return [] if a == b else [where]
+
+
+def _get(conf: dict[str, Any], dotted: str) -> Any:
+    for key in dotted.split("."):
+        conf = conf.get(key) if isinstance(conf, dict) else None
+    return conf
+
+
 @dataclass
 class KeyframeRecord:
     frame_id: int
@@ -104,9 +118,11 @@ class KeyframeDatabase:
         version = int(self.file.attrs["format_version"])
         if version != FORMAT_VERSION:
             raise ConfigError(f"{self.path} has format_version {version}; this software reads {FORMAT_VERSION}")
-        if conf is not None and json.loads(self.file.attrs["conf"]) != json.loads(json.dumps(conf)):
-            raise ConfigError(f"{self.path} was written with a different configuration; resume with the same "
-                              "--config, or choose another --out")
+        stored, given = json.loads(self.file.attrs["conf"]), json.loads(json.dumps(conf))
+        if conf is not None and stored != given:
+            keys = ", ".join(f"{k} ({_get(stored, k)!r} there, {_get(given, k)!r} now)" for k in _diff(stored, given))
+            raise ConfigError(f"{self.path} was written with a different configuration: {keys}; resume with the "
+                              "same settings, or choose another --out")
         if encoder and self.file.attrs["encoder"] and self.file.attrs["encoder"] != encoder:
             raise ConfigError(f"{self.path} was written with other encoder weights ({self.file.attrs['encoder']}); "
                               "resume with the same --weights, or choose another --out")

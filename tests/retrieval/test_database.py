@@ -110,8 +110,9 @@ class TestKeyframeDatabase:
 
     def test_different_conf_refused(self, db_path):
         before = db_path.read_bytes()
-        with pytest.raises(ConfigError, match="different configuration"):
+        with pytest.raises(ConfigError, match="different configuration") as err:
             KeyframeDatabase(db_path, {**CONF, "policy": {"min_inliers": 10}}, ENCODER_ID)
+        assert "policy.min_inliers" in str(err.value) and "10 now" in str(err.value)
         assert db_path.read_bytes() == before
 
     def test_other_encoder_refused(self, db_path):
