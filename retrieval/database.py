@@ -22,6 +22,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator
@@ -32,7 +33,7 @@ import numpy as np
 from cae.conf import ConfigError
 from verify.features import Features
 
-__all__ = ["FORMAT_VERSION", "KeyframeRecord", "KeyframeDatabase"]
+__all__ = ["FORMAT_VERSION", "FeatureStore", "KeyframeRecord", "KeyframeDatabase"]
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +53,41 @@ def _get(conf: dict[str, Any], dotted: str) -> Any:
     for key in dotted.split("."):
         conf = conf.get(key) if isinstance(conf, dict) else None
     return conf
+
+
+class FeatureStore:
+    """Keyframe features for verification: all kept in memory, or read back from the database on demand.
+
+    Args:
+        db: None keeps every keyframe's features in memory (uint8 descriptors, ~64 kB a keyframe for 500 SIFT);
+            a database makes memory bounded: features are read from it, the ``cache_size`` most recent kept.
+        cache_size: features kept in memory in database mode (least recently used dropped first).
+    """
+
+    def __init__(self, db: "KeyframeDatabase | None" = None, cache_size: int = 512) -> None:
+        self.db = db
+        self.cache_size = max(1, int(cache_size))
+        self._items: OrderedDict[int, Features] = OrderedDict()
+
+    def __setitem__(self, frame_id: int, features: Features) -> None:
+        self._items[frame_id] = features.compact()
+        self._items.move_to_end(frame_id)
+        if self.db is not None and len(self._items) > self.cache_size:
+            self._items.popitem(last=False)
+
+    def __getitem__(self, frame_id: int) -> Features:
+        feats = self._items.get(frame_id)
+        if feats is None:
+            if self.db is None:
+                raise KeyError(frame_id)
+            feats = self.db.features(frame_id)
+            self[frame_id] = feats
+        else:
+            self._items.move_to_end(frame_id)
+        return feats
+
+    def __len__(self) -> int:
+        return len(self._items)
 
 
 @dataclass
@@ -193,11 +229,29 @@ class KeyframeDatabase:
         for name in self._names():
             yield self._read(self.file["keyframes"][name])
 
+    @staticmethod
+    def _features(grp: h5py.Group) -> Features:
+        desc = grp["descriptors"][()].astype(grp.attrs["descriptor_dtype"], copy=False)
+        return Features(grp["keypoints"][()], desc, grp["scales"][()])
+
+    def features(self, frame_id: int) -> Features:
+        """One keyframe's local features (descriptors in the extractor's dtype).
+
+        Raises:
+            KeyError: no complete keyframe with that id.
+        """
+        return self._features(self.file["keyframes"][f"{int(frame_id):08d}"])
+
+    def search_entries(self) -> Iterator[tuple[int, np.ndarray, float | None]]:
+        """``(frame_id, code, timestamp)`` per keyframe in frame-id order, without reading features."""
+        for name in self._names():
+            grp = self.file["keyframes"][name]
+            ts = grp.attrs.get("timestamp")
+            yield int(grp.attrs["frame_id"]), grp["code"][()], None if ts is None else float(ts)
+
     def _read(self, grp: h5py.Group) -> KeyframeRecord:
         a = grp.attrs
-        desc = grp["descriptors"][()].astype(a["descriptor_dtype"], copy=False)
-        feats = Features(grp["keypoints"][()], desc, grp["scales"][()])
-        return KeyframeRecord(frame_id=int(a["frame_id"]), code=grp["code"][()], features=feats,
+        return KeyframeRecord(frame_id=int(a["frame_id"]), code=grp["code"][()], features=self._features(grp),
                               timestamp=float(a["timestamp"]) if "timestamp" in a else None,
                               pose=np.asarray(a["pose"]).reshape(3, 4) if "pose" in a else None,
                               source=str(a["source"]), edge_ratio=float(a["edge_ratio"]),

@@ -36,7 +36,7 @@ from verify.gate import EdgeGate
 from verify.geometry import GeometricVerifier
 from verify.verifier import VERIFIERS, Verification, create_verifier
 
-from .database import KeyframeDatabase, KeyframeRecord
+from .database import FeatureStore, KeyframeDatabase, KeyframeRecord
 from .descriptors import DESCRIPTORS, create_descriptor
 from .index import INDEXES, KeyframeIndex
 
@@ -66,6 +66,8 @@ default_conf: dict[str, Any] = {
         "threads": None,  # CPU threads for torch/OpenCV (halved for each side when parallel); None = all cores
         "parallel": False,  # features in a worker thread while the encoder runs (cores split); slower on 2 cores
         "flush_every": 1,  # flush the database every this many frames (1: a killed run loses nothing)
+        "features": "memory",  # keyframe features for verification: "memory" (all), "database" (bounded memory)
+        "feature_cache": 512,  # with features "database": keyframes' features kept in memory (LRU)
     },
 }
 
@@ -148,20 +150,27 @@ class LoopDetector:
         self.verifier = create_verifier(c["matching"], c["geometry"])
         self.verifier.geometry.model_for(self.K)  # fail now, not at the first loop, if E is asked without K
         self.index = KeyframeIndex(self.descriptor.dim, c["index"], c["search"]["exclude_recent"], c["search"]["exclude_recent_s"])
-        self.features: dict[int, Features] = {}
+        if c["runtime"]["features"] not in ("memory", "database"):
+            raise ConfigError(f"runtime.features must be 'memory' or 'database'; got {c['runtime']['features']!r}")
+        if c["runtime"]["features"] == "database" and database is None:
+            raise ConfigError("runtime.features 'database' needs a keyframe database (database=... / --out)")
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="features") if c["runtime"]["parallel"] else None
         self._next_id = 0
         self.db: KeyframeDatabase | None = None
         if database is not None:
             persisted = {k: v for k, v in c.items() if k not in _NOT_PERSISTED}
             self.db = KeyframeDatabase(database, persisted, self.descriptor.identity, c["runtime"]["flush_every"])
+        from_db = self.db if c["runtime"]["features"] == "database" else None
+        self.features = FeatureStore(from_db, c["runtime"]["feature_cache"])
+        if self.db is not None:
             self._load(self.db)
 
     def _load(self, db: KeyframeDatabase) -> None:
         n = 0
-        for rec in db:
-            self.index.add(rec.frame_id, rec.code, rec.timestamp)
-            self.features[rec.frame_id] = rec.features.compact()
+        for fid, code, timestamp in db.search_entries():
+            self.index.add(fid, code, timestamp)
+            if self.features.db is None:  # memory mode: everything back in memory
+                self.features[fid] = db.features(fid)
             n += 1
         self._next_id = db.last_frame_id() + 1
         if n:
@@ -231,11 +240,11 @@ class LoopDetector:
 
         t0 = time.perf_counter()
         self.index.add(fid, code, timestamp)
-        self.features[fid] = feats.compact()  # in memory as uint8 when exact; the database compacts on its own
         if self.db is not None:
             self.db.append(KeyframeRecord(fid, code, feats, timestamp, pose, source, gate.edge_ratio,
                                           np.array([cd.as_row() for cd in candidates], np.float64).reshape(-1, 4),
                                           -1 if loop is None else loop.frame_id))
+        self.features[fid] = feats  # after the database has it: database mode may read it back from there
         ms["insert"] = (time.perf_counter() - t0) * 1e3
         ms["total"] = (time.perf_counter() - t_start) * 1e3
         geo = best.geometry if best is not None else None

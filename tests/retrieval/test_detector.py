@@ -148,6 +148,27 @@ class TestLoopDetector:
         assert stream_run["db"].read_bytes() == before
 
 
+class TestFeatureStoreMode:
+    def test_database_mode_same_loops_bounded_memory(self, tmp_path, sample_seq, sample_image, encoder, detect_conf,
+                                                     stream_run):
+        """Features read back from the database (tiny LRU cache) give the same loops as keeping all in memory."""
+        conf = {**detect_conf, "runtime": {"features": "database", "feature_cache": 8}}
+        seq = sample_seq
+        with LoopDetector(conf, K=seq.K, database=tmp_path / "kf.h5", encoder=encoder) as det:
+            results = [det.process(sample_image(i), i, float(seq.timestamps[i])) for i in range(RESUME_AT)]
+        with LoopDetector(conf, K=seq.K, database=tmp_path / "kf.h5", encoder=encoder) as det:  # resume
+            assert len(det.features) == 0 and len(det.index) == RESUME_AT
+            results += [det.process(sample_image(i), i, float(seq.timestamps[i])) for i in range(RESUME_AT, len(seq))]
+            assert len(det.features) <= 8
+        assert np.array_equal(loops_of(results), loops_of(stream_run["results"]))
+
+    def test_database_mode_needs_a_database(self, encoder):
+        with pytest.raises(ConfigError, match="needs a keyframe database"):
+            LoopDetector({"runtime": {"features": "database"}}, encoder=encoder)
+        with pytest.raises(ConfigError, match="runtime.features"):
+            LoopDetector({"runtime": {"features": "disk"}}, encoder=encoder)
+
+
 class TestCandidate:
     def test_as_row(self):
         assert Candidate(3, 0.5, 10, 7).as_row() == (3, 0.5, 10, 7)
