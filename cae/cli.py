@@ -2,18 +2,25 @@
 
 from __future__ import annotations
 
+import inspect
 import logging
 import os
 import sys
-from typing import Callable
+from typing import Any, Callable
 
 
 from .conf import ConfigError
 from .preprocess import ImageError
 
-__all__ = ["setup_logging", "run_cli", "EXPECTED_ERRORS"]
+__all__ = ["setup_logging", "run_cli", "api_defaults", "EXPECTED_ERRORS"]
 
 EXPECTED_ERRORS = (ConfigError, ImageError, FileNotFoundError, PermissionError, IsADirectoryError)
+
+
+def api_defaults(fn: Callable[..., object]) -> dict[str, Any]:
+    """Default value of each parameter of ``fn``: CLI options take their defaults from the Python API's ``main``,
+    so the two can never drift apart."""
+    return {k: p.default for k, p in inspect.signature(fn).parameters.items()}
 
 
 def setup_logging(verbose: bool = False) -> None:

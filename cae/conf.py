@@ -22,20 +22,23 @@ class ConfigError(ValueError):
     """A configuration (or an input named by it) is invalid; the message says what and where."""
 
 
-def merge_conf(defaults: Mapping[str, Any], override: Mapping[str, Any] | None, where: str = "") -> dict[str, Any]:
+def merge_conf(defaults: Mapping[str, Any], override: Mapping[str, Any] | None, where: str = "",
+               strict: bool = True) -> dict[str, Any]:
     """Recursively merges ``override`` onto a deep copy of ``defaults``.
 
     Args:
         defaults: the unit's default conf; its keys are the only ones allowed.
         override: user values, possibly partial and nested; ``None`` means no change.
         where: dotted prefix used in error messages.
+        strict: reject keys that ``defaults`` lacks. False merges two partial user confs (new keys are added; the
+            result is checked later, when it is resolved onto real defaults).
 
     Returns:
         A new dict; neither input is modified.
 
     Raises:
-        ConfigError: ``override`` names a key that ``defaults`` does not have, or gives a plain value where a section
-            (dict) is expected.
+        ConfigError: ``override`` names a key that ``defaults`` does not have (``strict``), or gives a plain value
+            where a section (dict) is expected.
     """
     out = copy.deepcopy(dict(defaults))
     if override is None:
@@ -44,13 +47,16 @@ def merge_conf(defaults: Mapping[str, Any], override: Mapping[str, Any] | None, 
         raise ConfigError(f"config section '{where or '<root>'}' must be a mapping, got {type(override).__name__}")
     for key, value in override.items():
         name = f"{where}.{key}" if where else str(key)
+        if key not in out and not strict:
+            out[key] = copy.deepcopy(value)
+            continue
         if key not in out:
             allowed = ", ".join(sorted(map(str, out))) or "(none)"
             raise ConfigError(f"unknown config key '{name}'; allowed here: {allowed}")
         if isinstance(out[key], Mapping):
             if value is None:
                 continue
-            out[key] = merge_conf(out[key], value, name)
+            out[key] = merge_conf(out[key], value, name, strict)
         else:
             out[key] = copy.deepcopy(value)
     return out

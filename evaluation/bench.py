@@ -20,7 +20,6 @@ sizes (16 frames cut from the bundled sample, 500/2000 codes) to check the comma
 
 from __future__ import annotations
 
-import inspect
 import logging
 import shutil
 import sys
@@ -30,6 +29,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from cae.cli import api_defaults
 from cae.conf import ConfigError
 from cae.preprocess import read_image
 from retrieval.baselines import build_vocabulary
@@ -254,7 +254,7 @@ def main(out: str | Path = "BENCHMARKS.md", run_dir: str | Path = "runs/bench", 
     return {"markdown": md, "results": results, "seconds": seconds, "out": str(out), "head": head}
 
 
-_DEFAULTS = {k: p.default for k, p in inspect.signature(main).parameters.items()}
+_DEFAULTS = api_defaults(main)
 
 
 def add_parser(sub: Any) -> None:

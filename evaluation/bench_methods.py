@@ -4,7 +4,6 @@ random and other-data weights)."""
 
 from __future__ import annotations
 
-import copy
 import logging
 import re
 from pathlib import Path
@@ -13,26 +12,17 @@ from typing import Any
 import numpy as np
 import torch
 
-from cae.conf import load_conf_file
+from cae.conf import load_conf_file, merge_conf
 from retrieval.baselines import build_vocabulary
 from retrieval.detector import resolve_conf
 from retrieval.sequences import open_sequence
 
 from .bench_common import REPO, Budget, detect_run, md_table, run_metrics
 
-__all__ = ["slug", "deep_update", "method_confs", "method_metrics", "run_methods", "false_loops", "methods_table",
+__all__ = ["slug", "method_confs", "method_metrics", "run_methods", "false_loops", "methods_table",
            "training_study", "training_table"]
 
 log = logging.getLogger(__name__)
-
-
-def deep_update(base: dict[str, Any], override: dict[str, Any] | None) -> dict[str, Any]:
-    """A copy of ``base`` with ``override`` merged in recursively (no key checking; ``resolve_conf`` does that)."""
-    out = copy.deepcopy(base)
-    for key, value in (override or {}).items():
-        out[key] = deep_update(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) \
-            else copy.deepcopy(value)
-    return out
 
 
 def method_confs(vocabulary: str | Path, override: dict[str, Any] | None = None) -> dict[str, dict[str, Any]]:
@@ -46,7 +36,7 @@ def method_confs(vocabulary: str | Path, override: dict[str, Any] | None = None)
     confs["default (CAE)"] = {}
     confs["thumbnail 64x48 + verification"] = {"encoder": {"name": "thumbnail"}}
     confs["bovw tf-idf + verification"] = {"encoder": {"name": "bovw", "vocabulary": str(vocabulary)}}
-    return {label: deep_update(c, override) for label, c in confs.items()}
+    return {label: merge_conf(c, override, strict=False) for label, c in confs.items()}
 
 
 def slug(label: str) -> str:
@@ -163,7 +153,7 @@ def training_study(sequence: str | Path, train_images: str | Path, run_dir: str 
     seq = open_sequence(sequence)
     res = {}
     for i, (label, (weights, note)) in enumerate(variants.items()):
-        conf = deep_update({"encoder": {"weights": weights}} if weights else {}, override)
+        conf = merge_conf({"encoder": {"weights": weights}} if weights else {}, override, strict=False)
         summary = detect_run(sequence, run_dir / f"w{i}", conf)
         res[label] = {**method_metrics(summary["out"], conf, seq.loops), "note": note}
     return res

@@ -8,17 +8,17 @@ recall at 100 % precision, AUC as average precision), and Recall@1/5/10 of the r
 from __future__ import annotations
 
 import csv
-import inspect
 import json
 import logging
 from pathlib import Path
 from typing import Any
 
-import h5py
 import numpy as np
 import yaml
 
+from cae.cli import api_defaults
 from cae.conf import ConfigError
+from retrieval.database import KeyframeDatabase
 from retrieval.sequences import read_kitti_poses
 
 from .ground_truth import GroundTruth, load_ground_truth, sniff_ground_truth
@@ -84,18 +84,10 @@ def _sequence_file(summary: dict[str, Any], *names: str) -> Path | None:
 
 def _keyframes(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Codes ``(n, D)``, frame ids ``(n,)`` and poses ``(n, 3, 4)`` (NaN when unknown) from ``keyframes.h5``."""
-    try:
-        with h5py.File(path, "r") as f:
-            grps = [f["keyframes"][k] for k in f["keyframes"]]
-            if not grps:
-                return np.zeros((0, 1), np.float32), np.zeros(0, np.int64), np.zeros((0, 3, 4))
-            codes = np.stack([g["code"][()] for g in grps]).astype(np.float32)
-            ids = np.array([int(g.attrs["frame_id"]) for g in grps], np.int64)
-            poses = np.stack([np.asarray(g.attrs["pose"], np.float64).reshape(3, 4) if "pose" in g.attrs
-                              else np.full((3, 4), np.nan) for g in grps])
-    except (OSError, KeyError) as err:
-        raise ConfigError(f"cannot read keyframe database {path}: {err}") from None
-    return codes, ids, poses
+    with KeyframeDatabase(path, mode="r") as db:
+        codes, ids = db.codes()
+        poses = db.poses()
+    return (codes.astype(np.float32) if len(codes) else np.zeros((0, 1), np.float32)), ids, poses
 
 
 def _resolve_run(run: Path) -> tuple[Path, Path]:
@@ -272,7 +264,7 @@ def _log_report(r: dict[str, Any]) -> None:
                  " / ".join(_fmt(v) for v in r["retrieval"]["recall_at_k"].values()))
 
 
-_DEFAULTS = {k: p.default for k, p in inspect.signature(main).parameters.items()}
+_DEFAULTS = api_defaults(main)
 
 
 def add_parser(sub: Any) -> None:

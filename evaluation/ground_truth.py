@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from cae.conf import ConfigError
+from retrieval.sequences import read_kitti_poses, read_loop_pairs
 
 __all__ = ["GroundTruth", "loops_from_poses", "load_ground_truth", "pair_matrix", "sniff_ground_truth"]
 
@@ -95,17 +96,9 @@ def _numeric_rows(path: Path) -> list[list[str]]:
     return [line.split() for line in text.splitlines() if line.strip() and not line.lstrip().startswith("#")]
 
 
-def _is_int(s: str) -> bool:
+def _parses(s: str, kind: type) -> bool:
     try:
-        int(s)
-    except ValueError:
-        return False
-    return True
-
-
-def _is_float(s: str) -> bool:
-    try:
-        float(s)
+        kind(s)
     except ValueError:
         return False
     return True
@@ -123,12 +116,12 @@ def sniff_ground_truth(path: str | Path) -> str:
     rows = _numeric_rows(path)
     if not rows:
         return "pairs"
-    if len(rows[0]) == 12 and all(len(r) == 12 and all(map(_is_float, r)) for r in rows):
+    if len(rows[0]) == 12 and all(len(r) == 12 and all(_parses(v, float) for v in r) for r in rows):
         return "poses"
-    if all(len(r) == 2 and all(map(_is_int, r)) for r in rows):
+    if all(len(r) == 2 and all(_parses(v, int) for v in r) for r in rows):
         return "pairs"
-    bad = next((n for n, r in enumerate(rows, 1) if not (len(r) == 2 and all(map(_is_int, r)))
-                and not (len(r) == 12 and all(map(_is_float, r)))), None)
+    bad = next((n for n, r in enumerate(rows, 1) if not (len(r) == 2 and all(_parses(v, int) for v in r))
+                and not (len(r) == 12 and all(_parses(v, float) for v in r))), None)
     what = ("mixes pair lines and pose lines" if bad is None
             else f"data line {bad} is {' '.join(rows[bad - 1])[:60]!r}")
     raise ConfigError(f"{path}: not a ground-truth file (need 'i j' integer pairs, or KITTI poses with 12 numbers "
@@ -155,17 +148,14 @@ def load_ground_truth(path: str | Path, radius: float = 5.0, min_gap: int = 50,
     path = Path(path)
     kind = sniff_ground_truth(path)
     if kind == "poses":
-        poses = np.loadtxt(path, ndmin=2).reshape(-1, 3, 4)
+        poses = read_kitti_poses(path)
         if min_gap_s is not None and timestamps is None:
             log.warning("min_gap_s=%s given without timestamps; using the frame gap %d instead", min_gap_s, min_gap)
         pairs = loops_from_poses(poses, radius, min_gap, timestamps, min_gap_s)
         return GroundTruth(pairs, "poses", path, poses)
-    rows = _numeric_rows(path)
-    pairs = np.array(rows, np.int64).reshape(-1, 2)
+    pairs = read_loop_pairs(path)
     if len(pairs) and pairs.min() < 0:
         raise ConfigError(f"{path}: negative frame index in the pairs")
-    if len(pairs):
-        pairs = np.unique(np.stack([pairs.max(1), pairs.min(1)], axis=1), axis=0)
     return GroundTruth(pairs, "pairs", path)
 
 

@@ -14,6 +14,8 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import LineCollection
 from matplotlib.figure import Figure
 
+from cae.encode import normalize_codes
+
 from .ground_truth import pair_matrix
 from .metrics import PRCurve, PRResult
 
@@ -159,7 +161,7 @@ def plot_similarity(codes: np.ndarray, frame_ids: np.ndarray, n_frames: int, gt_
     sim = np.full((m, m), np.nan, np.float32)
     if len(ids):
         sub = ids % step == 0
-        c = codes[sub] / np.maximum(np.linalg.norm(codes[sub], axis=1, keepdims=True), 1e-12)
+        c = normalize_codes(codes[sub])
         r = ids[sub] // step
         sim[np.ix_(r, r)] = c @ c.T
     gt = pair_matrix(gt_pairs, n_frames)[::step, ::step]

@@ -26,6 +26,7 @@ import faiss
 import numpy as np
 
 from cae.conf import ConfigError
+from cae.encode import normalize_codes
 from cae.preprocess import read_image, to_gray_u8
 from verify.features import Features, create_extractor
 
@@ -39,11 +40,8 @@ log = logging.getLogger(__name__)
 VOCABULARY_VERSION = 2
 
 
-def _unit(v: np.ndarray) -> np.ndarray:
-    """L2-normalised float32 copy (an all-zero vector stays zero)."""
-    v = np.asarray(v, np.float32).reshape(-1)
-    n = float(np.linalg.norm(v))
-    return v / n if n > 1e-12 else v
+def _unit_vector(v: np.ndarray) -> np.ndarray:
+    return normalize_codes(np.asarray(v, np.float32).reshape(1, -1))[0]
 
 
 @DESCRIPTORS.register("thumbnail")
@@ -71,7 +69,7 @@ class ThumbnailDescriptor(GlobalDescriptor):
         small = cv2.resize(to_gray_u8(image), self.size, interpolation=cv2.INTER_AREA).astype(np.float32)
         if self.conf["blur"]:
             small = cv2.GaussianBlur(small, (0, 0), float(self.conf["blur"]))
-        return _unit(small - small.mean())
+        return _unit_vector(small - small.mean())
 
 
 def _image_paths(images: str | Path | Sequence[str | Path]) -> list[Path]:
@@ -211,4 +209,4 @@ class BoVWDescriptor(GlobalDescriptor):
         if len(words) == 0:
             return np.zeros(self.dim, np.float32)
         tf = np.bincount(words, minlength=self.dim).astype(np.float32) / len(words)
-        return _unit(tf * self.idf)
+        return _unit_vector(tf * self.idf)

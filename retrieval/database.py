@@ -263,6 +263,12 @@ class KeyframeDatabase:
             grp = self.file["keyframes"][name]
             yield int(grp.attrs["frame_id"]), grp["candidates"][()], int(grp.attrs["loop"])
 
+    def poses(self) -> np.ndarray:
+        """``(n, 3, 4)`` camera-to-world pose per keyframe in frame-id order, NaN where none was given."""
+        grps = [self.file["keyframes"][n] for n in self._names()]
+        return np.stack([np.asarray(g.attrs["pose"], np.float64).reshape(3, 4) if "pose" in g.attrs
+                         else np.full((3, 4), np.nan) for g in grps]) if grps else np.zeros((0, 3, 4))
+
     def codes(self) -> tuple[np.ndarray, np.ndarray]:
         """All codes, ``(n, 4096)`` float32, with their frame ids ``(n,)``."""
         grps = [self.file["keyframes"][n] for n in self._names()]

@@ -53,10 +53,11 @@ def read_kitti_poses(path: str | Path) -> np.ndarray:
 
 
 def read_loop_pairs(path: str | Path) -> np.ndarray:
-    """Loop pairs file (``i j`` per line, ``#`` comments) -> ``(P, 2)`` int64, each row (later, earlier)."""
-    rows = [line.split()[:2] for line in Path(path).read_text().splitlines() if line.strip() and line[0] != "#"]
+    """Loop pairs file (``i j`` per line, ``#`` comments) -> ``(P, 2)`` int64 rows (later, earlier), unique, sorted."""
+    rows = [line.split()[:2] for line in Path(path).read_text().splitlines()
+            if line.strip() and not line.lstrip().startswith("#")]
     pairs = np.array(rows, dtype=np.int64).reshape(-1, 2)
-    return np.stack([pairs.max(1), pairs.min(1)], axis=1) if len(pairs) else pairs
+    return np.unique(np.stack([pairs.max(1), pairs.min(1)], axis=1), axis=0) if len(pairs) else pairs
 
 
 def _images_in(folder: Path) -> list[Path]:

@@ -16,6 +16,12 @@ DEFAULTS = {
 
 
 class TestMergeConf:
+    def test_non_strict_adds_keys(self):
+        out = merge_conf({"a": 1, "s": {"x": 1}}, {"b": 2, "s": {"y": {"z": 3}}}, strict=False)
+        assert out == {"a": 1, "b": 2, "s": {"x": 1, "y": {"z": 3}}}
+        with pytest.raises(ConfigError, match="unknown config key 'b'"):
+            merge_conf({"a": 1}, {"b": 2})
+
     def test_recursive_merge(self):
         out = merge_conf(DEFAULTS, {"a": 2, "section": {"inner": {"deep": [3]}}})
         assert out == {"a": 2, "section": {"x": 1.0, "y": "text", "inner": {"deep": [3]}}, "maybe": None}

@@ -73,6 +73,13 @@ class TestKeyframeDatabase:
         # the empty keyframe keeps the right shapes
         assert back[2].features.keypoints.shape == (0, 2) and back[2].features.descriptors.shape == (0, 128)
 
+    def test_poses_nan_where_unknown(self, db_path, records):
+        with KeyframeDatabase(db_path, mode="r") as db:
+            poses = db.poses()
+        assert poses.shape == (3, 3, 4)
+        np.testing.assert_array_equal(poses[0], records[0].pose)
+        assert records[1].pose is None and np.isnan(poses[1]).all()
+
     def test_storage_layout(self, db_path, records):
         with h5py.File(db_path, "r") as f:
             assert int(f.attrs["format_version"]) == FORMAT_VERSION == 1
