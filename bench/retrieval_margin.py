@@ -1,4 +1,3 @@
-#!/usr/bin/env python
 """Does training help the retrieval stage? How far apart the codes keep true and false matches.
 
 On KITTI 90 every second-pass query has a true loop among the first-pass frames. For each query and each set of
@@ -6,7 +5,8 @@ weights: the cosine of its best true match, the cosine of its best false frame (
 pair), their margin, and the rank of the first true match among all eligible frames (Recall@1 over the whole
 map, not only the top-10). A larger margin is a retrieval stage that is harder to fool.
 
-``python bench/retrieval_margin.py [--other runs/bench/training/train_other/best.pt]``
+``python -m bench.retrieval_margin [--sequence ../shared/datasets/kitti/sequences/90]
+[--other runs/bench/training/train_other/best.pt]``
 """
 
 from __future__ import annotations
@@ -19,8 +19,10 @@ import torch
 
 import cae
 from cae.model import Encoder
-from cae.preprocess import read_image
+from core.images import read_image
 from retrieval.sequences import open_sequence
+
+from .common import ground_truth_pairs
 
 
 def margins(codes: np.ndarray, loops: np.ndarray, min_gap: int = 50) -> dict[str, float]:
@@ -39,12 +41,15 @@ def margins(codes: np.ndarray, loops: np.ndarray, min_gap: int = 50) -> dict[str
 
 
 if __name__ == "__main__":
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m bench.retrieval_margin", description=__doc__.split("\n\n")[0])
     ap.add_argument("--sequence", type=Path, default=Path("../shared/datasets/kitti/sequences/90"))
     ap.add_argument("--other", type=Path, default=Path("runs/bench/training/train_other/best.pt"),
                     help="weights trained on other images (cae-lcd bench --training-study writes them)")
     args = ap.parse_args()
     seq = open_sequence(args.sequence)
+    loops = ground_truth_pairs(args.sequence)
+    if loops is None or not len(loops):
+        ap.error(f"{args.sequence}: no ground-truth loops (loops.txt); pick a sequence with revisits")
     images = [read_image(f) for f in seq.frames]
     torch.manual_seed(0)
     encoders = {"shipped (KITTI 00+07, 20 epochs)": cae.load_encoder(),
@@ -54,6 +59,6 @@ if __name__ == "__main__":
     print("| weights | mean cosine, best true match | mean cosine, best false frame | mean margin | "
           "smallest margin | Recall@1 over the whole map |\n|---|---|---|---|---|---|")
     for name, enc in encoders.items():
-        m = margins(cae.encode_images(enc, images), seq.loops)
+        m = margins(cae.encode_images(enc, images), loops)
         print(f"| {name} | {m['true']:.4f} | {m['false']:.4f} | {m['margin']:.4f} | {m['min_margin']:.4f} | "
               f"{m['recall_at_1']:.3f} |")

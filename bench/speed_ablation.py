@@ -1,7 +1,6 @@
-#!/usr/bin/env python
 """Side-by-side speed choices of the per-frame path, measured in one run on the same frames.
 
-``python bench/speed_ablation.py [--sequence ../shared/datasets/kitti/sequences/90]`` prints a Markdown table:
+``python -m bench.speed_ablation [--sequence ../shared/datasets/kitti/sequences/90]`` prints a Markdown table:
 the default detector against one change at a time (features in a parallel worker thread, geometric check on every
 candidate), and the descriptor-matching GEMM in numpy/OpenBLAS against torch (what the detector uses).
 """
@@ -15,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cae.preprocess import read_image
+from core.images import read_image
 from retrieval.detector import LoopDetector
 from retrieval.sequences import open_sequence
 from verify.features import SIFT
@@ -61,7 +60,7 @@ def matching_gemm(images: list[np.ndarray], repeats: int = 20) -> tuple[float, f
 
 if __name__ == "__main__":
     logging.basicConfig(level=logging.WARNING)
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m bench.speed_ablation", description=__doc__.split("\n\n")[0])
     ap.add_argument("--sequence", type=Path, default=Path("../shared/datasets/kitti/sequences/90"))
     args = ap.parse_args()
     seq = open_sequence(args.sequence)

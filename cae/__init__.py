@@ -5,10 +5,12 @@
     >>> codes = cae.encode_images(encoder, [img1, img2])  # (2, 4096), unit norm   # doctest: +SKIP
 """
 
-from .conf import ConfigError
+from core.errors import ConfigError, ImageError
+from core.images import read_image, to_gray_u8
+
 from .encode import encode_images, normalize_codes
 from .model import CODE_DIM, INPUT_SIZE, ConvAutoencoder, Decoder, Encoder
-from .preprocess import ImageError, preprocess, read_image, to_gray_u8
+from .preprocess import preprocess
 from .weights import DEFAULT_WEIGHTS, load_autoencoder, load_encoder
 
 __all__ = ["Encoder", "Decoder", "ConvAutoencoder", "load_encoder", "load_autoencoder", "preprocess", "read_image",

@@ -7,6 +7,8 @@ from typing import Sequence
 import numpy as np
 import torch
 
+from core.errors import ConfigError, ImageError
+
 from .model import CODE_DIM, Encoder
 from .preprocess import network_tensor, preprocess
 
@@ -34,9 +36,17 @@ def encode_images(encoder: Encoder, images: Sequence[np.ndarray] | np.ndarray, b
 
     Returns:
         ``(B, 4096)`` float32, each row of unit L2 norm; ``(0, 4096)`` for no images.
+
+    Raises:
+        ConfigError: ``batch_size`` is not an integer >= 1.
+        ImageError: an image is not an array of an accepted layout.
     """
+    if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) or batch_size < 1:
+        raise ConfigError(f"batch_size must be an integer >= 1; got {batch_size!r}")
     if isinstance(images, np.ndarray):
         images = [images]
+    elif not isinstance(images, (list, tuple)):
+        raise ImageError(f"images must be a numpy array or a list of them; got {type(images).__name__}")
     device = next(encoder.parameters()).device
     use_half = half and device.type == "cuda"
     out = [np.empty((0, CODE_DIM), np.float32)]

@@ -1,4 +1,4 @@
-"""Training the autoencoder on a folder of images (``python train.py --images DIR``).
+"""Training the autoencoder on a folder of images (``cae-lcd train --images DIR``, or ``python train.py ...``).
 
 Seeded 70/30 train/validation split, sigmoid cross-entropy on the logits, Adam, mini-batches of 32, validation loss
 each epoch, best-validation weights kept (``best.pt``, loadable by ``cae.load_encoder``), resumable from ``last.pt``,
@@ -6,14 +6,21 @@ the resolved conf saved as ``conf.yaml`` and the loss curves as ``loss.png``.
 
 The paper trained for 5000 epochs on a GPU. The CPU-sane default here is 40 epochs with early stopping (patience 8):
 on the 360 KITTI frames that is about 25 minutes on 2 cores and reaches most of the validation-loss drop.
+
+Every conf value and the device are checked before anything is read or written; images that cannot be read
+(corrupt, too small, too large, broken links, folders named like images) are skipped with a warning naming the file
+and counted in the summary. The batch order of epoch ``e`` depends only on ``(seed, e)``, so a run resumed from
+``last.pt`` ends with exactly the weights of an uninterrupted one.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
+import math
+import os
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -22,13 +29,15 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from .cli import run_cli
-from .conf import ConfigError, dump_conf, load_conf_file, merge_conf
+from core.conf import ConfigError, Float, Int, Text, check_conf, conf_diff, dump_conf, merge_conf
+from core.errors import ImageError
+from core.files import prepare_out_dir, write_text_atomic
+from core.images import IMAGE_EXTENSIONS, image_entries, read_image
 from .model import INPUT_SIZE, ConvAutoencoder
-from .preprocess import IMAGE_EXTENSIONS, ImageError, read_image, to_network_u8
-from .weights import load_checkpoint, resolve_device, save_checkpoint
+from .preprocess import to_network_u8
+from .weights import DEVICE_PATTERN, load_checkpoint, resolve_device, save_checkpoint
 
-__all__ = ["default_conf", "list_images", "load_image_folder", "main"]
+__all__ = ["default_conf", "conf_rules", "list_images", "load_image_folder", "main"]
 
 log = logging.getLogger(__name__)
 
@@ -44,27 +53,58 @@ default_conf: dict[str, Any] = {
     "max_images": None,  # use at most this many images (a seeded random subset); None = all
 }
 
+conf_rules: dict[str, Any] = {
+    "epochs": Int(1),
+    "batch_size": Int(1),
+    "lr": Float(0, lo_open=True),
+    "val_fraction": Float(0, 1, lo_open=True, hi_open=True),
+    "seed": Int(0),
+    "patience": Int(0),
+    "min_delta": Float(0),
+    "device": Text(DEVICE_PATTERN),
+    "max_images": Int(2, optional=True),
+}
+
+_RESUME_KEYS = ("state_dict", "optimizer", "epoch", "best_val_loss", "best_epoch", "history")
+
+
+@dataclass
+class _Progress:
+    """Where training stands: restored from ``last.pt`` or fresh."""
+
+    start_epoch: int = 0
+    best_val: float = float("inf")
+    best_epoch: int = -1
+    history: list[dict[str, float]] = field(default_factory=list)
+
 
 def list_images(folder: str | Path) -> list[Path]:
-    """All image files below ``folder`` (recursive), sorted by path.
+    """Every entry below ``folder`` (recursive) named like an image, sorted by path.
+
+    Entries that are not readable image files (broken links, folders named ``x.png``) are listed too, so that
+    ``load_image_folder`` reports and counts them.
 
     Raises:
-        ConfigError: the folder is missing or holds no image.
+        ConfigError: the folder is missing, is not a folder, or holds nothing named like an image.
     """
     folder = Path(folder)
     if not folder.is_dir():
-        raise ConfigError(f"image folder not found: {folder}")
-    files = sorted(p for p in folder.rglob("*") if p.suffix.lower() in IMAGE_EXTENSIONS and p.is_file())
+        raise ConfigError(f"image folder not found: {folder}" if not folder.exists()
+                          else f"image folder {folder} is not a folder")
+    files = image_entries(folder, recursive=True)
     if not files:
         raise ConfigError(f"no images ({', '.join(IMAGE_EXTENSIONS)}) found below {folder}")
     return files
 
 
 def load_image_folder(files: Sequence[Path]) -> tuple[np.ndarray, list[Path]]:
-    """Reads and resizes images to the network size; unreadable ones are skipped with a warning.
+    """Reads and resizes images to the network size; unreadable ones are skipped with a warning naming the file.
 
     Returns:
         ``(N, 256, 256, 3)`` uint8 RGB array and the paths actually used.
+
+    Raises:
+        ConfigError: none of the images could be read.
     """
     arrays, used = [], []
     for path in tqdm(files, desc="loading images", unit="img", leave=False):
@@ -72,10 +112,102 @@ def load_image_folder(files: Sequence[Path]) -> tuple[np.ndarray, list[Path]]:
             arrays.append(to_network_u8(read_image(path), INPUT_SIZE))
             used.append(path)
         except ImageError as err:
-            log.warning("skipping %s", err)
+            log.warning("skipping %s: %s", path, err)
     if not arrays:
-        raise ConfigError("none of the images could be read")
+        raise ConfigError(f"none of the {len(files)} images could be read")
     return np.stack(arrays), used
+
+
+def _check_out(out: Path) -> None:
+    """Fails early, before images are read, when ``out`` can never become a folder (it or a parent is a file)."""
+    for path in (out, *out.parents):
+        if os.path.lexists(path):
+            if not path.is_dir():
+                raise ConfigError(f"--out {out}: {'it' if path == out else path} exists and is not a folder")
+            return
+
+
+def _prepare(images: str | Path | Sequence[str | Path], out: Path, conf: dict[str, Any] | None
+             ) -> tuple[dict[str, Any], torch.device, list[str], list[Path]]:
+    """Checks the conf, the device, the output path and the image folders; reads and writes nothing.
+
+    Returns:
+        The resolved conf, the device, the image folders and the image files to read (``max_images`` applied).
+
+    Raises:
+        ConfigError: an unknown conf key or a bad value, an unavailable device, an output path under a file, a
+            missing or empty image folder.
+    """
+    conf = merge_conf(default_conf, conf)
+    check_conf(conf, conf_rules)
+    device = resolve_device(conf["device"])
+    _check_out(out)
+    folders = [str(images)] if isinstance(images, (str, Path)) else [str(f) for f in images]
+    if not folders:
+        raise ConfigError("no image folder given")
+    files = list(dict.fromkeys(f for folder in folders for f in list_images(folder)))
+    if conf["max_images"] and len(files) > conf["max_images"]:
+        rng = np.random.default_rng(conf["seed"])
+        files = sorted(rng.choice(np.array(files, dtype=object), conf["max_images"], replace=False).tolist())
+    return conf, device, folders, files
+
+
+def _split(data: np.ndarray, files: list[Path], conf: dict[str, Any]
+           ) -> tuple[np.ndarray, np.ndarray, dict[str, list[str]]]:
+    """Seeded train/validation split.
+
+    Returns:
+        Training images, validation images, and ``{"train": [paths], "val": [paths]}`` (for ``split.json``).
+
+    Raises:
+        ConfigError: fewer than 2 images (no split possible).
+    """
+    if len(data) < 2:
+        raise ConfigError(f"need at least 2 readable images to train with a validation split; found {len(data)}")
+    order = np.random.default_rng(conf["seed"]).permutation(len(data))
+    n_val = min(len(data) - 1, max(1, int(round(conf["val_fraction"] * len(data)))))
+    val_idx, train_idx = np.sort(order[:n_val]), np.sort(order[n_val:])
+    split = {"train": [str(files[i]) for i in train_idx], "val": [str(files[i]) for i in val_idx]}
+    return data[train_idx], data[val_idx], split
+
+
+def _resume_or_start(last_path: Path, conf: dict[str, Any], device: torch.device, val_set: np.ndarray,
+                     restart: bool) -> tuple[ConvAutoencoder, torch.optim.Optimizer, _Progress]:
+    """A seeded model and optimizer, restored from ``last_path`` when it exists (unless ``restart``).
+
+    Raises:
+        ConfigError: ``last_path`` is damaged, not a training checkpoint, or does not fit the model.
+    """
+    torch.manual_seed(conf["seed"])
+    model = ConvAutoencoder().to(device, memory_format=torch.channels_last)
+    optim = torch.optim.Adam(model.parameters(), lr=conf["lr"])
+    if restart or not last_path.exists():
+        val = _evaluate(model, val_set, conf["batch_size"], device)
+        log.info("initial validation loss %.5f", val)
+        return model, optim, _Progress(history=[{"epoch": 0, "train_loss": float("nan"), "val_loss": val,
+                                                 "seconds": 0.0}])
+    hint = "; run with --restart (restart=True) to start over"
+    try:
+        state = load_checkpoint(last_path)
+    except ConfigError as err:
+        raise ConfigError(f"{err}{hint}") from None
+    missing = [k for k in _RESUME_KEYS if k not in state]
+    if missing:
+        raise ConfigError(f"{last_path} is not a training checkpoint (no {', '.join(missing)}){hint}")
+    try:
+        model.load_state_dict(state["state_dict"], strict=True)
+        optim.load_state_dict(state["optimizer"])
+    except (RuntimeError, ValueError, KeyError) as err:
+        raise ConfigError(f"{last_path} does not fit the autoencoder: {str(err).splitlines()[0]}{hint}") from None
+    changed = [k for k in conf_diff(state.get("conf") or {}, conf) if k != "epochs"]
+    if changed:
+        log.warning("resuming %s with changed conf: %s (the checkpoint's weights are kept)", last_path,
+                    ", ".join(changed))
+    progress = _Progress(int(state["epoch"]), float(state["best_val_loss"]), int(state["best_epoch"]),
+                         list(state["history"]))
+    log.info("resuming from %s after epoch %d (best validation loss %.5f)", last_path, progress.start_epoch,
+             progress.best_val)
+    return model, optim, progress
 
 
 def _to_batch(images: np.ndarray, device: torch.device) -> torch.Tensor:
@@ -91,6 +223,54 @@ def _evaluate(model: ConvAutoencoder, images: np.ndarray, batch_size: int, devic
             x = _to_batch(images[start:start + batch_size], device)
             total += F.binary_cross_entropy_with_logits(model(x), x, reduction="sum").item() / x[0].numel()
     return total / max(1, len(images))
+
+
+def _train_epoch(model: ConvAutoencoder, optim: torch.optim.Optimizer, train_set: np.ndarray, epoch: int,
+                 conf: dict[str, Any], device: torch.device) -> float:
+    """One pass over ``train_set`` in a batch order seeded by ``(seed, epoch)``; returns the mean training loss."""
+    model.train()
+    perm = np.random.default_rng([conf["seed"], epoch]).permutation(len(train_set))
+    total = 0.0
+    for start in range(0, len(perm), conf["batch_size"]):
+        x = _to_batch(train_set[np.sort(perm[start:start + conf["batch_size"]])], device)
+        loss = F.binary_cross_entropy_with_logits(model(x), x)
+        optim.zero_grad(set_to_none=True)
+        loss.backward()
+        optim.step()
+        total += loss.item() * len(x)
+    return total / len(train_set)
+
+
+def _fit(model: ConvAutoencoder, optim: torch.optim.Optimizer, train_set: np.ndarray, val_set: np.ndarray,
+         conf: dict[str, Any], device: torch.device, out: Path, progress: _Progress) -> _Progress:
+    """Trains from ``progress.start_epoch`` to ``conf["epochs"]`` (or an early stop); saves ``best.pt``,
+    ``last.pt`` and ``loss.png`` after every epoch.
+
+    Raises:
+        ConfigError: the loss became NaN or infinite (training diverged; nothing of that epoch is saved).
+    """
+    bar = tqdm(range(progress.start_epoch, conf["epochs"]), desc="epochs", unit="epoch",
+               initial=progress.start_epoch, total=conf["epochs"])
+    for epoch in bar:
+        t0 = time.perf_counter()
+        train_loss = _train_epoch(model, optim, train_set, epoch, conf, device)
+        val = _evaluate(model, val_set, conf["batch_size"], device)
+        if not (math.isfinite(train_loss) and math.isfinite(val)):
+            raise ConfigError(f"training diverged in epoch {epoch + 1} (loss {train_loss}, validation {val}); "
+                              f"lower 'lr' (now {conf['lr']:g}); nothing of this epoch was saved")
+        progress.history.append({"epoch": epoch + 1, "train_loss": train_loss, "val_loss": val,
+                                 "seconds": time.perf_counter() - t0})
+        if val < progress.best_val - conf["min_delta"]:
+            progress.best_val, progress.best_epoch = val, epoch + 1
+            save_checkpoint(out / "best.pt", model, conf, epoch=epoch + 1, val_loss=val)
+        save_checkpoint(out / "last.pt", model, conf, epoch=epoch + 1, optimizer=optim.state_dict(),
+                        best_val_loss=progress.best_val, best_epoch=progress.best_epoch, history=progress.history)
+        _plot_history(progress.history, out / "loss.png")
+        bar.set_postfix(train=f"{train_loss:.4f}", val=f"{val:.4f}", best=f"{progress.best_val:.4f}")
+        if conf["patience"] and epoch + 1 - progress.best_epoch >= conf["patience"]:
+            log.info("early stop: no better validation loss for %d epochs", conf["patience"])
+            break
+    return progress
 
 
 def _plot_history(history: list[dict[str, float]], path: Path) -> None:
@@ -120,107 +300,36 @@ def main(images: str | Path | Sequence[str | Path], out: str | Path = "runs/trai
     Args:
         images: a folder, or several, searched recursively for images.
         out: run folder; ``last.pt`` there is resumed unless ``restart``.
-        conf: overrides of ``default_conf``.
+        conf: overrides of ``default_conf`` (checked against ``conf_rules`` before anything is written).
         restart: ignore an existing ``last.pt`` (it is overwritten at the end of the first epoch).
 
     Returns:
-        Summary dict: ``best_val_loss``, ``best_epoch``, ``epochs_run``, ``first_val_loss``, ``best``, ``history``.
+        Summary dict: ``best_val_loss``, ``best_epoch``, ``epochs_run``, ``first_val_loss``, ``best`` (path of
+        ``best.pt``), ``history``, ``images`` (how many were used), ``unreadable`` (how many were skipped) and
+        ``skipped`` (their paths).
+
+    Raises:
+        ConfigError: a bad conf key or value, an unavailable device, a bad ``out``, a missing or empty image folder,
+            fewer than 2 readable images, a damaged ``last.pt``, or a diverged training.
+        DatabaseError: a result file cannot be written.
     """
-    conf = merge_conf(default_conf, conf)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    device = resolve_device(conf["device"])
-    folders = [images] if isinstance(images, (str, Path)) else list(images)
-    files = [f for folder in folders for f in list_images(folder)]
-    rng = np.random.default_rng(conf["seed"])
-    if conf["max_images"] and len(files) > conf["max_images"]:
-        files = sorted(rng.choice(np.array(files, dtype=object), conf["max_images"], replace=False).tolist())
-    data, files = load_image_folder(files)
-    if len(data) < 2:
-        raise ConfigError(f"need at least 2 readable images to train with a validation split; found {len(data)}")
-    order = np.random.default_rng(conf["seed"]).permutation(len(data))
-    n_val = min(len(data) - 1, max(1, int(round(conf["val_fraction"] * len(data)))))
-    val_idx, train_idx = order[:n_val], order[n_val:]
-    train_set, val_set = data[np.sort(train_idx)], data[np.sort(val_idx)]
-    (out / "split.json").write_text(json.dumps({"train": [str(files[i]) for i in sorted(train_idx)],
-                                                "val": [str(files[i]) for i in sorted(val_idx)]}, indent=1))
-    dump_conf({**conf, "images": [str(f) for f in folders]}, out / "conf.yaml")
-    log.info("training on %d images, validating on %d, device %s", len(train_set), len(val_set), device)
-
-    torch.manual_seed(conf["seed"])
-    model = ConvAutoencoder().to(device, memory_format=torch.channels_last)
-    optim = torch.optim.Adam(model.parameters(), lr=conf["lr"])
-    history: list[dict[str, float]] = []
-    start_epoch, best_val, best_epoch = 0, float("inf"), -1
-    last_path = out / "last.pt"
-    if last_path.exists() and not restart:
-        state = load_checkpoint(last_path)
-        model.load_state_dict(state["state_dict"], strict=True)
-        optim.load_state_dict(state["optimizer"])
-        start_epoch, best_val, best_epoch = state["epoch"], state["best_val_loss"], state["best_epoch"]
-        history = state["history"]
-        log.info("resuming from %s after epoch %d (best validation loss %.5f)", last_path, start_epoch, best_val)
-    else:
-        history.append({"epoch": 0, "train_loss": float("nan"),
-                        "val_loss": _evaluate(model, val_set, conf["batch_size"], device), "seconds": 0.0})
-        log.info("initial validation loss %.5f", history[0]["val_loss"])
-
-    batch_rng = np.random.default_rng(conf["seed"] + start_epoch)
-    bar = tqdm(range(start_epoch, conf["epochs"]), desc="epochs", unit="epoch", initial=start_epoch,
-               total=conf["epochs"])
-    for epoch in bar:
-        t0 = time.perf_counter()
-        model.train()
-        perm = batch_rng.permutation(len(train_set))
-        total = 0.0
-        for start in range(0, len(perm), conf["batch_size"]):
-            x = _to_batch(train_set[np.sort(perm[start:start + conf["batch_size"]])], device)
-            loss = F.binary_cross_entropy_with_logits(model(x), x)
-            optim.zero_grad(set_to_none=True)
-            loss.backward()
-            optim.step()
-            total += loss.item() * len(x)
-        val = _evaluate(model, val_set, conf["batch_size"], device)
-        history.append({"epoch": epoch + 1, "train_loss": total / len(train_set), "val_loss": val,
-                        "seconds": time.perf_counter() - t0})
-        if val < best_val - conf["min_delta"]:
-            best_val, best_epoch = val, epoch + 1
-            save_checkpoint(out / "best.pt", model, conf, epoch=epoch + 1, val_loss=val)
-        save_checkpoint(last_path, model, conf, epoch=epoch + 1, optimizer=optim.state_dict(), best_val_loss=best_val,
-                        best_epoch=best_epoch, history=history)
-        _plot_history(history, out / "loss.png")
-        bar.set_postfix(train=f"{history[-1]['train_loss']:.4f}", val=f"{val:.4f}", best=f"{best_val:.4f}")
-        if conf["patience"] and epoch + 1 - best_epoch >= conf["patience"]:
-            log.info("early stop: no better validation loss for %d epochs", conf["patience"])
-            break
-    summary = {"best_val_loss": best_val, "best_epoch": best_epoch, "epochs_run": len(history) - 1,
-               "first_val_loss": history[0]["val_loss"], "best": str(out / "best.pt"), "history": history}
-    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    conf, device, folders, files = _prepare(images, Path(out), conf)
+    data, used = load_image_folder(files)
+    train_set, val_set, split = _split(data, used, conf)
+    out = prepare_out_dir(out)
+    model, optim, progress = _resume_or_start(out / "last.pt", conf, device, val_set, restart)
+    write_text_atomic(out / "split.json", json.dumps(split, indent=1))
+    dump_conf({**conf, "images": folders}, out / "conf.yaml")
+    kept = set(used)
+    skipped = [str(p) for p in files if p not in kept]
+    log.info("training on %d images, validating on %d (%d unreadable skipped), device %s", len(train_set),
+             len(val_set), len(skipped), device)
+    progress = _fit(model, optim, train_set, val_set, conf, device, out, progress)
+    if not (out / "best.pt").is_file():
+        raise ConfigError(f"{out / 'best.pt'} is missing (deleted after an earlier run?); run with --restart")
+    summary = {"best_val_loss": progress.best_val, "best_epoch": progress.best_epoch,
+               "epochs_run": len(progress.history) - 1, "first_val_loss": progress.history[0]["val_loss"],
+               "best": str(out / "best.pt"), "history": progress.history, "images": len(used),
+               "unreadable": len(skipped), "skipped": skipped}
+    write_text_atomic(out / "summary.json", json.dumps(summary, indent=1))
     return summary
-
-
-def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
-    parser = parser or argparse.ArgumentParser(description="Train the convolutional autoencoder on a folder of images.")
-    parser.add_argument("--images", required=True, nargs="+", help="folder(s) of images, searched recursively")
-    parser.add_argument("--config", help="YAML file of overrides (e.g. configs/train.yaml)")
-    parser.add_argument("--out", default="runs/train", help="run folder (default: %(default)s)")
-    parser.add_argument("--epochs", type=int, help="override conf 'epochs'")
-    parser.add_argument("--device", help="override conf 'device'")
-    parser.add_argument("--restart", action="store_true", help="do not resume from OUT/last.pt")
-    return parser
-
-
-def cli(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-
-    def run() -> None:
-        conf = load_conf_file(args.config) if args.config else {}
-        if args.epochs is not None:
-            conf["epochs"] = args.epochs
-        if args.device is not None:
-            conf["device"] = args.device
-        s = main(args.images, args.out, conf, restart=args.restart)
-        log.info("validation loss %.5f -> %.5f (best at epoch %d of %d); weights: %s", s["first_val_loss"],
-                 s["best_val_loss"], s["best_epoch"], s["epochs_run"], s["best"])
-
-    return run_cli(run)

@@ -8,28 +8,42 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import re
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from .conf import ConfigError
+from core.errors import ConfigError
 from .model import ConvAutoencoder, Encoder
 
-__all__ = ["DEFAULT_WEIGHTS", "CHECKPOINT_VERSION", "save_checkpoint", "load_checkpoint", "load_encoder",
-           "load_autoencoder", "encoder_identity", "resolve_device"]
+__all__ = ["DEFAULT_WEIGHTS", "CHECKPOINT_VERSION", "DEVICE_PATTERN", "save_checkpoint", "load_checkpoint",
+           "load_encoder", "load_autoencoder", "encoder_identity", "resolve_device"]
 
 log = logging.getLogger(__name__)
 
 DEFAULT_WEIGHTS = Path(__file__).with_name("weights") / "cae_kitti.pt"  #: shipped, trained on ../shared KITTI
 CHECKPOINT_VERSION = 1
+DEVICE_PATTERN = r"auto|cpu|cuda(:[0-9]+)?"  #: the devices a conf may name
 
 
 def resolve_device(device: str | torch.device | None = None) -> torch.device:
-    """``None``/``"auto"`` -> CUDA when available, else CPU."""
+    """``None``/``"auto"`` -> CUDA when available, else CPU; ``"cpu"``, ``"cuda"``, ``"cuda:N"`` as given.
+
+    Raises:
+        ConfigError: an unknown device, or CUDA asked for where there is none (or not that many GPUs).
+    """
     if device is None or str(device) == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(device)
+    if not re.fullmatch(DEVICE_PATTERN, str(device)):
+        raise ConfigError(f"device must be auto, cpu, cuda or cuda:N; got {device!r}")
+    dev = torch.device(device)
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ConfigError(f"device {device!r} asked for, but no CUDA GPU is available here; use 'cpu' or 'auto'")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise ConfigError(f"device {device!r} asked for, but only {torch.cuda.device_count()} GPU(s) exist")
+    return dev
 
 
 def save_checkpoint(path: str | Path, model: torch.nn.Module, conf: dict[str, Any], **extra: Any) -> None:
@@ -55,8 +69,13 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # torch raises many types for a damaged file
         raise ConfigError(f"cannot read weights file {path}: {err.__class__.__name__}: {str(err)[:200]}") from None
-    if not isinstance(ckpt, dict) or "state_dict" not in ckpt:
+    if not isinstance(ckpt, dict) or not isinstance(ckpt.get("state_dict"), dict):
         raise ConfigError(f"{path} is not a cae-loop-closure checkpoint (no 'state_dict')")
+    bad = [k for k, v in ckpt["state_dict"].items()
+           if isinstance(v, torch.Tensor) and v.is_floating_point() and not torch.isfinite(v).all()]
+    if bad:
+        raise ConfigError(f"weights file {path} holds NaN or infinite values (in {', '.join(bad[:3])}); "
+                          "it is damaged or from a diverged training run")
     return ckpt
 
 

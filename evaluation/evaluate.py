@@ -1,13 +1,14 @@
-"""Evaluate a detect run against ground truth: ``cae-lcd evaluate RUN_DIR_OR_LOOPS_CSV --gt GROUND_TRUTH``.
+"""Evaluate a detect run against ground truth (``cae-lcd evaluate RUN_DIR_OR_LOOPS_CSV --gt GROUND_TRUTH``).
 
 Reports precision/recall per query at the operating point, the PR curve swept over the verification score (max
 recall at 100 % precision, AUC as average precision), and Recall@1/5/10 of the retrieval stage alone. Writes
 ``evaluation.json`` (``format_version`` 1) and ``pr_curve.png``, ``trajectory.png``, ``similarity.png``.
+Everything read is checked first: a damaged table, summary or ground truth is an error or a warning, never a
+wrong figure.
 """
 
 from __future__ import annotations
 
-import csv
 import json
 import logging
 from pathlib import Path
@@ -16,89 +17,198 @@ from typing import Any
 import numpy as np
 import yaml
 
-from cae.cli import api_defaults
-from cae.conf import ConfigError
+from core.conf import ConfigError
+from core.files import prepare_out_dir, write_text_atomic
 from retrieval.database import KeyframeDatabase
-from retrieval.sequences import read_kitti_poses
+from retrieval.run_folder import LOOPS_COLUMNS, RunFolder, read_csv_table
+from retrieval.sequences import kitti_metadata_file, read_kitti_poses, read_times
 
 from .ground_truth import GroundTruth, load_ground_truth, sniff_ground_truth
 from .metrics import SCORES, best_per_query, correct_mask, pr_curve, precision_recall, recall_at_k
 
-__all__ = ["FORMAT_VERSION", "KS", "main", "read_csv_table", "add_parser"]
+__all__ = ["FORMAT_VERSION", "KS", "main", "score_run"]
 
 log = logging.getLogger(__name__)
 
 FORMAT_VERSION = 1
 KS = (1, 5, 10)  #: Recall@k cut-offs
-LOOPS_COLUMNS = ("query", "match", "score", "matches", "inliers")
-CANDIDATE_COLUMNS = ("query", "candidate", "score", "matches", "inliers", "accepted")
+MAX_PLOTTED_FRAMES = 200_000  #: larger runs get no trajectory/similarity plot (the report is still complete)
 
 
-def read_csv_table(path: Path, columns: tuple[str, ...]) -> np.ndarray:
-    """A numeric CSV with a header holding at least ``columns`` -> ``(R, len(columns))`` float64 in that order.
+def score_run(run_dir: str | Path, gt: str | Path) -> dict[str, Any]:
+    """Adds the operating point against ``gt`` to a run's ``summary.json`` (as ``"ground_truth"``).
 
-    Raises:
-        ConfigError: missing file, missing column or a non-numeric cell (the message names the file and line).
+    Args:
+        run_dir: a run folder written by ``retrieval.detect.main``.
+        gt: pairs file or KITTI poses file (``load_ground_truth`` defaults).
+
+    Returns:
+        The updated summary.
     """
+    run = RunFolder(Path(run_dir))
+    truth = load_ground_truth(gt)
+    summary = run.read_summary()
+    summary["ground_truth"] = precision_recall(run.read_loops()[:, :2].astype(np.int64), truth.pairs).as_dict()
+    run.write_summary(summary)
+    return summary
+
+
+def _read_run_conf(path: Path) -> dict[str, Any]:
+    """The run's resolved conf; ``{}`` (with a warning) when missing or unreadable."""
     if not path.is_file():
-        raise ConfigError(f"not found: {path}")
-    with open(path, newline="") as f:
-        reader = csv.DictReader(f)
-        missing = [c for c in columns if c not in (reader.fieldnames or [])]
-        if missing:
-            raise ConfigError(f"{path}: missing column(s) {', '.join(missing)}; expected {','.join(columns)}")
+        return {}
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        log.warning("cannot read %s; evaluating without the run's conf", path)
+        return {}
+    if not isinstance(data, dict):
+        log.warning("%s is not a mapping; evaluating without the run's conf", path)
+        return {}
+    return data
+
+
+def _section_int(conf: dict[str, Any], section: str, key: str) -> int | None:
+    value = (conf.get(section) if isinstance(conf.get(section), dict) else {}).get(key)
+    return value if isinstance(value, int) and not isinstance(value, bool) and value >= 0 else None
+
+
+def _resolve_run(run: Path) -> tuple[Path, Path]:
+    run = Path(run)
+    if run.is_dir():
+        folder = RunFolder(run)
+        if not folder.loops.is_file():
+            raise ConfigError(f"{run} holds no loops.csv; pass a run folder written by 'cae-lcd detect' or a loops.csv")
+        return run, folder.loops
+    if run.is_file():
+        return run.parent, run
+    raise ConfigError(f"run not found: {run}")
+
+
+def _load_truth(gt: Path, radius: float, min_gap: int, min_gap_s: float | None, times: Path | None,
+                summary: dict[str, Any]) -> tuple[GroundTruth, bool]:
+    """The ground truth, and whether a time gap was used."""
+    timestamps = None
+    if min_gap_s is not None and sniff_ground_truth(gt) == "poses":
+        sequence = summary.get("sequence")
+        tpath = Path(times) if times is not None else (
+            kitti_metadata_file(sequence, "times") if isinstance(sequence, str) else None)
+        if tpath is None:
+            raise ConfigError("--min-gap-s needs timestamps: pass --times, or run on a sequence with times.txt")
+        timestamps = read_times(tpath)
+    return load_ground_truth(gt, radius, min_gap, timestamps, min_gap_s), timestamps is not None
+
+
+def _frame_count(summary: dict[str, Any], ids_seen: np.ndarray, truth: GroundTruth) -> int:
+    """Frames of the run: from the summary when it says, else the largest id seen; checked against the tables."""
+    frames = summary.get("frames")
+    top = int(ids_seen.max(initial=-1))
+    if isinstance(frames, int) and not isinstance(frames, bool) and frames >= 0:
+        if top >= frames:
+            raise ConfigError(f"the run's tables name frame {top} but its summary.json says {frames} frames; the "
+                              "run folder is inconsistent (damaged or mixed from two runs)")
+        n_frames = frames
+    else:
+        if frames is not None:
+            log.warning("summary.json 'frames' is %r, not a count; using the tables' largest frame id", frames)
+        n_frames = int(max(top, truth.pairs.max(initial=-1)) + 1)
+    if truth.kind == "poses" and (len(truth.poses) != n_frames if isinstance(frames, int) else top >= len(truth.poses)):
+        raise ConfigError(f"{truth.path} has {len(truth.poses)} poses but the run has {n_frames} frames "
+                          f"(frame ids up to {top}); pose rows must be the run's frame ids")
+    if truth.pairs.max(initial=-1) >= n_frames:
+        log.warning("%s names frames up to %d but the run has %d frames", truth.path, truth.pairs.max(), n_frames)
+    return n_frames
+
+
+def _pr_section(cands: np.ndarray, det: np.ndarray, truth: GroundTruth, score: str,
+                run_conf: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any], Any]:
+    """PR curve over the swept score and retrieval Recall@k, from candidates.csv."""
+    accepted = cands[cands[:, 5] > 0][:, :2].astype(np.int64)
+    if set(map(tuple, accepted.tolist())) != set(map(tuple, det.tolist())):
+        log.warning("candidates.csv 'accepted' rows differ from loops.csv; the operating point uses loops.csv")
+    min_matches = _section_int(run_conf, "policy", "min_matches") or 0
+    best, best_scores = best_per_query(cands, score, min_matches)
+    curve = pr_curve(best, best_scores, truth.pairs)
+    r100, t100 = curve.max_recall_at_precision_1()
+    section = {"score": score, "min_matches": min_matches, "auc_method": "average_precision",
+               "auc": _num(curve.average_precision()), "max_recall_at_100_precision": _num(r100),
+               "threshold_at_100_precision": t100, **curve.as_dict()}
+    k_searched = _section_int(run_conf, "search", "k")
+    if k_searched is not None and max(KS) > k_searched:
+        log.info("the run kept only %s candidates per query: Recall@k for k > %s equals Recall@%s",
+                 k_searched, k_searched, k_searched)
+    retrieval = {"recall_at_k": {str(k): _num(v) for k, v in recall_at_k(cands, truth.pairs, KS).items()},
+                 "k_searched": k_searched, "queries_with_loop": len(truth.queries)}
+    return section, retrieval, curve
+
+
+def _run_poses(truth: GroundTruth, summary: dict[str, Any], n_frames: int,
+               kf: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> np.ndarray | None:
+    """Poses for the trajectory plot: the ground truth's, the sequence's, or those stored with the keyframes."""
+    if truth.poses is not None:
+        return truth.poses
+    sequence = summary.get("sequence")
+    seq_poses = kitti_metadata_file(sequence, "poses") if isinstance(sequence, str) else None
+    if seq_poses is not None:
         try:
-            rows = [[float(r[c]) for c in columns] for r in reader]
-        except (TypeError, ValueError):
-            raise ConfigError(f"{path}: non-numeric value on line {reader.line_num}") from None
-    return np.array(rows, np.float64).reshape(-1, len(columns))
+            poses = read_kitti_poses(seq_poses)
+        except ConfigError as err:
+            log.warning("cannot use the sequence poses: %s", err)
+        else:
+            if len(poses) == n_frames:
+                return poses
+            log.warning("%s has %d poses for %d frames; not used", seq_poses, len(poses), n_frames)
+    if kf is not None and np.isfinite(kf[2]).all(axis=(1, 2)).any():
+        poses = np.full((n_frames, 3, 4), np.nan)
+        ok = kf[1] < n_frames
+        poses[kf[1][ok]] = kf[2][ok]
+        return poses
+    return None
 
 
-def _read_yaml(path: Path) -> dict[str, Any]:
-    try:
-        data = yaml.safe_load(path.read_text()) if path.is_file() else None
-    except (OSError, yaml.YAMLError):
-        log.warning("cannot read %s; using no run conf", path)
-        return {}
-    return data if isinstance(data, dict) else {}
-
-
-def _read_summary(path: Path) -> dict[str, Any]:
-    try:
-        data = json.loads(path.read_text()) if path.is_file() else {}
-    except (OSError, ValueError):
-        log.warning("cannot read %s; evaluating without it", path)
-        return {}
-    return data if isinstance(data, dict) else {}
-
-
-def _sequence_file(summary: dict[str, Any], *names: str) -> Path | None:
-    """A file beside the run's sequence (``summary.json`` "sequence"), e.g. ``times.txt``, or None."""
-    if "sequence" not in summary:
-        return None
-    root = Path(summary["sequence"])
-    cands = {"times": [root / "times.txt"],
-             "poses": [root / "poses.txt", root.parent.parent / "poses" / f"{root.name}.txt"]}
-    return next((p for n in names for p in cands[n] if p.is_file()), None)
-
-
-def _keyframes(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _keyframes(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """Codes ``(n, D)``, frame ids ``(n,)`` and poses ``(n, 3, 4)`` (NaN when unknown) from ``keyframes.h5``."""
+    if not path.is_file():
+        return None
     with KeyframeDatabase(path, mode="r") as db:
         codes, ids = db.codes()
         poses = db.poses()
     return (codes.astype(np.float32) if len(codes) else np.zeros((0, 1), np.float32)), ids, poses
 
 
-def _resolve_run(run: Path) -> tuple[Path, Path]:
-    run = Path(run)
-    if run.is_dir():
-        if not (run / "loops.csv").is_file():
-            raise ConfigError(f"{run} holds no loops.csv; pass a run folder written by 'cae-lcd detect' or a loops.csv")
-        return run, run / "loops.csv"
-    if run.is_file():
-        return run.parent, run
-    raise ConfigError(f"run not found: {run}")
+def _plots(report: dict[str, Any], out: Path, title: str, truth: GroundTruth, det: np.ndarray,
+           correct: np.ndarray, n_frames: int, poses: np.ndarray | None,
+           kf: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> None:
+    from .plots import plot_similarity, plot_trajectory  # matplotlib only when evaluating
+
+    if n_frames > MAX_PLOTTED_FRAMES:
+        report["skipped"] += ["trajectory", "similarity"]
+        log.info("%d frames: trajectory and similarity plots skipped (limit %d)", n_frames, MAX_PLOTTED_FRAMES)
+        return
+    if poses is not None:
+        report["plots"]["trajectory"] = str(plot_trajectory(poses, out / "trajectory.png", truth.pairs, det,
+                                                            correct, title))
+    else:
+        report["skipped"].append("trajectory")
+        log.info("no poses known for the run (ground truth is a pairs file, none beside the sequence or in "
+                 "keyframes.h5): trajectory plot skipped")
+    if kf is not None:
+        report["plots"]["similarity"] = str(plot_similarity(kf[0], kf[1], n_frames, truth.pairs,
+                                                            out / "similarity.png", det, correct, title))
+    else:
+        report["skipped"].append("similarity")
+        log.info("no keyframes.h5 in the run folder: similarity plot skipped")
+
+
+def _check_args(radius: float, min_gap: int, min_gap_s: float | None, score: str) -> None:
+    if score not in SCORES:
+        raise ConfigError(f"unknown score '{score}'; choose one of {', '.join(SCORES)}")
+    if not (np.isfinite(radius) and radius > 0):
+        raise ConfigError(f"--radius must be a finite number > 0; got {radius}")
+    if min_gap < 0:
+        raise ConfigError(f"--min-gap must be >= 0; got {min_gap}")
+    if min_gap_s is not None and not (np.isfinite(min_gap_s) and min_gap_s >= 0):
+        raise ConfigError(f"--min-gap-s must be a finite number >= 0; got {min_gap_s}")
 
 
 def main(run: Path, gt: Path, out: Path | None = None, radius: float = 5.0, min_gap: int = 50,
@@ -121,117 +231,46 @@ def main(run: Path, gt: Path, out: Path | None = None, radius: float = 5.0, min_
         The report written to ``evaluation.json``.
 
     Raises:
-        ConfigError: unreadable run or ground truth, or poses that do not match the run's frames.
+        ConfigError: bad arguments, unreadable or inconsistent run files or ground truth.
+        DatabaseError: a damaged ``keyframes.h5``.
     """
-    if score not in SCORES:
-        raise ConfigError(f"unknown score '{score}'; choose one of {', '.join(SCORES)}")
-    if radius <= 0 or min_gap < 0 or (min_gap_s is not None and min_gap_s < 0):
-        raise ConfigError("radius must be > 0 and the minimum gaps >= 0")
-    from .plots import plot_pr_curve, plot_similarity, plot_trajectory  # matplotlib only when evaluating
-
+    _check_args(radius, min_gap, min_gap_s, score)
     run_dir, loops_csv = _resolve_run(run)
-    out = Path(out) if out is not None else run_dir
-    out.mkdir(parents=True, exist_ok=True)
-    summary_path, cand_path, kf_path = run_dir / "summary.json", run_dir / "candidates.csv", run_dir / "keyframes.h5"
-    summary = _read_summary(summary_path)
-    run_conf = _read_yaml(run_dir / "conf.yaml")
-    policy = run_conf.get("policy") or {}
-
-    timestamps = None
-    if min_gap_s is not None and sniff_ground_truth(gt) == "poses":
-        tpath = Path(times) if times is not None else _sequence_file(summary, "times")
-        if tpath is None:
-            raise ConfigError("--min-gap-s needs timestamps: pass --times, or run on a sequence with times.txt")
-        try:
-            timestamps = np.loadtxt(tpath, ndmin=1)
-        except (OSError, ValueError) as err:
-            raise ConfigError(f"cannot read timestamps {tpath}: {err}") from None
-    truth: GroundTruth = load_ground_truth(gt, radius, min_gap, timestamps, min_gap_s)
-
+    folder = RunFolder(run_dir)
+    summary, run_conf = folder.read_summary(), _read_run_conf(folder.conf)
+    truth, used_time = _load_truth(Path(gt), radius, min_gap, min_gap_s, times, summary)
     loops = read_csv_table(loops_csv, LOOPS_COLUMNS)
-    cands = read_csv_table(cand_path, CANDIDATE_COLUMNS) if cand_path.is_file() else None
+    cands = folder.read_candidates()
     ids_seen = np.concatenate([loops[:, :2].ravel(), [] if cands is None else cands[:, :2].ravel()]).astype(np.int64)
-    n_frames = int(summary.get("frames", 0)) or int(max(ids_seen.max(initial=-1), truth.pairs.max(initial=-1)) + 1)
-    if truth.kind == "poses" and ("frames" in summary and len(truth.poses) != n_frames
-                                  or ids_seen.max(initial=-1) >= len(truth.poses)):
-        raise ConfigError(f"{truth.path} has {len(truth.poses)} poses but the run has {n_frames} frames "
-                          f"(frame ids up to {ids_seen.max(initial=-1)}); pose rows must be the run's frame ids")
-    if truth.pairs.max(initial=-1) >= n_frames:
-        log.warning("%s names frames up to %d but the run has %d frames", truth.path, truth.pairs.max(), n_frames)
+    n_frames = _frame_count(summary, ids_seen, truth)
+    kf = _keyframes(folder.database)  # read (and checked) before anything is written
+    out = prepare_out_dir(out if out is not None else run_dir)
 
-    skipped: list[str] = []
     det = loops[:, :2].astype(np.int64)
     correct = correct_mask(det, truth.pairs)
     op = precision_recall(det, truth.pairs)
+    gap = {"radius": radius, "min_gap": min_gap, "min_gap_s": min_gap_s if used_time else None}
     report: dict[str, Any] = {
         "format_version": FORMAT_VERSION, "run": str(run_dir), "loops_csv": str(loops_csv),
         "ground_truth": {"path": str(truth.path), "kind": truth.kind, "pairs": len(truth.pairs),
                          "queries_with_loop": len(truth.queries), "frames": n_frames,
-                         **({"radius": radius, "min_gap": min_gap, "min_gap_s": min_gap_s if timestamps is not None
-                             else None} if truth.kind == "poses" else {})},
-        "operating_point": {**op.as_dict(), "min_inliers": policy.get("min_inliers"),
-                            "min_matches": policy.get("min_matches"),
+                         **(gap if truth.kind == "poses" else {})},
+        "operating_point": {**op.as_dict(), "min_inliers": _section_int(run_conf, "policy", "min_inliers"),
+                            "min_matches": _section_int(run_conf, "policy", "min_matches"),
                             "false_detections": det[~correct].tolist()},
-        "pr_curve": None, "retrieval": None, "plots": {}, "skipped": skipped,
+        "pr_curve": None, "retrieval": None, "plots": {}, "skipped": [],
     }
-
-    curve = None
     if cands is not None:
-        accepted = cands[cands[:, 5] > 0][:, :2].astype(np.int64)
-        if set(map(tuple, accepted.tolist())) != set(map(tuple, det.tolist())):
-            log.warning("candidates.csv 'accepted' rows differ from loops.csv; the operating point uses loops.csv")
-        min_matches = int(policy.get("min_matches") or 0)
-        best, best_scores = best_per_query(cands, score, min_matches)
-        curve = pr_curve(best, best_scores, truth.pairs)
-        r100, t100 = curve.max_recall_at_precision_1()
-        report["pr_curve"] = {"score": score, "min_matches": min_matches, "auc_method": "average_precision",
-                              "auc": _num(curve.average_precision()), "max_recall_at_100_precision": _num(r100),
-                              "threshold_at_100_precision": t100, **curve.as_dict()}
-        rk = recall_at_k(cands, truth.pairs, KS)
-        k_searched = (run_conf.get("search") or {}).get("k")
-        if k_searched is not None and max(KS) > int(k_searched):
-            log.info("the run kept only %s candidates per query: Recall@k for k > %s equals Recall@%s",
-                     k_searched, k_searched, k_searched)
-        report["retrieval"] = {"recall_at_k": {str(k): _num(v) for k, v in rk.items()},
-                               "k_searched": k_searched,
-                               "queries_with_loop": len(truth.queries)}
+        from .plots import plot_pr_curve
+
+        report["pr_curve"], report["retrieval"], curve = _pr_section(cands, det, truth, score, run_conf)
         report["plots"]["pr_curve"] = str(plot_pr_curve(curve, out / "pr_curve.png", score, op, run_dir.name))
     else:
-        skipped += ["pr_curve", "retrieval"]
+        report["skipped"] += ["pr_curve", "retrieval"]
         log.info("no candidates.csv beside %s: PR curve and Recall@k skipped", loops_csv)
-
-    poses = truth.poses
-    if poses is None and (seq_poses := _sequence_file(summary, "poses")) is not None:
-        try:
-            poses = read_kitti_poses(seq_poses)
-        except (OSError, ValueError) as err:  # ConfigError is a ValueError
-            log.warning("cannot use the sequence poses %s: %s", seq_poses, err)
-        if poses is not None and len(poses) != n_frames:
-            log.warning("%s has %d poses for %d frames; not used", seq_poses, len(poses), n_frames)
-            poses = None
-    codes = None
-    if kf_path.is_file():
-        codes, kf_ids, kf_poses = _keyframes(kf_path)
-        if poses is None and np.isfinite(kf_poses).all(axis=(1, 2)).any():
-            poses = np.full((n_frames, 3, 4), np.nan)
-            ok = kf_ids < n_frames
-            poses[kf_ids[ok]] = kf_poses[ok]
-    title = f"{run_dir.name} vs {truth.path.name}"
-    if poses is not None:
-        report["plots"]["trajectory"] = str(plot_trajectory(poses, out / "trajectory.png", truth.pairs, det,
-                                                            correct, title))
-    else:
-        skipped.append("trajectory")
-        log.info("no poses known for the run (ground truth is a pairs file, none beside the sequence or in "
-                 "keyframes.h5): trajectory plot skipped")
-    if codes is not None:
-        report["plots"]["similarity"] = str(plot_similarity(codes, kf_ids, n_frames, truth.pairs,
-                                                            out / "similarity.png", det, correct, title))
-    else:
-        skipped.append("similarity")
-        log.info("no keyframes.h5 beside %s: similarity plot skipped", loops_csv)
-
-    (out / "evaluation.json").write_text(json.dumps(report, indent=1))
+    poses = _run_poses(truth, summary, n_frames, kf)
+    _plots(report, out, f"{run_dir.name} vs {truth.path.name}", truth, det, correct, n_frames, poses, kf)
+    write_text_atomic(out / "evaluation.json", json.dumps(report, indent=1))
     _log_report(report)
     log.info("wrote %s", ", ".join([str(out / "evaluation.json"), *report["plots"].values()]))
     return report
@@ -262,29 +301,3 @@ def _log_report(r: dict[str, Any]) -> None:
     if r["retrieval"]:
         log.info("%-34s %s", "retrieval Recall@1 / @5 / @10",
                  " / ".join(_fmt(v) for v in r["retrieval"]["recall_at_k"].values()))
-
-
-_DEFAULTS = api_defaults(main)
-
-
-def add_parser(sub: Any) -> None:
-    p = sub.add_parser("evaluate", help="evaluate a detect run against ground truth (PR, AUC, Recall@k, plots)",
-                       description=__doc__.split("\n\n")[0])
-    p.add_argument("run", help="run folder written by 'cae-lcd detect', or a loops.csv")
-    p.add_argument("--gt", required=True, help="ground truth: 'i j' pairs file (0-based) or KITTI poses file")
-    p.add_argument("--out", help="folder for evaluation.json and the PNGs (default: the run folder)")
-    p.add_argument("--radius", type=float, default=_DEFAULTS["radius"],
-                   help="poses ground truth: loop radius on the x-z plane, metres (default %(default)s)")
-    p.add_argument("--min-gap", type=int, default=_DEFAULTS["min_gap"],
-                   help="poses ground truth: minimum frame gap (default %(default)s)")
-    p.add_argument("--min-gap-s", type=float, default=_DEFAULTS["min_gap_s"],
-                   help="poses ground truth: minimum time gap in seconds, replaces --min-gap (needs times)")
-    p.add_argument("--times", help="times.txt for --min-gap-s (default: the run's sequence's times.txt)")
-    p.add_argument("--score", choices=SCORES, default=_DEFAULTS["score"],
-                   help="score swept for the PR curve (default %(default)s)")
-    p.set_defaults(func=_run)
-
-
-def _run(args: Any) -> None:
-    main(Path(args.run), Path(args.gt), None if args.out is None else Path(args.out), args.radius, args.min_gap,
-         args.min_gap_s, args.score, None if args.times is None else Path(args.times))

@@ -16,10 +16,12 @@ from pathlib import Path
 
 import numpy as np
 
-from cae.conf import ConfigError
-from retrieval.sequences import read_kitti_poses, read_loop_pairs
+from core.conf import ConfigError
+from retrieval.run_folder import MAX_FRAME_ID
+from retrieval.sequences import read_kitti_poses
 
-__all__ = ["GroundTruth", "loops_from_poses", "load_ground_truth", "pair_matrix", "sniff_ground_truth"]
+__all__ = ["GroundTruth", "loops_from_poses", "load_ground_truth", "pair_matrix", "read_loop_pairs",
+           "sniff_ground_truth"]
 
 log = logging.getLogger(__name__)
 
@@ -86,14 +88,38 @@ class GroundTruth:
         return np.unique(self.pairs[:, 0]) if len(self.pairs) else np.zeros(0, np.int64)
 
 
-def _numeric_rows(path: Path) -> list[list[str]]:
+def read_loop_pairs(path: str | Path) -> np.ndarray:
+    """Loop pairs file (``i j`` per line, ``#`` comments) -> ``(P, 2)`` int64 rows (later, earlier), unique, sorted.
+
+    Raises:
+        ConfigError: missing or unreadable file, or a line that is not two frame indices in 0..``MAX_FRAME_ID``
+            (file and line named).
+    """
+    path = Path(path)
+    rows = []
+    for n, parts in _numeric_rows(path, numbered=True):
+        try:
+            i, j = (int(v) for v in parts)
+        except ValueError:
+            raise ConfigError(f"{path}, line {n}: expected two frame indices 'i j', got {' '.join(parts)[:60]!r}") \
+                from None
+        if min(i, j) < 0 or max(i, j) > MAX_FRAME_ID:
+            raise ConfigError(f"{path}, line {n}: frame indices must be in 0..{MAX_FRAME_ID}")
+        rows.append((i, j))
+    pairs = np.array(rows, dtype=np.int64).reshape(-1, 2)
+    return np.unique(np.stack([pairs.max(1), pairs.min(1)], axis=1), axis=0) if len(pairs) else pairs
+
+
+def _numeric_rows(path: Path, numbered: bool = False) -> list:
     if not path.is_file():
         raise ConfigError(f"ground-truth file not found: {path}")
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as err:
         raise ConfigError(f"cannot read ground-truth file {path}: {err}") from None
-    return [line.split() for line in text.splitlines() if line.strip() and not line.lstrip().startswith("#")]
+    rows = [(n, line.split("#")[0].split()) for n, line in enumerate(text.splitlines(), 1)]
+    rows = [(n, parts) for n, parts in rows if parts]
+    return rows if numbered else [parts for _, parts in rows]
 
 
 def _parses(s: str, kind: type) -> bool:
@@ -152,10 +178,13 @@ def load_ground_truth(path: str | Path, radius: float = 5.0, min_gap: int = 50,
         if min_gap_s is not None and timestamps is None:
             log.warning("min_gap_s=%s given without timestamps; using the frame gap %d instead", min_gap_s, min_gap)
         pairs = loops_from_poses(poses, radius, min_gap, timestamps, min_gap_s)
+        if len(pairs) == 0:
+            log.warning("%s gives no loop pair at radius %g m: every detection will count as false and recall is "
+                        "undefined", path, radius)
         return GroundTruth(pairs, "poses", path, poses)
     pairs = read_loop_pairs(path)
-    if len(pairs) and pairs.min() < 0:
-        raise ConfigError(f"{path}: negative frame index in the pairs")
+    if len(pairs) == 0:
+        log.warning("%s holds no loop pair: every detection will count as false and recall is undefined", path)
     return GroundTruth(pairs, "pairs", path)
 
 

@@ -18,7 +18,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 __all__ = ["PRResult", "PRCurve", "SCORES", "best_per_query", "correct_mask", "pr_curve", "precision_recall",
-           "recall_at_k"]
+           "queries_with_loop", "recall_at_k"]
 
 
 @dataclass
@@ -39,6 +39,15 @@ def _pair_keys(pairs: np.ndarray) -> np.ndarray:
     pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
     hi, lo = pairs.max(1), pairs.min(1)
     return hi * (1 << 32) + lo
+
+
+def queries_with_loop(ground_truth: np.ndarray) -> int:
+    """How many queries have at least one true loop in ``(P, 2)`` ``ground_truth`` (the recall denominator).
+
+    The query of a pair is its later frame, whichever order the pair is written in.
+    """
+    gt = np.asarray(ground_truth, np.int64).reshape(-1, 2)
+    return len(np.unique(gt.max(1))) if len(gt) else 0
 
 
 def correct_mask(detections: np.ndarray, ground_truth: np.ndarray) -> np.ndarray:
@@ -63,7 +72,7 @@ def precision_recall(detections: np.ndarray, ground_truth: np.ndarray) -> PRResu
         det = det[np.sort(first)]
     gt = np.asarray(ground_truth, np.int64).reshape(-1, 2)
     correct = np.isin(_pair_keys(det), _pair_keys(gt)) if len(det) else np.zeros(0, bool)
-    positives = len(np.unique(gt.max(1))) if len(gt) else 0
+    positives = queries_with_loop(gt)
     tp = int(correct.sum())
     fp = int(len(det) - tp)
     precision = tp / len(det) if len(det) else 1.0
@@ -191,7 +200,7 @@ def pr_curve(detections: np.ndarray, scores: np.ndarray, ground_truth: np.ndarra
         raise ValueError(f"{len(det)} detections but {len(s)} scores")
     gt = np.asarray(ground_truth, np.int64).reshape(-1, 2)
     if positives is None:
-        positives = len(np.unique(gt.max(1))) if len(gt) else 0
+        positives = queries_with_loop(gt)
     correct = np.isin(_pair_keys(det), _pair_keys(gt)) if len(det) else np.zeros(0, bool)
     order = np.argsort(-s, kind="stable")
     s, correct = s[order], correct[order]
@@ -220,7 +229,7 @@ def recall_at_k(candidates: np.ndarray, ground_truth: np.ndarray, ks: tuple[int,
         ``{k: recall}``; nan for every ``k`` when no query has a true loop.
     """
     gt = np.asarray(ground_truth, np.int64).reshape(-1, 2)
-    positives = len(np.unique(gt.max(1))) if len(gt) else 0
+    positives = queries_with_loop(gt)
     if positives == 0:
         return {int(k): float("nan") for k in ks}
     c = np.asarray(candidates, np.float64)

@@ -164,7 +164,7 @@ def plot_similarity(codes: np.ndarray, frame_ids: np.ndarray, n_frames: int, gt_
         c = normalize_codes(codes[sub])
         r = ids[sub] // step
         sim[np.ix_(r, r)] = c @ c.T
-    gt = pair_matrix(gt_pairs, n_frames)[::step, ::step]
+    gt = pair_matrix(np.asarray(gt_pairs, np.int64).reshape(-1, 2) // step, m)  # a block is marked if any pair is in it
     fig = Figure(figsize=(12.0, 5.6))
     ax1, ax2 = fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)
     extent = (-0.5, n_frames - 0.5, n_frames - 0.5, -0.5)

@@ -1,16 +1,16 @@
 """Baseline global descriptors a user would otherwise pick, registered beside ``cae`` in ``DESCRIPTORS``.
 
 - ``thumbnail``: the raw-pixel descriptor of PTAM-style relocalisers (Klein & Murray 2008): the grey image shrunk to
-  a small thumbnail (area averaging), zero-mean, L2-normalised. Conf ``{"encoder": {"name": "thumbnail"}}``.
+  a small thumbnail (area averaging), zero-mean, L2-normalised. Conf ``{"descriptor": {"name": "thumbnail"}}``.
 - ``bovw``: bag of visual words (Sivic & Zisserman 2003) over the frame's own SIFT descriptors: each descriptor
   votes for its nearest visual word, the histogram is tf-idf weighted and L2-normalised (cosine = normalised
   tf-idf dot product). The vocabulary (k-means centroids and idf) is learned once with ``build_vocabulary`` on a
-  training image set, and named by ``{"encoder": {"name": "bovw", "vocabulary": "vocab.npz"}}``.
+  training image set, and named by ``{"descriptor": {"name": "bovw", "vocabulary": "vocab.npz"}}``.
 
 Both go through the same verification as the CAE code; only the retrieval stage changes.
 
     >>> build_vocabulary("kitti/sequences/07", "runs/vocab.npz", k=1000)          # doctest: +SKIP
-    >>> LoopDetector({"encoder": {"name": "bovw", "vocabulary": "runs/vocab.npz"}})  # doctest: +SKIP
+    >>> LoopDetector({"descriptor": {"name": "bovw", "vocabulary": "runs/vocab.npz"}})  # doctest: +SKIP
 """
 
 from __future__ import annotations
@@ -25,9 +25,9 @@ import cv2
 import faiss
 import numpy as np
 
-from cae.conf import ConfigError
+from core.conf import ConfigError, Float, Int, Text
 from cae.encode import normalize_codes
-from cae.preprocess import read_image, to_gray_u8
+from core.images import read_image, to_gray_u8
 from verify.features import Features, create_extractor
 
 from .descriptors import DESCRIPTORS, GlobalDescriptor
@@ -54,12 +54,13 @@ class ThumbnailDescriptor(GlobalDescriptor):
         "height": 48,  # thumbnail height, pixels
         "blur": 0.0,  # extra Gaussian blur of the thumbnail, sigma in thumbnail pixels (0: area averaging only)
     }
+    conf_rules: dict[str, Any] = {"width": Int(2, 1024), "height": Int(2, 1024), "blur": Float(0, 100)}
 
     def __init__(self, conf: dict[str, Any] | None = None) -> None:
         super().__init__(conf)
         w, h = int(self.conf["width"]), int(self.conf["height"])
         if w < 2 or h < 2:
-            raise ConfigError(f"encoder.width and encoder.height must be >= 2; got {w}x{h}")
+            raise ConfigError(f"descriptor.width and descriptor.height must be >= 2; got {w}x{h}")
         self.size = (w, h)
         self.dim = w * h
         self.identity = f"thumbnail:{w}x{h}:blur{float(self.conf['blur']):g}"
@@ -180,12 +181,13 @@ class BoVWDescriptor(GlobalDescriptor):
         "name": "bovw",  # global descriptor, by registry name
         "vocabulary": None,  # .npz written by retrieval.baselines.build_vocabulary (required)
     }
+    conf_rules: dict[str, Any] = {"vocabulary": Text(optional=True)}
     needs_features = True
 
     def __init__(self, conf: dict[str, Any] | None = None) -> None:
         super().__init__(conf)
         if not self.conf["vocabulary"]:
-            raise ConfigError("encoder 'bovw' needs encoder.vocabulary: a .npz from "
+            raise ConfigError("descriptor 'bovw' needs descriptor.vocabulary: a .npz from "
                               "retrieval.baselines.build_vocabulary")
         self.centroids, self.idf = load_vocabulary(self.conf["vocabulary"])
         self.quantizer = faiss.IndexFlatL2(self.centroids.shape[1])

@@ -12,10 +12,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from cae.conf import Registry, merge_conf
+from core.conf import Bool, Registry, Text, configure
 from cae.encode import encode_images
 from cae.model import CODE_DIM
-from cae.weights import load_encoder
+from cae.weights import DEVICE_PATTERN, load_encoder
 from verify.features import Features
 
 __all__ = ["GlobalDescriptor", "CAEDescriptor", "DESCRIPTORS", "create_descriptor"]
@@ -25,10 +25,11 @@ class GlobalDescriptor:
     """Base class: set ``default_conf``, ``dim``, ``needs_features`` and implement ``__call__``."""
 
     default_conf: dict[str, Any] = {"name": ""}
+    conf_rules: dict[str, Any] = {}
     needs_features = False  #: True when ``__call__`` uses the frame's local features
 
     def __init__(self, conf: dict[str, Any] | None = None) -> None:
-        self.conf = merge_conf(self.default_conf, conf, "encoder")
+        self.conf = configure(self, conf, "descriptor")
         self.dim = 0
         self.identity = ""
 
@@ -58,6 +59,7 @@ class CAEDescriptor(GlobalDescriptor):
         "device": "cpu",  # "cpu", "cuda", "auto"; batch-1 encoding of this small net is fastest on the CPU
         "half": False,  # float16 inference (CUDA only)
     }
+    conf_rules: dict[str, Any] = {"weights": Text(optional=True), "device": Text(DEVICE_PATTERN), "half": Bool()}
 
     def __init__(self, conf: dict[str, Any] | None = None, encoder: torch.nn.Module | None = None) -> None:
         super().__init__(conf)

@@ -20,6 +20,7 @@ from __future__ import annotations
 import logging
 import os
 import time
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,24 +30,28 @@ import cv2
 import numpy as np
 import torch
 
-from cae.conf import ConfigError, merge_conf
-from cae.preprocess import to_gray_u8, to_network_u8, to_uint8
+from cae.preprocess import to_network_u8
+from core.conf import Bool, Choice, ConfigError, Float, Int, check_conf, merge_conf
+from core.images import check_image, to_gray_u8, to_uint8
 from verify.features import FEATURES, Features, create_extractor
 from verify.gate import EdgeGate
 from verify.geometry import GeometricVerifier
-from verify.verifier import VERIFIERS, Verification, create_verifier
+from verify.verifier import MATCHERS, Verification, create_verifier
 
 from .database import FeatureStore, KeyframeDatabase, KeyframeRecord
 from .descriptors import DESCRIPTORS, create_descriptor
 from .index import INDEXES, KeyframeIndex
 
-__all__ = ["Candidate", "FrameResult", "LoopDetector", "default_conf", "resolve_conf"]
+__all__ = ["Candidate", "FrameResult", "LoopDetector", "STAGES", "default_conf", "conf_rules", "resolve_conf",
+           "RENAMED_SECTIONS"]
 
 log = logging.getLogger(__name__)
 
+STAGES = ("gate", "encode", "features", "search", "verify", "insert", "total")  #: keys of ``FrameResult.ms``
+
 default_conf: dict[str, Any] = {
     "gate": EdgeGate.default_conf,  # image-quality gate (Canny edge ratio)
-    "encoder": {"name": "cae"},  # global descriptor by registry name (cae; baselines) and its options
+    "descriptor": {"name": "cae"},  # global descriptor by registry name (cae; thumbnail, bovw) and its options
     "index": {"name": "flat"},  # code index by registry name (flat, fp16, sq8, hnsw) and its options
     "search": {
         "k": 10,  # candidates retrieved per query (paper: top-10)
@@ -55,7 +60,7 @@ default_conf: dict[str, Any] = {
         "min_score": 0.0,  # candidates below this cosine similarity are not verified
     },
     "features": {"name": "sift"},  # local features by registry name and their options
-    "matching": {"name": "ratio"},  # descriptor matcher by registry name and its options
+    "matcher": {"name": "ratio"},  # descriptor matcher by registry name and its options
     "geometry": GeometricVerifier.default_conf,  # RANSAC model and thresholds
     "policy": {
         "min_matches": 5,  # putative (ratio-test) matches a candidate needs (paper: 5)
@@ -71,24 +76,61 @@ default_conf: dict[str, Any] = {
     },
 }
 
-_REGISTRY_SECTIONS = {"encoder": DESCRIPTORS, "index": INDEXES, "features": FEATURES, "matching": VERIFIERS}
+#: type and range of the detector's own sections (the units' sections are checked with their own ``conf_rules``)
+conf_rules: dict[str, Any] = {
+    "search": {"k": Int(1, 10_000), "exclude_recent": Int(0), "exclude_recent_s": Float(0, optional=True),
+               "min_score": Float(-1, 1)},
+    "policy": {"min_matches": Int(0), "min_inliers": Int(0), "check_all": Bool()},
+    "runtime": {"threads": Int(1, 1024, optional=True), "parallel": Bool(), "flush_every": Int(1),
+                "features": Choice("memory", "database"), "feature_cache": Int(1)},
+}
+
+_UNIT_SECTIONS = {"descriptor": DESCRIPTORS, "index": INDEXES, "features": FEATURES, "matcher": MATCHERS}
+_FIXED_SECTIONS = {"gate": EdgeGate, "geometry": GeometricVerifier}
 _NOT_PERSISTED = ("runtime",)  # sections that may change between a run and its resumption
+RENAMED_SECTIONS = {"encoder": "descriptor", "matching": "matcher"}  #: old section name -> new (deprecated)
+
+
+def _renamed(conf: dict[str, Any]) -> dict[str, Any]:
+    """Moves deprecated section names to their new names, with a warning."""
+    conf = dict(conf)
+    for old, new in RENAMED_SECTIONS.items():
+        if old in conf:
+            if new in conf:
+                raise ConfigError(f"config sections '{old}' and '{new}' both given; '{old}' is the old name of "
+                                  f"'{new}': keep only '{new}'")
+            msg = f"config section '{old}' is deprecated; call it '{new}'"
+            warnings.warn(msg, DeprecationWarning, stacklevel=3)
+            log.warning(msg)
+            conf[new] = conf.pop(old)
+    return conf
 
 
 def resolve_conf(conf: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Merges a user conf onto ``default_conf``; a named unit's section merges onto that unit's own defaults.
+    """Merges a user conf onto ``default_conf`` and checks every value; nothing is created or written.
+
+    A named unit's section (``descriptor``, ``index``, ``features``, ``matcher``) merges onto that unit's own
+    defaults and is checked against its ``conf_rules``. Old section names (``encoder``, ``matching``) still work,
+    with a deprecation warning.
 
     Raises:
-        ConfigError: unknown key (named, with the allowed ones), or unknown unit name.
+        ConfigError: unknown key (named, with the allowed ones), unknown unit name, or a value of the wrong type or
+            out of range (named, with what is allowed).
     """
-    conf = conf or {}
+    if conf is not None and not isinstance(conf, dict):
+        raise ConfigError(f"the configuration must be a mapping; got {type(conf).__name__}")
+    conf = _renamed(conf or {})
     base = dict(default_conf)
-    for section, registry in _REGISTRY_SECTIONS.items():
+    units: dict[str, Any] = dict(_FIXED_SECTIONS)
+    for section, registry in _UNIT_SECTIONS.items():
         user = conf.get(section) or {}
-        name = user.get("name", default_conf[section]["name"]) if isinstance(user, dict) else None
-        if name is not None:
-            base[section] = registry.get(name).default_conf
-    return merge_conf(base, conf)
+        if not isinstance(user, dict):
+            raise ConfigError(f"config section '{section}' must be a mapping, got {type(user).__name__}")
+        units[section] = registry.get(user.get("name", default_conf[section]["name"]))
+        base[section] = units[section].default_conf
+    resolved = merge_conf(base, conf)
+    check_conf(resolved, {**conf_rules, **{s: unit.conf_rules for s, unit in units.items()}})
+    return resolved
 
 
 @dataclass
@@ -126,51 +168,62 @@ class LoopDetector:
     """Appearance-based loop-closure detection, streaming.
 
     Args:
-        conf: overrides of ``default_conf`` (nested dict, e.g. from ``configs/default.yaml``).
+        conf: overrides of ``default_conf`` (nested dict, e.g. from ``configs/default.yaml``); checked in full before
+            anything is created.
         K: ``(3, 3)`` camera intrinsics; enables the essential-matrix check (``geometry.model: auto``).
         database: path of an HDF5 keyframe database to write (resumed if it exists), or None to keep
             keyframes in memory only.
         encoder: an already loaded ``cae.Encoder`` for the ``cae`` descriptor (skips loading its weights).
+
+    Raises:
+        ConfigError: a bad conf value, a K that is not a finite 3x3 matrix, or a database made with another conf.
+        DatabaseError: the database is damaged, locked or cannot be written.
     """
 
     def __init__(self, conf: dict[str, Any] | None = None, K: np.ndarray | None = None,
                  database: str | Path | None = None, encoder: torch.nn.Module | None = None) -> None:
         self.conf = resolve_conf(conf)
         c = self.conf
+        self.K = None if K is None else _matrix(K, (3, 3), "K")
+        if c["runtime"]["features"] == "database" and database is None:
+            raise ConfigError("runtime.features 'database' needs a keyframe database (database=... / --out)")
+        self.gate = EdgeGate(c["gate"])
+        self.descriptor = create_descriptor(c["descriptor"], **({"encoder": encoder} if encoder is not None else {}))
+        self.extractor = create_extractor(c["features"])
+        self.verifier = create_verifier(c["matcher"], c["geometry"])
+        self.verifier.geometry.model_for(self.K)  # fail now, not at the first loop, if E is asked without K
+        self.index = KeyframeIndex(self.descriptor.dim, c["index"], c["search"]["exclude_recent"],
+                                   c["search"]["exclude_recent_s"])
         threads = c["runtime"]["threads"] or os.cpu_count() or 1
         if c["runtime"]["parallel"]:  # the feature worker and the encoder run at once: split the cores between them
             threads = max(1, threads // 2)
         torch.set_num_threads(threads)
         cv2.setNumThreads(threads)
-        self.K = None if K is None else np.asarray(K, np.float64).reshape(3, 3)
-        self.gate = EdgeGate(c["gate"])
-        extra = {"encoder": encoder} if encoder is not None else {}
-        self.descriptor = create_descriptor(c["encoder"], **extra)
-        self.extractor = create_extractor(c["features"])
-        self.verifier = create_verifier(c["matching"], c["geometry"])
-        self.verifier.geometry.model_for(self.K)  # fail now, not at the first loop, if E is asked without K
-        self.index = KeyframeIndex(self.descriptor.dim, c["index"], c["search"]["exclude_recent"], c["search"]["exclude_recent_s"])
-        if c["runtime"]["features"] not in ("memory", "database"):
-            raise ConfigError(f"runtime.features must be 'memory' or 'database'; got {c['runtime']['features']!r}")
-        if c["runtime"]["features"] == "database" and database is None:
-            raise ConfigError("runtime.features 'database' needs a keyframe database (database=... / --out)")
-        self._pool = ThreadPoolExecutor(1, thread_name_prefix="features") if c["runtime"]["parallel"] else None
         self._next_id = 0
+        self._closed = False
         self.db: KeyframeDatabase | None = None
-        if database is not None:
+        if database is not None:  # last: everything above can refuse the conf before a file is created
             persisted = {k: v for k, v in c.items() if k not in _NOT_PERSISTED}
             self.db = KeyframeDatabase(database, persisted, self.descriptor.identity, c["runtime"]["flush_every"])
-        from_db = self.db if c["runtime"]["features"] == "database" else None
-        self.features = FeatureStore(from_db, c["runtime"]["feature_cache"])
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="features") if c["runtime"]["parallel"] else None
+        self.features = FeatureStore(self.db if c["runtime"]["features"] == "database" else None,
+                                     c["runtime"]["feature_cache"])
         if self.db is not None:
-            self._load(self.db)
+            try:
+                self._load(self.db)
+            except BaseException:
+                self.close()
+                raise
 
     def _load(self, db: KeyframeDatabase) -> None:
         n = 0
-        for fid, code, timestamp in db.search_entries():
+        for fid, code, timestamp, feats in db.search_entries():
+            if code.shape != (self.descriptor.dim,) or not np.isfinite(code).all():
+                raise ConfigError(f"{db.path}: keyframe {fid} has a code of shape {code.shape} (expected "
+                                  f"({self.descriptor.dim},), finite); the database is damaged")
             self.index.add(fid, code, timestamp)
             if self.features.db is None:  # memory mode: everything back in memory
-                self.features[fid] = db.features(fid)
+                self.features[fid] = feats
             n += 1
         self._next_id = db.last_frame_id() + 1
         if n:
@@ -181,22 +234,52 @@ class LoopDetector:
         """The frame id ``process`` assigns when none is given (one past the last frame seen)."""
         return self._next_id
 
+    def _frame_id(self, frame_id: int | None) -> int:
+        """Checks a frame id given to ``process``; changes nothing."""
+        if self._closed:
+            raise ConfigError("this LoopDetector is closed; create a new one")
+        if frame_id is None:
+            return self._next_id
+        if isinstance(frame_id, (bool, np.bool_)) or not isinstance(frame_id, (int, np.integer)):
+            raise ConfigError(f"frame_id must be an integer; got {frame_id!r} ({type(frame_id).__name__})")
+        if frame_id < self._next_id:
+            raise ConfigError(f"frame id {frame_id} is not after the last frame processed ({self._next_id - 1})")
+        return int(frame_id)
+
+    def record_unreadable(self, frame_id: int | None = None, source: str = "", fingerprint: str = "",
+                          message: str = "") -> int:
+        """Records that frame ``frame_id`` could not be read (it takes its id, so later ids stay stable).
+
+        Returns:
+            The frame id used.
+        """
+        fid = self._frame_id(frame_id)
+        if self.db is not None:
+            self.db.add_skipped(fid, "unreadable", source, fingerprint, message=message)
+        self._next_id = fid + 1
+        return fid
+
     def process(self, image: np.ndarray, frame_id: int | None = None, timestamp: float | None = None,
-                pose: np.ndarray | None = None, source: str = "") -> FrameResult:
+                pose: np.ndarray | None = None, source: str = "", fingerprint: str = "") -> FrameResult:
         """Runs one frame through the pipeline and inserts it as a keyframe if it passes the gate.
 
         Args:
-            image: grey/BGR/BGRA, uint8/uint16/float, any size (as ``cv2.imread(..., IMREAD_UNCHANGED)`` gives).
-            frame_id: increasing id; None = one past the previous frame.
-            timestamp: seconds (used by ``search.exclude_recent_s`` and stored).
-            pose: ``(3, 4)`` camera-to-world pose, stored with the keyframe when given.
+            image: grey/BGR/BGRA, uint8/uint16/float, at least 8x8 (as ``cv2.imread(..., IMREAD_UNCHANGED)`` gives).
+            frame_id: increasing integer id; None = one past the previous frame.
+            timestamp: seconds, finite (used by ``search.exclude_recent_s`` and stored).
+            pose: ``(3, 4)`` (or ``(4, 4)``) camera-to-world pose, finite, stored with the keyframe when given.
             source: free text stored with the keyframe (e.g. the file name).
+            fingerprint: ``"size:hash"`` of the source file (``core.images.fingerprint``), stored to check resumes.
+
+        Raises:
+            ImageError: ``image`` is not an image array we can use (not an array, bad shape, too small, ...).
+            ConfigError: a bad ``frame_id``, ``timestamp`` or ``pose``, or the detector is closed.
+            In every case the detector's state is left as it was.
         """
-        fid = self._next_id if frame_id is None else int(frame_id)
-        if fid < self._next_id:
-            raise ConfigError(f"frame id {fid} is not after the last frame processed ({self._next_id - 1})")
-        self._next_id = fid + 1
-        c = self.conf
+        fid = self._frame_id(frame_id)
+        check_image(image, "image")
+        ts = _timestamp(timestamp)
+        pose34 = None if pose is None else _pose(pose)
         ms: dict[str, float] = {}
         t_start = t0 = time.perf_counter()
         image8 = to_uint8(image)  # once: 16-bit and float frames are scanned and scaled here only
@@ -207,10 +290,38 @@ class LoopDetector:
         ms["gate"] = (time.perf_counter() - t0) * 1e3
         if not gate.passed:
             if self.db is not None:
-                self.db.add_gated(fid)
+                self.db.add_gated(fid, source, fingerprint, gate.edge_ratio)
+            self._next_id = fid + 1
             ms["total"] = (time.perf_counter() - t_start) * 1e3
             return FrameResult(fid, True, gate.edge_ratio, ms=ms)
 
+        feats, code, candidates = self._describe_and_search(image, gray, net, fid, ts, ms)
+        t0 = time.perf_counter()
+        c = self.conf
+        checks = self.verifier.verify(feats, [self.features[cd.frame_id] for cd in candidates], self.K,
+                                      c["policy"]["min_matches"], c["policy"]["min_inliers"], c["policy"]["check_all"])
+        for cand, check in zip(candidates, checks):
+            cand.matches, cand.inliers = check.matches, check.inliers
+        loop, best = self._decide(candidates, checks)
+        ms["verify"] = (time.perf_counter() - t0) * 1e3
+
+        t0 = time.perf_counter()
+        if self.db is not None:  # first: if the disk refuses it, the in-memory state has not moved either
+            self.db.append(KeyframeRecord(fid, code, feats, ts, pose34, source, gate.edge_ratio,
+                                          np.array([cd.as_row() for cd in candidates], np.float64).reshape(-1, 4),
+                                          -1 if loop is None else loop.frame_id, fingerprint))
+        self.index.add(fid, code, ts)
+        self.features[fid] = feats  # after the database has it: database mode may read it back from there
+        self._next_id = fid + 1
+        ms["insert"] = (time.perf_counter() - t0) * 1e3
+        ms["total"] = (time.perf_counter() - t_start) * 1e3
+        geo = best.geometry if best is not None else None
+        return FrameResult(fid, False, gate.edge_ratio, candidates, loop, getattr(geo, "R", None),
+                           getattr(geo, "t", None), ms)
+
+    def _describe_and_search(self, image: np.ndarray, gray: np.ndarray, net: np.ndarray, fid: int,
+                             ts: float | None, ms: dict[str, float]) -> tuple[Features, np.ndarray, list[Candidate]]:
+        """Local features, global code and the top-k candidates of one frame (stage times into ``ms``)."""
         # local features: first when the descriptor needs them, else in the worker thread (parallel) or after search
         feats, pending = None, None
         if self.descriptor.needs_features:
@@ -221,35 +332,16 @@ class LoopDetector:
         code = self.descriptor(image, feats, network_image=net)
         ms["encode"] = (time.perf_counter() - t0) * 1e3
         t0 = time.perf_counter()
-        scores, ids = self.index.search(code, fid, c["search"]["k"], timestamp)
-        keep = scores >= c["search"]["min_score"]
+        self.index.admit(fid, ts)
+        scores, ids = self.index.search(code, self.conf["search"]["k"])
+        keep = scores >= self.conf["search"]["min_score"]
         candidates = [Candidate(int(i), float(s)) for s, i in zip(scores[keep], ids[keep])]
         ms["search"] = (time.perf_counter() - t0) * 1e3
         if feats is None:
             t0 = time.perf_counter()
             feats, ms["features"] = pending.result() if pending is not None else self._timed_extract(gray)
             ms["features_wait"] = (time.perf_counter() - t0) * 1e3  # what the frame waited for them
-
-        t0 = time.perf_counter()
-        checks = self.verifier.verify(feats, [self.features[cd.frame_id] for cd in candidates], self.K,
-                                      c["policy"]["min_matches"], c["policy"]["min_inliers"], c["policy"]["check_all"])
-        for cand, check in zip(candidates, checks):
-            cand.matches, cand.inliers = check.matches, check.inliers
-        loop, best = self._decide(candidates, checks)
-        ms["verify"] = (time.perf_counter() - t0) * 1e3
-
-        t0 = time.perf_counter()
-        self.index.add(fid, code, timestamp)
-        if self.db is not None:
-            self.db.append(KeyframeRecord(fid, code, feats, timestamp, pose, source, gate.edge_ratio,
-                                          np.array([cd.as_row() for cd in candidates], np.float64).reshape(-1, 4),
-                                          -1 if loop is None else loop.frame_id))
-        self.features[fid] = feats  # after the database has it: database mode may read it back from there
-        ms["insert"] = (time.perf_counter() - t0) * 1e3
-        ms["total"] = (time.perf_counter() - t_start) * 1e3
-        geo = best.geometry if best is not None else None
-        return FrameResult(fid, False, gate.edge_ratio, candidates, loop, getattr(geo, "R", None),
-                           getattr(geo, "t", None), ms)
+        return feats, code, candidates
 
     def _timed_extract(self, gray: np.ndarray) -> tuple[Features, float]:
         t0 = time.perf_counter()
@@ -267,7 +359,8 @@ class LoopDetector:
         return max(passing, key=lambda pair: (pair[0].inliers, pair[0].matches, pair[0].score))
 
     def close(self) -> None:
-        """Flushes and closes the database and stops the worker thread."""
+        """Flushes and closes the database and stops the worker thread; ``process`` refuses to run afterwards."""
+        self._closed = True
         if self._pool is not None:
             self._pool.shutdown(wait=True)
             self._pool = None
@@ -279,3 +372,35 @@ class LoopDetector:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _matrix(value: Any, shape: tuple[int, int], name: str) -> np.ndarray:
+    try:
+        m = np.asarray(value, np.float64)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{name} must be a {shape[0]}x{shape[1]} matrix of numbers; got {type(value).__name__}") \
+            from None
+    if m.shape != shape or not np.isfinite(m).all():
+        raise ConfigError(f"{name} must be a finite {shape[0]}x{shape[1]} matrix; got shape {m.shape}"
+                          + ("" if m.shape != shape else " with NaN or inf"))
+    return m
+
+
+def _pose(pose: Any) -> np.ndarray:
+    """A ``(3, 4)`` camera-to-world pose from a 3x4 or 4x4 matrix (or 12 numbers, row-major)."""
+    m = np.asarray(pose, np.float64) if isinstance(pose, np.ndarray) else pose
+    shape = np.shape(m)
+    if shape in ((4, 4), (16,)):
+        return _matrix(np.asarray(m, np.float64).reshape(4, 4)[:3], (3, 4), "pose")
+    if shape == (12,):
+        m = np.asarray(m, np.float64).reshape(3, 4)
+    return _matrix(m, (3, 4), "pose")
+
+
+def _timestamp(value: Any) -> float | None:
+    if value is None:
+        return None
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)) \
+            or not np.isfinite(value):
+        raise ConfigError(f"timestamp must be a finite number of seconds; got {value!r}")
+    return float(value)

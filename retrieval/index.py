@@ -20,7 +20,7 @@ from typing import Any
 import faiss
 import numpy as np
 
-from cae.conf import Registry, merge_conf
+from core.conf import Float, Int, Registry, configure, merge_conf
 
 __all__ = ["CodeIndex", "FlatIndex", "FP16Index", "SQ8Index", "HNSWIndex", "INDEXES", "create_index", "KeyframeIndex",
            "brute_force_search"]
@@ -45,10 +45,11 @@ class CodeIndex:
     """Base: a faiss inner-product index built from ``factory`` (subclasses set it and their conf)."""
 
     default_conf: dict[str, Any] = {"name": "flat"}
+    conf_rules: dict[str, Any] = {}
     factory = "Flat"
 
     def __init__(self, dim: int, conf: dict[str, Any] | None = None) -> None:
-        self.conf = merge_conf(self.default_conf, conf, "index")
+        self.conf = configure(self, conf, "index")
         self.dim = dim
         self.index = faiss.index_factory(dim, self.factory, faiss.METRIC_INNER_PRODUCT)
         self._configure()
@@ -103,6 +104,7 @@ class HNSWIndex(CodeIndex):
         "ef_search": 128,  # candidate list size at search time: more = better recall, slower
         "ef_construction": 64,  # candidate list size while inserting
     }
+    conf_rules: dict[str, Any] = {"m": Int(2, 512), "ef_search": Int(1, 100_000), "ef_construction": Int(1, 100_000)}
 
     def __init__(self, dim: int, conf: dict[str, Any] | None = None) -> None:
         self.factory = f"HNSW{merge_conf(self.default_conf, conf, 'index')['m']}"
@@ -122,9 +124,13 @@ class KeyframeIndex:
     """Keyframe codes searchable by cosine, with recent frames excluded.
 
     A code becomes searchable only once it is old enough relative to the query: at least ``exclude_recent`` frames
-    earlier and, when timestamps are given, ``exclude_recent_s`` seconds earlier. Codes wait in a queue until then,
-    so the exclusion costs nothing at search time and works with every index type (none needs deletion).
-    Frames are expected in increasing ``frame_id`` (and timestamp) order, as a camera delivers them.
+    earlier and, when timestamps are given, ``exclude_recent_s`` seconds earlier. Codes wait in a queue until
+    ``admit`` moves them into the index, so the exclusion costs nothing at search time and works with every index
+    type (none needs deletion); ``search`` only reads. Frames are expected in increasing ``frame_id`` (and
+    timestamp) order, as a camera delivers them.
+
+        >>> index.admit(frame_id, timestamp)        # codes old enough for this frame become searchable
+        >>> scores, ids = index.search(code, k)     # doctest: +SKIP
     """
 
     def __init__(self, dim: int, index_conf: dict[str, Any] | None = None, exclude_recent: int = 0,
@@ -142,7 +148,8 @@ class KeyframeIndex:
         """Queues a keyframe's unit-norm ``(d,)`` code."""
         self._pending.append((int(frame_id), timestamp, np.asarray(code, np.float32).reshape(-1)))
 
-    def _release(self, frame_id: int, timestamp: float | None) -> None:
+    def admit(self, frame_id: int, timestamp: float | None = None) -> None:
+        """Makes searchable every queued code old enough for a query at ``frame_id`` (and ``timestamp``)."""
         ready = []
         while self._pending:
             fid, ts, code = self._pending[0]
@@ -157,14 +164,12 @@ class KeyframeIndex:
         if ready:
             self.index.add(np.stack(ready))
 
-    def search(self, code: np.ndarray, frame_id: int, k: int,
-               timestamp: float | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Top-``k`` keyframes for a query frame, recent ones excluded.
+    def search(self, code: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Top-``k`` among the admitted keyframes (call ``admit`` for the query frame first); changes nothing.
 
         Returns:
             ``scores (m,)`` float32 cosine similarities, best first, and ``frame_ids (m,)`` int64, ``m <= k``.
         """
-        self._release(frame_id, timestamp)
         D, I = self.index.search(np.asarray(code, np.float32).reshape(1, -1), k)
         keep = I[0] >= 0
         ids = np.asarray(self.frame_ids, np.int64)
@@ -185,6 +190,7 @@ class SQ8Index(CodeIndex):
         "train_size": 1000,  # codes kept exact until this many are stored; the quantiser is then learned from them
         "margin": 0.1,  # widen each learned range by this fraction of it on both sides (room for unseen values)
     }
+    conf_rules: dict[str, Any] = {"train_size": Int(1), "margin": Float(0, 10)}
     factory = "SQ8"
 
     def _configure(self) -> None:

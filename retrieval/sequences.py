@@ -1,7 +1,11 @@
 """Sequence readers: a KITTI odometry sequence folder, or a plain folder of images in name order.
 
 A ``Sequence`` gives frame paths, and when known timestamps ``(N,)``, poses ``(N, 3, 4)`` camera-to-world,
-intrinsics ``K (3, 3)`` and ground-truth loop pairs ``(P, 2)``.
+intrinsics ``K (3, 3)`` and the path of its ground-truth loop pairs (read by ``evaluation.ground_truth``).
+
+Every entry with an image extension is a frame, also one that cannot be read (a broken link, a folder named like an
+image): it keeps its frame id and the detector skips and counts it, so ids never shift. Metadata files that cannot
+be parsed are refused with the file and line named.
 """
 
 from __future__ import annotations
@@ -12,12 +16,15 @@ from pathlib import Path
 
 import numpy as np
 
-from cae.conf import ConfigError
-from cae.preprocess import IMAGE_EXTENSIONS
+from core.conf import ConfigError
+from core.images import image_entries
 
-__all__ = ["Sequence", "open_sequence", "read_kitti_calib", "read_kitti_poses", "read_loop_pairs"]
+__all__ = ["Sequence", "open_sequence", "read_kitti_calib", "read_kitti_poses", "read_numbers", "read_times",
+           "kitti_metadata_file", "CAMERAS"]
 
 log = logging.getLogger(__name__)
+
+CAMERAS = ("image_0", "image_2", "image_1", "image_3")  #: KITTI camera folders, in the order they are looked for
 
 
 @dataclass
@@ -27,83 +34,147 @@ class Sequence:
     timestamps: np.ndarray | None = None  #: (N,) seconds
     poses: np.ndarray | None = None  #: (N, 3, 4) camera-to-world
     K: np.ndarray | None = field(default=None, repr=False)  #: (3, 3) intrinsics of the camera used
-    loops: np.ndarray | None = field(default=None, repr=False)  #: (P, 2) ground-truth pairs (later, earlier)
+    ground_truth: Path | None = None  #: ``loops.txt`` beside the frames, when present
     kind: str = "folder"
 
     def __len__(self) -> int:
         return len(self.frames)
 
 
+def kitti_metadata_file(root: str | Path, what: str) -> Path | None:
+    """Where a KITTI sequence keeps ``what`` ("poses", "times", "calib", "loops"); None when absent.
+
+    Poses: ``poses.txt`` inside the sequence, else ``../../poses/<name>.txt`` (the KITTI odometry release layout).
+    This is the one place that knows the layout.
+    """
+    root = Path(root)
+    places = {"poses": [root / "poses.txt", root.parent.parent / "poses" / f"{root.name}.txt"],
+              "times": [root / "times.txt"], "calib": [root / "calib.txt"], "loops": [root / "loops.txt"]}[what]
+    return next((p for p in places if p.is_file()), None)
+
+
+def read_numbers(path: str | Path, per_line: int | None = None, what: str = "numbers") -> np.ndarray:
+    """A whitespace-separated numeric text file -> ``(R, C)`` float64; ``#`` comments and blank lines skipped.
+
+    Raises:
+        ConfigError: unreadable file, a non-numeric or non-finite value, or a line of another length (the message
+            names the file and line).
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as err:
+        raise ConfigError(f"cannot read {what} file {path}: {getattr(err, 'strerror', None) or err}") from None
+    rows = []
+    for n, line in enumerate(text.splitlines(), 1):
+        parts = line.split("#")[0].split()
+        if not parts:
+            continue
+        try:
+            values = [float(v) for v in parts]
+        except ValueError:
+            raise ConfigError(f"{path}, line {n}: not a number in {line.strip()[:60]!r}") from None
+        if per_line is not None and len(values) != per_line:
+            raise ConfigError(f"{path}, line {n}: expected {per_line} numbers, got {len(values)}")
+        if not np.isfinite(values).all():
+            raise ConfigError(f"{path}, line {n}: NaN or infinite value in {what}")
+        rows.append(values)
+    width = per_line if per_line is not None else (len(rows[0]) if rows else 0)
+    if any(len(r) != width for r in rows):
+        raise ConfigError(f"{path}: lines of different lengths")
+    return np.array(rows, np.float64).reshape(-1, width)
+
+
 def read_kitti_calib(path: str | Path, camera: str = "image_0") -> np.ndarray:
-    """``K (3, 3)`` of ``P0`` (``image_0``), ``P1``, ``P2`` (``image_2``) or ``P3`` from a KITTI ``calib.txt``."""
+    """``K (3, 3)`` of ``P0`` (``image_0``), ``P1``, ``P2`` (``image_2``) or ``P3`` from a KITTI ``calib.txt``.
+
+    Raises:
+        ConfigError: unreadable file, no line for the camera, or a matrix that is not finite with fx, fy > 0.
+    """
     key = "P" + camera.split("_")[-1] + ":"
-    for line in Path(path).read_text().splitlines():
+    try:
+        lines = Path(path).read_text(encoding="utf-8").splitlines()
+    except (OSError, UnicodeDecodeError) as err:
+        raise ConfigError(f"cannot read calibration {path}: {getattr(err, 'strerror', None) or err}") from None
+    for n, line in enumerate(lines, 1):
         if line.startswith(key):
-            P = np.array([float(v) for v in line.split()[1:13]]).reshape(3, 4)
-            return P[:, :3].copy()
+            try:
+                P = np.array([float(v) for v in line.split()[1:13]]).reshape(3, 4)
+            except ValueError:
+                raise ConfigError(f"{path}, line {n}: '{key}' needs 12 numbers") from None
+            K = P[:, :3].copy()
+            if not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
+                raise ConfigError(f"{path}, line {n}: '{key}' is not a valid camera matrix (finite, fx and fy > 0)")
+            return K
     raise ConfigError(f"{path} has no line '{key}' for camera {camera}")
 
 
 def read_kitti_poses(path: str | Path) -> np.ndarray:
-    """KITTI poses file (12 floats a line, 3x4 row-major) -> ``(N, 3, 4)``."""
-    data = np.loadtxt(path, ndmin=2)
-    if data.shape[1] != 12:
-        raise ConfigError(f"{path}: expected 12 numbers per line (3x4 pose), got {data.shape[1]}")
-    return data.reshape(-1, 3, 4)
+    """KITTI poses file (12 finite numbers a line, 3x4 row-major) -> ``(N, 3, 4)``.
+
+    Raises:
+        ConfigError: unreadable file, a line without 12 numbers, or a NaN/inf value (file and line named).
+    """
+    return read_numbers(path, 12, "poses").reshape(-1, 3, 4)
 
 
-def read_loop_pairs(path: str | Path) -> np.ndarray:
-    """Loop pairs file (``i j`` per line, ``#`` comments) -> ``(P, 2)`` int64 rows (later, earlier), unique, sorted."""
-    rows = [line.split()[:2] for line in Path(path).read_text().splitlines()
-            if line.strip() and not line.lstrip().startswith("#")]
-    pairs = np.array(rows, dtype=np.int64).reshape(-1, 2)
-    return np.unique(np.stack([pairs.max(1), pairs.min(1)], axis=1), axis=0) if len(pairs) else pairs
+def read_times(path: str | Path) -> np.ndarray:
+    """KITTI ``times.txt`` (one finite number of seconds a line) -> ``(N,)``.
+
+    Raises:
+        ConfigError: unreadable file, or a line that is not one finite number (file and line named).
+    """
+    return read_numbers(path, 1, "times").reshape(-1)
 
 
-def _images_in(folder: Path) -> list[Path]:
-    return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS and p.is_file())
+def _metadata(seq: Sequence, camera: str) -> Sequence:
+    """Fills calibration, times and poses of a KITTI sequence; ones whose length does not fit are ignored."""
+    root, n = seq.root, len(seq.frames)
+    calib, times, poses = (kitti_metadata_file(root, w) for w in ("calib", "times", "poses"))
+    if calib is not None:
+        seq.K = read_kitti_calib(calib, camera)
+    if times is not None:
+        seq.timestamps = read_times(times)
+    if poses is not None:
+        seq.poses = read_kitti_poses(poses)
+    seq.ground_truth = kitti_metadata_file(root, "loops")
+    for name, path in (("timestamps", times), ("poses", poses)):
+        value = getattr(seq, name)
+        if value is not None and len(value) != n:
+            log.warning("%s: %d %s for %d frames; ignoring them", path, len(value), name, n)
+            setattr(seq, name, None)
+    if seq.timestamps is not None and np.any(np.diff(seq.timestamps) < 0):
+        log.warning("%s: timestamps go backwards; ignoring them", times)
+        seq.timestamps = None
+    return seq
 
 
 def open_sequence(path: str | Path, camera: str | None = None) -> Sequence:
     """Opens a KITTI sequence folder (``image_0/`` or ``image_2/``, ``calib.txt``, ``times.txt``, poses in
-    ``../../poses/NN.txt`` or ``poses.txt``, ``loops.txt``) or a plain folder of images.
+    ``poses.txt`` or ``../../poses/NN.txt``, ``loops.txt``) or a plain folder of images.
 
     Args:
         path: the sequence folder.
         camera: ``"image_0"`` or ``"image_2"`` for KITTI; None picks the first present.
 
     Raises:
-        ConfigError: missing folder, no images, or metadata that does not fit the frames.
+        ConfigError: missing folder, no images, or metadata that cannot be parsed.
     """
     root = Path(path)
     if not root.is_dir():
-        raise ConfigError(f"sequence folder not found: {root}")
-    cams = [camera] if camera else ["image_0", "image_2", "image_1", "image_3"]
+        raise ConfigError(f"sequence folder not found: {root}" if not root.exists()
+                          else f"{root} is not a folder; pass a sequence folder")
+    cams = [camera] if camera else list(CAMERAS)
     cam = next((c for c in cams if (root / c).is_dir()), None)
     if camera and cam is None:
         raise ConfigError(f"{root} has no camera folder {camera}/")
-    if cam is None:
-        frames = _images_in(root)
-        if not frames:
-            raise ConfigError(f"no images found in {root}")
-        return Sequence(root, frames)
-    frames = _images_in(root / cam)
+    folder = root if cam is None else root / cam
+    try:
+        frames = image_entries(folder)
+    except OSError as err:
+        raise ConfigError(f"cannot list {folder}: {err.strerror or err}") from None
     if not frames:
-        raise ConfigError(f"no images found in {root / cam}")
-    seq = Sequence(root, frames, kind="kitti")
-    if (root / "calib.txt").is_file():
-        seq.K = read_kitti_calib(root / "calib.txt", cam)
-    if (root / "times.txt").is_file():
-        seq.timestamps = np.loadtxt(root / "times.txt", ndmin=1)
-    for pose_file in (root / "poses.txt", root.parent.parent / "poses" / f"{root.name}.txt"):
-        if pose_file.is_file():
-            seq.poses = read_kitti_poses(pose_file)
-            break
-    if (root / "loops.txt").is_file():
-        seq.loops = read_loop_pairs(root / "loops.txt")
-    for name in ("timestamps", "poses"):
-        value = getattr(seq, name)
-        if value is not None and len(value) != len(frames):
-            log.warning("%s: %d %s for %d frames; ignoring them", root, len(value), name, len(frames))
-            setattr(seq, name, None)
-    return seq
+        raise ConfigError(f"no images found in {folder}")
+    if cam is None:
+        return Sequence(root, frames)
+    return _metadata(Sequence(root, frames, kind="kitti"), cam)

@@ -51,7 +51,7 @@ def sample_frames(sample_dir):
 @pytest.fixture(scope="session")
 def sample_image():
     """``sample_image(i)`` -> grey uint8 ``(188, 620)`` frame ``i`` of the sample (read once, cached)."""
-    from cae.preprocess import read_image
+    from core.images import read_image
 
     cache: dict[int, np.ndarray] = {}
 
@@ -88,7 +88,7 @@ def kitti_sequences() -> Path:
 @pytest.fixture(scope="session")
 def kitti_image(kitti_sequences):
     """``kitti_image(seq, i)`` -> frame ``i`` of ``../shared/datasets/kitti/sequences/<seq>`` (full resolution)."""
-    from cae.preprocess import read_image
+    from core.images import read_image
 
     def get(seq: str, i: int) -> np.ndarray:
         path = kitti_sequences / seq / "image_0" / f"{i:06d}.png"
@@ -128,7 +128,7 @@ def _copy_sample_frames(indices, dst: Path, transform=None, ext: str = ".jpg") -
     and re-encoded with OpenCV)."""
     import cv2
 
-    from cae.preprocess import read_image
+    from core.images import read_image
 
     dst.mkdir(parents=True, exist_ok=True)
     out = []
@@ -178,7 +178,7 @@ def cli_sample_run(tmp_path_factory, detect_config_args):
 
     Shared by the detector and CLI tests. Returns ``(exit_code, out_dir)``.
     """
-    from retrieval.cli import main
+    from cli.main import main
 
     out = tmp_path_factory.mktemp("cli_sample") / "run"
     code = main(["detect", "--out", str(out), *detect_config_args, "--no-progress"])

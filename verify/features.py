@@ -3,8 +3,10 @@
 ``Features`` is the contract between extraction, storage and matching:
 
     keypoints    (N, 2) float32   x, y in pixels of the ORIGINAL image (whatever scale extraction ran at)
-    descriptors  (N, D) float32 for SIFT (D = 128), uint8 for binary descriptors
+    descriptors  (N, D) float32 for SIFT (D = 128; uint8 once ``compact``), packed uint8 for binary descriptors
     scales       (N,)   float32   keypoint diameter in original-image pixels
+    metric       str              how descriptors compare: "l2" (SIFT) or "hamming" (binary); set by the extractor,
+                                  never guessed from the dtype
 """
 
 from __future__ import annotations
@@ -15,10 +17,12 @@ from typing import Any
 import cv2
 import numpy as np
 
-from cae.conf import Registry, merge_conf
-from cae.preprocess import to_gray_u8
+from core.conf import Bool, ConfigError, Float, Int, Registry, configure
+from core.images import to_gray_u8
 
-__all__ = ["Features", "FeatureExtractor", "SIFT", "FEATURES", "create_extractor"]
+__all__ = ["Features", "FeatureExtractor", "SIFT", "FEATURES", "METRICS", "create_extractor"]
+
+METRICS = ("l2", "hamming")  #: descriptor distances the matchers know
 
 
 @dataclass
@@ -26,6 +30,11 @@ class Features:
     keypoints: np.ndarray
     descriptors: np.ndarray
     scales: np.ndarray
+    metric: str = "l2"  #: "l2" or "hamming": a property of the extractor, kept through storage
+
+    def __post_init__(self) -> None:
+        if self.metric not in METRICS:
+            raise ConfigError(f"unknown descriptor metric {self.metric!r}; expected one of {', '.join(METRICS)}")
 
     def __len__(self) -> int:
         return len(self.keypoints)
@@ -35,23 +44,26 @@ class Features:
         0..255): 4x less memory and disk, same matches. Other descriptors are returned unchanged."""
         d = self.descriptors
         if d.dtype != np.uint8 and d.size and d.min() >= 0 and d.max() <= 255 and np.array_equal(d, np.round(d)):
-            return Features(self.keypoints, d.astype(np.uint8), self.scales)
+            return Features(self.keypoints, d.astype(np.uint8), self.scales, self.metric)
         return self
 
     @classmethod
-    def empty(cls, dim: int = 128, dtype: type = np.float32) -> "Features":
-        return cls(np.zeros((0, 2), np.float32), np.zeros((0, dim), dtype), np.zeros((0,), np.float32))
+    def empty(cls, dim: int = 128, dtype: type = np.float32, metric: str = "l2") -> "Features":
+        """No feature, with the right shapes: ``(0, 2)``, ``(0, dim)``, ``(0,)``."""
+        return cls(np.zeros((0, 2), np.float32), np.zeros((0, dim), dtype), np.zeros((0,), np.float32), metric)
 
 
 class FeatureExtractor:
     """Base: ``extract(image) -> Features``. Subclasses set ``default_conf`` and implement ``_detect``."""
 
     default_conf: dict[str, Any] = {}
+    conf_rules: dict[str, Any] = {}
     descriptor_dim = 0
     descriptor_dtype: type = np.float32
+    metric = "l2"  #: how this extractor's descriptors are compared (stored in every ``Features``)
 
     def __init__(self, conf: dict[str, Any] | None = None) -> None:
-        self.conf = merge_conf(self.default_conf, conf, "features")
+        self.conf = configure(self, conf, "features")
 
     def extract(self, image: np.ndarray) -> Features:
         """Any accepted image (grey/BGR, 8/16-bit, any size) -> ``Features`` (empty, right shapes, if none found)."""
@@ -63,10 +75,10 @@ class FeatureExtractor:
             gray = cv2.resize(gray, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
         kps, desc = self._detect(gray)
         if not kps:
-            return Features.empty(self.descriptor_dim, self.descriptor_dtype)
+            return Features.empty(self.descriptor_dim, self.descriptor_dtype, self.metric)
         pts = np.array([k.pt for k in kps], np.float32) / scale
         sizes = np.array([k.size for k in kps], np.float32) / scale
-        return Features(pts, np.ascontiguousarray(desc, dtype=self.descriptor_dtype), sizes)
+        return Features(pts, np.ascontiguousarray(desc, dtype=self.descriptor_dtype), sizes, self.metric)
 
     def _detect(self, gray: np.ndarray) -> tuple[list, np.ndarray | None]:
         raise NotImplementedError
@@ -88,6 +100,9 @@ class SIFT(FeatureExtractor):
         "n_octave_layers": 3,  # scales per octave (OpenCV default)
         "root_sift": False,  # L1-normalise then square-root descriptors (Arandjelovic & Zisserman 2012)
     }
+    conf_rules: dict[str, Any] = {"resize_max": Int(16, optional=True), "max_features": Int(1),
+                                  "contrast_threshold": Float(0, lo_open=True), "edge_threshold": Float(0, lo_open=True),
+                                  "n_octave_layers": Int(1, 16), "root_sift": Bool()}
     descriptor_dim = 128
 
     def __init__(self, conf: dict[str, Any] | None = None) -> None:

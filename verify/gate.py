@@ -8,8 +8,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from cae.conf import merge_conf
-from cae.preprocess import resize_square, to_gray_u8
+from core.conf import Bool, Float, Int, configure
+from core.images import resize_square, to_gray_u8
 
 __all__ = ["EdgeGate", "GateResult"]
 
@@ -30,9 +30,11 @@ class EdgeGate:
         "canny_high": 200,  # Canny hysteresis high threshold (grey levels)
         "min_edge_ratio": 0.04,  # pass when edge pixels / all pixels >= this (paper: 4%)
     }
+    conf_rules: dict[str, Any] = {"enabled": Bool(), "image_size": Int(16, 4096), "canny_low": Float(0, 1000),
+                                  "canny_high": Float(0, 1000), "min_edge_ratio": Float(0, 1)}
 
     def __init__(self, conf: dict[str, Any] | None = None) -> None:
-        self.conf = merge_conf(self.default_conf, conf, "gate")
+        self.conf = configure(self, conf, "gate")
 
     def edge_ratio(self, image: np.ndarray) -> float:
         """Edge-pixel ratio of any accepted image (grey/BGR, 8/16-bit, any size)."""

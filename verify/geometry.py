@@ -11,7 +11,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from cae.conf import ConfigError, merge_conf
+from core.conf import Bool, Choice, ConfigError, Float, Int, configure
 
 __all__ = ["GeometryResult", "GeometricVerifier"]
 
@@ -39,13 +39,13 @@ class GeometricVerifier:
         "recover_pose": True,  # essential only: also decompose E into R and the unit translation t
         "prefilter": True,  # essential only: first a fast fundamental-matrix MAGSAC; E runs on its inliers only
     }
+    conf_rules: dict[str, Any] = {
+        "model": Choice("auto", "essential", "fundamental", "none"), "method": Choice(*_METHODS),
+        "threshold": Float(0, 100, lo_open=True), "confidence": Float(0, 1, lo_open=True, hi_open=True),
+        "max_iters": Int(1, 1_000_000), "recover_pose": Bool(), "prefilter": Bool()}
 
     def __init__(self, conf: dict[str, Any] | None = None) -> None:
-        self.conf = merge_conf(self.default_conf, conf, "geometry")
-        if self.conf["model"] not in ("auto", "essential", "fundamental", "none"):
-            raise ConfigError(f"geometry.model must be auto, essential, fundamental or none; got {self.conf['model']}")
-        if self.conf["method"] not in _METHODS:
-            raise ConfigError(f"geometry.method must be one of {', '.join(_METHODS)}; got {self.conf['method']}")
+        self.conf = configure(self, conf, "geometry")
 
     def model_for(self, K: np.ndarray | None) -> str:
         model = self.conf["model"]

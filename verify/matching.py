@@ -68,6 +68,8 @@ def match_ratio(xq: np.ndarray, xb: np.ndarray, ratio: float = 0.8, mutual: bool
     Returns:
         ``(M, 2)`` int64 ``(query_index, candidate_index)``.
     """
+    if metric not in ("l2", "hamming"):
+        raise ValueError(f"unknown descriptor metric {metric!r}; expected 'l2' or 'hamming'")
     if len(xq) == 0 or len(xb) == 0:
         return EMPTY_MATCHES
     if metric == "hamming":

@@ -1,7 +1,9 @@
 """Judging candidate pairs: a verifier matches descriptors (subclass) and runs the geometric check once (base).
 
 Subclasses implement only ``match_many``; the base class turns matches into points, runs ``GeometricVerifier``
-and reports a ``Verification`` per candidate. New matchers plug in by name through ``VERIFIERS``.
+and reports a ``Verification`` per candidate. Verifiers differ only in how they match, so they are registered by
+matcher name in ``MATCHERS`` and selected by the ``matcher`` section of the conf (``{"matcher": {"name":
+"ratio"}}``).
 """
 
 from __future__ import annotations
@@ -11,13 +13,13 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from cae.conf import Registry, merge_conf
+from core.conf import Bool, ConfigError, Float, Registry, configure
 
 from .features import Features
 from .geometry import GeometricVerifier, GeometryResult
 from .matching import match_ratio_many
 
-__all__ = ["NOT_CHECKED", "Verification", "Verifier", "RatioTestVerifier", "VERIFIERS", "create_verifier"]
+__all__ = ["NOT_CHECKED", "Verification", "Verifier", "RatioTestMatcher", "MATCHERS", "create_verifier"]
 
 
 NOT_CHECKED = -1  #: inlier count of a candidate whose geometry was not checked (it could not pass or win)
@@ -35,9 +37,10 @@ class Verifier:
     """Base: ``verify(query, candidates, K)``; subclasses provide ``match_many``."""
 
     default_conf: dict[str, Any] = {}
+    conf_rules: dict[str, Any] = {}
 
     def __init__(self, conf: dict[str, Any] | None = None, geometry: dict[str, Any] | None = None) -> None:
-        self.conf = merge_conf(self.default_conf, conf, "matching")
+        self.conf = configure(self, conf, "matcher")
         self.geometry = GeometricVerifier(geometry)
 
     def match_many(self, query: Features, candidates: Sequence[Features]) -> list[np.ndarray]:
@@ -80,25 +83,28 @@ class Verifier:
         return out  # type: ignore[return-value]
 
 
-VERIFIERS: Registry[Verifier] = Registry("matcher")
+MATCHERS: Registry[Verifier] = Registry("matcher")  #: verifiers by the matcher they use (conf section ``matcher``)
 
 
-@VERIFIERS.register("ratio")
-class RatioTestVerifier(Verifier):
-    """Nearest neighbour + Lowe's ratio test (L2 for float descriptors, Hamming for binary ones)."""
+@MATCHERS.register("ratio")
+class RatioTestMatcher(Verifier):
+    """Nearest neighbour + Lowe's ratio test, in the features' own metric (L2 for SIFT, Hamming for binary)."""
 
     default_conf: dict[str, Any] = {
         "name": "ratio",  # matcher, by registry name
         "ratio": 0.8,  # Lowe's ratio: keep a match when d1 < ratio * d2
         "mutual": False,  # also require mutual nearest neighbours
     }
+    conf_rules: dict[str, Any] = {"ratio": Float(0, 1, lo_open=True), "mutual": Bool()}
 
     def match_many(self, query: Features, candidates: Sequence[Features]) -> list[np.ndarray]:
-        metric = "hamming" if query.descriptors.dtype == np.uint8 else "l2"
+        for cand in candidates:
+            if cand.metric != query.metric:
+                raise ConfigError(f"cannot match {query.metric} descriptors against {cand.metric} ones")
         return match_ratio_many(query.descriptors, [c.descriptors for c in candidates], self.conf["ratio"],
-                                self.conf["mutual"], metric)
+                                self.conf["mutual"], query.metric)
 
 
-def create_verifier(matching: dict[str, Any] | None = None, geometry: dict[str, Any] | None = None) -> Verifier:
-    """The verifier named by ``matching["name"]`` (default ``"ratio"``)."""
-    return VERIFIERS.get((matching or {}).get("name", "ratio"))(matching, geometry)
+def create_verifier(matcher: dict[str, Any] | None = None, geometry: dict[str, Any] | None = None) -> Verifier:
+    """The verifier whose matcher is named by ``matcher["name"]`` (default ``"ratio"``)."""
+    return MATCHERS.get((matcher or {}).get("name", "ratio"))(matcher, geometry)

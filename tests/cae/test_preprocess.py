@@ -3,7 +3,9 @@ import numpy as np
 import pytest
 import torch
 
-from cae.preprocess import ImageError, preprocess, read_image, to_gray_u8, to_uint8
+from cae.preprocess import preprocess
+from core.errors import ImageError
+from core.images import read_image, to_gray_u8, to_uint8
 
 
 @pytest.fixture(scope="module")
@@ -93,7 +95,7 @@ class TestPreprocess:
         ((620,), np.uint8),  # 1-D
         ((2, 188, 620, 3), np.uint8),  # 4-D batch array
         ((4, 4), np.uint8),  # too small
-        ((188, 620), np.int32),  # unsupported dtype
+        ((188, 620), np.complex64),  # unsupported dtype
     ])
     def test_bad_input_raises(self, shape, dtype):
         with pytest.raises(ImageError):

@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cae.conf import ConfigError
+from core.conf import ConfigError
 from evaluation import evaluate
-from retrieval import cli
+from cli import main as cli
 from retrieval.detect import SAMPLE_DIR
 
 PNGS = ("pr_curve.png", "trajectory.png", "similarity.png")

@@ -5,10 +5,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cae.conf import ConfigError
-from evaluation.ground_truth import load_ground_truth, loops_from_poses, pair_matrix, sniff_ground_truth
+from core.conf import ConfigError
+from evaluation.ground_truth import load_ground_truth, loops_from_poses, pair_matrix, read_loop_pairs, sniff_ground_truth
 from retrieval.detect import SAMPLE_DIR
-from retrieval.sequences import read_kitti_poses, read_loop_pairs
+from retrieval.sequences import read_kitti_poses
 
 SHARED = Path(__file__).resolve().parents[2].parent / "shared"
 KITTI = SHARED / "datasets" / "kitti"

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from cae.conf import ConfigError
+from core.conf import ConfigError
 from retrieval.baselines import BoVWDescriptor, ThumbnailDescriptor, build_vocabulary, load_vocabulary
 from retrieval.descriptors import DESCRIPTORS
 from retrieval.detect import SAMPLE_DIR
@@ -26,8 +26,8 @@ def vocabulary(tmp_path_factory):
 
 def test_registered_and_selectable_by_conf(vocabulary):
     assert {"cae", "thumbnail", "bovw"} <= set(DESCRIPTORS.names())
-    assert resolve_conf({"encoder": {"name": "thumbnail"}})["encoder"]["width"] == 64
-    assert resolve_conf({"encoder": {"name": "bovw", "vocabulary": str(vocabulary)}})["encoder"]["vocabulary"]
+    assert resolve_conf({"descriptor": {"name": "thumbnail"}})["descriptor"]["width"] == 64
+    assert resolve_conf({"descriptor": {"name": "bovw", "vocabulary": str(vocabulary)}})["descriptor"]["vocabulary"]
     with pytest.raises(ConfigError, match="vocabulary"):
         BoVWDescriptor({"name": "bovw"})
     with pytest.raises(ConfigError, match="not found"):
@@ -72,7 +72,7 @@ def test_bovw_unit_norm_and_near_beats_far(vocabulary, sample_image, sift_featur
 
 def test_detector_runs_with_baselines(vocabulary, sample_image, sample_K):
     for enc in ({"name": "thumbnail"}, {"name": "bovw", "vocabulary": str(vocabulary)}):
-        with LoopDetector({"encoder": enc, "search": {"exclude_recent": 1}}, K=sample_K) as det:
+        with LoopDetector({"descriptor": enc, "search": {"exclude_recent": 1}}, K=sample_K) as det:
             det.process(sample_image(NEAR), 0)
             res = det.process(sample_image(QUERY), 1)
         assert [c.frame_id for c in res.candidates] == [0]

@@ -4,7 +4,8 @@ import h5py
 import numpy as np
 import pytest
 
-from cae.conf import ConfigError
+from core.conf import ConfigError
+from core.errors import DatabaseError
 from retrieval.database import FORMAT_VERSION, KeyframeDatabase, KeyframeRecord
 from verify.features import Features
 
@@ -82,14 +83,16 @@ class TestKeyframeDatabase:
 
     def test_storage_layout(self, db_path, records):
         with h5py.File(db_path, "r") as f:
-            assert int(f.attrs["format_version"]) == FORMAT_VERSION == 1
-            assert f.attrs["encoder"] == ENCODER_ID
+            assert int(f.attrs["format_version"]) == FORMAT_VERSION == 2
+            assert f.attrs["descriptor"] == ENCODER_ID
             assert sorted(f["keyframes"]) == ["00000003", "00000007", "00000012"]
             grp = f["keyframes/00000003"]
             assert grp["descriptors"].dtype == np.uint8  # 4x smaller than float32
             assert grp["descriptors"].shape == (len(records[0].features), 128)
             assert grp["keypoints"].shape == (len(records[0].features), 2)
             assert grp["code"].shape == (4096,)
+            assert grp.attrs["metric"] == "l2" and len(grp.attrs["checksum"]) == 32
+            assert sorted(f["skipped"]) == ["00000013", "00000014"] and f["skipped/00000014"].attrs["reason"] == "gated"
 
     def test_float_descriptors_kept_when_not_integral(self, tmp_path, sift_features):
         f = sift_features(3)
@@ -123,14 +126,14 @@ class TestKeyframeDatabase:
         assert db_path.read_bytes() == before
 
     def test_other_encoder_refused(self, db_path):
-        with pytest.raises(ConfigError, match="encoder weights"):
+        with pytest.raises(ConfigError, match="another global descriptor or other weights"):
             KeyframeDatabase(db_path, CONF, "fedcba9876543210")
 
     def test_truncated_file_refused_and_untouched(self, db_path):
         data = db_path.read_bytes()
         db_path.write_bytes(data[: len(data) // 2])
         before = db_path.read_bytes()
-        with pytest.raises(ConfigError, match="truncated or damaged") as err:
+        with pytest.raises(DatabaseError, match="is damaged \\(truncated or corrupt") as err:
             KeyframeDatabase(db_path, CONF, ENCODER_ID)
         assert str(db_path) in str(err.value)
         assert db_path.read_bytes() == before and db_path.stat().st_size == len(data) // 2
@@ -138,7 +141,7 @@ class TestKeyframeDatabase:
     def test_not_hdf5_refused(self, tmp_path):
         path = tmp_path / "notes.h5"
         path.write_text("plain text, not HDF5\n" * 20)
-        with pytest.raises(ConfigError):
+        with pytest.raises(DatabaseError, match="damaged"):
             KeyframeDatabase(path, CONF)
         assert path.read_text().startswith("plain text")
 
@@ -151,8 +154,8 @@ class TestKeyframeDatabase:
 
     def test_other_format_version_refused(self, db_path):
         with h5py.File(db_path, "a") as f:
-            f.attrs["format_version"] = 2
-        with pytest.raises(ConfigError, match="format_version 2"):
+            f.attrs["format_version"] = 1
+        with pytest.raises(ConfigError, match="format_version 1"):
             KeyframeDatabase(db_path, CONF, ENCODER_ID)
 
     def test_half_written_keyframe_dropped_on_resume(self, db_path):

@@ -1,12 +1,16 @@
 """The streaming API on the bundled sample: detection quality against ground truth, resume, ids, gate, results."""
 
+import copy
 import csv
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from cae.conf import ConfigError
+from core.conf import ConfigError, load_conf_file, merge_conf
+from core.errors import ImageError
+from evaluation.ground_truth import read_loop_pairs
 from evaluation.metrics import precision_recall
 from retrieval.database import KeyframeDatabase
 from retrieval.detector import Candidate, FrameResult, LoopDetector, resolve_conf
@@ -41,7 +45,7 @@ def loops_of(results):
 class TestLoopDetector:
     def test_precision_recall_on_sample(self, stream_run, sample_seq):
         loops = loops_of(stream_run["results"])
-        pr = precision_recall(loops, sample_seq.loops)
+        pr = precision_recall(loops, read_loop_pairs(sample_seq.ground_truth))
         # measured: 50 loops, all correct, every query with a true loop found
         assert pr.precision == 1.0
         assert pr.recall >= 0.9
@@ -172,3 +176,161 @@ class TestFeatureStoreMode:
 class TestCandidate:
     def test_as_row(self):
         assert Candidate(3, 0.5, 10, 7).as_row() == (3, 0.5, 10, 7)
+
+
+REPO = Path(__file__).parents[2]
+
+
+class TestResolveConf:
+    """``resolve_conf``: registry sections merge onto the named unit's defaults; every value is checked."""
+
+    def test_hnsw_options_allowed_only_for_hnsw(self):
+        from retrieval.detector import resolve_conf
+
+        conf = resolve_conf({"index": {"name": "hnsw", "m": 16}})
+        assert conf["index"] == {"name": "hnsw", "m": 16, "ef_search": 128, "ef_construction": 64}
+        with pytest.raises(ConfigError, match="index.m"):
+            resolve_conf({"index": {"name": "flat", "m": 16}})
+        with pytest.raises(ConfigError, match="unknown index 'nope'"):
+            resolve_conf({"index": {"name": "nope"}})
+
+    def test_defaults_and_unknown_keys(self):
+        from retrieval.detector import default_conf, resolve_conf
+
+        before = copy.deepcopy(default_conf)
+        conf = resolve_conf({"policy": {"min_inliers": 30}, "features": {"max_features": 123}})
+        assert conf["policy"] == {"min_matches": 5, "min_inliers": 30, "check_all": False}
+        from verify.features import SIFT
+
+        assert conf["features"]["max_features"] == 123
+        assert conf["features"]["resize_max"] == SIFT.default_conf["resize_max"]  # the rest from SIFT's defaults
+        assert default_conf == before
+        assert resolve_conf(conf) == conf  # idempotent
+        with pytest.raises(ConfigError) as err:
+            resolve_conf({"policy": {"bogus": 1}})
+        assert "policy.bogus" in str(err.value) and "min_inliers" in str(err.value)
+
+    @pytest.mark.parametrize("name", sorted(p.name for p in (REPO / "configs").glob("*.yaml") if p.name != "train.yaml"))
+    def test_detector_presets_resolve(self, name):
+        from retrieval.detector import resolve_conf
+
+        user = load_conf_file(REPO / "configs" / name)
+        conf = resolve_conf(user)
+        for section, values in user.items():
+            if isinstance(values, dict):
+                for key, value in values.items():
+                    assert conf[section][key] == value
+
+    def test_default_preset_equals_code_defaults(self):
+        from retrieval.detector import resolve_conf
+
+        path = REPO / "configs" / "default.yaml"
+        if not path.is_file():
+            pytest.skip("configs/default.yaml not present")
+        assert resolve_conf(load_conf_file(path)) == resolve_conf({})
+
+    def test_train_preset_resolves(self):
+        from cae.train import default_conf
+
+        user = load_conf_file(REPO / "configs" / "train.yaml")
+        assert merge_conf(default_conf, user) == {**default_conf, **user}
+
+    def test_old_section_names_still_work_with_a_warning(self, caplog):
+        from retrieval.detector import resolve_conf
+
+        with pytest.warns(DeprecationWarning, match="'encoder' is deprecated; call it 'descriptor'"):
+            conf = resolve_conf({"encoder": {"name": "thumbnail"}, "matching": {"ratio": 0.7}})
+        assert conf["descriptor"]["name"] == "thumbnail" and conf["matcher"]["ratio"] == 0.7
+        assert "encoder" not in conf and "matching" not in conf
+        with pytest.raises(ConfigError, match="both given"):
+            resolve_conf({"encoder": {}, "descriptor": {}})
+
+    @pytest.mark.parametrize("override, key", [
+        ({"search": {"k": 0}}, "search.k"), ({"search": {"k": True}}, "search.k"),
+        ({"geometry": {"threshold": float("nan")}}, "geometry.threshold"),
+        ({"index": {"name": "hnsw", "m": 1}}, "index.m"), ({"runtime": {"features": "disk"}}, "runtime.features"),
+        ({"descriptor": {"name": "thumbnail", "width": 1}}, "descriptor.width"),
+    ])
+    def test_values_checked(self, override, key):
+        from retrieval.detector import resolve_conf
+
+        with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+            resolve_conf(override)
+
+
+class TestEveryUnitDeclaresItsRules:
+    """Every key of every unit's default_conf has a type-and-range rule (a new key without one fails here)."""
+
+    def test_all_registered_units(self):
+        from core.conf import check_conf
+        from retrieval.detector import conf_rules, default_conf
+        from retrieval.descriptors import DESCRIPTORS
+        from retrieval.index import INDEXES
+        from verify.features import FEATURES
+        from verify.gate import EdgeGate
+        from verify.geometry import GeometricVerifier
+        from verify.verifier import MATCHERS
+
+        units = [EdgeGate, GeometricVerifier] + [reg.get(n) for reg in (DESCRIPTORS, INDEXES, FEATURES, MATCHERS)
+                                                  for n in reg.names()]
+        for unit in units:
+            check_conf(unit.default_conf, unit.conf_rules, unit.__name__)
+            assert set(unit.conf_rules) <= set(unit.default_conf), unit
+        for section, rules in conf_rules.items():
+            check_conf(default_conf[section], rules, section)
+
+
+class TestProcessRefusesBadInput:
+    """The Python API raises the project's own errors and leaves the detector as it was."""
+
+    @pytest.mark.parametrize("image, error", [
+        (None, "numpy array"), ([[1, 2], [3, 4]], "numpy array"), ("000000.png", "read files with"),
+        (np.zeros((4, 4), np.uint8), "too small"), (np.zeros((1, 2000), np.uint8), "too small"),
+        (np.zeros((50, 60, 2), np.uint8), "unsupported image shape"), (np.zeros((50, 60), np.complex64), "dtype"),
+    ], ids=["None", "list", "path", "4x4", "strip", "2-channel", "complex"])
+    def test_bad_images(self, encoder, sample_image, tmp_path, image, error):
+        with LoopDetector(encoder=encoder, database=tmp_path / "kf.h5") as det:
+            det.process(sample_image(0), 0)
+            with pytest.raises(ImageError, match=error):
+                det.process(image, 1)
+            assert det.next_frame_id == 1 and len(det.index) == 1 and len(det.db) == 1
+            assert det.process(sample_image(1), 1).frame_id == 1  # the same id is still free
+
+    def test_torch_tensor(self, encoder, sample_image):
+        import torch
+
+        with LoopDetector(encoder=encoder) as det:
+            with pytest.raises(ImageError, match="got Tensor"):
+                det.process(torch.zeros(3, 64, 64))
+
+    @pytest.mark.parametrize("kwargs, error", [
+        ({"frame_id": 1.7}, "frame_id must be an integer"), ({"frame_id": "3"}, "frame_id must be an integer"),
+        ({"frame_id": True}, "frame_id must be an integer"), ({"pose": np.eye(3)}, "pose must be a finite 3x4"),
+        ({"pose": np.full((3, 4), np.nan)}, "NaN or inf"), ({"timestamp": float("nan")}, "timestamp"),
+        ({"timestamp": "noon"}, "timestamp"),
+    ])
+    def test_bad_arguments(self, encoder, sample_image, kwargs, error):
+        with LoopDetector(encoder=encoder) as det:
+            with pytest.raises(ConfigError, match=error):
+                det.process(sample_image(0), **kwargs)
+            assert det.next_frame_id == 0 and len(det.index) == 0
+
+    def test_pose_4x4_accepted(self, encoder, sample_image, tmp_path):
+        pose = np.eye(4)
+        pose[:3, 3] = [1, 2, 3]
+        with LoopDetector(encoder=encoder, database=tmp_path / "kf.h5") as det:
+            det.process(sample_image(0), 0, pose=pose)
+            np.testing.assert_array_equal(next(iter(det.db)).pose, pose[:3])
+
+    @pytest.mark.parametrize("K", [np.eye(2), np.full((3, 3), np.inf), "K"])
+    def test_bad_intrinsics(self, encoder, K):
+        with pytest.raises(ConfigError, match="K must be"):
+            LoopDetector(K=K, encoder=encoder)
+
+    def test_process_after_close(self, encoder, sample_image, tmp_path):
+        det = LoopDetector(encoder=encoder, database=tmp_path / "kf.h5")
+        det.process(sample_image(0), 0)
+        det.close()
+        with pytest.raises(ConfigError, match="closed"):
+            det.process(sample_image(1), 1)
+        assert det.next_frame_id == 1 and len(det.index) == 1

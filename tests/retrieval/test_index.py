@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from cae.conf import ConfigError
+from core.conf import ConfigError
 from retrieval.index import (INDEXES, FlatIndex, FP16Index, HNSWIndex, KeyframeIndex, brute_force_search,
                              create_index)
 
@@ -149,6 +149,12 @@ class TestCreateIndex:
             create_index(D, {"name": "flat", "m": 16})
 
 
+def query(kf, code, frame_id, k, timestamp=None):
+    """What the detector does for a query frame: admit the codes old enough, then search (which only reads)."""
+    kf.admit(frame_id, timestamp)
+    return kf.search(code, k)
+
+
 class TestKeyframeIndex:
     @pytest.fixture()
     def codes(self):
@@ -161,7 +167,7 @@ class TestKeyframeIndex:
             kf.add(i, codes[i])
         assert len(kf) == 10
         # the query is a copy of frame 8's code, so frame 8 would be the best match if it were searchable
-        scores, ids = kf.search(codes[8], frame_id=10, k=10)
+        scores, ids = query(kf, codes[8], 10, 10)
         assert ids.dtype == np.int64 and len(scores) == len(ids)
         assert set(ids.tolist()) == set(range(0, 6))  # frames 6..10 are too recent
         _, Ib = brute_force_search(codes[8:9], codes[:6], 10)
@@ -170,9 +176,9 @@ class TestKeyframeIndex:
 
     def test_exclusion_follows_query_frame(self, codes):
         kf = KeyframeIndex(D, exclude_recent=5)
-        assert kf.search(codes[0], frame_id=0, k=3)[1].size == 0  # empty index: no results
+        assert query(kf, codes[0], 0, 3)[1].size == 0  # empty index: no results
         for i in range(20):
-            _, ids = kf.search(codes[i], frame_id=i, k=50)
+            _, ids = query(kf, codes[i], i, 50)
             assert set(ids.tolist()) == set(range(0, max(0, i - 4)))
             kf.add(i, codes[i])
 
@@ -180,7 +186,7 @@ class TestKeyframeIndex:
         kf = KeyframeIndex(D)
         for i in range(5):
             kf.add(i, codes[i])
-        scores, ids = kf.search(codes[3], frame_id=3, k=1)
+        scores, ids = query(kf, codes[3], 3, 1)
         assert ids.tolist() == [3] and scores[0] == pytest.approx(1.0, abs=1e-5)
 
     def test_exclude_recent_seconds(self, codes):
@@ -188,18 +194,28 @@ class TestKeyframeIndex:
         times = np.arange(20) * 0.5  # 2 frames a second
         for i in range(10):
             kf.add(i, codes[i], timestamp=float(times[i]))
-        _, ids = kf.search(codes[9], frame_id=10, k=20, timestamp=float(times[10]))
+        _, ids = query(kf, codes[9], 10, 20, float(times[10]))
         assert set(ids.tolist()) == set(range(0, 7))  # 5.0 - t >= 2.0  ->  t <= 3.0  ->  frames 0..6
         # the frame rule applies too when both are set
         kf2 = KeyframeIndex(D, exclude_recent=6, exclude_recent_s=2.0)
         for i in range(10):
             kf2.add(i, codes[i], timestamp=float(times[i]))
-        _, ids = kf2.search(codes[9], frame_id=10, k=20, timestamp=float(times[10]))
+        _, ids = query(kf2, codes[9], 10, 20, float(times[10]))
         assert set(ids.tolist()) == set(range(0, 5))
 
     def test_k_larger_than_available(self, codes):
         kf = KeyframeIndex(D, exclude_recent=2)
         for i in range(4):
             kf.add(i, codes[i])
-        scores, ids = kf.search(codes[0], frame_id=4, k=10)
+        scores, ids = query(kf, codes[0], 4, 10)
         assert sorted(ids.tolist()) == [0, 1, 2] and np.isfinite(scores).all()
+
+    def test_search_does_not_change_the_index(self, codes):
+        kf = KeyframeIndex(D, exclude_recent=2)
+        for i in range(6):
+            kf.add(i, codes[i])
+        assert kf.search(codes[0], 10)[1].size == 0  # nothing admitted yet: search alone admits nothing
+        kf.admit(6)
+        first = kf.search(codes[0], 10)
+        np.testing.assert_array_equal(kf.search(codes[0], 10)[1], first[1])
+        assert sorted(first[1].tolist()) == [0, 1, 2, 3, 4]

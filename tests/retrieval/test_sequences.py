@@ -1,8 +1,9 @@
 import numpy as np
 import pytest
 
-from cae.conf import ConfigError
-from retrieval.sequences import Sequence, open_sequence, read_kitti_calib, read_kitti_poses, read_loop_pairs
+from core.conf import ConfigError
+from evaluation.ground_truth import read_loop_pairs
+from retrieval.sequences import Sequence, open_sequence, read_kitti_calib, read_kitti_poses
 
 
 class TestOpenSequence:
@@ -14,24 +15,26 @@ class TestOpenSequence:
         np.testing.assert_allclose(seq.K, [[359.428, 0, 303.3464], [0, 359.428, 92.35785], [0, 0, 1]])
         assert seq.timestamps.shape == (100,) and np.all(np.diff(seq.timestamps) > 0)
         assert seq.poses.shape == (100, 3, 4)
-        assert seq.loops.shape == (111, 2)
-        assert (seq.loops[:, 0] > seq.loops[:, 1]).all()
-        assert [55, 5] in seq.loops.tolist()
-        assert len(np.unique(seq.loops[:, 0])) == 50  # 50 queries with a true loop (sample README)
+        assert seq.ground_truth == sample_dir / "loops.txt"
+        loops = read_loop_pairs(seq.ground_truth)
+        assert loops.shape == (111, 2)
+        assert (loops[:, 0] > loops[:, 1]).all()
+        assert [55, 5] in loops.tolist()
+        assert len(np.unique(loops[:, 0])) == 50  # 50 queries with a true loop (sample README)
         # ground truth agrees with the poses: every pair is < 5 m apart on the ground plane
-        d = np.linalg.norm(seq.poses[seq.loops[:, 0]][:, [0, 2], 3] - seq.poses[seq.loops[:, 1]][:, [0, 2], 3], axis=1)
+        d = np.linalg.norm(seq.poses[loops[:, 0]][:, [0, 2], 3] - seq.poses[loops[:, 1]][:, [0, 2], 3], axis=1)
         assert d.max() < 5.0
 
     def test_shared_kitti_90(self, kitti_sequences):
         seq = open_sequence(kitti_sequences / "90")
         assert len(seq) == 200 and seq.kind == "kitti"
         assert seq.poses.shape == (200, 3, 4)  # from ../../poses/90.txt
-        assert seq.loops.shape == (749, 2)
+        assert read_loop_pairs(seq.ground_truth).shape == (749, 2)
         assert seq.K[0, 0] == pytest.approx(718.856)
 
     def test_shared_kitti_07(self, kitti_sequences):
         seq = open_sequence(kitti_sequences / "07")
-        assert len(seq) == 160 and seq.loops is None
+        assert len(seq) == 160 and seq.ground_truth is None
         assert seq.timestamps.shape == (160,) and seq.poses.shape == (160, 3, 4)
 
     def test_plain_folder(self, tmp_path, copy_sample_frames):
@@ -40,7 +43,7 @@ class TestOpenSequence:
         seq = open_sequence(tmp_path)
         assert seq.kind == "folder" and len(seq) == 3
         assert [p.name for p in seq.frames] == ["000000.jpg", "000001.jpg", "000002.jpg"]
-        assert seq.K is None and seq.timestamps is None and seq.poses is None and seq.loops is None
+        assert seq.K is None and seq.timestamps is None and seq.poses is None and seq.ground_truth is None
 
     def test_metadata_of_wrong_length_ignored(self, tmp_path, copy_sample_frames, sample_dir, caplog):
         copy_sample_frames([0, 1, 2], tmp_path / "image_0")

@@ -2,8 +2,8 @@ import cv2
 import numpy as np
 import pytest
 
-from cae.conf import ConfigError
-from cae.preprocess import ImageError
+from core.conf import ConfigError
+from core.errors import ImageError
 from verify.gate import EdgeGate, GateResult
 
 

@@ -1,14 +1,14 @@
 import numpy as np
 import pytest
 
-from cae.conf import ConfigError
+from core.conf import ConfigError
 from verify.features import Features
-from verify.verifier import NOT_CHECKED, VERIFIERS, RatioTestVerifier, Verification, create_verifier
+from verify.verifier import NOT_CHECKED, MATCHERS, RatioTestMatcher, Verification, create_verifier
 
 
-class TestRatioTestVerifier:
+class TestRatioTestMatcher:
     def test_true_vs_far_candidates(self, sift_features, sample_K):
-        v = RatioTestVerifier()
+        v = RatioTestMatcher()
         out = v.verify(sift_features(55), [sift_features(5), sift_features(30)], sample_K)
         assert len(out) == 2 and all(isinstance(o, Verification) for o in out)
         true, far = out
@@ -18,12 +18,12 @@ class TestRatioTestVerifier:
         assert true.pairs.shape == (true.matches, 2) and true.pairs.dtype == np.int64
 
     def test_min_matches_skips_geometry(self, sift_features, sample_K):
-        v = RatioTestVerifier()
+        v = RatioTestMatcher()
         far = v.verify(sift_features(55), [sift_features(30)], sample_K, min_matches=1000)[0]
         assert far.geometry.model == "not checked" and far.inliers == NOT_CHECKED and far.matches > 0
 
     def test_no_candidates_and_empty_features(self, sift_features, sample_K):
-        v = RatioTestVerifier()
+        v = RatioTestMatcher()
         assert v.verify(sift_features(55), [], sample_K) == []
         out = v.verify(Features.empty(), [sift_features(5)], sample_K)
         assert out[0].matches == 0 and out[0].inliers == NOT_CHECKED and out[0].pairs.shape == (0, 2)
@@ -32,7 +32,7 @@ class TestRatioTestVerifier:
 
     def test_branch_and_bound_keeps_the_best(self, sift_features, sample_K):
         """Skipping candidates that cannot win changes no winner: same best as checking all."""
-        v = RatioTestVerifier()
+        v = RatioTestMatcher()
         cands = [sift_features(i) for i in (30, 5, 6, 4, 40)]
         full = v.verify(sift_features(55), cands, sample_K, min_inliers=50, check_all=True)
         fast = v.verify(sift_features(55), cands, sample_K, min_inliers=50, check_all=False)
@@ -44,8 +44,8 @@ class TestRatioTestVerifier:
         assert skipped and all(f.matches < fast[best].inliers for f in skipped)
 
     def test_mutual_option(self, sift_features):
-        plain = RatioTestVerifier().match_many(sift_features(55), [sift_features(5)])[0]
-        mutual = RatioTestVerifier({"mutual": True}).match_many(sift_features(55), [sift_features(5)])[0]
+        plain = RatioTestMatcher().match_many(sift_features(55), [sift_features(5)])[0]
+        mutual = RatioTestMatcher({"mutual": True}).match_many(sift_features(55), [sift_features(5)])[0]
         assert set(map(tuple, mutual.tolist())) <= set(map(tuple, plain.tolist()))
         assert 0 < len(mutual) < len(plain)
 
@@ -53,10 +53,10 @@ class TestRatioTestVerifier:
 class TestCreateVerifier:
     def test_by_name_and_errors(self):
         v = create_verifier({"name": "ratio", "ratio": 0.7}, {"model": "fundamental"})
-        assert isinstance(v, RatioTestVerifier)
+        assert isinstance(v, RatioTestMatcher)
         assert v.conf["ratio"] == 0.7 and v.geometry.conf["model"] == "fundamental"
-        assert "ratio" in VERIFIERS.names()
+        assert "ratio" in MATCHERS.names()
         with pytest.raises(ConfigError, match="unknown matcher 'lightglue'"):
             create_verifier({"name": "lightglue"})
-        with pytest.raises(ConfigError, match="matching.ratios"):
+        with pytest.raises(ConfigError, match="matcher.ratios"):
             create_verifier({"ratios": 0.7})

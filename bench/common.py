@@ -1,5 +1,5 @@
 """Shared pieces of ``cae-lcd bench``: the time budget, detection runs (optionally in a fresh process, for a clean
-peak-memory reading), the metrics of a run, and Markdown tables."""
+peak-memory reading), a sequence's ground truth, the metrics of a run, and Markdown tables."""
 
 from __future__ import annotations
 
@@ -14,10 +14,13 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from .evaluate import CANDIDATE_COLUMNS, KS, read_csv_table
-from .metrics import best_per_query, pr_curve, recall_at_k
+from evaluation.evaluate import KS
+from evaluation.ground_truth import read_loop_pairs
+from evaluation.metrics import best_per_query, pr_curve, precision_recall, recall_at_k
+from retrieval.run_folder import CANDIDATE_COLUMNS, RunFolder, read_csv_table
+from retrieval.sequences import open_sequence
 
-__all__ = ["Budget", "detect_run", "run_metrics", "md_table", "fmt", "REPO"]
+__all__ = ["Budget", "detect_run", "ground_truth_pairs", "run_metrics", "md_table", "fmt", "REPO"]
 
 log = logging.getLogger(__name__)
 
@@ -83,6 +86,12 @@ def detect_run(path: str | Path, out: str | Path, conf: dict[str, Any] | None = 
     return summary
 
 
+def ground_truth_pairs(sequence: str | Path) -> np.ndarray | None:
+    """The ``(P, 2)`` true loop pairs of a sequence (its ``loops.txt``), or None when it has none."""
+    gt = open_sequence(sequence).ground_truth
+    return None if gt is None else read_loop_pairs(gt)
+
+
 def run_metrics(out: str | Path, ground_truth: np.ndarray | None, min_matches: int,
                 score: str = "inliers") -> dict[str, Any]:
     """Operating point, max recall at 100 % precision (sweep on ``score``) and retrieval Recall@k of a run folder.
@@ -92,18 +101,22 @@ def run_metrics(out: str | Path, ground_truth: np.ndarray | None, min_matches: i
         ground_truth: ``(P, 2)`` true pairs, or None (then only the loop count is known).
         min_matches: the run's ``policy.min_matches`` (candidates below it are ineligible in the sweep).
         score: ``"inliers"`` or ``"cosine"``.
-    """
-    import json
 
-    summary = json.loads((Path(out) / "summary.json").read_text())
-    ms_total = summary["ms_per_frame"].get("total", {}).get("median")
-    res: dict[str, Any] = {"loops": summary["loops"], "ms_total": ms_total, "score": score}
+    Returns:
+        ``loops``, ``ms_total`` (median end-to-end ms/frame) and ``score``; with ground truth also the operating
+        point (``PRResult.as_dict()``: precision, recall, true_positives, ...), ``r100``, ``t100`` and
+        ``recall_at_k``.
+    """
+    run = RunFolder(Path(out))
+    loops = run.read_loops()[:, :2].astype(np.int64)
+    ms_total = run.read_summary().get("ms_per_frame", {}).get("total", {}).get("median")
+    res: dict[str, Any] = {"loops": len(loops), "ms_total": ms_total, "score": score}
     if ground_truth is None:
         return res
-    cands = read_csv_table(Path(out) / "candidates.csv", CANDIDATE_COLUMNS)
+    cands = read_csv_table(run.candidates, CANDIDATE_COLUMNS)  # detect always writes it: missing is an error
     best, scores = best_per_query(cands, score, min_matches)
     r100, t100 = pr_curve(best, scores, ground_truth).max_recall_at_precision_1()
-    res.update(summary["ground_truth"])
+    res.update(precision_recall(loops, ground_truth).as_dict())
     res.update({"r100": r100, "t100": t100, "recall_at_k": recall_at_k(cands, ground_truth, KS)})
     return res
 

@@ -12,12 +12,12 @@ from typing import Any
 import numpy as np
 import torch
 
-from cae.conf import load_conf_file, merge_conf
-from retrieval.baselines import build_vocabulary
+from cae.model import CODE_DIM
+from core.conf import load_conf_file, merge_conf
 from retrieval.detector import resolve_conf
 from retrieval.sequences import open_sequence
 
-from .bench_common import REPO, Budget, detect_run, md_table, run_metrics
+from .common import REPO, Budget, detect_run, ground_truth_pairs, md_table, run_metrics
 
 __all__ = ["slug", "method_confs", "method_metrics", "run_methods", "false_loops", "methods_table",
            "training_study", "training_table"]
@@ -34,8 +34,8 @@ def method_confs(vocabulary: str | Path, override: dict[str, Any] | None = None)
     else:
         log.warning("%s not found: the paper row is left out", paper_file)
     confs["default (CAE)"] = {}
-    confs["thumbnail 64x48 + verification"] = {"encoder": {"name": "thumbnail"}}
-    confs["bovw tf-idf + verification"] = {"encoder": {"name": "bovw", "vocabulary": str(vocabulary)}}
+    confs["thumbnail 64x48 + verification"] = {"descriptor": {"name": "thumbnail"}}
+    confs["bovw tf-idf + verification"] = {"descriptor": {"name": "bovw", "vocabulary": str(vocabulary)}}
     return {label: merge_conf(c, override, strict=False) for label, c in confs.items()}
 
 
@@ -58,16 +58,16 @@ def run_methods(sequence: str | Path, run_dir: str | Path, confs: dict[str, dict
     Returns:
         label -> metrics (``run_metrics``) plus ``dim``, ``wall_s`` and ``out``.
     """
-    seq = open_sequence(sequence)
+    truth = ground_truth_pairs(sequence)
     res = {}
     for label, conf in confs.items():
         out = Path(run_dir) / slug(label)
         summary = (done or {}).get(label)
         if summary is None:
-            log.info("method %s on %s", label, seq.root.name)
+            log.info("method %s on %s", label, Path(sequence).name)
             summary = detect_run(sequence, out, conf)
         out = Path(summary["out"])
-        res[label] = {**method_metrics(out, conf, seq.loops), "wall_s": summary["wall_s"], "out": str(out),
+        res[label] = {**method_metrics(out, conf, truth), "wall_s": summary["wall_s"], "out": str(out),
                       "frames": summary["frames"]}
     return res
 
@@ -93,13 +93,13 @@ def false_loops(sequences: dict[str, str | Path], run_dir: str | Path, confs: di
 
 
 def _dim(conf: dict[str, Any]) -> str:
-    enc = resolve_conf(conf)["encoder"]
+    enc = resolve_conf(conf)["descriptor"]
     if enc["name"] == "thumbnail":
         return str(enc["width"] * enc["height"])
     if enc["name"] == "bovw":
         from retrieval.baselines import load_vocabulary
         return str(len(load_vocabulary(enc["vocabulary"])[0]))
-    return "4096"
+    return str(CODE_DIM)
 
 
 def methods_table(res: dict[str, dict[str, Any]], confs: dict[str, dict[str, Any]],
@@ -150,12 +150,12 @@ def training_study(sequence: str | Path, train_images: str | Path, run_dir: str 
                 f"trained on {Path(train_images).parent.name} only, {trained['epochs_run']} epochs":
                     (trained["best"], f"val loss {trained['first_val_loss']:.4f} -> {trained['best_val_loss']:.4f}, "
                                       f"{train_s:.0f} s")}
-    seq = open_sequence(sequence)
+    truth = ground_truth_pairs(sequence)
     res = {}
     for i, (label, (weights, note)) in enumerate(variants.items()):
-        conf = merge_conf({"encoder": {"weights": weights}} if weights else {}, override, strict=False)
+        conf = merge_conf({"descriptor": {"weights": weights}} if weights else {}, override, strict=False)
         summary = detect_run(sequence, run_dir / f"w{i}", conf)
-        res[label] = {**method_metrics(summary["out"], conf, seq.loops), "note": note}
+        res[label] = {**method_metrics(summary["out"], conf, truth), "note": note}
     return res
 
 

@@ -1,4 +1,6 @@
-"""Rebuilds the bundled sample from ``../shared/datasets/kitti/sequences/90``: ``python -m retrieval.sample.make``.
+"""Rebuilds the bundled sample ``retrieval/sample`` from ``../shared/datasets/kitti/sequences/90``:
+``python -m evaluation.make_sample``. It lives here, not beside the sample, because it derives the sample's ground
+truth from poses (``evaluation.ground_truth``).
 
 Every second frame of sequence 90 (100 frames: indices 0-49 are the first pass, 50-99 the second pass over the
 same road), downscaled to half resolution and stored as JPEG (quality 90), with ``calib.txt`` (intrinsics scaled
@@ -15,10 +17,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from evaluation.ground_truth import loops_from_poses
+from retrieval.detect import SAMPLE_DIR
 from retrieval.sequences import open_sequence
 
-HERE = Path(__file__).parent
+from .ground_truth import loops_from_poses
+
+HERE = SAMPLE_DIR
 STEP, SCALE, QUALITY = 2, 0.5, 90
 
 

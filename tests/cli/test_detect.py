@@ -1,4 +1,4 @@
-"""``cae-lcd detect`` end to end: in-process through ``retrieval.cli.main``, plus one real subprocess."""
+"""``cae-lcd detect`` end to end: in-process through ``cli.main.main``, plus one real subprocess."""
 
 import csv
 import json
@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import yaml
 
-from cae.preprocess import read_image
-from retrieval.cli import main
+from core.images import read_image
+from cli.main import main
 from retrieval.database import KeyframeDatabase, KeyframeRecord
 from retrieval.detector import resolve_conf
 
@@ -200,7 +200,7 @@ class TestDetectErrors:
         db_path.write_bytes(data[: len(data) // 2])
         before = db_path.read_bytes()
         code, err = run_detect(["--out", out], capsys)
-        assert_one_line_error(code, err, "keyframes.h5", "truncated or damaged")
+        assert_one_line_error(code, err, "keyframes.h5", "is damaged (truncated or corrupt")
         assert db_path.read_bytes() == before
 
     def test_garbage_weights(self, tmp_path, capsys, copy_sample_frames):
@@ -213,7 +213,7 @@ class TestDetectErrors:
     def test_console_script_subprocess(self, tmp_path):
         bad = tmp_path / "bad.yaml"
         bad.write_text("policy: {bogus: 1}\n")
-        proc = subprocess.run([sys.executable, "-m", "retrieval.cli", "detect", "--config", str(bad), "--out",
+        proc = subprocess.run([sys.executable, "-m", "cli.main", "detect", "--config", str(bad), "--out",
                                str(tmp_path / "out"), "--no-progress"], capture_output=True, text=True, timeout=120)
         assert proc.returncode == 2
         assert "Traceback" not in proc.stderr

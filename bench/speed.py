@@ -15,13 +15,15 @@ import numpy as np
 import torch
 
 from cae.preprocess import preprocess
+from retrieval.detector import STAGES
 
-from .bench_common import detect_run, md_table
+from .common import detect_run, md_table
 
-__all__ = ["system_info", "stage_benchmark", "stage_table", "encoder_throughput", "throughput_table"]
+__all__ = ["STAGE_NAMES", "system_info", "stage_benchmark", "stage_table", "encoder_throughput", "throughput_table"]
 
 log = logging.getLogger(__name__)
 
+#: table label of each stage; which stages there are, and their order, is ``retrieval.detector.STAGES``
 STAGE_NAMES = {"gate": "gate (Canny edge ratio)", "encode": "encode (preprocess + CAE)",
                "features": "SIFT features", "search": "search (faiss)",
                "verify": "match + verify (ratio test, RANSAC)", "insert": "insert (index + HDF5)",
@@ -55,8 +57,8 @@ def stage_benchmark(sequence: str | Path, out: str | Path, conf: dict[str, Any] 
 def stage_table(summary: dict[str, Any], image_size: str) -> str:
     """Markdown: ms/frame (median, p90) by stage, then memory and storage lines."""
     ms = summary["ms_per_frame"]
-    rows = [[STAGE_NAMES.get(s, s), v["median"], v["p90"]] for s, v in ms.items()]
-    table = md_table(["stage", "median ms", "p90 ms"], [[r[0], f"{r[1]:.1f}", f"{r[2]:.1f}"] for r in rows])
+    rows = [[STAGE_NAMES.get(s, s), f"{ms[s]['median']:.1f}", f"{ms[s]['p90']:.1f}"] for s in STAGES if s in ms]
+    table = md_table(["stage", "median ms", "p90 ms"], rows)
     rss = summary.get("peak_rss_bytes")
     notes = [
         f"- {summary['frames']} frames ({image_size}), {summary['keyframes']} keyframes, {summary['wall_s']:.0f} s "

@@ -14,14 +14,15 @@ from __future__ import annotations
 import logging
 import math
 import time
+from dataclasses import dataclass
 from typing import Any, Sequence
 
 import numpy as np
 import torch
 
-from retrieval.index import brute_force_search, create_index
+from retrieval.index import CodeIndex, brute_force_search, create_index
 
-from .bench_common import Budget, md_table
+from .common import Budget, md_table
 
 __all__ = ["synth_codes", "index_scaling", "index_table", "INDEX_CONFS"]
 
@@ -82,6 +83,124 @@ def _pilot(conf: dict[str, Any], base: np.ndarray, sigma: float, rng: np.random.
             "bytes_per_code": _bytes_estimate(conf["name"], base.shape[1])}
 
 
+@dataclass(frozen=True)
+class _Limits:
+    """What one index may cost at one size."""
+
+    n_queries: int  #: queries with exact ground truth (fewer when searching them all would not fit)
+    memory_gib: float  #: an index larger than this is skipped
+    cell_time_s: float  #: an index whose estimated build + search time exceeds this is skipped
+
+
+def _cell_plan(name: str, e: dict[str, Any], size: int, pos: int, lim: _Limits) -> tuple[str | None, float, int]:
+    """Whether index ``name`` (estimates ``e``) goes on from ``pos`` to ``size`` stored codes.
+
+    Returns:
+        ``(reason it is skipped or None, estimated build + search seconds, queries to time)``.
+    """
+    mem = e["bytes_per_code"] * size
+    build = e["add_per_code"] * (size - pos) * (math.log(size) / math.log(max(pos, e["lat_n"], 2))
+                                                if name == "hnsw" else 1.0)
+    per_q = e["lat_s"] * size / e["lat_n"]
+    nq = int(min(lim.n_queries, max(5, lim.cell_time_s / 3 / max(per_q, 1e-6))))
+    seconds = build + per_q * nq
+    if mem > lim.memory_gib * 2**30:
+        return f"skipped: {mem / 2**30:.1f} GiB > memory budget {lim.memory_gib:g} GiB", seconds, nq
+    if seconds > lim.cell_time_s:
+        return f"skipped: build + search ~{seconds:.0f} s > time budget {lim.cell_time_s:g} s", seconds, nq
+    return None, seconds, nq
+
+
+def _prune(alive: dict[str, CodeIndex], st: dict[str, dict[str, Any]], cells: dict[tuple[str, int], dict[str, Any]],
+           size: int, pos: int, gen_per_code: float, lim: _Limits, budget: Budget | None) -> None:
+    """Drops from ``alive`` (with the reason in ``cells``) each index that would not fit at ``size``: memory,
+    then its estimated build + search time, then the bench's time left for the whole size."""
+    est_total = gen_per_code * (size - pos)
+    for n in list(alive):
+        reason, seconds, nq = _cell_plan(n, st[n], size, pos, lim)
+        if reason:
+            cells[(n, size)] = {"skipped": reason}
+            del alive[n]
+        else:
+            st[n]["nq"] = nq
+            est_total += seconds
+    if budget is not None and alive and not budget.allows(est_total):
+        for n in alive:
+            cells[(n, size)] = {"skipped": f"skipped: ~{est_total:.0f} s > bench time left ({budget.left():.0f} s)"}
+        alive.clear()
+
+
+class _CodeStream:
+    """The stored codes, generated chunk by chunk, with the queries and their exact top-k over everything so far
+    (no full float32 copy of the largest set is ever held)."""
+
+    def __init__(self, base: np.ndarray, sigma: float, rng: np.random.Generator, chunk: int, n_queries: int,
+                 k: int) -> None:
+        self.base, self.sigma, self.rng, self.chunk, self.n_queries, self.k = base, sigma, rng, chunk, n_queries, k
+        self.pos = 0  #: codes generated so far
+        self.xq: np.ndarray | None = None  #: queries: perturbed copies of stored codes of the first chunk
+        self.D_gt = self.I_gt = np.zeros((0, k))  #: exact top-k similarities and ids of each query
+
+    def _next(self, m: int) -> np.ndarray:
+        x = synth_codes(self.base, m, self.sigma, self.rng)
+        if self.xq is None:
+            src = self.rng.choice(m, min(self.n_queries, m), replace=False)
+            self.xq = synth_codes(x, len(src), self.sigma / 2, self.rng, sources=src)
+            self.D_gt = np.full((len(self.xq), self.k), -np.inf, np.float32)
+            self.I_gt = np.full((len(self.xq), self.k), -1, np.int64)
+        D2, I2 = brute_force_search(self.xq, x, self.k)
+        self.D_gt, self.I_gt = _merge_topk(self.D_gt, self.I_gt, D2, np.where(I2 >= 0, I2 + self.pos, -1), self.k)
+        return x
+
+    def grow(self, size: int, indexes: dict[str, CodeIndex], st: dict[str, dict[str, Any]]) -> float:
+        """Generates codes up to ``size`` and adds them to ``indexes`` (timed into ``st[name]["add_s"]``).
+
+        Returns:
+            Seconds per code of generating codes plus exact ground truth.
+        """
+        t_gen, grown = 0.0, size - self.pos
+        while self.pos < size:
+            t0 = time.perf_counter()
+            x = self._next(min(self.chunk, size - self.pos))
+            t_gen += time.perf_counter() - t0
+            for n, index in indexes.items():
+                t0 = time.perf_counter()
+                index.add(x)
+                st[n]["add_s"] += time.perf_counter() - t0
+            self.pos += len(x)
+        return t_gen / grown
+
+    def exact_sims(self) -> tuple[float, float]:
+        """Mean exact cosine of the queries' top-1 and top-k."""
+        return float(self.D_gt[:, 0].mean()), float(self.D_gt[:, self.k - 1].mean())
+
+
+def _measure(index: CodeIndex, e: dict[str, Any], xq: np.ndarray, I_gt: np.ndarray, k: int,
+             size: int) -> dict[str, Any]:
+    """Times ``e["nq"]`` queries one at a time; recall@k and top-1 against the exact ``I_gt``. Updates the
+    estimates ``e`` for the next size; returns the table cell."""
+    if "measured_bytes" not in e:  # serialising is a copy: do it once, at the smallest size
+        e["bytes_per_code"] = e["measured_bytes"] = index.bytes_per_code()
+    lat, found = [], []
+    for q in xq[: e["nq"]]:
+        t0 = time.perf_counter()
+        found.append(index.search(q[None], k)[1][0])
+        lat.append(time.perf_counter() - t0)
+    I_arr = np.stack(found)
+    recall = float(np.mean([len(set(a) & set(b)) / k for a, b in zip(I_arr, I_gt[: len(I_arr)])]))
+    top1 = float(np.mean(I_arr[:, 0] == I_gt[: len(I_arr), 0]))
+    e.update(add_per_code=e["add_s"] / size, lat_s=float(np.median(lat)), lat_n=size)
+    return {"ms": e["lat_s"] * 1e3, "recall": recall, "top1": top1, "queries": len(I_arr),
+            "bytes_per_code": e["bytes_per_code"], "build_s": e["add_s"], "gib": e["bytes_per_code"] * size / 2**30}
+
+
+def _index_confs(names: Sequence[str], chunk: int) -> dict[str, dict[str, Any]]:
+    confs = {n: dict(INDEX_CONFS.get(n, {"name": n})) for n in names}
+    if "sq8" in confs:  # learn the quantiser from the first chunk, so every size reported is quantised
+        confs["sq8"]["train_size"] = min(chunk, 1000)
+    return confs
+
+
 def index_scaling(base: np.ndarray, sizes: Sequence[int] = (10_000, 100_000, 1_000_000),
                   names: Sequence[str] = ("flat", "fp16", "sq8", "hnsw"), n_queries: int = 50, k: int = 10,
                   sigma: float = 0.004, chunk: int = 10_000, memory_gib: float = 6.0, cell_time_s: float = 90.0,
@@ -107,87 +226,25 @@ def index_scaling(base: np.ndarray, sizes: Sequence[int] = (10_000, 100_000, 1_0
     """
     sizes = sorted(int(s) for s in sizes)
     rng = np.random.default_rng(seed)
-    dim = base.shape[1]
     chunk = min(chunk, sizes[0])
-    confs = {n: dict(INDEX_CONFS.get(n, {"name": n})) for n in names}
-    if "sq8" in confs:  # learn the quantiser from the first chunk, so every size reported is quantised
-        confs["sq8"]["train_size"] = min(chunk, 1000)
+    confs = _index_confs(names, chunk)
     st = {n: _pilot(confs[n], base, sigma, rng) for n in names}  # add s/code, latency, bytes/code: estimates
     gen_per_code = st[names[0]]["gen_per_code"] if names else 0.0
-    alive = {n: create_index(dim, c) for n, c in confs.items()}
+    alive = {n: create_index(base.shape[1], c) for n, c in confs.items()}
+    lim = _Limits(n_queries, memory_gib, cell_time_s)
+    stream = _CodeStream(base, sigma, rng, chunk, n_queries, k)
     cells: dict[tuple[str, int], dict[str, Any]] = {}
     exact_sims: dict[int, tuple[float, float]] = {}
-    xq = D_gt = I_gt = None
-    pos = 0
     for size in sizes:
-        # ---- who goes on to this size: memory, then estimated build + search time
-        est_total = gen_per_code * (size - pos)
-        for n in list(alive):
-            e = st[n]
-            mem = e["bytes_per_code"] * size
-            build = e["add_per_code"] * (size - pos) * (math.log(size) / math.log(max(pos, e["lat_n"], 2))
-                                                         if n == "hnsw" else 1.0)
-            per_q = e["lat_s"] * size / e["lat_n"]
-            nq = int(min(n_queries, max(5, cell_time_s / 3 / max(per_q, 1e-6))))
-            reason = None
-            if mem > memory_gib * 2**30:
-                reason = f"skipped: {mem / 2**30:.1f} GiB > memory budget {memory_gib:g} GiB"
-            elif build + per_q * nq > cell_time_s:
-                reason = f"skipped: build + search ~{build + per_q * nq:.0f} s > time budget {cell_time_s:g} s"
-            if reason:
-                cells[(n, size)] = {"skipped": reason}
-                del alive[n]
-            else:
-                e["nq"] = nq
-                est_total += build + per_q * nq
-        if budget is not None and alive and not budget.allows(est_total):
-            for n in alive:
-                cells[(n, size)] = {"skipped": f"skipped: ~{est_total:.0f} s > bench time left ({budget.left():.0f} s)"}
-            alive = {}
+        _prune(alive, st, cells, size, stream.pos, gen_per_code, lim, budget)
         if not alive:
             break
-        # ---- grow to this size, chunk by chunk
-        t_gen, grown = 0.0, size - pos
-        while pos < size:
-            m = min(chunk, size - pos)
-            t0 = time.perf_counter()
-            x = synth_codes(base, m, sigma, rng)
-            if xq is None:  # queries: perturbed copies of stored codes of the first chunk
-                src = rng.choice(m, min(n_queries, m), replace=False)
-                xq = synth_codes(x, len(src), sigma / 2, rng, sources=src)
-                D_gt = np.full((len(xq), k), -np.inf, np.float32)
-                I_gt = np.full((len(xq), k), -1, np.int64)
-            D2, I2 = brute_force_search(xq, x, k)
-            D_gt, I_gt = _merge_topk(D_gt, I_gt, D2, np.where(I2 >= 0, I2 + pos, -1), k)
-            t_gen += time.perf_counter() - t0
-            for n, index in alive.items():
-                t0 = time.perf_counter()
-                index.add(x)
-                st[n]["add_s"] += time.perf_counter() - t0
-            pos += m
-            del x, index
-        gen_per_code = t_gen / grown
-        exact_sims[size] = (float(D_gt[:, 0].mean()), float(D_gt[:, k - 1].mean()))
-        # ---- measure, one query at a time
-        for n, index in alive.items():
-            e = st[n]
-            if "measured_bytes" not in e:  # serialising is a copy: do it once, at the smallest size
-                e["bytes_per_code"] = e["measured_bytes"] = index.bytes_per_code()
-            lat, found = [], []
-            for q in xq[: e["nq"]]:
-                t0 = time.perf_counter()
-                found.append(index.search(q[None], k)[1][0])
-                lat.append(time.perf_counter() - t0)
-            I_arr = np.stack(found)
-            recall = float(np.mean([len(set(a) & set(b)) / k for a, b in zip(I_arr, I_gt[: len(I_arr)])]))
-            top1 = float(np.mean(I_arr[:, 0] == I_gt[: len(I_arr), 0]))
-            e.update(add_per_code=e["add_s"] / size, lat_s=float(np.median(lat)), lat_n=size)
-            cells[(n, size)] = {"ms": e["lat_s"] * 1e3, "recall": recall, "top1": top1, "queries": len(I_arr),
-                                "bytes_per_code": e["bytes_per_code"], "build_s": e["add_s"],
-                                "gib": e["bytes_per_code"] * size / 2**30}
-            log.info("index %s @ %d: %.2f ms/query, recall@%d %.3f (%d queries)", n, size, e["lat_s"] * 1e3, k,
-                     recall, len(I_arr))
-        del index
+        gen_per_code = stream.grow(size, alive, st)
+        exact_sims[size] = stream.exact_sims()
+        for n in alive:  # (no loop variable holds an index: one dropped at the next size is freed at once)
+            c = cells[(n, size)] = _measure(alive[n], st[n], stream.xq, stream.I_gt, k, size)
+            log.info("index %s @ %d: %.2f ms/query, recall@%d %.3f (%d queries)", n, size, c["ms"], k, c["recall"],
+                     c["queries"])
     for n in names:
         for s in sizes:
             cells.setdefault((n, s), {"skipped": "skipped (see the size below)"})

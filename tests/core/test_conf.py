@@ -4,7 +4,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from cae.conf import ConfigError, Registry, dump_conf, load_conf_file, merge_conf
+from core.conf import ConfigError, Registry, dump_conf, load_conf_file, merge_conf
 
 REPO = Path(__file__).parents[2]
 
@@ -106,58 +106,3 @@ class TestRegistry:
             reg.get("c")
         with pytest.raises(ValueError, match="twice"):
             reg.register("a")(B)
-
-
-class TestResolveConf:
-    """``retrieval.detector.resolve_conf``: registry sections merge onto the named unit's defaults."""
-
-    def test_hnsw_options_allowed_only_for_hnsw(self):
-        from retrieval.detector import resolve_conf
-
-        conf = resolve_conf({"index": {"name": "hnsw", "m": 16}})
-        assert conf["index"] == {"name": "hnsw", "m": 16, "ef_search": 128, "ef_construction": 64}
-        with pytest.raises(ConfigError, match="index.m"):
-            resolve_conf({"index": {"name": "flat", "m": 16}})
-        with pytest.raises(ConfigError, match="unknown index 'nope'"):
-            resolve_conf({"index": {"name": "nope"}})
-
-    def test_defaults_and_unknown_keys(self):
-        from retrieval.detector import default_conf, resolve_conf
-
-        before = copy.deepcopy(default_conf)
-        conf = resolve_conf({"policy": {"min_inliers": 30}, "features": {"max_features": 123}})
-        assert conf["policy"] == {"min_matches": 5, "min_inliers": 30, "check_all": False}
-        from verify.features import SIFT
-
-        assert conf["features"]["max_features"] == 123
-        assert conf["features"]["resize_max"] == SIFT.default_conf["resize_max"]  # the rest from SIFT's defaults
-        assert default_conf == before
-        assert resolve_conf(conf) == conf  # idempotent
-        with pytest.raises(ConfigError) as err:
-            resolve_conf({"policy": {"bogus": 1}})
-        assert "policy.bogus" in str(err.value) and "min_inliers" in str(err.value)
-
-    @pytest.mark.parametrize("name", sorted(p.name for p in (REPO / "configs").glob("*.yaml") if p.name != "train.yaml"))
-    def test_detector_presets_resolve(self, name):
-        from retrieval.detector import resolve_conf
-
-        user = load_conf_file(REPO / "configs" / name)
-        conf = resolve_conf(user)
-        for section, values in user.items():
-            if isinstance(values, dict):
-                for key, value in values.items():
-                    assert conf[section][key] == value
-
-    def test_default_preset_equals_code_defaults(self):
-        from retrieval.detector import resolve_conf
-
-        path = REPO / "configs" / "default.yaml"
-        if not path.is_file():
-            pytest.skip("configs/default.yaml not present")
-        assert resolve_conf(load_conf_file(path)) == resolve_conf({})
-
-    def test_train_preset_resolves(self):
-        from cae.train import default_conf
-
-        user = load_conf_file(REPO / "configs" / "train.yaml")
-        assert merge_conf(default_conf, user) == {**default_conf, **user}

@@ -1,0 +1,1 @@
+"""``cae-lcd``: the command line, on top of every package (it imports them; nothing imports it)."""

@@ -1,0 +1,61 @@
+"""``cae-lcd bench``: ``bench.run.main`` (measures this machine, writes the tables into BENCHMARKS.md); prints them."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Any
+
+import bench.run as bench_run
+from core.cli import api_defaults
+
+__all__ = ["add_parser", "run", "sections_of"]
+
+_DEFAULTS = api_defaults(bench_run.main)
+
+
+def _int_list(text: str) -> tuple[int, ...]:
+    try:
+        return tuple(int(s) for s in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
+
+
+def add_parser(sub: Any) -> None:
+    p = sub.add_parser("bench", help="measure speed, memory, index scaling and methods on this machine; "
+                                     "write BENCHMARKS.md", description=bench_run.__doc__.split("\n\n")[0])
+    p.add_argument("--out", default=_DEFAULTS["out"], help="Markdown file to update (default %(default)s)")
+    p.add_argument("--run-dir", default=_DEFAULTS["run_dir"], help="folder for runs (default %(default)s)")
+    p.add_argument("--quick", action="store_true", help="tiny sizes (< 1 min): checks the command end to end")
+    p.add_argument("--sections", help=f"comma-separated subset of {','.join(bench_run.SECTIONS)} "
+                                      f"(default: all but training)")
+    p.add_argument("--skip-scale", action="store_true", help="leave out the index scaling section")
+    p.add_argument("--training-study", action="store_true",
+                   help="run only the training study (a few minutes; its own section of the output file)")
+    p.add_argument("--data", help="KITTI sequences folder with 00, 07, 90 "
+                                  "(default: ../shared/datasets/kitti/sequences)")
+    p.add_argument("--budget-s", type=float, default=_DEFAULTS["budget_s"],
+                   help="time budget in seconds; optional parts are skipped to fit (default %(default)s)")
+    p.add_argument("--index-memory-gib", type=float, default=_DEFAULTS["index_memory_gib"],
+                   help="largest index built, GiB (default %(default)s)")
+    p.add_argument("--index-sizes", type=_int_list,
+                   help="comma-separated stored-code counts (default 10000,100000,1000000)")
+    p.add_argument("--training-epochs", type=int, default=_DEFAULTS["training_epochs"],
+                   help="epochs for the other-data weights of the training study (default %(default)s)")
+    p.set_defaults(func=run)
+
+
+def sections_of(args: Any) -> tuple[str, ...]:
+    """The sections to run: ``--sections`` (default: all but training), ``--training-study`` alone,
+    ``--skip-scale`` without ``index``."""
+    if args.training_study:
+        return ("training",)
+    sections = (tuple(s.strip() for s in args.sections.split(",")) if args.sections
+                else bench_run.DEFAULT_SECTIONS)
+    return tuple(s for s in sections if s != "index") if args.skip_scale else sections
+
+
+def run(args: Any) -> None:
+    res = bench_run.main(args.out, args.run_dir, args.quick, sections_of(args), args.data, args.budget_s,
+                         args.index_memory_gib, args.index_sizes, args.training_epochs)
+    sys.stdout.write(res["head"] + "\n\n" + "\n\n".join(res["markdown"].values()) + "\n")

@@ -1,0 +1,59 @@
+"""``cae-lcd detect [PATH]``: ``retrieval.detect.main``, then precision/recall when the sequence has ground truth."""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+from core.conf import ConfigError, load_conf_file
+from evaluation.evaluate import score_run
+from evaluation.ground_truth import load_ground_truth
+from retrieval import detect
+from retrieval.sequences import open_sequence
+
+__all__ = ["add_parser", "run", "log_summary"]
+
+log = logging.getLogger("cae_lcd.detect")
+
+
+def log_summary(s: dict[str, Any]) -> None:
+    """The end-of-run report, one line per fact."""
+    log.info("frames %d (this run %d), keyframes %d, gated out %d, unreadable %d, loops %d", s["frames"],
+             s["processed_this_run"], s["keyframes"], s["gated_out"], s["unreadable"], s["loops"])
+    if s["ms_per_frame"]:
+        log.info("ms/frame (median): %s", ", ".join(f"{k} {v['median']:.1f}" for k, v in s["ms_per_frame"].items()))
+    if "ground_truth" in s:
+        g = s["ground_truth"]
+        recall = "n/a" if g["recall"] is None else f"{g['recall']:.3f}"
+        log.info("against ground truth: precision %.3f (%d/%d), recall %s (%d of %d queries with a true loop)",
+                 g["precision"], g["true_positives"], g["detections"], recall, g["true_positives"], g["positives"])
+    log.info("wrote %s/{loops.csv,candidates.csv,keyframes.h5,conf.yaml,summary.json}", s["out"])
+
+
+def add_parser(sub: Any) -> None:
+    p = sub.add_parser("detect", help="detect loop closures over a sequence (no PATH: the bundled sample)",
+                       description=detect.__doc__.split("\n\n")[0])
+    p.add_argument("path", nargs="?", help="KITTI sequence folder or image folder (default: bundled sample)")
+    p.add_argument("--config", help="YAML config (default: the built-in defaults = configs/default.yaml)")
+    p.add_argument("--out", help="run folder (default: runs/<sequence name>); an existing run is resumed")
+    p.add_argument("--camera", choices=["image_0", "image_1", "image_2", "image_3"], help="KITTI camera folder")
+    p.add_argument("--weights", help="encoder checkpoint (default: the shipped weights)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+
+
+def run(args: Any) -> None:
+    conf = load_conf_file(args.config) if args.config else {}
+    if args.weights:
+        section = "encoder" if "encoder" in conf else "descriptor"  # the old name still works (deprecated)
+        conf.setdefault(section, {})
+        if not isinstance(conf[section], dict):
+            raise ConfigError(f"config section '{section}' must be a mapping")
+        conf[section]["weights"] = args.weights
+    seq = open_sequence(detect.SAMPLE_DIR if args.path is None else args.path, args.camera)
+    if seq.ground_truth is not None:
+        load_ground_truth(seq.ground_truth)  # a broken ground-truth file is refused before anything is written
+    summary = detect.main(args.path, args.out, conf, args.camera, progress=not args.no_progress)
+    if summary.get("ground_truth_file"):
+        summary = score_run(summary["out"], summary["ground_truth_file"])
+    log_summary(summary)

@@ -1,0 +1,209 @@
+"""Reading images and converting them to what the stages take, for every camera a user brings.
+
+Accepted images (numpy arrays, as ``cv2.imread(path, cv2.IMREAD_UNCHANGED)`` returns them):
+grey ``(H, W)``, grey ``(H, W, 1)``, BGR ``(H, W, 3)``, BGRA ``(H, W, 4)``; dtype uint8, uint16 (any bit depth up
+to 16: 10-, 12- and 14-bit data stored in 16-bit words are scaled by their own range), other integer types (signed
+data is stretched over its own range), bool, or float (in [0, 1], or scaled by its own range when larger); at least
+8x8 pixels and at most ``MAX_IMAGE_PIXELS``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import math
+import os
+import stat
+import warnings
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .errors import ImageError
+
+__all__ = ["IMAGE_EXTENSIONS", "MAX_IMAGE_PIXELS", "MIN_IMAGE_SIDE", "image_entries", "read_image", "read_file",
+           "decode_image", "fingerprint", "check_image", "to_uint8", "to_gray_u8", "to_rgb_u8", "resize_square"]
+
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".webp")
+MAX_IMAGE_PIXELS = 1 << 27  #: larger images are refused before decoding (134 Mpixel: 11585x11585; 4K is 8.3)
+MIN_IMAGE_SIDE = 8  #: smaller images are refused (no feature, no edge can be measured)
+
+
+def image_entries(folder: str | Path, recursive: bool = False) -> list[Path]:
+    """Every entry below ``folder`` whose name has an image extension, sorted by path.
+
+    Entries that are not readable regular files (broken symbolic links, FIFOs, folders named like images) are
+    listed too, so that the caller can report and count them (``read_image`` refuses them with a clear message);
+    a folder named like an image is still searched when ``recursive``.
+    """
+    folder = Path(folder)
+    entries = folder.rglob("*") if recursive else folder.iterdir()
+    return sorted(p for p in entries if p.suffix.lower() in IMAGE_EXTENSIONS)
+
+
+def _kind(path: Path) -> str | None:
+    """Why ``path`` is not a regular file we can read (None when it is one)."""
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        return "broken symbolic link" if os.path.islink(path) else "missing file"
+    except OSError as err:
+        return f"cannot stat ({err.strerror})"
+    if stat.S_ISDIR(mode):
+        return "a folder, not an image file"
+    if not stat.S_ISREG(mode):
+        return "not a regular file (FIFO, socket or device)"
+    return None
+
+
+def read_file(path: str | Path) -> bytes:
+    """The bytes of an image file; never blocks on a FIFO.
+
+    Raises:
+        ImageError: missing, not a regular file, unreadable or empty.
+    """
+    path = Path(path)
+    why = _kind(path)
+    if why is not None:
+        raise ImageError(f"cannot read image {path}: {why}")
+    try:
+        data = path.read_bytes()
+    except OSError as err:
+        raise ImageError(f"cannot read image {path}: {err.strerror or err}") from None
+    if not data:
+        raise ImageError(f"cannot read image {path}: empty file")
+    return data
+
+
+def fingerprint(data: bytes) -> str:
+    """``"<size>:<16 hex digits>"``: size and BLAKE2b hash of a file's bytes (what the keyframe database records)."""
+    return f"{len(data)}:{hashlib.blake2b(data, digest_size=8).hexdigest()}"
+
+
+def _header_pixels(data: bytes) -> int | None:
+    """Pixel count from the file header without decoding (Pillow reads headers lazily); None when unknown."""
+    try:
+        from PIL import Image
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            with Image.open(io.BytesIO(data)) as im:
+                w, h = im.size
+                return int(w) * int(h)
+    except Exception as err:  # noqa: BLE001 - any header Pillow cannot parse: let OpenCV decide
+        if type(err).__name__ == "DecompressionBombError":
+            return MAX_IMAGE_PIXELS + 1
+        return None
+
+
+def decode_image(data: bytes, name: str | Path = "<bytes>") -> np.ndarray:
+    """Decodes image file bytes unchanged (grey or colour, 8- or 16-bit), after checking its size.
+
+    Raises:
+        ImageError: corrupt, unsupported, larger than ``MAX_IMAGE_PIXELS`` or smaller than 8x8.
+    """
+    pixels = _header_pixels(data)
+    if pixels is not None and pixels > MAX_IMAGE_PIXELS:
+        raise ImageError(f"image {name} too large: {pixels} pixels (limit {MAX_IMAGE_PIXELS})")
+    try:
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    except cv2.error as err:
+        raise ImageError(f"cannot decode image {name}: {str(err).strip().splitlines()[-1][:160]}") from None
+    if img is None or img.size == 0:
+        raise ImageError(f"cannot decode image {name}: corrupt or unsupported format")
+    check_image(img, name)
+    return img
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """Reads an image file unchanged (grey or colour, 8- or 16-bit).
+
+    Raises:
+        ImageError: the file is missing, not a regular file, unreadable, corrupt, too large or too small.
+    """
+    return decode_image(read_file(path), path)
+
+
+def check_image(image: object, name: str | Path = "image") -> np.ndarray:
+    """Checks that ``image`` is an image array we can interpret (type, layout, size, dtype) and returns it.
+
+    Raises:
+        ImageError: what is wrong, e.g. ``image must be a numpy array (H, W[, C]); got str``.
+    """
+    if not isinstance(image, np.ndarray):
+        hint = " (read files with core.images.read_image)" if isinstance(image, (str, Path)) else ""
+        raise ImageError(f"{name} must be a numpy array (H, W[, C]); got {type(image).__name__}{hint}")
+    if image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[2] not in (1, 3, 4)):
+        raise ImageError(f"{name}: unsupported image shape {image.shape}; expected (H, W), (H, W, 1), (H, W, 3) "
+                         "or (H, W, 4)")
+    h, w = image.shape[:2]
+    if h < MIN_IMAGE_SIDE or w < MIN_IMAGE_SIDE:
+        raise ImageError(f"{name} too small: {w}x{h} pixels (need at least {MIN_IMAGE_SIDE}x{MIN_IMAGE_SIDE})")
+    if h * w > MAX_IMAGE_PIXELS:
+        raise ImageError(f"{name} too large: {w}x{h} pixels (limit {MAX_IMAGE_PIXELS})")
+    if not (image.dtype == np.bool_ or np.issubdtype(image.dtype, np.integer)
+            or np.issubdtype(image.dtype, np.floating)):
+        raise ImageError(f"{name}: unsupported dtype {image.dtype}; expected an integer, bool or float image")
+    return image
+
+
+def _bit_scale(top: float) -> float:
+    """255 / (2^bits - 1) for the smallest bit depth (>= 8) that holds ``top``."""
+    bits = max(8, int(math.ceil(math.log2(top + 1)))) if top > 0 else 8
+    return 255.0 / (2.0**bits - 1.0)
+
+
+def to_uint8(image: np.ndarray) -> np.ndarray:
+    """Converts any accepted dtype to uint8, keeping the channel layout.
+
+    uint16 (and any unsigned data) is scaled by its bit depth, inferred from the maximum value (a 12-bit image with
+    max 4095 maps to 255), so 10/12/14-bit sensors look like 8-bit ones. Signed data with negative values is
+    stretched over its own range. Floats in [0, 1] are scaled by 255, larger ones like integers; NaN counts as 0.
+    """
+    if image.dtype == np.uint8:
+        return image
+    check_image(image)
+    if image.dtype == np.bool_:
+        return image.astype(np.uint8) * np.uint8(255)
+    if image.dtype == np.uint16:
+        return cv2.convertScaleAbs(image, alpha=_bit_scale(int(image.max())))
+    img = image.astype(np.float32) if np.issubdtype(image.dtype, np.floating) else image.astype(np.float64)
+    if np.issubdtype(image.dtype, np.floating):
+        finite = np.isfinite(img)
+        if not finite.all():
+            img = np.where(finite, img, 0.0).astype(np.float32)
+    lo, hi = float(img.min()), float(img.max())
+    if lo < 0:
+        scaled = (img - lo) * (255.0 / (hi - lo) if hi > lo else 0.0)
+    elif np.issubdtype(image.dtype, np.floating) and hi <= 1.0:
+        scaled = img * 255.0
+    else:
+        scaled = img * _bit_scale(hi)
+    return np.clip(scaled + 0.5, 0, 255).astype(np.uint8)
+
+
+def to_gray_u8(image: np.ndarray) -> np.ndarray:
+    """Any accepted image -> grey uint8 ``(H, W)``."""
+    img = to_uint8(check_image(image))
+    if img.ndim == 3:
+        if img.shape[2] == 1:
+            img = img[:, :, 0]
+        else:
+            img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
+    return np.ascontiguousarray(img)
+
+
+def to_rgb_u8(image: np.ndarray) -> np.ndarray:
+    """Any accepted image -> RGB uint8 ``(H, W, 3)``; grey is replicated to three channels."""
+    img = to_uint8(check_image(image))
+    if img.ndim == 2 or img.shape[2] == 1:
+        return cv2.cvtColor(np.ascontiguousarray(img.reshape(img.shape[:2])), cv2.COLOR_GRAY2RGB)
+    return cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_BGRA2RGB if img.shape[2] == 4 else cv2.COLOR_BGR2RGB)
+
+
+def resize_square(image: np.ndarray, size: int) -> np.ndarray:
+    """Resizes to ``size x size`` (aspect not kept, as in the paper): area averaging down, bilinear up."""
+    h, w = image.shape[:2]
+    interp = cv2.INTER_AREA if (h >= size and w >= size) else cv2.INTER_LINEAR
+    return cv2.resize(np.ascontiguousarray(image), (size, size), interpolation=interp)

@@ -1,0 +1,147 @@
+"""The run folder that ``detect`` writes and ``evaluate`` and ``bench`` read: the one home of its file names and
+columns.
+
+    conf.yaml        the resolved configuration
+    keyframes.h5     the keyframe database (``retrieval.database``); a killed run resumes from it
+    loops.csv        LOOPS_COLUMNS, one row per accepted loop (best match per query)
+    candidates.csv   CANDIDATE_COLUMNS, every verified candidate (for PR curves)
+    summary.json     counts, ms/frame by stage (and precision/recall when the CLI knew the ground truth)
+
+Tables and the summary are written to a temporary file and renamed, so a crash never leaves half a file where a
+good one was; what is read back is checked (numeric, finite, integer frame ids).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable
+
+import numpy as np
+
+from core.errors import ConfigError
+from core.files import atomic_write, write_text_atomic
+
+__all__ = ["RunFolder", "LOOPS_COLUMNS", "CANDIDATE_COLUMNS", "MAX_FRAME_ID", "read_csv_table"]
+
+log = logging.getLogger(__name__)
+
+LOOPS_COLUMNS = ("query", "match", "score", "matches", "inliers")
+CANDIDATE_COLUMNS = ("query", "candidate", "score", "matches", "inliers", "accepted")
+MAX_FRAME_ID = 10**9  #: larger frame ids in a table are refused (they would be a damaged file, not a sequence)
+
+
+def read_csv_table(path: str | Path, columns: tuple[str, ...], id_columns: int = 2) -> np.ndarray:
+    """A numeric CSV with a header holding at least ``columns`` -> ``(R, len(columns))`` float64 in that order.
+
+    Args:
+        path: the CSV file.
+        columns: the columns to read, in this order.
+        id_columns: the first this many columns are frame ids: non-negative integers up to ``MAX_FRAME_ID``.
+
+    Raises:
+        ConfigError: missing or unreadable file, a missing column, a non-numeric, non-finite or out-of-range value
+            (the message names the file and line).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"not found: {path}")
+    try:
+        with open(path, newline="", encoding="utf-8") as f:
+            reader = csv.DictReader(f)
+            missing = [c for c in columns if c not in (reader.fieldnames or [])]
+            if missing:
+                raise ConfigError(f"{path}: missing column(s) {', '.join(missing)}; expected {','.join(columns)}")
+            rows = []
+            for r in reader:
+                try:
+                    row = [float(r[c]) for c in columns]
+                except (TypeError, ValueError):
+                    raise ConfigError(f"{path}, line {reader.line_num}: non-numeric value") from None
+                ids = row[:id_columns]
+                if not np.isfinite(row).all() or any(v < 0 or v > MAX_FRAME_ID or v != int(v) for v in ids):
+                    raise ConfigError(f"{path}, line {reader.line_num}: frame ids must be integers in "
+                                      f"0..{MAX_FRAME_ID} and scores finite")
+                rows.append(row)
+    except (OSError, UnicodeDecodeError, csv.Error) as err:
+        raise ConfigError(f"cannot read {path}: not a CSV table ({type(err).__name__})") from None
+    return np.array(rows, np.float64).reshape(-1, len(columns))
+
+
+@dataclass(frozen=True)
+class RunFolder:
+    """The files of one run (see the module doc)."""
+
+    root: Path
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "root", Path(self.root))
+
+    @property
+    def conf(self) -> Path:
+        return self.root / "conf.yaml"
+
+    @property
+    def database(self) -> Path:
+        return self.root / "keyframes.h5"
+
+    @property
+    def loops(self) -> Path:
+        return self.root / "loops.csv"
+
+    @property
+    def candidates(self) -> Path:
+        return self.root / "candidates.csv"
+
+    @property
+    def summary(self) -> Path:
+        return self.root / "summary.json"
+
+    def write_tables(self, results: Iterable[tuple[int, np.ndarray, int]]) -> np.ndarray:
+        """Writes ``loops.csv`` and ``candidates.csv`` from ``(query, candidates (k, 4), loop)`` rows (as
+        ``KeyframeDatabase.results`` gives them); returns the loops ``(L, 2)``.
+
+        Every row is read before anything is written: a damaged database leaves the old tables as they were.
+        """
+        rows = list(results)
+        loops = []
+        with atomic_write(self.loops, newline="") as f_loops, atomic_write(self.candidates, newline="") as f_c:
+            wl, wc = csv.writer(f_loops), csv.writer(f_c)
+            wl.writerow(LOOPS_COLUMNS)
+            wc.writerow(CANDIDATE_COLUMNS)
+            for q, candidates, loop in rows:
+                for cid, score, matches, inliers in candidates:
+                    row = [q, int(cid), f"{score:.6f}", int(matches), int(inliers)]
+                    wc.writerow(row + [int(int(cid) == loop)])
+                    if int(cid) == loop:
+                        wl.writerow(row)
+                        loops.append((q, loop))
+        return np.array(loops, np.int64).reshape(-1, 2)
+
+    def read_loops(self) -> np.ndarray:
+        """``(L, 5)`` float64 rows of ``LOOPS_COLUMNS``."""
+        return read_csv_table(self.loops, LOOPS_COLUMNS)
+
+    def read_candidates(self) -> np.ndarray | None:
+        """``(C, 6)`` float64 rows of ``CANDIDATE_COLUMNS``; None when the run has no candidates.csv."""
+        return read_csv_table(self.candidates, CANDIDATE_COLUMNS) if self.candidates.is_file() else None
+
+    def write_summary(self, summary: dict[str, Any]) -> None:
+        write_text_atomic(self.summary, json.dumps(summary, indent=1))
+
+    def read_summary(self) -> dict[str, Any]:
+        """The summary; ``{}`` with a warning when it is missing or unreadable (nothing depends on it alone)."""
+        if not self.summary.is_file():
+            return {}
+        try:
+            data = json.loads(self.summary.read_text(encoding="utf-8"))
+        except (OSError, ValueError) as err:
+            log.warning("cannot read %s (%s); going on without it", self.summary, type(err).__name__)
+            return {}
+        if not isinstance(data, dict):
+            log.warning("%s is not a JSON object; going on without it", self.summary)
+            return {}
+        return data
