@@ -13,6 +13,7 @@ import hashlib
 import io
 import math
 import os
+import re
 import stat
 import warnings
 from pathlib import Path
@@ -92,8 +93,9 @@ def _header_pixels(data: bytes) -> int | None:
                 w, h = im.size
                 return int(w) * int(h)
     except Exception as err:  # noqa: BLE001 - any header Pillow cannot parse: let OpenCV decide
-        if type(err).__name__ == "DecompressionBombError":
-            return MAX_IMAGE_PIXELS + 1
+        if type(err).__name__ == "DecompressionBombError":  # Pillow's own limit: its message has the size
+            found = re.search(r"\((\d+) pixels\)", str(err))
+            return int(found.group(1)) if found else MAX_IMAGE_PIXELS + 1
         return None
 
 

@@ -3,6 +3,7 @@ index-scaling logic, the sq8 index, run metrics from a run folder, the stage tab
 one ``--quick`` run end to end."""
 
 import ast
+import shutil
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -157,3 +158,18 @@ def test_bench_quick_end_to_end(tmp_path, capsys):
     assert "Quick mode" in inside
     printed = capsys.readouterr().out
     assert "| end to end |" in printed and "Index scaling" in printed
+
+
+def test_kill_resume_trials_identical(tmp_path):
+    """Two SIGKILLs at random moments of a 16-frame run: both resume to the uninterrupted run's tables."""
+    from bench.kill_resume import main as kill_resume
+
+    seq = tmp_path / "seq"
+    (seq / "image_0").mkdir(parents=True)
+    sample = Path(__file__).parents[2] / "retrieval" / "sample"
+    for n, i in enumerate([*range(0, 8), *range(50, 58)]):
+        shutil.copyfile(sample / "image_0" / f"{i:06d}.jpg", seq / "image_0" / f"{n:06d}.jpg")
+    shutil.copyfile(sample / "calib.txt", seq / "calib.txt")
+    (tmp_path / "c.yaml").write_text("search: {exclude_recent: 8}\n")
+    res = kill_resume(seq, tmp_path / "work", moments=2, seed=1, config=tmp_path / "c.yaml")
+    assert res["identical"] == 2, res["failures"]

@@ -5,7 +5,6 @@ import torch
 
 from cae.preprocess import preprocess
 from core.errors import ImageError
-from core.images import read_image, to_gray_u8, to_uint8
 
 
 @pytest.fixture(scope="module")
@@ -100,48 +99,3 @@ class TestPreprocess:
     def test_bad_input_raises(self, shape, dtype):
         with pytest.raises(ImageError):
             preprocess(np.zeros(shape, dtype))
-
-
-class TestToUint8:
-    def test_bit_depths(self, grey):
-        np.testing.assert_array_equal(to_uint8(grey.astype(np.uint16) * 257), grey)
-        ten = to_uint8(grey.astype(np.uint16) * 4)  # 10-bit (max 1020)
-        assert np.abs(ten.astype(int) - grey).max() <= 1
-        np.testing.assert_array_equal(to_uint8(grey.astype(np.float32) / 255.0), grey)
-
-
-class TestToGrayU8:
-    def test_bgr_and_16bit(self, grey):
-        np.testing.assert_array_equal(to_gray_u8(cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)), grey)
-        np.testing.assert_array_equal(to_gray_u8(cv2.cvtColor(grey, cv2.COLOR_GRAY2BGRA)), grey)
-        np.testing.assert_array_equal(to_gray_u8(grey.astype(np.uint16) * 257), grey)
-        assert to_gray_u8(grey[:, :, None]).shape == grey.shape
-
-
-class TestReadImage:
-    def test_reads_sample_unchanged(self, sample_dir):
-        img = read_image(sample_dir / "image_0" / "000000.jpg")
-        assert img.shape == (188, 620) and img.dtype == np.uint8
-
-    def test_reads_16bit_png(self, tmp_path, grey):
-        img16 = grey.astype(np.uint16) * 257
-        cv2.imwrite(str(tmp_path / "x16.png"), img16)
-        back = read_image(tmp_path / "x16.png")
-        assert back.dtype == np.uint16
-        np.testing.assert_array_equal(back, img16)
-
-    def test_corrupt_file(self, tmp_path):
-        bad = tmp_path / "x.png"
-        bad.write_bytes(b"\x89PNG this is not really an image \x00\x01\x02" * 10)
-        with pytest.raises(ImageError, match="x.png") as err:
-            read_image(bad)
-        assert "corrupt" in str(err.value) or "decode" in str(err.value)
-
-    def test_missing_and_empty(self, tmp_path):
-        with pytest.raises(ImageError, match="missing"):
-            read_image(tmp_path / "nope.png")
-        (tmp_path / "empty.png").write_bytes(b"")
-        with pytest.raises(ImageError, match="empty"):
-            read_image(tmp_path / "empty.png")
-        with pytest.raises(ImageError):
-            read_image(tmp_path)  # a folder

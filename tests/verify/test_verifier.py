@@ -60,3 +60,40 @@ class TestCreateVerifier:
             create_verifier({"name": "lightglue"})
         with pytest.raises(ConfigError, match="matcher.ratios"):
             create_verifier({"ratios": 0.7})
+
+
+class TestMetricIsAPropertyOfTheFeatures:
+    """The matcher uses ``Features.metric``, never a guess from the dtype: SIFT stored as uint8 is still L2."""
+
+    def test_compact_sift_matches_like_float_sift(self, sift_features):
+        q, c = sift_features(55), sift_features(5)
+        assert q.compact().descriptors.dtype == np.uint8 and q.compact().metric == "l2"
+        v = RatioTestMatcher()
+        plain = v.match_many(q, [c])[0]
+        compact = v.match_many(q.compact(), [c.compact()])[0]
+        assert len(plain) > 50
+        np.testing.assert_array_equal(compact, plain)
+
+    def test_binary_features_use_hamming(self):
+        rng = np.random.default_rng(0)
+        desc = rng.integers(0, 256, (40, 32), dtype=np.uint8)
+        kp = rng.uniform(0, 100, (40, 2)).astype(np.float32)
+        noisy = desc.copy()
+        noisy[:, 0] ^= 1  # one bit flipped: the Hamming nearest neighbour is still the same feature
+        a = Features(kp, desc, np.ones(40, np.float32), "hamming")
+        b = Features(kp, noisy, np.ones(40, np.float32), "hamming")
+        pairs = RatioTestMatcher().match_many(a, [b])[0]
+        assert len(pairs) == 40 and (pairs[:, 0] == pairs[:, 1]).all()
+
+    def test_mixed_metrics_refused(self, sift_features):
+        binary = Features(np.zeros((3, 2), np.float32), np.zeros((3, 32), np.uint8), np.ones(3, np.float32), "hamming")
+        with pytest.raises(ConfigError, match="cannot match l2 descriptors against hamming"):
+            RatioTestMatcher().match_many(sift_features(55), [binary])
+
+    def test_metric_survives_the_database(self, tmp_path, sift_features):
+        from retrieval.database import KeyframeDatabase, KeyframeRecord
+
+        with KeyframeDatabase(tmp_path / "kf.h5", {}) as db:
+            db.append(KeyframeRecord(0, np.zeros(8, np.float32), sift_features(5)))
+            back = db.features(0)
+        assert back.metric == "l2" and back.descriptors.dtype == np.float32

@@ -1,0 +1,120 @@
+"""``core.images``: reading image files safely and converting every dtype and layout a camera gives."""
+
+import os
+
+import cv2
+import numpy as np
+import pytest
+
+from core.errors import ImageError
+from core.images import (MAX_IMAGE_PIXELS, check_image, decode_image, fingerprint, image_entries, read_image,
+                         to_gray_u8, to_uint8)
+
+
+@pytest.fixture(scope="module")
+def grey(sample_image):
+    return sample_image(10)  # (188, 620) uint8
+
+
+class TestToUint8:
+    def test_bit_depths(self, grey):
+        np.testing.assert_array_equal(to_uint8(grey.astype(np.uint16) * 257), grey)
+        ten = to_uint8(grey.astype(np.uint16) * 4)  # 10-bit (max 1020)
+        assert np.abs(ten.astype(int) - grey).max() <= 1
+        np.testing.assert_array_equal(to_uint8(grey.astype(np.float32) / 255.0), grey)
+
+
+class TestToGrayU8:
+    def test_bgr_and_16bit(self, grey):
+        np.testing.assert_array_equal(to_gray_u8(cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)), grey)
+        np.testing.assert_array_equal(to_gray_u8(cv2.cvtColor(grey, cv2.COLOR_GRAY2BGRA)), grey)
+        np.testing.assert_array_equal(to_gray_u8(grey.astype(np.uint16) * 257), grey)
+        assert to_gray_u8(grey[:, :, None]).shape == grey.shape
+
+
+class TestReadImage:
+    def test_reads_sample_unchanged(self, sample_dir):
+        img = read_image(sample_dir / "image_0" / "000000.jpg")
+        assert img.shape == (188, 620) and img.dtype == np.uint8
+
+    def test_reads_16bit_png(self, tmp_path, grey):
+        img16 = grey.astype(np.uint16) * 257
+        cv2.imwrite(str(tmp_path / "x16.png"), img16)
+        back = read_image(tmp_path / "x16.png")
+        assert back.dtype == np.uint16
+        np.testing.assert_array_equal(back, img16)
+
+    def test_corrupt_file(self, tmp_path):
+        bad = tmp_path / "x.png"
+        bad.write_bytes(b"\x89PNG this is not really an image \x00\x01\x02" * 10)
+        with pytest.raises(ImageError, match="x.png") as err:
+            read_image(bad)
+        assert "corrupt" in str(err.value) or "decode" in str(err.value)
+
+    def test_missing_and_empty(self, tmp_path):
+        with pytest.raises(ImageError, match="missing"):
+            read_image(tmp_path / "nope.png")
+        (tmp_path / "empty.png").write_bytes(b"")
+        with pytest.raises(ImageError, match="empty"):
+            read_image(tmp_path / "empty.png")
+        with pytest.raises(ImageError):
+            read_image(tmp_path)  # a folder
+
+
+class TestToUint8Dtypes:
+    def test_signed_with_negatives_stretched(self, grey):
+        signed = grey.astype(np.int16) * 100 - 12000
+        out = to_uint8(signed)
+        assert out.dtype == np.uint8 and out.min() == 0 and out.max() == 255
+        assert np.corrcoef(out.ravel(), grey.ravel())[0, 1] > 0.999  # same picture
+
+    def test_int32_nonnegative_like_uint16(self, grey):
+        np.testing.assert_array_equal(to_uint8(grey.astype(np.int32) * 257), grey)
+
+    def test_float_beyond_one_and_nan(self, grey):
+        f = grey.astype(np.float32) * 16.0  # 12-bit data stored as float
+        assert np.abs(to_uint8(f).astype(int) - grey).max() <= 1
+        f[0, 0] = np.nan
+        assert to_uint8(f)[0, 0] == 0
+
+    def test_bool(self):
+        img = np.zeros((10, 10), bool)
+        img[2:5] = True
+        assert set(np.unique(to_uint8(img))) == {0, 255}
+
+    @pytest.mark.parametrize("bad, error", [
+        ("a.png", "numpy array"), (np.zeros((7, 100), np.uint8), "too small"),
+        (np.zeros((20, 20), np.complex64), "dtype"), (np.zeros((20, 20, 5), np.uint8), "shape"),
+    ])
+    def test_check_image_refuses(self, bad, error):
+        with pytest.raises(ImageError, match=error):
+            check_image(bad)
+
+
+class TestReadImageHostile:
+    def test_not_regular_files(self, tmp_path):
+        (tmp_path / "dir.png").mkdir()
+        (tmp_path / "link.png").symlink_to(tmp_path / "missing.png")
+        os.mkfifo(tmp_path / "fifo.png")  # reading it would block forever
+        for name, why in (("dir.png", "a folder"), ("link.png", "broken symbolic link"), ("fifo.png", "FIFO")):
+            with pytest.raises(ImageError, match=why):
+                read_image(tmp_path / name)
+        assert [p.name for p in image_entries(tmp_path)] == ["dir.png", "fifo.png", "link.png"]
+
+    def test_decompression_bomb_refused_before_decoding(self):
+        import struct
+        import zlib
+
+        data = bytearray(cv2.imencode(".png", np.zeros((8, 8), np.uint8))[1].tobytes())
+        ihdr = data[12:29]
+        ihdr[4:12] = struct.pack(">II", 40000, 40000)
+        data[12:29] = ihdr
+        data[29:33] = struct.pack(">I", zlib.crc32(bytes(ihdr)))
+        with pytest.raises(ImageError, match=f"too large: 1600000000 pixels \\(limit {MAX_IMAGE_PIXELS}\\)"):
+            decode_image(bytes(data), "bomb.png")
+
+    def test_fingerprint(self, sample_dir):
+        data = (sample_dir / "image_0" / "000000.jpg").read_bytes()
+        fp = fingerprint(data)
+        assert fp.startswith(f"{len(data)}:") and len(fp.split(":")[1]) == 16
+        assert fingerprint(data[:-1] + b"x") != fp
