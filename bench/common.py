@@ -100,7 +100,7 @@ def run_metrics(out: str | Path, ground_truth: np.ndarray | None, min_matches: i
         out: run folder written by ``retrieval.detect.main``.
         ground_truth: ``(P, 2)`` true pairs, or None (then only the loop count is known).
         min_matches: the run's ``policy.min_matches`` (candidates below it are ineligible in the sweep).
-        score: ``"inliers"`` or ``"cosine"``.
+        score: one of ``evaluation.metrics.SCORES`` (``"confidence"``, ``"inliers"``, ``"cosine"``, ``"seq_score"``).
 
     Returns:
         ``loops``, ``ms_total`` (median end-to-end ms/frame) and ``score``; with ground truth also the operating

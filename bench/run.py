@@ -10,8 +10,9 @@ Sections (``--sections``; all but ``training`` by default):
 - ``index``: search latency, recall@10 against exact search and bytes per code at 10k / 100k / 1M stored codes for
   each index (flat, fp16, sq8, hnsw), over synthetic codes built around real CAE codes;
 - ``false-loops``: loops each method reports on KITTI 00 and 07 (no revisit: all false), while time allows;
-- ``training``: "does training help?": shipped vs random vs other-data weights (own section of BENCHMARKS.md;
-  trains for a few minutes, so it is not in the default run).
+- ``training``: "does training help?": shipped vs random weights vs weights trained (reconstruction only, and with
+  photometric augmentation) on Nordland's summer half, scored on the whole summer -> winter sequence (own section
+  of BENCHMARKS.md; trains for a while, so it is not in the default run).
 
 The tables go between ``<!-- bench:begin -->`` and ``<!-- bench:end -->`` (training: ``bench:training``) of the
 output file; everything outside the markers is kept. Run folders go under ``runs/bench/``. ``--quick`` uses tiny
@@ -250,13 +251,29 @@ def _methods_md(b: _Bench) -> str:
 
 def _training(b: _Bench) -> None:
     d = b.data
-    log.info("training study (trains on %s for %d epochs)", d.train_src, b.training_epochs)
-    r = training_study(d.loop, d.train_src, b.run_dir / "training", 1 if b.quick else b.training_epochs,
+    seq, train_src, name = (d.loop, d.train_src, d.loop_name) if b.quick else _season_study(b.run_dir, d)
+    log.info("training study (trains on %s for %d epochs)", train_src, b.training_epochs)
+    r = training_study(seq, train_src, b.run_dir / "training", 1 if b.quick else b.training_epochs,
                        max_images=24 if b.quick else None, override=d.override)
     b.results["training"] = r
-    b.md["training"] = (f"### Does training help? {d.loop_name}, default config, only the weights differ\n\n"
-                        + training_table(r) + "\n\n- Recall@k: retrieval stage alone (before verification). Max "
-                        "recall at 100 % precision: sweep on inliers. `cae-lcd bench --training-study`.")
+    b.md["training"] = (f"### Does training help? {name}, default config, only the weights differ\n\n"
+                        + training_table(r) + "\n\n- Trained without labels on the images named; scored on the "
+                        "whole sequence. Single-frame Recall@1: whitened codes alone. Max recall at 100 % precision: "
+                        "sweep on the calibrated confidence. `cae-lcd bench --training-study`.")
+
+
+def _season_study(run_dir: Path, d: _Data) -> tuple[Path, Path, str]:
+    """Nordland (../shared) and a folder of links to its summer half: train on one season, score on both."""
+    nordland = d.loop.parent.parent.parent / "nordland"
+    if not (nordland / "images").is_dir():
+        raise ConfigError(f"the training study needs {nordland} (Nordland, summer and winter)")
+    summer = run_dir / "nordland_summer"
+    summer.mkdir(parents=True, exist_ok=True)
+    for src in sorted((nordland / "images").glob("*.png"))[:500]:  # 000000-000499: summer (its README)
+        link = summer / src.name
+        if not link.exists():
+            link.symlink_to(src.resolve())
+    return nordland, summer, "Nordland: trained on summer, scored on summer -> winter"
 
 
 #: the section steps, in the order they run (methods' table waits for false-loops' column; see ``main``)

@@ -24,8 +24,8 @@ __all__ = ["STAGE_NAMES", "system_info", "stage_benchmark", "stage_table", "enco
 log = logging.getLogger(__name__)
 
 #: table label of each stage; which stages there are, and their order, is ``retrieval.detector.STAGES``
-STAGE_NAMES = {"gate": "gate (Canny edge ratio)", "encode": "encode (preprocess + CAE)",
-               "features": "SIFT features", "search": "search (faiss)",
+STAGE_NAMES = {"gate": "gate (Canny edge ratio)", "encode": "encode (preprocess + CAE + whitening)",
+               "features": "SIFT features", "search": "search (faiss)", "filter": "temporal filter (hypotheses)",
                "verify": "match + verify (ratio test, RANSAC)", "insert": "insert (index + HDF5)",
                "total": "end to end"}
 

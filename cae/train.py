@@ -35,7 +35,9 @@ from core.files import prepare_out_dir, write_text_atomic
 from core.images import IMAGE_EXTENSIONS, image_entries, read_image
 from .model import INPUT_SIZE, ConvAutoencoder
 from .preprocess import to_network_u8
+from .encode import encode_images
 from .weights import DEVICE_PATTERN, load_checkpoint, resolve_device, save_checkpoint
+from .whitening import DEFAULT_DIM, DEFAULT_SHRINK, MIN_FIT_CODES, Whitening
 
 __all__ = ["default_conf", "conf_rules", "list_images", "load_image_folder", "main"]
 
@@ -51,6 +53,11 @@ default_conf: dict[str, Any] = {
     "min_delta": 1.0e-5,  # an improvement smaller than this does not count for early stopping
     "device": "auto",  # "auto" (CUDA if present), "cpu", "cuda", "cuda:1", ...
     "max_images": None,  # use at most this many images (a seeded random subset); None = all
+    "augment": 0.4,  # photometric augmentation strength (0: none): the input's gain, offset and gamma are jittered
+    #                  by up to this fraction and the target stays the clean image (a denoising autoencoder),
+    #                  so the code learns to ignore light and exposure (measured: BENCHMARKS.md, training study)
+    "whitening_dim": DEFAULT_DIM,  # whitening fitted on all the images' codes, saved in best.pt; 0 = none
+    "whitening_shrink": DEFAULT_SHRINK,  # its variance shrinkage (see cae.whitening)
 }
 
 conf_rules: dict[str, Any] = {
@@ -63,6 +70,9 @@ conf_rules: dict[str, Any] = {
     "min_delta": Float(0),
     "device": Text(DEVICE_PATTERN),
     "max_images": Int(2, optional=True),
+    "augment": Float(0, 0.9),
+    "whitening_dim": Int(0, 4096),
+    "whitening_shrink": Float(0, 100),
 }
 
 _RESUME_KEYS = ("state_dict", "optimizer", "epoch", "best_val_loss", "best_epoch", "history")
@@ -229,16 +239,27 @@ def _train_epoch(model: ConvAutoencoder, optim: torch.optim.Optimizer, train_set
                  conf: dict[str, Any], device: torch.device) -> float:
     """One pass over ``train_set`` in a batch order seeded by ``(seed, epoch)``; returns the mean training loss."""
     model.train()
-    perm = np.random.default_rng([conf["seed"], epoch]).permutation(len(train_set))
+    rng = np.random.default_rng([conf["seed"], epoch])
+    perm = rng.permutation(len(train_set))
     total = 0.0
     for start in range(0, len(perm), conf["batch_size"]):
         x = _to_batch(train_set[np.sort(perm[start:start + conf["batch_size"]])], device)
-        loss = F.binary_cross_entropy_with_logits(model(x), x)
+        x_in = _jitter(x, conf["augment"], rng) if conf["augment"] else x
+        loss = F.binary_cross_entropy_with_logits(model(x_in), x)
         optim.zero_grad(set_to_none=True)
         loss.backward()
         optim.step()
         total += loss.item() * len(x)
     return total / len(train_set)
+
+
+def _jitter(x: torch.Tensor, strength: float, rng: np.random.Generator) -> torch.Tensor:
+    """Per-image random gain, offset and gamma of ``(B, 3, H, W)`` images in [0, 1] (drawn from ``rng``)."""
+    b = len(x)
+    gain, offset, gamma = (torch.as_tensor(rng.uniform(lo, hi, (b, 1, 1, 1)), dtype=x.dtype, device=x.device)
+                           for lo, hi in ((1 - strength, 1 + strength), (-strength / 2, strength / 2),
+                                          (1 - strength, 1 + strength)))
+    return (x.clamp(1e-4, 1).pow(gamma) * gain + offset).clamp(0, 1)
 
 
 def _fit(model: ConvAutoencoder, optim: torch.optim.Optimizer, train_set: np.ndarray, val_set: np.ndarray,
@@ -271,6 +292,24 @@ def _fit(model: ConvAutoencoder, optim: torch.optim.Optimizer, train_set: np.nda
             log.info("early stop: no better validation loss for %d epochs", conf["patience"])
             break
     return progress
+
+
+def _save_whitening(best: Path, data: np.ndarray, conf: dict[str, Any], device: torch.device) -> Whitening | None:
+    """Fits the code normalisation on every image's code with the best weights and adds it to ``best.pt``."""
+    if not conf["whitening_dim"] or len(data) < MIN_FIT_CODES:
+        if conf["whitening_dim"]:
+            log.warning("only %d images: no whitening saved (it needs %d)", len(data), MIN_FIT_CODES)
+        return None
+    ckpt = load_checkpoint(best)
+    model = ConvAutoencoder()
+    model.load_state_dict(ckpt["state_dict"], strict=True)
+    encoder = model.encoder.to(device).eval()
+    codes = encode_images(encoder, list(data), batch_size=conf["batch_size"], prepared=True)
+    white = Whitening.fit(codes, conf["whitening_dim"], conf["whitening_shrink"])
+    extra = {k: v for k, v in ckpt.items() if k not in ("format_version", "conf", "state_dict", "whitening")}
+    save_checkpoint(best, model, ckpt["conf"], whitening=white, **extra)
+    log.info("whitening: %d-d, fitted on %d codes, saved in %s", white.dim, white.fitted_on, best)
+    return white
 
 
 def _plot_history(history: list[dict[str, float]], path: Path) -> None:
@@ -327,9 +366,11 @@ def main(images: str | Path | Sequence[str | Path], out: str | Path = "runs/trai
     progress = _fit(model, optim, train_set, val_set, conf, device, out, progress)
     if not (out / "best.pt").is_file():
         raise ConfigError(f"{out / 'best.pt'} is missing (deleted after an earlier run?); run with --restart")
+    white = _save_whitening(out / "best.pt", data, conf, device)
     summary = {"best_val_loss": progress.best_val, "best_epoch": progress.best_epoch,
                "epochs_run": len(progress.history) - 1, "first_val_loss": progress.history[0]["val_loss"],
                "best": str(out / "best.pt"), "history": progress.history, "images": len(used),
-               "unreadable": len(skipped), "skipped": skipped}
+               "unreadable": len(skipped), "skipped": skipped,
+               "whitening": None if white is None else {"dim": white.dim, "fitted_on": white.fitted_on}}
     write_text_atomic(out / "summary.json", json.dumps(summary, indent=1))
     return summary

@@ -1,7 +1,8 @@
 """Checkpoints and the shipped default weights.
 
 A checkpoint is ``{"format_version": 1, "conf": <training conf>, "state_dict": <ConvAutoencoder or Encoder>}``
-written with ``torch.save``; it is always loaded with ``strict=True``.
+written with ``torch.save``, plus ``"whitening"`` (``cae.whitening.Whitening.state()`` as tensors) when training
+fitted one on its images; it is always loaded with ``strict=True``.
 """
 
 from __future__ import annotations
@@ -16,13 +17,14 @@ import torch
 
 from core.errors import ConfigError
 from .model import ConvAutoencoder, Encoder
+from .whitening import Whitening
 
 __all__ = ["DEFAULT_WEIGHTS", "CHECKPOINT_VERSION", "DEVICE_PATTERN", "save_checkpoint", "load_checkpoint",
-           "load_encoder", "load_autoencoder", "encoder_identity", "resolve_device"]
+           "load_encoder", "load_autoencoder", "encoder_identity", "resolve_device", "checkpoint_whitening"]
 
 log = logging.getLogger(__name__)
 
-DEFAULT_WEIGHTS = Path(__file__).with_name("weights") / "cae_kitti.pt"  #: shipped, trained on ../shared KITTI
+DEFAULT_WEIGHTS = Path(__file__).with_name("weights") / "cae_mixed.pt"  #: shipped: KITTI 00+07 and Nordland summer
 CHECKPOINT_VERSION = 1
 DEVICE_PATTERN = r"auto|cpu|cuda(:[0-9]+)?"  #: the devices a conf may name
 
@@ -46,8 +48,11 @@ def resolve_device(device: str | torch.device | None = None) -> torch.device:
     return dev
 
 
-def save_checkpoint(path: str | Path, model: torch.nn.Module, conf: dict[str, Any], **extra: Any) -> None:
-    """Writes ``{"format_version", "conf", "state_dict", **extra}`` atomically (temp file, then rename)."""
+def save_checkpoint(path: str | Path, model: torch.nn.Module, conf: dict[str, Any],
+                    whitening: Whitening | None = None, **extra: Any) -> None:
+    """Writes ``{"format_version", "conf", "state_dict", ["whitening"], **extra}`` atomically (temp file, rename)."""
+    if whitening is not None:
+        extra["whitening"] = {k: torch.as_tensor(v) for k, v in whitening.state().items()}
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(path.suffix + ".tmp")
@@ -106,7 +111,8 @@ def load_encoder(path: str | Path | None = None, device: str | torch.device | No
 
     Returns:
         ``Encoder`` in eval mode, channels-last, mapping ``(B, 3, 256, 256)`` in [0, 1] to ``(B, 4096)``.
-        Its ``identity`` attribute is a short hash of the weights (stored in keyframe databases).
+        Its ``identity`` attribute is a short hash of the weights (stored in keyframe databases); its ``whitening``
+        attribute is the ``Whitening`` saved with the weights, or None.
     """
     ckpt = load_checkpoint(path or DEFAULT_WEIGHTS)
     encoder = Encoder()
@@ -115,8 +121,20 @@ def load_encoder(path: str | Path | None = None, device: str | torch.device | No
     except RuntimeError as err:
         raise ConfigError(f"weights {path} do not fit the encoder: {str(err).splitlines()[0]}") from None
     encoder.identity = encoder_identity(encoder)
+    encoder.whitening = checkpoint_whitening(ckpt, path or DEFAULT_WEIGHTS)
     dev = resolve_device(device)
     return encoder.to(dev, memory_format=torch.channels_last).eval()
+
+
+def checkpoint_whitening(ckpt: dict[str, Any], path: str | Path) -> Whitening | None:
+    """The whitening saved in a checkpoint, or None when it has none."""
+    state = ckpt.get("whitening")
+    if state is None:
+        return None
+    if not isinstance(state, dict):
+        raise ConfigError(f"{path}: 'whitening' is not a mapping; the checkpoint is damaged")
+    state = {k: v.numpy() if isinstance(v, torch.Tensor) else v for k, v in state.items()}
+    return Whitening.from_state(state, f"{path}: whitening")
 
 
 def encoder_identity(encoder: torch.nn.Module) -> str:

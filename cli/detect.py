@@ -11,7 +11,7 @@ from evaluation.ground_truth import load_ground_truth
 from retrieval import detect
 from retrieval.sequences import open_sequence
 
-__all__ = ["add_parser", "run", "log_summary"]
+__all__ = ["add_parser", "run", "log_summary", "conf_from_args", "add_sequence_arguments"]
 
 log = logging.getLogger("cae_lcd.detect")
 
@@ -27,22 +27,34 @@ def log_summary(s: dict[str, Any]) -> None:
         recall = "n/a" if g["recall"] is None else f"{g['recall']:.3f}"
         log.info("against ground truth: precision %.3f (%d/%d), recall %s (%d of %d queries with a true loop)",
                  g["precision"], g["true_positives"], g["detections"], recall, g["true_positives"], g["positives"])
-    log.info("wrote %s/{loops.csv,candidates.csv,keyframes.h5,conf.yaml,summary.json}", s["out"])
+    cal = s.get("calibration")
+    if cal is not None:
+        log.info("calibrated: accept at confidence >= %.2f (%s); local verification %s", cal["accept_at_confidence"],
+                 ", ".join(f"{k} >= {v:.4g}" for k, v in cal["thresholds"].items() if v is not None),
+                 "on" if cal["verification"] else "off (too few local features)")
+    log.info("wrote %s/{loops.csv,candidates.csv,keyframes.h5,calibration.h5,conf.yaml,summary.json}", s["out"])
 
 
 def add_parser(sub: Any) -> None:
     p = sub.add_parser("detect", help="detect loop closures over a sequence (no PATH: the bundled sample)",
                        description=detect.__doc__.split("\n\n")[0])
-    p.add_argument("path", nargs="?", help="KITTI sequence folder or image folder (default: bundled sample)")
-    p.add_argument("--config", help="YAML config (default: the built-in defaults = configs/default.yaml)")
+    add_sequence_arguments(p)
     p.add_argument("--out", help="run folder (default: runs/<sequence name>); an existing run is resumed")
-    p.add_argument("--camera", choices=["image_0", "image_1", "image_2", "image_3"], help="KITTI camera folder")
-    p.add_argument("--weights", help="encoder checkpoint (default: the shipped weights)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
 
-def run(args: Any) -> None:
+def add_sequence_arguments(p: Any) -> None:
+    """PATH, --config, --camera, --weights, --no-progress: what every command that reads a sequence takes."""
+    p.add_argument("path", nargs="?", help="KITTI sequence folder or image folder (default: bundled sample)")
+    p.add_argument("--config", help="YAML config (default: the built-in defaults = configs/default.yaml)")
+    p.add_argument("--camera", choices=["image_0", "image_1", "image_2", "image_3", "images"],
+                   help="camera folder inside PATH")
+    p.add_argument("--weights", help="encoder checkpoint (default: the shipped weights)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def conf_from_args(args: Any) -> dict[str, Any]:
+    """The conf overrides from ``--config`` and ``--weights``."""
     conf = load_conf_file(args.config) if args.config else {}
     if args.weights:
         section = "encoder" if "encoder" in conf else "descriptor"  # the old name still works (deprecated)
@@ -50,6 +62,11 @@ def run(args: Any) -> None:
         if not isinstance(conf[section], dict):
             raise ConfigError(f"config section '{section}' must be a mapping")
         conf[section]["weights"] = args.weights
+    return conf
+
+
+def run(args: Any) -> None:
+    conf = conf_from_args(args)
     seq = open_sequence(detect.SAMPLE_DIR if args.path is None else args.path, args.camera)
     if seq.ground_truth is not None:
         load_ground_truth(seq.ground_truth)  # a broken ground-truth file is refused before anything is written

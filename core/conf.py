@@ -22,8 +22,8 @@ import yaml
 
 from .errors import ConfigError
 
-__all__ = ["ConfigError", "merge_conf", "load_conf_file", "dump_conf", "Registry", "Rule", "Int", "Float", "Bool",
-           "Choice", "Text", "check_conf", "configure", "conf_diff", "conf_get"]
+__all__ = ["ConfigError", "merge_conf", "load_conf_file", "dump_conf", "Registry", "Rule", "Int", "Float", "Floats",
+           "Bool", "Choice", "Text", "check_conf", "configure", "conf_diff", "conf_get"]
 
 
 def merge_conf(defaults: Mapping[str, Any], override: Mapping[str, Any] | None, where: str = "",
@@ -150,6 +150,8 @@ class Rule:
     choices: tuple[Any, ...] = ()  #: allowed values of a "choice"
     pattern: str | None = None  #: regular expression a "text" must match in full
     optional: bool = False  #: None is allowed
+    auto: bool = False  #: the string "auto" is allowed (the value is then chosen by the code, e.g. calibrated)
+    min_len: int = 1  #: fewest items of a "floats" list
 
     def describe(self) -> str:
         """What is allowed, in words: ``an integer >= 1``, ``one of ransac, magsac``, ..."""
@@ -160,18 +162,24 @@ class Rule:
         elif self.kind == "text":
             what = "a string" + (f" matching {self.pattern}" if self.pattern else "")
         else:
-            what = "an integer" if self.kind == "int" else "a finite number"
+            what = {"int": "an integer", "float": "a finite number"}.get(
+                self.kind, f"a list of at least {self.min_len} finite number(s), each")
             bounds = []
             if self.lo is not None:
                 bounds.append(f"{'>' if self.lo_open else '>='} {self.lo:g}")
             if self.hi is not None:
                 bounds.append(f"{'<' if self.hi_open else '<='} {self.hi:g}")
             what += (" " + " and ".join(bounds)) if bounds else ""
-        return what + (" (or null)" if self.optional else "")
+        return what + (" (or null)" if self.optional else "") + (" or 'auto'" if self.auto else "")
 
     def accepts(self, value: Any) -> bool:
         if value is None:
             return self.optional
+        if self.auto and value == "auto":
+            return True
+        if self.kind == "floats":
+            return isinstance(value, (list, tuple)) and len(value) >= self.min_len and all(
+                Rule("float", self.lo, self.hi, self.lo_open, self.hi_open).accepts(v) for v in value)
         if self.kind == "bool":
             return isinstance(value, bool)
         if self.kind == "choice":
@@ -189,15 +197,20 @@ class Rule:
         return not (self.hi is not None and (value >= self.hi if self.hi_open else value > self.hi))
 
 
-def Int(lo: int | None = None, hi: int | None = None, optional: bool = False) -> Rule:  # noqa: N802
-    """An integer (not a bool, not 2.5) in ``[lo, hi]``."""
-    return Rule("int", lo, hi, optional=optional)
+def Int(lo: int | None = None, hi: int | None = None, optional: bool = False, auto: bool = False) -> Rule:  # noqa: N802
+    """An integer (not a bool, not 2.5) in ``[lo, hi]`` (or ``"auto"`` when ``auto``)."""
+    return Rule("int", lo, hi, optional=optional, auto=auto)
 
 
 def Float(lo: float | None = None, hi: float | None = None, lo_open: bool = False, hi_open: bool = False,  # noqa: N802
-          optional: bool = False) -> Rule:
+          optional: bool = False, auto: bool = False) -> Rule:
     """A finite number (an int is fine) between ``lo`` and ``hi``; ``*_open`` excludes the bound."""
-    return Rule("float", lo, hi, lo_open, hi_open, optional=optional)
+    return Rule("float", lo, hi, lo_open, hi_open, optional=optional, auto=auto)
+
+
+def Floats(lo: float | None = None, hi: float | None = None, min_len: int = 1) -> Rule:  # noqa: N802
+    """A list of at least ``min_len`` finite numbers, each in ``[lo, hi]``."""
+    return Rule("floats", lo, hi, min_len=min_len)
 
 
 def Bool() -> Rule:  # noqa: N802

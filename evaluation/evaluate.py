@@ -20,7 +20,7 @@ import yaml
 from core.conf import ConfigError
 from core.files import prepare_out_dir, write_text_atomic
 from retrieval.database import KeyframeDatabase
-from retrieval.run_folder import LOOPS_COLUMNS, RunFolder, read_csv_table
+from retrieval.run_folder import CANDIDATE_COLUMNS, LOOPS_COLUMNS, RunFolder, read_csv_table
 from retrieval.sequences import kitti_metadata_file, read_kitti_poses, read_times
 
 from .ground_truth import GroundTruth, load_ground_truth, sniff_ground_truth
@@ -48,7 +48,8 @@ def score_run(run_dir: str | Path, gt: str | Path) -> dict[str, Any]:
     run = RunFolder(Path(run_dir))
     truth = load_ground_truth(gt)
     summary = run.read_summary()
-    summary["ground_truth"] = precision_recall(run.read_loops()[:, :2].astype(np.int64), truth.pairs).as_dict()
+    pairs = read_csv_table(run.loops, LOOPS_COLUMNS[:2]).astype(np.int64)
+    summary["ground_truth"] = precision_recall(pairs, truth.pairs).as_dict()
     run.write_summary(summary)
     return summary
 
@@ -123,7 +124,7 @@ def _frame_count(summary: dict[str, Any], ids_seen: np.ndarray, truth: GroundTru
 def _pr_section(cands: np.ndarray, det: np.ndarray, truth: GroundTruth, score: str,
                 run_conf: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any], Any]:
     """PR curve over the swept score and retrieval Recall@k, from candidates.csv."""
-    accepted = cands[cands[:, 5] > 0][:, :2].astype(np.int64)
+    accepted = cands[cands[:, CANDIDATE_COLUMNS.index("accepted")] > 0][:, :2].astype(np.int64)
     if set(map(tuple, accepted.tolist())) != set(map(tuple, det.tolist())):
         log.warning("candidates.csv 'accepted' rows differ from loops.csv; the operating point uses loops.csv")
     min_matches = _section_int(run_conf, "policy", "min_matches") or 0
@@ -212,7 +213,7 @@ def _check_args(radius: float, min_gap: int, min_gap_s: float | None, score: str
 
 
 def main(run: Path, gt: Path, out: Path | None = None, radius: float = 5.0, min_gap: int = 50,
-         min_gap_s: float | None = None, score: str = "inliers", times: Path | None = None) -> dict[str, Any]:
+         min_gap_s: float | None = None, score: str = "confidence", times: Path | None = None) -> dict[str, Any]:
     """Evaluates a detect run against ground truth and writes the report and plots.
 
     Args:
@@ -224,7 +225,8 @@ def main(run: Path, gt: Path, out: Path | None = None, radius: float = 5.0, min_
         min_gap: minimum frame gap, for pose-derived ground truth.
         min_gap_s: minimum time gap (seconds) instead of ``min_gap``; needs timestamps (``times`` or the run's
             sequence ``times.txt``).
-        score: the score the PR curve sweeps: ``"inliers"`` or ``"cosine"``.
+        score: the score the PR curve sweeps (``evaluation.metrics.SCORES``): ``"confidence"`` (what the detector
+            thresholds), ``"inliers"``, ``"cosine"`` or ``"seq_score"``.
         times: ``times.txt`` (one timestamp a frame) for ``min_gap_s``; None = the run's sequence's.
 
     Returns:
@@ -239,7 +241,7 @@ def main(run: Path, gt: Path, out: Path | None = None, radius: float = 5.0, min_
     folder = RunFolder(run_dir)
     summary, run_conf = folder.read_summary(), _read_run_conf(folder.conf)
     truth, used_time = _load_truth(Path(gt), radius, min_gap, min_gap_s, times, summary)
-    loops = read_csv_table(loops_csv, LOOPS_COLUMNS)
+    loops = read_csv_table(loops_csv, LOOPS_COLUMNS[:2])  # the pairs are all the operating point needs
     cands = folder.read_candidates()
     ids_seen = np.concatenate([loops[:, :2].ravel(), [] if cands is None else cands[:, :2].ravel()]).astype(np.int64)
     n_frames = _frame_count(summary, ids_seen, truth)

@@ -17,6 +17,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from retrieval.run_folder import CANDIDATE_COLUMNS
+
 __all__ = ["PRResult", "PRCurve", "SCORES", "best_per_query", "correct_mask", "pr_curve", "precision_recall",
            "queries_with_loop", "recall_at_k"]
 
@@ -81,7 +83,7 @@ def precision_recall(detections: np.ndarray, ground_truth: np.ndarray) -> PRResu
 
 
 # ----------------------------------------------------------------------------------- PR curve by a swept score
-SCORES = ("inliers", "cosine")  #: scores a PR curve can be swept over
+SCORES = ("confidence", "inliers", "cosine", "seq_score")  #: what a PR curve can sweep
 
 
 @dataclass
@@ -147,16 +149,24 @@ class PRCurve:
                 "detections": self.detections.tolist(), "positives": self.positives}
 
 
+_COL = {name: i for i, name in enumerate(CANDIDATE_COLUMNS)}
+_COL["cosine"] = _COL["score"]
+_TIE_BREAKS = {"confidence": ("confidence", "inliers", "seq_score"), "inliers": ("inliers", "matches", "cosine"),
+               "cosine": ("cosine", "inliers"), "seq_score": ("seq_score", "cosine")}  #: sweep score first
+
+
 def best_per_query(candidates: np.ndarray, score: str = "inliers",
                    min_matches: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Each query's best candidate by the sweep score, as the detector would pick it.
 
     Args:
-        candidates: ``(C, >=5)`` rows ``query, candidate, cosine score, matches, inliers`` (candidates.csv order).
-        score: ``"inliers"``: best by (inliers, matches, cosine), exactly the detector's choice, so the curve at
-            threshold ``policy.min_inliers`` is the detector's operating point; ``"cosine"``: best by
-            (cosine, inliers).
-        min_matches: candidates with fewer putative matches are ineligible (the detector's ``policy.min_matches``).
+        candidates: ``(C, 8)`` rows in ``CANDIDATE_COLUMNS`` order (candidates.csv).
+        score: ``"confidence"``: best by (confidence, inliers, temporal score), the calibrated detector's choice, so
+            the curve at its ``accept_at`` is its operating point; ``"inliers"``: best by (inliers, matches, cosine),
+            the uncalibrated detector's choice; ``"cosine"``: best by (cosine, inliers); ``"seq_score"``: best by
+            (temporal score, cosine).
+        min_matches: candidates with fewer putative matches are ineligible (the detector's ``policy.min_matches``;
+            not applied to ``"confidence"``, which already includes it).
 
     Returns:
         ``(Q, 2)`` int64 ``(query, candidate)`` pairs sorted by query, and ``(Q,)`` float64 their sweep scores.
@@ -168,17 +178,17 @@ def best_per_query(candidates: np.ndarray, score: str = "inliers",
     if score not in SCORES:
         raise ValueError(f"unknown score {score!r}; choose one of {', '.join(SCORES)}")
     c = np.asarray(candidates, np.float64)
-    c = c.reshape(-1, c.shape[-1]) if c.ndim == 2 else np.zeros((0, 5))
-    c = c[c[:, 3] >= min_matches]
+    c = c.reshape(-1, c.shape[-1]) if c.ndim == 2 else np.zeros((0, len(CANDIDATE_COLUMNS)))
+    if score != "confidence":
+        c = c[c[:, _COL["matches"]] >= min_matches]
     if len(c) == 0:
         return np.zeros((0, 2), np.int64), np.zeros(0, np.float64)
     # np.lexsort: the last key is the primary one -> query, then the sweep score, then the tie-breakers
-    keys = (c[:, 2], c[:, 3], c[:, 4]) if score == "inliers" else (c[:, 4], c[:, 2])
+    keys = [c[:, _COL[name]] for name in reversed(_TIE_BREAKS[score])]
     order = np.lexsort((*keys, c[:, 0]))
     c = c[order]
     last = np.flatnonzero(np.append(c[1:, 0] != c[:-1, 0], True))  # best = last of each query's group
-    col = 4 if score == "inliers" else 2
-    return c[last][:, :2].astype(np.int64), c[last][:, col].astype(np.float64)
+    return c[last][:, :2].astype(np.int64), c[last][:, _COL[_TIE_BREAKS[score][0]]].astype(np.float64)
 
 
 def pr_curve(detections: np.ndarray, scores: np.ndarray, ground_truth: np.ndarray,
@@ -216,12 +226,12 @@ def pr_curve(detections: np.ndarray, scores: np.ndarray, ground_truth: np.ndarra
 def recall_at_k(candidates: np.ndarray, ground_truth: np.ndarray, ks: tuple[int, ...] = (1, 5, 10)) -> dict[int, float]:
     """Recall@k of the retrieval stage alone (before verification).
 
-    A query that has a true loop counts at ``k`` when any of its first ``k`` candidates by cosine score (ties kept in
-    input order) is a true pair. The denominator is every query with a true loop in ``ground_truth``, including
+    A query that has a true loop counts at ``k`` when any of its first ``k`` candidates in the run's ranking (the
+    temporal score, which is the cosine score without a temporal filter; ties kept in input order) is a true pair. The denominator is every query with a true loop in ``ground_truth``, including
     queries that were gated out or had no candidate.
 
     Args:
-        candidates: ``(C, >=3)`` rows ``query, candidate, cosine score, ...``.
+        candidates: ``(C, 8)`` rows in ``CANDIDATE_COLUMNS`` order.
         ground_truth: ``(P, 2)`` int true pairs (either order).
         ks: cut-offs.
 
@@ -235,7 +245,7 @@ def recall_at_k(candidates: np.ndarray, ground_truth: np.ndarray, ks: tuple[int,
     c = np.asarray(candidates, np.float64)
     if c.ndim != 2 or len(c) == 0:
         return {int(k): 0.0 for k in ks}
-    order = np.lexsort((np.arange(len(c)), -c[:, 2], c[:, 0]))
+    order = np.lexsort((np.arange(len(c)), -c[:, _COL["seq_score"]], c[:, 0]))
     c = c[order]
     starts = np.flatnonzero(np.insert(c[1:, 0] != c[:-1, 0], 0, True))
     rank = np.arange(len(c)) - np.repeat(starts, np.diff(np.append(starts, len(c))))

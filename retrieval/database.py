@@ -1,6 +1,6 @@
 """The keyframe database, persisted in HDF5: what a detector has seen, so a run can resume or be inspected.
 
-Layout (``format_version`` 2)::
+Layout (``format_version`` 3)::
 
     /                       attrs: format_version, conf (JSON), descriptor (weights identity), software, created
     /keyframes/<id:08d>/    one group per keyframe, visible only once fully written
@@ -8,7 +8,8 @@ Layout (``format_version`` 2)::
         keypoints    (N, 2)     float32, original-image pixels
         descriptors  (N, F)     uint8 when lossless (SIFT), else the extractor's dtype
         scales       (N,)       float32
-        candidates   (k, 4)     float64 rows (frame id, cosine score, matches, inliers) of every verified candidate
+        candidates   (k, 6)     float64 rows (CANDIDATE_ROW: frame id, cosine score, matches, inliers, temporal score,
+                                confidence) of every hypothesis judged
         attrs: frame_id, timestamp, source (file name, bytes), fingerprint ("size:hash" of the file, or ""),
                pose (12 floats, 3x4 row-major, when known), edge_ratio, loop (accepted match frame id, -1 if
                none), descriptor_dtype, metric, checksum (BLAKE2b of everything above)
@@ -41,12 +42,13 @@ from core.conf import conf_diff, conf_get
 from core.errors import ConfigError, DatabaseError
 from verify.features import Features
 
-__all__ = ["FORMAT_VERSION", "SKIP_REASONS", "MIN_FREE_BYTES", "FeatureStore", "KeyframeRecord", "FrameEntry",
+__all__ = ["FORMAT_VERSION", "CANDIDATE_ROW", "SKIP_REASONS", "MIN_FREE_BYTES", "FeatureStore", "KeyframeRecord", "FrameEntry",
            "KeyframeDatabase"]
 
 log = logging.getLogger(__name__)
 
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
+CANDIDATE_ROW = ("frame_id", "score", "matches", "inliers", "seq_score", "confidence")  #: a stored candidate row
 SKIP_REASONS = ("gated", "unreadable")  #: why a frame is not a keyframe
 MIN_FREE_BYTES = 64 << 20  #: no record is written with less free space than this on the database's disk
 _TMP = ".incomplete"
@@ -106,7 +108,7 @@ class KeyframeRecord:
     pose: np.ndarray | None = None  #: (3, 4) camera-to-world, when known
     source: str = ""  #: where the frame came from (file name), free text
     edge_ratio: float = float("nan")
-    candidates: np.ndarray | None = None  #: (k, 4) frame id, score, matches, inliers
+    candidates: np.ndarray | None = None  #: (k, len(CANDIDATE_ROW)) rows in CANDIDATE_ROW order
     loop: int = -1  #: accepted match, -1 if none
     fingerprint: str = ""  #: "size:hash" of the source file (``core.images.fingerprint``), "" when unknown
 
@@ -283,8 +285,8 @@ class KeyframeDatabase:
         feats = rec.features.compact()
         arrays = {"code": np.asarray(rec.code, np.float32), "keypoints": feats.keypoints.astype(np.float32),
                   "descriptors": feats.descriptors, "scales": feats.scales.astype(np.float32),
-                  "candidates": (np.zeros((0, 4)) if rec.candidates is None
-                                 else np.asarray(rec.candidates, np.float64)).reshape(-1, 4)}
+                  "candidates": (np.zeros((0, len(CANDIDATE_ROW))) if rec.candidates is None
+                                 else np.asarray(rec.candidates, np.float64)).reshape(-1, len(CANDIDATE_ROW))}
         attrs: dict[str, Any] = {"frame_id": int(rec.frame_id), "source": np.bytes_(_name_bytes(rec.source)),
                                  "fingerprint": rec.fingerprint, "edge_ratio": float(rec.edge_ratio),
                                  "loop": int(rec.loop), "metric": feats.metric,
@@ -427,7 +429,7 @@ class KeyframeDatabase:
                    self._features(grp, arrays))
 
     def results(self) -> Iterator[tuple[int, np.ndarray, int]]:
-        """``(frame_id, candidates (k, 4), loop)`` per keyframe in frame-id order, checksums verified."""
+        """``(frame_id, candidates (k, len(CANDIDATE_ROW)), loop)`` per keyframe in frame-id order, checksums verified."""
         for name in self._names():
             grp, arrays = self._group(name)
             yield int(grp.attrs["frame_id"]), arrays["candidates"], int(grp.attrs["loop"])

@@ -32,6 +32,7 @@ class GlobalDescriptor:
         self.conf = configure(self, conf, "descriptor")
         self.dim = 0
         self.identity = ""
+        self.whitening = None  #: a ``cae.whitening.Whitening`` that came with the weights, if any
 
     def __call__(self, image: np.ndarray, features: Features | None = None,
                  network_image: np.ndarray | None = None) -> np.ndarray:
@@ -66,6 +67,7 @@ class CAEDescriptor(GlobalDescriptor):
         self.encoder = encoder if encoder is not None else load_encoder(self.conf["weights"], self.conf["device"])
         self.dim = CODE_DIM
         self.identity = getattr(self.encoder, "identity", "")
+        self.whitening = getattr(self.encoder, "whitening", None)
 
     def __call__(self, image: np.ndarray, features: Features | None = None,
                  network_image: np.ndarray | None = None) -> np.ndarray:

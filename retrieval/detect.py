@@ -1,5 +1,9 @@
 """Offline detection over a sequence (the same path as ``LoopDetector.process``), writing a run folder
-(``retrieval.run_folder``): ``conf.yaml``, ``keyframes.h5``, ``loops.csv``, ``candidates.csv``, ``summary.json``.
+(``retrieval.run_folder``): ``conf.yaml``, ``calibration.h5``, ``keyframes.h5``, ``loops.csv``, ``candidates.csv``,
+``summary.json``.
+
+First the calibration (``retrieval.calibrate``) looks at the sequence and chooses the gate's reference, the code
+normalisation and the acceptance thresholds for this camera; a resumed run reuses the calibration it saved.
 
 A bad frame (unreadable, too small, of a dtype we cannot use) is skipped with a one-line warning naming the file,
 keeps its frame id and is counted. A killed run resumes from its database; a database made from other images
@@ -21,12 +25,15 @@ from core.errors import ImageError
 from core.files import prepare_out_dir
 from core.images import decode_image, fingerprint, read_file
 
+from .calibrate import Calibration, TooFewFrames, calibrate, calibration_frames
 from .database import KeyframeDatabase
+from .descriptors import GlobalDescriptor, create_descriptor
 from .detector import STAGES, LoopDetector, resolve_conf
+from .temporal import create_filter
 from .run_folder import RunFolder
 from .sequences import Sequence, open_sequence
 
-__all__ = ["SAMPLE_DIR", "main", "stage_stats", "check_same_frames"]
+__all__ = ["SAMPLE_DIR", "main", "stage_stats", "check_same_frames", "calibrate_sequence"]
 
 log = logging.getLogger(__name__)
 
@@ -97,6 +104,40 @@ def check_same_frames(db: KeyframeDatabase, seq: Sequence) -> None:
                               "choose another --out")
 
 
+def calibrate_sequence(seq: Sequence, conf: dict[str, Any], descriptor: GlobalDescriptor | None = None,
+                       progress: bool = True) -> Calibration:
+    """Calibrates on ``seq`` (unreadable frames are left out; ``detect`` warns about them)."""
+    conf = resolve_conf(conf)
+    descriptor = descriptor if descriptor is not None else create_descriptor(conf["descriptor"])
+    picks = calibration_frames(len(seq), conf["search"]["exclude_recent"], conf["temporal"].get("length", 1),
+                               conf["calibration"]["max_frames"])
+    images = ((int(i), image) for i, (image, _) in zip(picks, _prefetch([seq.frames[i] for i in picks]))
+              if not isinstance(image, ImageError))
+    return calibrate(images, len(seq), conf, descriptor, create_filter(conf["temporal"]), seq.K, progress)
+
+
+def _calibration(run: RunFolder, seq: Sequence, conf: dict[str, Any], descriptor: GlobalDescriptor,
+                 progress: bool) -> Calibration | None:
+    """The run's calibration: the one saved in the run folder, else a new one (saved); None when disabled."""
+    if not conf["calibration"]["enabled"]:
+        return None
+    if run.calibration.is_file():
+        cal = Calibration.load(run.calibration)
+        if cal.descriptor != descriptor.identity:
+            raise ConfigError(f"{run.calibration} was made with other weights ({cal.descriptor or 'unknown'}, now "
+                              f"{descriptor.identity}); choose another --out or move it away to calibrate again")
+        log.info("using the calibration in %s", run.calibration)
+        return cal
+    try:
+        cal = calibrate_sequence(seq, conf, descriptor, progress)
+    except TooFewFrames as err:
+        log.warning("not calibrated (%s): using the fixed policy (policy.min_inliers %d) and raw codes",
+                    err, conf["policy"]["min_inliers"])
+        return None
+    cal.save(run.calibration)
+    return cal
+
+
 def _default_out(seq: Sequence) -> Path:
     return Path("runs") / ("sample" if seq.root.resolve() == SAMPLE_DIR.resolve() else seq.root.name)
 
@@ -151,10 +192,15 @@ def main(path: str | Path | None = None, out: str | Path | None = None, conf: di
     created = not out.exists()
     run = RunFolder(prepare_out_dir(out))
     try:
-        det = LoopDetector(resolved, K=seq.K, database=run.database)
+        descriptor = create_descriptor(resolved["descriptor"])
+        cal = _calibration(run, seq, resolved, descriptor, progress)
+        det = LoopDetector(resolved, K=seq.K, database=run.database, calibration=cal,
+                           **({"encoder": descriptor.encoder} if hasattr(descriptor, "encoder") else {}))
     except BaseException:
-        if created and not any(run.root.iterdir()):  # e.g. weights that cannot be loaded: leave no trace
-            run.root.rmdir()
+        if created:  # e.g. weights that cannot be loaded: leave no trace
+            run.calibration.unlink(missing_ok=True)
+            if not any(run.root.iterdir()):
+                run.root.rmdir()
         raise
     with det:
         check_same_frames(det.db, seq)
@@ -175,6 +221,9 @@ def main(path: str | Path | None = None, out: str | Path | None = None, conf: di
         "unreadable": len(unreadable), "unreadable_files": unreadable, "loops": len(loops),
         "ms_per_frame": stage_stats(timings), "out": str(run.root),
         "ground_truth_file": None if seq.ground_truth is None else str(seq.ground_truth),
+        "calibration": None if cal is None else {"notes": cal.notes, "accept_at_confidence": cal.accept_at,
+                                                 "thresholds": cal.thresholds(),
+                                                 "verification": bool(cal.inlier_null)},
     }
     run.write_summary(summary)
     return summary

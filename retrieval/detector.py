@@ -1,6 +1,7 @@
-"""The loop-closure detector: gate -> encode -> search -> verify -> decide -> insert, one frame at a time.
+"""The loop-closure detector: gate -> encode -> normalise -> search -> temporal filter -> verify -> decide -> insert,
+one frame at a time.
 
-    >>> det = LoopDetector(K=K, database="run/keyframes.h5")       # doctest: +SKIP
+    >>> det = LoopDetector(K=K, database="run/keyframes.h5", calibration=cal)   # doctest: +SKIP
     >>> res = det.process(image, frame_id=i, timestamp=t)            # doctest: +SKIP
     >>> res.loop                                                     # Candidate or None   # doctest: +SKIP
 
@@ -9,7 +10,8 @@
     frame_id    int
     gated       bool          True when the quality gate rejected the frame (nothing else ran)
     edge_ratio  float         the gate's edge-pixel ratio
-    candidates  list[Candidate]  top-k keyframes (recent ones excluded) with score, matches, inliers
+    candidates  list[Candidate]  top-k hypotheses (recent keyframes excluded) with score, seq_score, matches,
+                                 inliers and confidence
     loop        Candidate | None  the accepted match, if any
     R, t        (3, 3), (3,)  relative pose of the loop (essential-matrix model only), else None
     ms          dict[str, float]  milliseconds by stage: gate, encode, features, search, verify, insert, total
@@ -31,6 +33,7 @@ import numpy as np
 import torch
 
 from cae.preprocess import to_network_u8
+from cae.whitening import DEFAULT_DIM, DEFAULT_SHRINK
 from core.conf import Bool, Choice, ConfigError, Float, Int, check_conf, merge_conf
 from core.images import check_image, to_gray_u8, to_uint8
 from verify.features import FEATURES, Features, create_extractor
@@ -38,21 +41,31 @@ from verify.gate import EdgeGate
 from verify.geometry import GeometricVerifier
 from verify.verifier import MATCHERS, Verification, create_verifier
 
-from .database import FeatureStore, KeyframeDatabase, KeyframeRecord
+from .database import CANDIDATE_ROW, FeatureStore, KeyframeDatabase, KeyframeRecord
+from .calibrate import Calibration, CodeTable
 from .descriptors import DESCRIPTORS, create_descriptor
 from .index import INDEXES, KeyframeIndex
+from .temporal import FILTERS, create_filter
 
-__all__ = ["Candidate", "FrameResult", "LoopDetector", "STAGES", "default_conf", "conf_rules", "resolve_conf",
-           "RENAMED_SECTIONS"]
+__all__ = ["Candidate", "FrameResult", "LoopDetector", "STAGES", "default_conf", "conf_rules",
+           "resolve_conf", "RENAMED_SECTIONS"]
 
 log = logging.getLogger(__name__)
 
-STAGES = ("gate", "encode", "features", "search", "verify", "insert", "total")  #: keys of ``FrameResult.ms``
+STAGES = ("gate", "encode", "features", "search", "filter", "verify", "insert", "total")  #: keys of ``FrameResult.ms``
 
 default_conf: dict[str, Any] = {
     "gate": EdgeGate.default_conf,  # image-quality gate (Canny edge ratio)
     "descriptor": {"name": "cae"},  # global descriptor by registry name (cae; thumbnail, bovw) and its options
+    "whitening": {
+        "enabled": True,  # False: the paper's raw cosine on the 4096-d code
+        "source": "auto",  # "auto": fitted on the sequence when calibrating, else the weights' own (if any);
+        #                    "sequence": the sequence's only; "weights": the one saved with the weights only
+        "dim": DEFAULT_DIM,  # length of the whitened code (at most a quarter of the fitting codes)
+        "shrink": DEFAULT_SHRINK,  # added to each component's variance, times their mean (regularises small sets)
+    },
     "index": {"name": "flat"},  # code index by registry name (flat, fp16, sq8, hnsw) and its options
+    "temporal": {"name": "sequence"},  # temporal-consistency filter by registry name (sequence, none)
     "search": {
         "k": 10,  # candidates retrieved per query (paper: top-10)
         "exclude_recent": 50,  # frames younger than this many frames are not searched (paper: 9)
@@ -62,9 +75,19 @@ default_conf: dict[str, Any] = {
     "features": {"name": "sift"},  # local features by registry name and their options
     "matcher": {"name": "ratio"},  # descriptor matcher by registry name and its options
     "geometry": GeometricVerifier.default_conf,  # RANSAC model and thresholds
+    "calibration": {
+        "enabled": True,  # calibrate thresholds on the sequence (detect) / use the calibration given (API);
+        #                   False: the fixed policy below (the API without a calibration uses it too)
+        "expected_false_loops": 0.1,  # a-contrario target: expected false loops over the whole run
+        "null_pairs": 150,  # far-side pairs verified with local features for the inlier null
+        "min_features": 50,  # median keypoints per frame under which local verification is not used
+        "min_inliers": 12,  # floor of the calibrated inlier threshold (a 7-point model always fits 7)
+        "verification": "auto",  # "auto": used when features suffice; "on": always; "off": global + temporal only
+        "max_frames": 2000,  # frames the calibration reads at most (blocks spread over longer sequences)
+    },
     "policy": {
         "min_matches": 5,  # putative (ratio-test) matches a candidate needs (paper: 5)
-        "min_inliers": 50,  # geometric inliers a candidate needs (0: none); chosen on KITTI, see BENCHMARKS.md
+        "min_inliers": 50,  # uncalibrated: geometric inliers a candidate needs (0: none); chosen on KITTI
         "check_all": False,  # True: geometric check on every candidate; False: skip those that cannot win (same loops)
     },
     "runtime": {
@@ -81,11 +104,17 @@ conf_rules: dict[str, Any] = {
     "search": {"k": Int(1, 10_000), "exclude_recent": Int(0), "exclude_recent_s": Float(0, optional=True),
                "min_score": Float(-1, 1)},
     "policy": {"min_matches": Int(0), "min_inliers": Int(0), "check_all": Bool()},
+    "whitening": {"enabled": Bool(), "source": Choice("auto", "sequence", "weights"), "dim": Int(1, 4096),
+                  "shrink": Float(0, 100)},
+    "calibration": {"enabled": Bool(), "expected_false_loops": Float(0, 100, lo_open=True),
+                    "null_pairs": Int(10, 100_000), "min_features": Int(0), "min_inliers": Int(8),
+                    "verification": Choice("auto", "on", "off"), "max_frames": Int(100)},
     "runtime": {"threads": Int(1, 1024, optional=True), "parallel": Bool(), "flush_every": Int(1),
                 "features": Choice("memory", "database"), "feature_cache": Int(1)},
 }
 
-_UNIT_SECTIONS = {"descriptor": DESCRIPTORS, "index": INDEXES, "features": FEATURES, "matcher": MATCHERS}
+_UNIT_SECTIONS = {"descriptor": DESCRIPTORS, "index": INDEXES, "features": FEATURES, "matcher": MATCHERS,
+                  "temporal": FILTERS}
 _FIXED_SECTIONS = {"gate": EdgeGate, "geometry": GeometricVerifier}
 _NOT_PERSISTED = ("runtime",)  # sections that may change between a run and its resumption
 RENAMED_SECTIONS = {"encoder": "descriptor", "matching": "matcher"}  #: old section name -> new (deprecated)
@@ -109,8 +138,8 @@ def _renamed(conf: dict[str, Any]) -> dict[str, Any]:
 def resolve_conf(conf: dict[str, Any] | None = None) -> dict[str, Any]:
     """Merges a user conf onto ``default_conf`` and checks every value; nothing is created or written.
 
-    A named unit's section (``descriptor``, ``index``, ``features``, ``matcher``) merges onto that unit's own
-    defaults and is checked against its ``conf_rules``. Old section names (``encoder``, ``matching``) still work,
+    A named unit's section (``descriptor``, ``index``, ``temporal``, ``features``, ``matcher``) merges onto that unit's
+    own defaults and is checked against its ``conf_rules``. Old section names (``encoder``, ``matching``) still work,
     with a deprecation warning.
 
     Raises:
@@ -135,13 +164,16 @@ def resolve_conf(conf: dict[str, Any] | None = None) -> dict[str, Any]:
 
 @dataclass
 class Candidate:
-    frame_id: int  #: the keyframe retrieved
-    score: float  #: cosine similarity of the codes
+    frame_id: int  #: the keyframe (a hypothesis of the temporal filter)
+    score: float  #: single-frame cosine similarity of the (normalised) codes
     matches: int = 0  #: putative matches after the ratio test
     inliers: int = 0  #: geometric inliers; -1 when the check did not run (the pair could not pass or win)
+    seq_score: float = 0.0  #: the temporal filter's score (equals ``score`` with ``temporal.name: none``)
+    confidence: float = 0.0  #: what the acceptance rule thresholds: -log10 NFA when calibrated, else inliers
 
-    def as_row(self) -> tuple[int, float, int, int]:
-        return (self.frame_id, self.score, self.matches, self.inliers)
+    def as_row(self) -> tuple[int, float, int, int, float, float]:
+        """The stored candidate row, in ``retrieval.database.CANDIDATE_ROW`` order."""
+        return (self.frame_id, self.score, self.matches, self.inliers, self.seq_score, self.confidence)
 
 
 @dataclass
@@ -174,6 +206,8 @@ class LoopDetector:
         database: path of an HDF5 keyframe database to write (resumed if it exists), or None to keep
             keyframes in memory only.
         encoder: an already loaded ``cae.Encoder`` for the ``cae`` descriptor (skips loading its weights).
+        calibration: what ``retrieval.calibrate`` chose for this camera (gate reference, whitening, thresholds).
+            None: the fixed policy (``policy.min_inliers``), the weights' own whitening if they carry one.
 
     Raises:
         ConfigError: a bad conf value, a K that is not a finite 3x3 matrix, or a database made with another conf.
@@ -181,19 +215,35 @@ class LoopDetector:
     """
 
     def __init__(self, conf: dict[str, Any] | None = None, K: np.ndarray | None = None,
-                 database: str | Path | None = None, encoder: torch.nn.Module | None = None) -> None:
+                 database: str | Path | None = None, encoder: torch.nn.Module | None = None,
+                 calibration: Calibration | None = None) -> None:
         self.conf = resolve_conf(conf)
         c = self.conf
         self.K = None if K is None else _matrix(K, (3, 3), "K")
         if c["runtime"]["features"] == "database" and database is None:
             raise ConfigError("runtime.features 'database' needs a keyframe database (database=... / --out)")
-        self.gate = EdgeGate(c["gate"])
+        if calibration is not None and not isinstance(calibration, Calibration):
+            raise ConfigError("calibration must be a retrieval.calibrate.Calibration; got "
+                              f"{type(calibration).__name__}")
+        self.calibration = calibration if c["calibration"]["enabled"] else None
+        self.gate = EdgeGate(c["gate"], None if self.calibration is None else self.calibration.edge_reference)
         self.descriptor = create_descriptor(c["descriptor"], **({"encoder": encoder} if encoder is not None else {}))
+        self.whitening = self.calibration.whitening if self.calibration is not None else \
+            (getattr(self.descriptor, "whitening", None)
+             if c["whitening"]["enabled"] and c["whitening"]["source"] != "sequence" else None)
+        if self.whitening is not None and self.whitening.input_dim != self.descriptor.dim:
+            raise ConfigError(f"the whitening expects {self.whitening.input_dim}-d codes; the descriptor gives "
+                              f"{self.descriptor.dim}-d ones")
         self.extractor = create_extractor(c["features"])
         self.verifier = create_verifier(c["matcher"], c["geometry"])
         self.verifier.geometry.model_for(self.K)  # fail now, not at the first loop, if E is asked without K
-        self.index = KeyframeIndex(self.descriptor.dim, c["index"], c["search"]["exclude_recent"],
-                                   c["search"]["exclude_recent_s"])
+        dim = self.descriptor.dim if self.whitening is None else self.whitening.dim
+        self.index = KeyframeIndex(dim, c["index"], c["search"]["exclude_recent"], c["search"]["exclude_recent_s"])
+        self.codes = CodeTable(dim, self._searchable)
+        self.filter = create_filter(c["temporal"])
+        self._min_inliers = c["policy"]["min_inliers"]
+        if self.calibration is not None:
+            self._min_inliers = self.calibration.thresholds()["inliers"] or 0
         threads = c["runtime"]["threads"] or os.cpu_count() or 1
         if c["runtime"]["parallel"]:  # the feature worker and the encoder run at once: split the cores between them
             threads = max(1, threads // 2)
@@ -204,7 +254,9 @@ class LoopDetector:
         self.db: KeyframeDatabase | None = None
         if database is not None:  # last: everything above can refuse the conf before a file is created
             persisted = {k: v for k, v in c.items() if k not in _NOT_PERSISTED}
-            self.db = KeyframeDatabase(database, persisted, self.descriptor.identity, c["runtime"]["flush_every"])
+            identity = self.descriptor.identity + ("" if self.calibration is None else
+                                                   " calibration " + self.calibration.identity())
+            self.db = KeyframeDatabase(database, persisted, identity, c["runtime"]["flush_every"])
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="features") if c["runtime"]["parallel"] else None
         self.features = FeatureStore(self.db if c["runtime"]["features"] == "database" else None,
                                      c["runtime"]["feature_cache"])
@@ -221,13 +273,26 @@ class LoopDetector:
             if code.shape != (self.descriptor.dim,) or not np.isfinite(code).all():
                 raise ConfigError(f"{db.path}: keyframe {fid} has a code of shape {code.shape} (expected "
                                   f"({self.descriptor.dim},), finite); the database is damaged")
-            self.index.add(fid, code, timestamp)
+            normed = self._normalise(code)
+            self.index.add(fid, normed, timestamp)
+            self.codes.add(fid, normed)
             if self.features.db is None:  # memory mode: everything back in memory
                 self.features[fid] = feats
             n += 1
         self._next_id = db.last_frame_id() + 1
+        for q, cands, _ in db.results():  # the filter's history, as the uninterrupted run built it
+            self.filter.commit(q, cands[:, 0].astype(np.int64))
         if n:
             log.info("resumed %s: %d keyframes, next frame %d", db.path, n, self._next_id)
+
+    def _normalise(self, code: np.ndarray) -> np.ndarray:
+        """The code the index searches: whitened when there is a whitening, else as the descriptor gives it."""
+        return code if self.whitening is None else self.whitening.transform(code)
+
+    def _searchable(self, refs: np.ndarray) -> np.ndarray:
+        """True for keyframes the current query may match (admitted to the index: old enough)."""
+        newest = self.index.frame_ids[-1] if self.index.frame_ids else -1
+        return np.array([r <= newest and r in self.codes for r in np.asarray(refs).tolist()], bool)
 
     @property
     def next_frame_id(self) -> int:
@@ -285,8 +350,7 @@ class LoopDetector:
         image8 = to_uint8(image)  # once: 16-bit and float frames are scanned and scaled here only
         gray = to_gray_u8(image8)
         net = to_network_u8(image8)  # one resize serves the gate and the encoder
-        is_grey = image.ndim == 2 or image.shape[2] == 1  # then the three channels are equal
-        gate = self.gate(net[:, :, 0] if is_grey else cv2.cvtColor(net, cv2.COLOR_RGB2GRAY))
+        gate = self.gate(gray)
         ms["gate"] = (time.perf_counter() - t0) * 1e3
         if not gate.passed:
             if self.db is not None:
@@ -295,33 +359,51 @@ class LoopDetector:
             ms["total"] = (time.perf_counter() - t_start) * 1e3
             return FrameResult(fid, True, gate.edge_ratio, ms=ms)
 
-        feats, code, candidates = self._describe_and_search(image, gray, net, fid, ts, ms)
-        t0 = time.perf_counter()
-        c = self.conf
-        checks = self.verifier.verify(feats, [self.features[cd.frame_id] for cd in candidates], self.K,
-                                      c["policy"]["min_matches"], c["policy"]["min_inliers"], c["policy"]["check_all"])
-        for cand, check in zip(candidates, checks):
-            cand.matches, cand.inliers = check.matches, check.inliers
-        loop, best = self._decide(candidates, checks)
-        ms["verify"] = (time.perf_counter() - t0) * 1e3
-
-        t0 = time.perf_counter()
-        if self.db is not None:  # first: if the disk refuses it, the in-memory state has not moved either
-            self.db.append(KeyframeRecord(fid, code, feats, ts, pose34, source, gate.edge_ratio,
-                                          np.array([cd.as_row() for cd in candidates], np.float64).reshape(-1, 4),
-                                          -1 if loop is None else loop.frame_id, fingerprint))
-        self.index.add(fid, code, ts)
-        self.features[fid] = feats  # after the database has it: database mode may read it back from there
-        self._next_id = fid + 1
-        ms["insert"] = (time.perf_counter() - t0) * 1e3
+        feats, code, normed, candidates = self._describe_and_search(image, gray, net, fid, ts, ms)
+        try:
+            loop, best = self._verify_and_insert(fid, gate.edge_ratio, feats, code, normed, candidates, ts, pose34,
+                                                 source, fingerprint, ms)
+        except BaseException:
+            self.codes.remove_last(fid)  # the frame is not in the map: the state is as it was
+            raise
         ms["total"] = (time.perf_counter() - t_start) * 1e3
         geo = best.geometry if best is not None else None
         return FrameResult(fid, False, gate.edge_ratio, candidates, loop, getattr(geo, "R", None),
                            getattr(geo, "t", None), ms)
 
-    def _describe_and_search(self, image: np.ndarray, gray: np.ndarray, net: np.ndarray, fid: int,
-                             ts: float | None, ms: dict[str, float]) -> tuple[Features, np.ndarray, list[Candidate]]:
-        """Local features, global code and the top-k candidates of one frame (stage times into ``ms``)."""
+    def _verify_and_insert(self, fid: int, edge_ratio: float, feats: Features, code: np.ndarray, normed: np.ndarray,
+                           candidates: list[Candidate], ts: float | None, pose34: np.ndarray | None, source: str,
+                           fingerprint: str, ms: dict[str, float]) -> tuple[Candidate | None, Verification | None]:
+        """Verifies the hypotheses, decides, and stores the keyframe (database first, then memory)."""
+        t0 = time.perf_counter()
+        c = self.conf
+        verify = self.calibration is None or bool(self.calibration.inlier_null)
+        checks = self.verifier.verify(feats, [self.features[cd.frame_id] for cd in candidates], self.K,
+                                      c["policy"]["min_matches"], self._min_inliers, c["policy"]["check_all"]) \
+            if verify else [None] * len(candidates)
+        for cand, check in zip(candidates, checks):
+            if check is not None:
+                cand.matches, cand.inliers = check.matches, check.inliers
+            cand.confidence = self._confidence(cand)
+        loop, best = self._decide(candidates, checks)
+        ms["verify"] = (time.perf_counter() - t0) * 1e3
+
+        t0 = time.perf_counter()
+        if self.db is not None:  # first: if the disk refuses it, the in-memory state has not moved either
+            rows = np.array([cd.as_row() for cd in candidates], np.float64).reshape(-1, len(CANDIDATE_ROW))
+            self.db.append(KeyframeRecord(fid, code, feats, ts, pose34, source, edge_ratio, rows,
+                                          -1 if loop is None else loop.frame_id, fingerprint))
+        self.index.add(fid, normed, ts)
+        self.filter.commit(fid, np.array([cd.frame_id for cd in candidates], np.int64))
+        self.features[fid] = feats  # after the database has it: database mode may read it back from there
+        self._next_id = fid + 1
+        ms["insert"] = (time.perf_counter() - t0) * 1e3
+        return loop, best
+
+    def _describe_and_search(self, image: np.ndarray, gray: np.ndarray, net: np.ndarray, fid: int, ts: float | None,
+                             ms: dict[str, float]) -> tuple[Features, np.ndarray, np.ndarray, list[Candidate]]:
+        """Local features, the raw and normalised codes, and the top-k hypotheses of one frame (stage times into
+        ``ms``). The normalised code is in ``self.codes`` when this returns (``remove_last`` undoes it)."""
         # local features: first when the descriptor needs them, else in the worker thread (parallel) or after search
         feats, pending = None, None
         if self.descriptor.needs_features:
@@ -330,33 +412,58 @@ class LoopDetector:
             pending = self._pool.submit(self._timed_extract, gray)
         t0 = time.perf_counter()
         code = self.descriptor(image, feats, network_image=net)
+        normed = self._normalise(code)
         ms["encode"] = (time.perf_counter() - t0) * 1e3
         t0 = time.perf_counter()
+        k = self.conf["search"]["k"]
         self.index.admit(fid, ts)
-        scores, ids = self.index.search(code, self.conf["search"]["k"])
-        keep = scores >= self.conf["search"]["min_score"]
-        candidates = [Candidate(int(i), float(s)) for s, i in zip(scores[keep], ids[keep])]
+        scores, ids = self.index.search(normed, k)
+        ids = ids[scores >= self.conf["search"]["min_score"]]
         ms["search"] = (time.perf_counter() - t0) * 1e3
+        t0 = time.perf_counter()
+        self.codes.add(fid, normed)
+        hyp, seq = self.filter.update(fid, ids, self.codes)
+        hyp, seq = hyp[:k], seq[:k]
+        single = self.codes.pairs(np.full(len(hyp), fid), hyp)
+        candidates = [Candidate(int(i), float(s), seq_score=float(q)) for i, s, q in zip(hyp, single, seq)]
+        ms["filter"] = (time.perf_counter() - t0) * 1e3
         if feats is None:
             t0 = time.perf_counter()
             feats, ms["features"] = pending.result() if pending is not None else self._timed_extract(gray)
             ms["features_wait"] = (time.perf_counter() - t0) * 1e3  # what the frame waited for them
-        return feats, code, candidates
+        return feats, code, normed, candidates
 
     def _timed_extract(self, gray: np.ndarray) -> tuple[Features, float]:
         t0 = time.perf_counter()
         feats = self.extractor.extract(gray)
         return feats, (time.perf_counter() - t0) * 1e3
 
+    def _confidence(self, cand: Candidate) -> float:
+        """Calibrated: ``-log10 NFA`` on the deciding path (``Calibration.path``); else the inlier count."""
+        cal = self.calibration
+        if cal is None:
+            return float(cand.inliers)
+        inl = cand.inliers if cand.matches >= self.conf["policy"]["min_matches"] else -1
+        return float(max(cal.confidence(cand.seq_score, inl), -1e9))
+
     def _decide(self, candidates: list[Candidate],
-                checks: list[Verification]) -> tuple[Candidate | None, Verification | None]:
-        """The accepted candidate: passes every policy threshold; most inliers, then most matches, then score."""
+                checks: list[Verification | None]) -> tuple[Candidate | None, Verification | None]:
+        """The accepted candidate.
+
+        Calibrated: the most confident one whose confidence reaches ``Calibration.accept_at``. Uncalibrated: one that
+        passes every policy threshold; most inliers, then most matches, then score.
+        """
         p = self.conf["policy"]
-        passing = [(cd, ch) for cd, ch in zip(candidates, checks)
-                   if cd.matches >= p["min_matches"] and cd.inliers >= p["min_inliers"]]
+        if self.calibration is not None:
+            passing = [(cd, ch) for cd, ch in zip(candidates, checks) if cd.confidence >= self.calibration.accept_at]
+            key = (lambda pair: (pair[0].confidence, pair[0].inliers, pair[0].seq_score))
+        else:
+            passing = [(cd, ch) for cd, ch in zip(candidates, checks)
+                       if cd.matches >= p["min_matches"] and cd.inliers >= p["min_inliers"]]
+            key = (lambda pair: (pair[0].inliers, pair[0].matches, pair[0].score))
         if not passing:
             return None, None
-        return max(passing, key=lambda pair: (pair[0].inliers, pair[0].matches, pair[0].score))
+        return max(passing, key=key)
 
     def close(self) -> None:
         """Flushes and closes the database and stops the worker thread; ``process`` refuses to run afterwards."""

@@ -2,9 +2,10 @@
 columns.
 
     conf.yaml        the resolved configuration
+    calibration.h5   what the calibration chose (``retrieval.calibrate``); a resumed run reuses it
     keyframes.h5     the keyframe database (``retrieval.database``); a killed run resumes from it
     loops.csv        LOOPS_COLUMNS, one row per accepted loop (best match per query)
-    candidates.csv   CANDIDATE_COLUMNS, every verified candidate (for PR curves)
+    candidates.csv   CANDIDATE_COLUMNS, every hypothesis judged (for PR curves)
     summary.json     counts, ms/frame by stage (and precision/recall when the CLI knew the ground truth)
 
 Tables and the summary are written to a temporary file and renamed, so a crash never leaves half a file where a
@@ -29,8 +30,8 @@ __all__ = ["RunFolder", "LOOPS_COLUMNS", "CANDIDATE_COLUMNS", "MAX_FRAME_ID", "r
 
 log = logging.getLogger(__name__)
 
-LOOPS_COLUMNS = ("query", "match", "score", "matches", "inliers")
-CANDIDATE_COLUMNS = ("query", "candidate", "score", "matches", "inliers", "accepted")
+LOOPS_COLUMNS = ("query", "match", "score", "matches", "inliers", "seq_score", "confidence")
+CANDIDATE_COLUMNS = ("query", "candidate", "score", "matches", "inliers", "seq_score", "confidence", "accepted")
 MAX_FRAME_ID = 10**9  #: larger frame ids in a table are refused (they would be a damaged file, not a sequence)
 
 
@@ -85,6 +86,10 @@ class RunFolder:
         return self.root / "conf.yaml"
 
     @property
+    def calibration(self) -> Path:
+        return self.root / "calibration.h5"
+
+    @property
     def database(self) -> Path:
         return self.root / "keyframes.h5"
 
@@ -101,7 +106,7 @@ class RunFolder:
         return self.root / "summary.json"
 
     def write_tables(self, results: Iterable[tuple[int, np.ndarray, int]]) -> np.ndarray:
-        """Writes ``loops.csv`` and ``candidates.csv`` from ``(query, candidates (k, 4), loop)`` rows (as
+        """Writes ``loops.csv`` and ``candidates.csv`` from ``(query, candidates (k, 6), loop)`` rows (as
         ``KeyframeDatabase.results`` gives them); returns the loops ``(L, 2)``.
 
         Every row is read before anything is written: a damaged database leaves the old tables as they were.
@@ -113,8 +118,9 @@ class RunFolder:
             wl.writerow(LOOPS_COLUMNS)
             wc.writerow(CANDIDATE_COLUMNS)
             for q, candidates, loop in rows:
-                for cid, score, matches, inliers in candidates:
-                    row = [q, int(cid), f"{score:.6f}", int(matches), int(inliers)]
+                for cid, score, matches, inliers, seq_score, confidence in candidates:
+                    row = [q, int(cid), f"{score:.6f}", int(matches), int(inliers), f"{seq_score:.6f}",
+                           f"{confidence:.4f}"]
                     wc.writerow(row + [int(int(cid) == loop)])
                     if int(cid) == loop:
                         wl.writerow(row)
@@ -122,11 +128,11 @@ class RunFolder:
         return np.array(loops, np.int64).reshape(-1, 2)
 
     def read_loops(self) -> np.ndarray:
-        """``(L, 5)`` float64 rows of ``LOOPS_COLUMNS``."""
+        """``(L, 7)`` float64 rows of ``LOOPS_COLUMNS``."""
         return read_csv_table(self.loops, LOOPS_COLUMNS)
 
     def read_candidates(self) -> np.ndarray | None:
-        """``(C, 6)`` float64 rows of ``CANDIDATE_COLUMNS``; None when the run has no candidates.csv."""
+        """``(C, 8)`` float64 rows of ``CANDIDATE_COLUMNS``; None when the run has no candidates.csv."""
         return read_csv_table(self.candidates, CANDIDATE_COLUMNS) if self.candidates.is_file() else None
 
     def write_summary(self, summary: dict[str, Any]) -> None:

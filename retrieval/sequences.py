@@ -24,7 +24,7 @@ __all__ = ["Sequence", "open_sequence", "read_kitti_calib", "read_kitti_poses", 
 
 log = logging.getLogger(__name__)
 
-CAMERAS = ("image_0", "image_2", "image_1", "image_3")  #: KITTI camera folders, in the order they are looked for
+CAMERAS = ("image_0", "image_2", "image_1", "image_3", "images")  #: camera folders, in the order looked for
 
 
 @dataclass

@@ -82,7 +82,7 @@ class GeometricVerifier:
         if model == "fundamental":
             return self._fundamental(a, b, method)
         subset = np.arange(m)
-        if c["prefilter"]:
+        if c["prefilter"] and m >= 8:  # the F pre-check needs 8 points; fewer go to the 5-point solver directly
             # The 5-point RANSAC costs ~0.5 ms an iteration and runs to max_iters on a bad pair; MAGSAC on F is
             # ~10x cheaper. E's inliers are (up to the threshold's definition) a subset of the best F's.
             pre = self._fundamental(a, b, cv2.USAC_MAGSAC)

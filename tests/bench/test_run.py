@@ -94,9 +94,10 @@ def test_index_scaling_stops_when_the_bench_budget_is_spent():
 def test_run_metrics_operating_point_from_the_run_folder(tmp_path):
     run = RunFolder(tmp_path)
     # query 10 -> 2 (true), 11 -> 5 (false; its true loop is 4), 12: no loop accepted (its true loop is 1)
-    run.write_tables([(10, np.array([[2, 0.9, 30, 60], [3, 0.8, 20, 10]]), 2),
-                      (11, np.array([[5, 0.7, 25, 55]]), 5),
-                      (12, np.array([[1, 0.6, 10, 5]]), -1)])
+    # rows: frame id, cosine, matches, inliers, temporal score, confidence
+    run.write_tables([(10, np.array([[2, 0.9, 30, 60, 0.9, 6.0], [3, 0.8, 20, 10, 0.8, 1.0]]), 2),
+                      (11, np.array([[5, 0.7, 25, 55, 0.7, 5.5]]), 5),
+                      (12, np.array([[1, 0.6, 10, 5, 0.6, 0.5]]), -1)])
     run.write_summary({"loops": 2, "ms_per_frame": {"total": {"median": 12.0, "p90": 20.0}}})  # no "ground_truth"
     gt = np.array([[10, 2], [11, 4], [12, 1]])
     m = run_metrics(tmp_path, gt, min_matches=5)

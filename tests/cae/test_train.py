@@ -142,6 +142,9 @@ class TestMain:
         codes = cae.encode_images(enc, [sample_image(0), sample_image(1)])
         assert codes.shape == (2, 4096) and np.isfinite(codes).all()
         assert isinstance(cae.load_autoencoder(out / "best.pt", device="cpu"), cae.ConvAutoencoder)
+        # the code normalisation fitted on the training images travels with the weights
+        assert enc.whitening is not None and enc.whitening.dim == 3  # 12 images: a quarter of them
+        assert s["whitening"] == {"dim": 3, "fitted_on": 12}
 
     def test_max_images_subset(self, images12, tmp_path):
         s = main(images12, tmp_path / "run", {**SMALL, "epochs": 1, "max_images": 4})

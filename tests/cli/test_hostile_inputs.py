@@ -31,7 +31,7 @@ from retrieval.run_folder import RunFolder
 
 REPO = Path(__file__).parents[2]
 FRAMES = [*range(0, 8), *range(50, 58)]  # sample frames: 8 first-pass, 8 revisiting them (loops 8.. -> 0..)
-CONF = "search: {exclude_recent: 8}\n"
+CONF = "search: {exclude_recent: 8}\ncalibration: {enabled: false}  # 16 frames are too few to calibrate on\n"
 
 
 def run_cli(args, capsys):

@@ -46,15 +46,14 @@ def independent_counts(run, gt_file=SAMPLE_DIR / "loops.txt"):
     by_query = {}
     for r in read_rows(run / "candidates.csv"):
         by_query.setdefault(int(r["query"]), []).append(
-            (int(r["candidate"]), float(r["score"]), int(r["matches"]), int(r["inliers"])))
+            (int(r["candidate"]), float(r["seq_score"]), float(r["confidence"]), int(r["inliers"])))
     recall_k = {}
-    for k in (1, 5, 10):
+    for k in (1, 5, 10):  # the run's ranking: the temporal score
         hits = {q for q, cs in by_query.items()
                 if any((q, c) in gt for c, *_ in sorted(cs, key=lambda c: -c[1])[:k])}
         recall_k[str(k)] = len(hits & positives) / len(positives)
-    eligible = {q: [c for c in cs if c[2] >= 5] for q, cs in by_query.items()}  # policy.min_matches = 5
-    best = {q: max(cs, key=lambda c: (c[3], c[2], c[1])) for q, cs in eligible.items() if cs}
-    best = [(c[3], (q, c[0]) in gt) for q, c in best.items()]
+    best = {q: max(cs, key=lambda c: (c[2], c[3], c[1])) for q, cs in by_query.items() if cs}  # by confidence
+    best = [(c[2], (q, c[0]) in gt) for q, c in best.items()]
     r100 = 0
     for score in sorted({s for s, _ in best}, reverse=True):
         chosen = [ok for s, ok in best if s >= score]
@@ -167,10 +166,12 @@ class TestCli:
 class TestHandBuiltRuns:
     def write_run(self, d: Path, loops=(), cands=()):
         d.mkdir(parents=True, exist_ok=True)
-        (d / "loops.csv").write_text("query,match,score,matches,inliers\n" + "".join(
-            ",".join(map(str, r)) + "\n" for r in loops))
-        (d / "candidates.csv").write_text("query,candidate,score,matches,inliers,accepted\n" + "".join(
-            ",".join(map(str, r)) + "\n" for r in cands))
+        # rows (query, match, cosine, matches, inliers[, accepted]): temporal score = cosine, confidence = inliers
+        (d / "loops.csv").write_text("query,match,score,matches,inliers,seq_score,confidence\n" + "".join(
+            ",".join(map(str, (*r, r[2], r[4]))) + "\n" for r in loops))
+        (d / "candidates.csv").write_text("query,candidate,score,matches,inliers,seq_score,confidence,accepted\n"
+                                          + "".join(",".join(map(str, (*r[:5], r[2], r[4], r[5]))) + "\n"
+                                                    for r in cands))
         (d / "summary.json").write_text(json.dumps({"frames": 100}))
         return d
 
@@ -201,7 +202,7 @@ class TestHandBuiltRuns:
         assert r["retrieval"]["recall_at_k"] == pytest.approx({"1": 1 / 50, "5": 2 / 50, "10": 2 / 50})
 
     def test_malformed_csv(self, tmp_path):
-        (tmp_path / "loops.csv").write_text("query,match\n1,2\n")
+        (tmp_path / "loops.csv").write_text("query,score\n1,2\n")
         with pytest.raises(ConfigError, match="missing column"):
             evaluate.main(tmp_path, SAMPLE_DIR / "loops.txt")
         (tmp_path / "loops.csv").write_text("query,match,score,matches,inliers\n1,x,0,0,0\n")

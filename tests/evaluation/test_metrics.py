@@ -12,8 +12,10 @@ GT = np.array([[10, 0], [10, 1], [11, 1], [12, 2]])  # 3 queries with a true loo
 
 
 def cand(*rows):
-    """rows of (query, candidate, cosine, matches, inliers)."""
-    return np.array(rows, np.float64).reshape(-1, 5)
+    """rows of (query, candidate, cosine, matches, inliers) -> CANDIDATE_COLUMNS rows (temporal score = cosine,
+    confidence = inliers, not accepted)."""
+    r = np.array(rows, np.float64).reshape(-1, 5)
+    return np.column_stack([r, r[:, 2], r[:, 4], np.zeros(len(r))])
 
 
 class TestCorrectMask:

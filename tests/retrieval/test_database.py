@@ -26,7 +26,7 @@ def records(sift_features, sample_seq, encoder, sample_image):
         recs.append(KeyframeRecord(
             frame_id=i, code=code, features=feats, timestamp=float(sample_seq.timestamps[i]),
             pose=sample_seq.poses[i] if n != 1 else None, source=f"{i:06d}.jpg", edge_ratio=0.1 + n,
-            candidates=np.array([[0, 0.9, 12, 8]]) if n == 1 else None, loop=0 if n == 1 else -1))
+            candidates=np.array([[0, 0.9, 12, 8, 0.5, 3.0]]) if n == 1 else None, loop=0 if n == 1 else -1))
     return recs
 
 
@@ -69,8 +69,8 @@ class TestKeyframeDatabase:
             else:
                 np.testing.assert_array_equal(got.pose, rec.pose)
                 assert got.pose.shape == (3, 4)
-        np.testing.assert_array_equal(back[1].candidates, [[0, 0.9, 12, 8]])
-        assert back[0].candidates.shape == (0, 4)
+        np.testing.assert_array_equal(back[1].candidates, [[0, 0.9, 12, 8, 0.5, 3.0]])
+        assert back[0].candidates.shape == (0, 6)
         # the empty keyframe keeps the right shapes
         assert back[2].features.keypoints.shape == (0, 2) and back[2].features.descriptors.shape == (0, 128)
 
@@ -83,7 +83,7 @@ class TestKeyframeDatabase:
 
     def test_storage_layout(self, db_path, records):
         with h5py.File(db_path, "r") as f:
-            assert int(f.attrs["format_version"]) == FORMAT_VERSION == 2
+            assert int(f.attrs["format_version"]) == FORMAT_VERSION == 3
             assert f.attrs["descriptor"] == ENCODER_ID
             assert sorted(f["keyframes"]) == ["00000003", "00000007", "00000012"]
             grp = f["keyframes/00000003"]

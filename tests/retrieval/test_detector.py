@@ -78,7 +78,7 @@ class TestLoopDetector:
             assert len(r.candidates) <= 10
             # frames younger than exclude_recent (50) are never candidates
             assert all(r.frame_id - c.frame_id >= 50 for c in r.candidates)
-            scores = [c.score for c in r.candidates]
+            scores = [c.seq_score for c in r.candidates]  # hypotheses, best temporal score first
             assert scores == sorted(scores, reverse=True)
             if r.loop is not None:
                 assert r.loop in r.candidates
@@ -97,7 +97,8 @@ class TestLoopDetector:
             assert len(d["candidates"]) == len(r.candidates)
         d = json.loads(json.dumps(loop_frame.to_dict()))
         assert d["loop"] == {"frame_id": loop_frame.loop.frame_id, "score": loop_frame.loop.score,
-                             "matches": loop_frame.loop.matches, "inliers": loop_frame.loop.inliers}
+                             "matches": loop_frame.loop.matches, "inliers": loop_frame.loop.inliers,
+                             "seq_score": loop_frame.loop.seq_score, "confidence": loop_frame.loop.confidence}
         np.testing.assert_allclose(np.array(d["R"]), loop_frame.R)
         assert len(d["t"]) == 3
         assert set(d["ms"]) == set(loop_frame.ms)
@@ -175,7 +176,7 @@ class TestFeatureStoreMode:
 
 class TestCandidate:
     def test_as_row(self):
-        assert Candidate(3, 0.5, 10, 7).as_row() == (3, 0.5, 10, 7)
+        assert Candidate(3, 0.5, 10, 7, 0.4, 2.5).as_row() == (3, 0.5, 10, 7, 0.4, 2.5)
 
 
 REPO = Path(__file__).parents[2]

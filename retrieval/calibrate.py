@@ -1,0 +1,410 @@
+"""Thresholds that adapt to the camera: an a-contrario calibration from pairs known not to be loops.
+
+Before a run, the calibration looks at the sequence itself (``cae-lcd calibrate PATH``, or the first step of
+``cae-lcd detect``) and chooses, with the reasons printed:
+
+1. **The gate's reference**: the median edge ratio of the sequence (``verify.gate``, relative mode).
+2. **The code normalisation**: PCA-whitening fitted on the sequence's own codes (``cae.whitening``); with
+   ``whitening.source: weights``, the one ``cae-lcd train`` fitted on the training images and saved with the weights.
+3. **The null distributions**: frames on the far side of the exclusion window (from half of
+   ``search.exclude_recent`` frames back to just inside it) are close in time, so they share the camera, the light
+   and the season, but the camera has moved on, so they are not loops. Their temporal-filter scores and, for random
+   far-side pairs of sampled queries, their geometric inliers are the null samples. A robust fit anchored on the
+   median and a high percentile (a few contaminating revisits, e.g. a vehicle waiting at a station, do not move
+   it) gives the probability that a non-loop reaches a given value: a Gaussian for the temporal score of a pair (an
+   average of whitened cosines), an exponential tail for the inlier count.
+4. **Which path decides**: where local features can verify (the median frame has at least ``min_features``
+   keypoints), geometry decides: the *inlier path*. Where they are too few (a 64x32 camera), verification is
+   switched off and the summary says so: loops then rest on the normalised code plus temporal consistency, the
+   *score path*. (Geometry is the arbiter where it exists because look-alike streets form look-alike sequences:
+   on KITTI 00, a street 60 m on scores like a revisit along 10 frames, and only geometry tells them apart.)
+5. **The threshold**, a-contrario: a candidate is accepted when the expected number of false loops at its strength
+   over the whole run, ``NFA = tests * P_null(>= value)``, is at most ``expected_false_loops / 2`` (the score path
+   tests every query against every keyframe; the inlier path tests ``k`` candidates per query). The
+   ``confidence`` of a candidate is ``-log10 NFA`` (the larger the surer); it is what ``loops.csv`` ranks by.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterable
+
+import h5py
+import numpy as np
+from tqdm import tqdm
+
+from cae.whitening import MIN_FIT_CODES, Whitening
+from core.conf import ConfigError
+from core.errors import DatabaseError
+from core.files import atomic_write
+from verify.features import create_extractor
+from verify.gate import EdgeGate
+from verify.verifier import create_verifier
+
+from .descriptors import GlobalDescriptor
+from .temporal import TemporalFilter
+
+__all__ = ["Calibration", "TooFewFrames", "CALIBRATION_FORMAT", "calibrate", "calibration_frames", "CodeTable"]
+
+log = logging.getLogger(__name__)
+
+CALIBRATION_FORMAT = 1  #: ``format_version`` of calibration.h5
+_LN10 = math.log(10.0)
+
+
+@dataclass
+class Calibration:
+    """What the calibration chose for one camera and sequence (see the module doc).
+
+    Attributes:
+        edge_reference: the sequence's median edge ratio (the relative gate's reference); None = not measured.
+        whitening: the code normalisation, or None (raw cosine).
+        score_null: ``{"median", "sigma", "samples"}`` of the null temporal scores (a Gaussian through their median
+            and 90th percentile); empty = the score path is off.
+        inlier_null: ``{"q50", "q75", "beta", "floor", "samples"}`` of the null inlier counts (``floor``: the
+            fewest inliers ever accepted); empty = no verification, the score path decides.
+        tests: ``{"score": pairs, "inliers": pairs}`` the run will test (the NFA's multiplier).
+        expected_false_loops: the a-contrario target over the whole run.
+        notes: one line per choice, saying why (printed, and kept in the summary).
+        descriptor: identity of the global descriptor (weights) it was made with; a run with other weights refuses it.
+    """
+
+    edge_reference: float | None = None
+    whitening: Whitening | None = None
+    score_null: dict[str, float] = field(default_factory=dict)
+    inlier_null: dict[str, float] = field(default_factory=dict)
+    tests: dict[str, float] = field(default_factory=dict)
+    expected_false_loops: float = 0.1
+    notes: list[str] = field(default_factory=list)
+    descriptor: str = ""
+
+    @property
+    def path(self) -> str:
+        """``"inliers"`` where local verification decides, ``"score"`` where the global code and temporal
+        consistency do (too few local features), ``"none"`` for an empty calibration."""
+        return "inliers" if self.inlier_null else "score" if self.score_null else "none"
+
+    def confidence(self, seq_score: float, inliers: int) -> float:
+        """``-log10 NFA`` of a candidate on the deciding path (``-inf`` when it has no evidence there)."""
+        if self.path == "inliers":
+            return self.inlier_confidence(inliers)
+        return self.score_confidence(seq_score)
+
+    @property
+    def accept_at(self) -> float:
+        """The confidence a loop needs: NFA <= expected_false_loops / 2 on its path."""
+        return -math.log10(self.expected_false_loops / 2)
+
+    def score_confidence(self, score: float) -> float:
+        """``-log10 NFA`` of a temporal score (``-inf`` when the score path is off)."""
+        n = self.score_null
+        if not n:
+            return -math.inf
+        return -(math.log10(self.tests["score"]) + _gaussian_log10_sf((score - n["median"]) / n["sigma"]))
+
+    def inlier_confidence(self, inliers: int) -> float:
+        """``-log10 NFA`` of an inlier count (``-inf`` when verification is off or the check did not run)."""
+        n = self.inlier_null
+        if not n or inliers < 0:
+            return -math.inf
+        if inliers < n["floor"]:
+            return -math.inf
+        log10_p = min(0.0, math.log10(0.25) - (inliers - n["q75"]) / n["beta"] / _LN10)
+        return -(math.log10(self.tests["inliers"]) + log10_p)
+
+    def thresholds(self) -> dict[str, float | None]:
+        """The smallest temporal score or inlier count that is accepted (None for the path that does not decide)."""
+        out: dict[str, float | None] = {"score": None, "inliers": None}
+        a = self.accept_at
+        if self.path == "score":
+            lo, hi = self.score_null["median"], self.score_null["median"] + 100 * self.score_null["sigma"]
+            for _ in range(60):
+                mid = (lo + hi) / 2
+                lo, hi = (lo, mid) if self.score_confidence(mid) >= a else (mid, hi)
+            out["score"] = hi
+        if self.inlier_null:
+            x = int(self.inlier_null["floor"])
+            while self.inlier_confidence(x) < a:
+                x += 1
+            out["inliers"] = x
+        return out
+
+    def identity(self) -> str:
+        """A short text that changes when any choice changes (stored in the keyframe database)."""
+        body = json.dumps([self.edge_reference, self.score_null, self.inlier_null, self.tests,
+                           self.expected_false_loops], sort_keys=True)
+        h = hashlib.sha256(body.encode() + (self.whitening.identity().encode() if self.whitening else b""))
+        return h.hexdigest()[:16]
+
+    def save(self, path: str | Path) -> None:
+        """Writes ``calibration.h5`` (temporary file, then rename)."""
+        meta = {"edge_reference": self.edge_reference, "score_null": self.score_null,
+                "inlier_null": self.inlier_null, "tests": self.tests,
+                "expected_false_loops": self.expected_false_loops, "notes": self.notes, "descriptor": self.descriptor}
+        with atomic_write(path, "wb") as f:
+            with h5py.File(f, "w") as h5:
+                h5.attrs["format_version"] = CALIBRATION_FORMAT
+                h5.attrs["calibration"] = json.dumps(meta)
+                if self.whitening is not None:
+                    grp = h5.create_group("whitening")
+                    for key, value in self.whitening.state().items():
+                        grp.create_dataset(key, data=value)
+
+    @classmethod
+    def load(cls, path: str | Path) -> "Calibration":
+        """Reads ``calibration.h5``.
+
+        Raises:
+            DatabaseError: the file cannot be read or is damaged; ConfigError: another format version.
+        """
+        try:
+            with h5py.File(path, "r") as h5:
+                version = int(h5.attrs["format_version"])
+                if version != CALIBRATION_FORMAT:
+                    raise ConfigError(f"{path} has format_version {version}; this software reads "
+                                      f"{CALIBRATION_FORMAT}: calibrate again")
+                meta = json.loads(h5.attrs["calibration"])
+                white = None
+                if "whitening" in h5:
+                    white = Whitening.from_state({k: h5["whitening"][k][()] for k in h5["whitening"]}, str(path))
+        except ConfigError:
+            raise
+        except (OSError, KeyError, ValueError, TypeError) as err:
+            raise DatabaseError(f"cannot read the calibration {path} ({type(err).__name__}); it is damaged: "
+                                "move it away to calibrate again") from None
+        return cls(meta["edge_reference"], white, meta["score_null"], meta["inlier_null"], meta["tests"],
+                   meta["expected_false_loops"], list(meta["notes"]), str(meta.get("descriptor", "")))
+
+
+class TooFewFrames(ConfigError):
+    """The sequence is too short to calibrate on (``detect`` then falls back to the fixed policy, with a warning)."""
+
+
+def _gaussian_log10_sf(z: float) -> float:
+    """``log10 P(Z >= z)`` for a standard normal, accurate far into the tail."""
+    if z < 8:
+        return math.log10(max(0.5 * math.erfc(z / math.sqrt(2.0)), 1e-300))
+    return (-0.5 * z * z - math.log(z * math.sqrt(2 * math.pi))) / _LN10
+
+
+class CodeTable:
+    """Normalised codes by frame id, as a ``temporal.SimilaritySource`` (NaN for frames not stored)."""
+
+    def __init__(self, dim: int, searchable: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
+        self.dim = dim
+        self._rows: dict[int, int] = {}
+        self._codes = np.zeros((0, dim), np.float32)
+        self._n = 0
+        self._searchable = searchable
+
+    def add(self, frame_id: int, code: np.ndarray) -> None:
+        if self._n == len(self._codes):
+            grown = np.zeros((max(64, 2 * len(self._codes)), self.dim), np.float32)
+            grown[: self._n] = self._codes[: self._n]
+            self._codes = grown
+        self._codes[self._n] = code
+        self._rows[int(frame_id)] = self._n
+        self._n += 1
+
+    def remove_last(self, frame_id: int) -> None:
+        """Undoes the last ``add`` (of ``frame_id``), e.g. when the database refused the frame."""
+        if self._rows.get(int(frame_id)) == self._n - 1:
+            del self._rows[int(frame_id)]
+            self._n -= 1
+
+    def __contains__(self, frame_id: int) -> bool:
+        return int(frame_id) in self._rows
+
+    def pairs(self, queries: np.ndarray, refs: np.ndarray) -> np.ndarray:
+        rq = np.array([self._rows.get(int(i), -1) for i in queries], np.int64)
+        rr = np.array([self._rows.get(int(i), -1) for i in refs], np.int64)
+        out = np.full(len(rq), np.nan, np.float32)
+        ok = (rq >= 0) & (rr >= 0)
+        if ok.any():
+            out[ok] = np.einsum("ij,ij->i", self._codes[rq[ok]], self._codes[rr[ok]])
+        return out
+
+    def searchable(self, refs: np.ndarray) -> np.ndarray:
+        refs = np.asarray(refs, np.int64)
+        if self._searchable is not None:
+            return self._searchable(refs)
+        return np.array([int(r) in self._rows for r in refs], bool)
+
+
+# ------------------------------------------------------------------------------------------------- the calibration
+def calibration_frames(n_frames: int, window: int, length: int, max_frames: int) -> np.ndarray:
+    """Frame indices the calibration reads: all of them, or contiguous blocks spread over a long sequence.
+
+    Each block holds ``window + length`` frames, enough for the far-side pairs of its last queries.
+    """
+    if n_frames <= max_frames:
+        return np.arange(n_frames)
+    block = min(max_frames, window + length + 32)
+    starts = np.linspace(0, n_frames - block, max(1, max_frames // block)).astype(int)
+    return np.unique(np.concatenate([np.arange(s, s + block) for s in starts]))
+
+
+def _encode_all(frames: Iterable[tuple[int, np.ndarray]], gate: EdgeGate, descriptor: GlobalDescriptor,
+                progress: bool) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray], float]:
+    """Pass over the frames: edge ratios first (the reference), then codes of the frames that pass the gate."""
+    images: dict[int, np.ndarray] = {}
+    ratios = {}
+    for fid, image in tqdm(frames, desc="calibrate: read", unit="frame", disable=not progress, leave=False):
+        images[fid] = image
+        ratios[fid] = gate.edge_ratio(image)
+    reference = float(np.median(list(ratios.values()))) if ratios else 0.0
+    gate.reference = reference
+    codes = {}
+    for fid in tqdm(list(images), desc="calibrate: encode", unit="frame", disable=not progress, leave=False):
+        if not gate.conf["enabled"] or ratios[fid] >= gate.threshold:
+            codes[fid] = descriptor(images[fid])
+    return images, codes, reference
+
+
+def _null_scores(ids: np.ndarray, table: CodeTable, filt: TemporalFilter, window: int) -> np.ndarray:
+    """``(query, ref, score)`` rows for every far-side pair: ``window // 2 <= query - ref < window``."""
+    rows = []
+    present = set(ids.tolist())
+    for q in ids:
+        refs = np.array([r for r in range(q - window + 1, q - window // 2 + 1) if r in present], np.int64)
+        if len(refs):
+            scores = filt.score(np.full(len(refs), q, np.int64), refs, table)
+            rows.append(np.column_stack([np.full(len(refs), q), refs, scores]))
+    return np.concatenate(rows) if rows else np.zeros((0, 3))
+
+
+def _tail_fit(values: np.ndarray) -> tuple[float, float, float]:
+    """Robust ``(median, q90, q90 - median)`` of null samples (up to ~10% of them may be contaminated)."""
+    q50, q90 = np.quantile(values, [0.5, 0.9])
+    return float(q50), float(q90), float(q90 - q50)
+
+
+def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dict[str, Any],
+              descriptor: GlobalDescriptor, filt: TemporalFilter, K: np.ndarray | None = None,
+              progress: bool = True) -> Calibration:
+    """Calibrates on a sequence's frames (see the module doc).
+
+    Args:
+        frames: ``(frame_id, image)`` in frame order (``calibration_frames`` says which to give).
+        n_frames: frames in the whole sequence (the number of tests grows with it).
+        conf: the detector's resolved conf (``retrieval.detector.resolve_conf``).
+        descriptor: the global descriptor the run uses (raw codes; the whitening is fitted here).
+        filt: the run's temporal filter (its ``score`` is the score path's statistic).
+        K: ``(3, 3)`` intrinsics for the geometric check, or None.
+
+    Raises:
+        ConfigError: too few usable frames, or an exclusion window too short to hold null pairs.
+    """
+    cc, window = conf["calibration"], conf["search"]["exclude_recent"]
+    if window < 4:
+        raise ConfigError(f"calibration needs search.exclude_recent >= 4 frames (its far side holds the pairs known "
+                          f"not to be loops); got {window}. Set calibration.enabled: false to use fixed thresholds")
+    t0 = time.perf_counter()
+    gate = EdgeGate(conf["gate"])
+    images, raw, reference = _encode_all(frames, gate, descriptor, progress)
+    if len(raw) < max(MIN_FIT_CODES, window):
+        raise TooFewFrames(f"calibration needs at least {max(MIN_FIT_CODES, window)} frames that pass the gate; "
+                           f"got {len(raw)} of {len(images)}")
+    cal = Calibration(expected_false_loops=cc["expected_false_loops"], descriptor=descriptor.identity)
+    if gate.conf["mode"] == "relative":
+        cal.edge_reference = reference
+        cal.notes.append(f"gate: median edge ratio {reference:.3f}; frames under {gate.threshold:.3f} "
+                         f"({gate.conf['relative']:g} x median) are gated: {len(images) - len(raw)} of {len(images)}")
+    ids = np.array(sorted(raw), np.int64)
+    codes = np.stack([raw[i] for i in ids])
+    cal.whitening = _whitening(conf["whitening"], descriptor, codes, cal.notes)
+    normed = cal.whitening.transform(codes) if cal.whitening is not None else codes
+    table = CodeTable(normed.shape[1])
+    for fid, code in zip(ids, normed):
+        table.add(int(fid), code)
+    null = _null_scores(ids, table, filt, window)
+    if len(null) < 20:
+        raise TooFewFrames(f"calibration found only {len(null)} far-side pairs; give a longer sequence or a larger "
+                           "search.exclude_recent")
+    n_keyframes = max(len(ids) * n_frames / max(len(images), 1), 2.0)
+    cal.tests = {"score": max(n_keyframes, (n_keyframes - window) ** 2 / 2),  # every query against every keyframe
+                 "inliers": n_keyframes * conf["search"]["k"]}
+    _score_path(cal, null)
+    _inlier_path(cal, conf, images, null, K, progress)
+    for key, value in cal.thresholds().items():
+        if value is not None:
+            cal.notes.append(f"accept: {key} >= {value:.4g} (expected false loops over the run "
+                             f"<= {cal.expected_false_loops:g} / 2)")
+    cal.notes.append(f"calibrated on {len(images)} frames in {time.perf_counter() - t0:.1f} s")
+    for line in cal.notes:
+        log.info("calibration: %s", line)
+    return cal
+
+
+def _whitening(wconf: dict[str, Any], descriptor: GlobalDescriptor, codes: np.ndarray,
+               notes: list[str]) -> Whitening | None:
+    if not wconf["enabled"]:
+        notes.append(f"codes: raw {codes.shape[1]}-d cosine (whitening.enabled: false)")
+        return None
+    carried = getattr(descriptor, "whitening", None)
+    if wconf["source"] == "weights" and carried is not None:
+        notes.append(f"codes: whitened to {carried.dim}-d by the whitening saved with the weights "
+                     f"(fitted on {carried.fitted_on} training images)")
+        return carried
+    if wconf["source"] == "weights":
+        raise ConfigError("whitening.source is 'weights' but the weights carry no whitening; train with "
+                          "cae-lcd train (it saves one) or use source 'auto'")
+    white = Whitening.fit(codes, wconf["dim"], wconf["shrink"])
+    notes.append(f"codes: whitened to {white.dim}-d, fitted on this sequence's {len(codes)} codes "
+                 f"(shrink {wconf['shrink']:g})")
+    return white
+
+
+def _score_path(cal: Calibration, null: np.ndarray) -> None:
+    """A Gaussian through the median and the 90th percentile of the far-side pairs' temporal scores."""
+    scores = null[:, 2]
+    q50, q90, spread = _tail_fit(scores)
+    sigma = max(spread / 1.2816, 1e-4)
+    cal.score_null = {"median": q50, "sigma": sigma, "samples": float(len(scores))}
+    cal.notes.append(f"score null: {len(scores)} far-side pairs, median {q50:.4f}, sigma {sigma:.4f} "
+                     f"(90th percentile {q90:.4f}, max {scores.max():.4f}); {cal.tests['score']:.3g} pairs tested "
+                     "in the run")
+
+
+def _inlier_path(cal: Calibration, conf: dict[str, Any], images: dict[int, np.ndarray], null: np.ndarray,
+                 K: np.ndarray | None, progress: bool) -> None:
+    """Verifies the hardest far-side pair of sampled queries; fits the inlier null or switches verification off."""
+    cc = conf["calibration"]
+    if cc["verification"] == "off":
+        cal.notes.append("verification: off (calibration.verification)")
+        return
+    extractor = create_extractor(conf["features"])
+    verifier = create_verifier(conf["matcher"], conf["geometry"])
+    queries = np.unique(null[:, 0]).astype(np.int64)
+    picks = queries[np.unique(np.linspace(0, len(queries) - 1, min(len(queries), cc["null_pairs"])).astype(int))]
+    feats: dict[int, Any] = {}
+    inliers, keypoints = [], []
+    rng = np.random.default_rng(0)  # the same pairs every time: a resumed or repeated calibration agrees
+    for q in tqdm(picks, desc="calibrate: verify", unit="pair", disable=not progress, leave=False):
+        refs = null[null[:, 0] == q, 1]
+        r = int(refs[rng.integers(len(refs))])
+        for fid in (int(q), r):
+            if fid not in feats:
+                feats[fid] = extractor.extract(images[fid])
+                keypoints.append(len(feats[fid]))
+        check = verifier.verify(feats[int(q)], [feats[r]], K, 0, 0, True)[0]
+        inliers.append(max(check.inliers, 0))
+    median_kp = float(np.median(keypoints))
+    if cc["verification"] == "auto" and median_kp < cc["min_features"]:
+        cal.notes.append(f"verification: off, local features too few to verify (median {median_kp:.0f} keypoints "
+                         f"per frame < calibration.min_features {cc['min_features']}); loops rest on the normalised "
+                         "code and temporal consistency")
+        return
+    x = np.asarray(inliers, np.float64)
+    q50, q75 = (float(v) for v in np.quantile(x, [0.5, 0.75]))
+    beta = max((q75 - q50) / math.log(2.0), 1.0)  # exponential tail through the median and the 75th percentile
+    cal.inlier_null = {"q50": q50, "q75": q75, "beta": beta, "floor": float(cc["min_inliers"]),
+                       "samples": float(len(x))}
+    cal.notes.append(f"inlier null: {len(x)} random far-side pairs verified, median {q50:.0f}, 75th percentile "
+                     f"{q75:.0f} inliers (median {median_kp:.0f} keypoints per frame)")

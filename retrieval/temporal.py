@@ -1,0 +1,152 @@
+"""Temporal consistency: one frame's candidates judged with the frames before it (a sequence of matches).
+
+A true revisit is a stretch of frames that match a stretch of the map in order; a look-alike place matches one
+frame. A temporal filter turns the single-frame candidates of each query into *hypotheses* ``(query, keyframe)``
+with a score that uses the recent past. Filters plug in by name (conf section ``temporal``):
+
+- ``sequence``: the mean similarity along a straight line of the query-vs-map similarity matrix over the last
+  ``length`` frames (SeqSLAM's constant-velocity sequence match), one line per velocity in ``velocities``. Its
+  hypotheses are the current candidates plus the recent frames' candidates carried forward at each velocity, so a
+  loop keeps its hypothesis while single-frame retrieval misses it. Missing terms (gated frames, the map's start)
+  count as 0, so a short sequence never scores like a long one.
+- ``none``: the single-frame cosine score (the paper).
+
+MILD's Bayesian filter over loop hypotheses implements the same interface (``TemporalFilter``).
+
+The interface, shapes included::
+
+    filt.update(query_id, candidate_ids (m,) int64, source) -> (hypothesis_ids (h,) int64, scores (h,) float32)
+    filt.commit(query_id, kept_ids (j,) int64)     # the hypotheses the caller kept (carried to later frames)
+    filt.score(query_ids (n,), ref_ids (n,), source) -> (n,) float32   # any pairs (the calibration's null)
+
+``source`` is a ``SimilaritySource``: ``pairs(queries (n,), refs (n,)) -> (n,) float32`` similarities of stored
+frames (NaN where a frame is not stored) and ``searchable(refs (n,)) -> (n,) bool``. Hypotheses come back best
+first; an empty candidate list with no recent history gives ``(0,)`` arrays.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from typing import Any, Protocol
+
+import numpy as np
+
+from core.conf import Floats, Int, Registry, configure
+
+__all__ = ["SimilaritySource", "TemporalFilter", "SequenceFilter", "NoFilter", "FILTERS", "create_filter"]
+
+
+class SimilaritySource(Protocol):
+    def pairs(self, queries: np.ndarray, refs: np.ndarray) -> np.ndarray:
+        """Similarity of each ``(queries[i], refs[i])``; NaN where either frame is not stored."""
+
+    def searchable(self, refs: np.ndarray) -> np.ndarray:
+        """True where the keyframe may be returned as a loop for the current query."""
+
+
+class TemporalFilter:
+    """Base: ``update`` one query at a time, in frame order; ``reset`` forgets the history."""
+
+    default_conf: dict[str, Any] = {"name": ""}
+    conf_rules: dict[str, Any] = {}
+
+    def __init__(self, conf: dict[str, Any] | None = None) -> None:
+        self.conf = configure(self, conf, "temporal")
+
+    def update(self, query_id: int, candidate_ids: np.ndarray,
+               source: SimilaritySource) -> tuple[np.ndarray, np.ndarray]:
+        raise NotImplementedError
+
+    def commit(self, query_id: int, kept_ids: np.ndarray) -> None:
+        """Records the hypotheses kept for ``query_id`` (a resumed run replays its stored ones here)."""
+
+    def reset(self) -> None:
+        """Forgets the recent history (e.g. after a gap in the stream)."""
+
+    def score(self, query_ids: np.ndarray, ref_ids: np.ndarray, source: SimilaritySource) -> np.ndarray:
+        """The filter's score of given ``(query, keyframe)`` pairs, ``(n,)`` -> ``(n,)`` (calibration uses it)."""
+        raise NotImplementedError
+
+
+FILTERS: Registry[TemporalFilter] = Registry("temporal filter")
+
+
+@FILTERS.register("none")
+class NoFilter(TemporalFilter):
+    """Single-frame scores: the hypotheses are the candidates themselves."""
+
+    default_conf: dict[str, Any] = {"name": "none"}  # temporal filter, by registry name
+
+    def update(self, query_id: int, candidate_ids: np.ndarray,
+               source: SimilaritySource) -> tuple[np.ndarray, np.ndarray]:
+        ids = np.asarray(candidate_ids, np.int64).reshape(-1)
+        return _ranked(ids, self.score(np.full(len(ids), query_id), ids, source))
+
+    def score(self, query_ids: np.ndarray, ref_ids: np.ndarray, source: SimilaritySource) -> np.ndarray:
+        return np.nan_to_num(source.pairs(np.asarray(query_ids, np.int64), np.asarray(ref_ids, np.int64)), nan=0.0)
+
+
+@FILTERS.register("sequence")
+class SequenceFilter(TemporalFilter):
+    """Constant-velocity sequence matching with hypotheses carried forward (see the module doc)."""
+
+    default_conf: dict[str, Any] = {
+        "name": "sequence",  # temporal filter, by registry name
+        "length": 10,  # frames in a sequence match (the query and the length - 1 before it)
+        "velocities": [1.0],  # map frames advanced per query frame, one hypothesis line each (-1: reverse revisit)
+        "max_hypotheses": 64,  # hypotheses kept per query, best first
+    }
+    conf_rules: dict[str, Any] = {"length": Int(1, 1000), "velocities": Floats(-10, 10),
+                                  "max_hypotheses": Int(1, 100_000)}
+
+    def __init__(self, conf: dict[str, Any] | None = None) -> None:
+        super().__init__(conf)
+        self._recent: deque[tuple[int, np.ndarray]] = deque(maxlen=self.conf["length"])
+        self._steps = np.arange(self.conf["length"], dtype=np.float64)
+
+    def reset(self) -> None:
+        self._recent.clear()
+
+    def update(self, query_id: int, candidate_ids: np.ndarray,
+               source: SimilaritySource) -> tuple[np.ndarray, np.ndarray]:
+        cands = np.unique(np.asarray(candidate_ids, np.int64).reshape(-1))
+        carried = [np.rint(ids + v * (query_id - fid)).astype(np.int64)
+                   for fid, ids in self._recent if query_id - fid < self.conf["length"]
+                   for v in self.conf["velocities"]]
+        hyp = np.unique(np.concatenate([cands, *carried])) if carried else cands
+        hyp = hyp[(hyp >= 0) & (hyp < query_id)]
+        if len(hyp):
+            hyp = hyp[source.searchable(hyp)]
+        ids, scores = _ranked(hyp, self.score(np.full(len(hyp), query_id, np.int64), hyp, source))
+        keep = self.conf["max_hypotheses"]
+        return ids[:keep], scores[:keep]
+
+    def commit(self, query_id: int, kept_ids: np.ndarray) -> None:
+        self._recent.append((int(query_id), np.asarray(kept_ids, np.int64).reshape(-1).copy()))
+
+    def score(self, query_ids: np.ndarray, ref_ids: np.ndarray, source: SimilaritySource) -> np.ndarray:
+        """``max over v of (1/length) * sum_i sim(q - i, round(r - v*i))``; unknown terms count 0."""
+        q = np.asarray(query_ids, np.int64).reshape(-1, 1)
+        r = np.asarray(ref_ids, np.int64).reshape(-1, 1)
+        if len(q) == 0:
+            return np.zeros(0, np.float32)
+        best = np.full(len(q), -np.inf)
+        for v in self.conf["velocities"]:
+            qs = (q - self._steps.astype(np.int64)).ravel()
+            rs = np.rint(r - v * self._steps).astype(np.int64).ravel()
+            sims = np.full(len(qs), np.nan, np.float32)
+            ok = (qs >= 0) & (rs >= 0) & (rs < qs)
+            sims[ok] = source.pairs(qs[ok], rs[ok])
+            total = np.nan_to_num(sims, nan=0.0).reshape(len(q), -1).sum(1) / len(self._steps)
+            best = np.maximum(best, total)
+        return best.astype(np.float32)
+
+
+def _ranked(ids: np.ndarray, scores: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    order = np.lexsort((ids, -scores))  # best first; equal scores: older keyframe first (deterministic)
+    return ids[order].astype(np.int64), scores[order].astype(np.float32)
+
+
+def create_filter(conf: dict[str, Any] | None = None) -> TemporalFilter:
+    """The filter named by ``conf["name"]`` (default ``"sequence"``)."""
+    return FILTERS.get((conf or {}).get("name", "sequence"))(conf)

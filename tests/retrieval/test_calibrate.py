@@ -1,0 +1,157 @@
+"""retrieval.calibrate: thresholds chosen from the sequence itself, on the code path users run (``detect``)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from core.errors import ConfigError, DatabaseError
+from evaluation.ground_truth import load_ground_truth
+from evaluation.metrics import precision_recall
+from retrieval.calibrate import Calibration, CodeTable, calibration_frames
+from retrieval.detect import main as detect
+from retrieval.run_folder import RunFolder
+
+
+@pytest.fixture(scope="module")
+def kitti_runs(kitti_sequences, tmp_path_factory):
+    """``detect`` with the default conf (calibration included) on 00, 07 and 90: run folder by name."""
+    runs = {}
+    for name in ("00", "07", "90"):
+        out = tmp_path_factory.mktemp(f"run{name}")
+        detect(kitti_sequences / name, out, progress=False)
+        runs[name] = RunFolder(out)
+    return runs
+
+
+class TestCalibrateOnKitti:
+    @pytest.mark.parametrize("name", ["00", "07"])
+    def test_no_false_loop_without_revisit(self, kitti_runs, name):
+        assert len(kitti_runs[name].read_loops()) == 0
+
+    def test_true_loops_accepted_on_revisit(self, kitti_runs, kitti_sequences):
+        run = kitti_runs["90"]
+        truth = load_ground_truth(kitti_sequences / "90" / "loops.txt")
+        pr = precision_recall(run.read_loops()[:, :2].astype(np.int64), truth.pairs)
+        assert pr.precision == 1.0 and pr.recall >= 0.95
+
+    def test_saved_and_explained(self, kitti_runs):
+        cal = Calibration.load(kitti_runs["00"].calibration)
+        assert cal.whitening is not None and cal.inlier_null and cal.score_null
+        assert any(line.startswith("accept:") for line in cal.notes)
+        summary = kitti_runs["00"].read_summary()
+        assert summary["calibration"]["verification"] is True
+
+    def test_resume_reuses_the_calibration(self, kitti_runs, kitti_sequences):
+        run = kitti_runs["07"]
+        before = run.calibration.read_bytes()
+        detect(kitti_sequences / "07", run.root, progress=False)  # everything already done: tables rewritten
+        assert run.calibration.read_bytes() == before and len(run.read_loops()) == 0
+
+
+class TestCalibrationMath:
+    def cal(self, verification: bool = True) -> Calibration:
+        inl = {"q50": 8.0, "q75": 10.0, "beta": 2.0, "floor": 12.0, "samples": 100.0} if verification else {}
+        return Calibration(score_null={"median": 0.0, "sigma": 0.01, "samples": 100.0}, inlier_null=inl,
+                           tests={"score": 1e4, "inliers": 1e3}, expected_false_loops=0.1)
+
+    def test_score_path_threshold_meets_the_target(self):
+        cal = self.cal(verification=False)
+        t = cal.thresholds()
+        assert cal.path == "score" and t["inliers"] is None
+        assert cal.confidence(t["score"], -1) >= cal.accept_at > cal.confidence(t["score"] - 1e-3, -1)
+        # NFA = tests * P(null >= threshold) <= expected_false_loops / 2
+        assert 1e4 * 0.5 * math.erfc(t["score"] / 0.01 / math.sqrt(2)) <= 0.05 + 1e-9
+
+    def test_inlier_path_decides_where_features_verify(self):
+        cal = self.cal()
+        t = cal.thresholds()
+        assert cal.path == "inliers" and t["score"] is None and t["inliers"] >= 12
+        assert cal.confidence(0.0, t["inliers"]) >= cal.accept_at > cal.confidence(0.99, t["inliers"] - 1)
+        # NFA = tests * 0.25 * exp(-(x - q75) / beta) <= 0.05
+        assert 1e3 * 0.25 * math.exp(-(t["inliers"] - 10.0) / 2.0) <= 0.05
+
+    def test_more_tests_need_more(self):
+        for verification, key in ((False, "score"), (True, "inliers")):
+            a, b = self.cal(verification), self.cal(verification)
+            b.tests = {"score": 1e6, "inliers": 1e5}
+            assert b.thresholds()[key] > a.thresholds()[key]
+
+    def test_off_paths(self):
+        cal = Calibration()
+        assert cal.thresholds() == {"score": None, "inliers": None}
+        assert cal.score_confidence(1.0) == -math.inf and cal.inlier_confidence(500) == -math.inf
+
+    def test_file_round_trip(self, tmp_path):
+        cal = self.cal()
+        cal.notes = ["a", "b"]
+        cal.save(tmp_path / "c.h5")
+        back = Calibration.load(tmp_path / "c.h5")
+        assert back.identity() == cal.identity() and back.notes == ["a", "b"]
+
+    def test_damaged_file(self, tmp_path):
+        (tmp_path / "c.h5").write_bytes(b"not hdf5")
+        with pytest.raises(DatabaseError, match="damaged"):
+            Calibration.load(tmp_path / "c.h5")
+
+
+class TestCalibrationFrames:
+    def test_all_when_short(self):
+        assert list(calibration_frames(100, 50, 10, 2000)) == list(range(100))
+
+    def test_blocks_when_long(self):
+        picks = calibration_frames(100_000, 50, 10, 2000)
+        assert len(picks) <= 2000 and picks[0] == 0 and picks[-1] == 99_999
+        assert np.all(np.diff(picks)[:50] == 1)  # contiguous blocks: far-side pairs exist inside them
+
+
+class TestCodeTable:
+    def test_pairs_and_missing(self):
+        table = CodeTable(2)
+        table.add(3, np.array([1.0, 0.0], np.float32))
+        table.add(5, np.array([0.6, 0.8], np.float32))
+        sims = table.pairs(np.array([5, 5]), np.array([3, 4]))
+        assert sims[0] == pytest.approx(0.6) and np.isnan(sims[1])
+        table.remove_last(5)
+        assert 5 not in table and 3 in table
+
+
+class TestCalibrateRefuses:
+    def test_short_exclusion(self, sample_dir):
+        from retrieval.detect import calibrate_sequence
+        from retrieval.sequences import open_sequence
+        with pytest.raises(ConfigError, match="exclude_recent"):
+            calibrate_sequence(open_sequence(sample_dir), {"search": {"exclude_recent": 2}}, progress=False)
+
+
+class TestShrunkSample:
+    """The bundled sample at 160x120 and 64x32 (``bench.camera.shrunk_sample``), default config."""
+
+    @pytest.mark.parametrize("size,min_recall", [((160, 120), 0.5), ((64, 32), 0.0)])
+    def test_precision_one(self, tmp_path_factory, size, min_recall):
+        from bench.camera import shrunk_sample
+        root = tmp_path_factory.mktemp(f"s{size[0]}")
+        seq = shrunk_sample(root / "seq", size)
+        summary = detect(seq, root / "run", progress=False)
+        truth = load_ground_truth(seq / "loops.txt")
+        pr = precision_recall(RunFolder(root / "run").read_loops()[:, :2].astype(np.int64), truth.pairs)
+        assert pr.precision == 1.0 and pr.recall >= min_recall
+        if size == (64, 32):  # too few SIFT keypoints at 64x32: loops rest on the code and temporal consistency
+            assert summary["calibration"]["verification"] is False
+
+
+class TestCalibrationBelongsToItsWeights:
+    def test_other_weights_refused(self, sample_dir, tmp_path, encoder):
+        from cae.weights import save_checkpoint
+        from retrieval.detect import calibrate_sequence
+        from retrieval.sequences import open_sequence
+        cal = calibrate_sequence(open_sequence(sample_dir), {}, progress=False)
+        assert cal.descriptor == encoder.identity
+        cal.descriptor = "0123456789abcdef"  # as if made with other weights
+        (tmp_path / "run").mkdir()
+        cal.save(tmp_path / "run" / "calibration.h5")
+        with pytest.raises(ConfigError, match="other weights"):
+            detect(sample_dir, tmp_path / "run", progress=False)
+        assert not (tmp_path / "run" / "keyframes.h5").exists()

@@ -1,0 +1,95 @@
+"""retrieval.temporal: the sequence filter on a hand-built similarity sequence."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from core.conf import ConfigError
+from retrieval.temporal import NoFilter, SequenceFilter, create_filter
+
+
+class MatrixSource:
+    """A SimilaritySource over a hand-built (n, n) similarity matrix; every earlier frame is searchable."""
+
+    def __init__(self, sims: np.ndarray) -> None:
+        self.sims = sims
+
+    def pairs(self, queries: np.ndarray, refs: np.ndarray) -> np.ndarray:
+        return self.sims[np.asarray(queries), np.asarray(refs)].astype(np.float32)
+
+    def searchable(self, refs: np.ndarray) -> np.ndarray:
+        return np.ones(len(refs), bool)
+
+
+def revisit_matrix(n: int = 60, start: int = 40, offset: int = 40, true_sim: float = 0.3, spike_at=(50, 5),
+                   spike: float = 0.6, seed: int = 0) -> np.ndarray:
+    """Noise, plus a revisit (query start+i matches map frame start-offset+i) and one look-alike spike."""
+    rng = np.random.default_rng(seed)
+    sims = rng.normal(0, 0.05, (n, n))
+    for q in range(start, n):
+        sims[q, q - offset] = true_sim
+    sims[spike_at] = spike
+    return sims
+
+
+class TestSequenceFilter:
+    def test_a_sequence_beats_a_single_look_alike(self):
+        sims = revisit_matrix()
+        src, filt = MatrixSource(sims), SequenceFilter({"length": 5})
+        for q in range(40, 51):
+            ids, scores = filt.update(q, np.array([q - 40, 5]), src)
+            filt.commit(q, ids[:10])
+        # at query 50 the single-frame spike (0.6 to frame 5) loses to the 11-frame revisit line (0.3 each)
+        assert ids[0] == 10
+        assert scores[0] == pytest.approx(0.3, abs=0.06)
+        assert scores[list(ids).index(5)] < 0.2
+
+    def test_hypotheses_are_carried_when_retrieval_misses(self):
+        sims = revisit_matrix(spike=0.0)
+        src, filt = MatrixSource(sims), SequenceFilter({"length": 5})
+        for q in range(40, 46):
+            ids, _ = filt.update(q, np.array([q - 40]), src)
+            filt.commit(q, ids[:10])
+        ids, scores = filt.update(46, np.array([30]), src)  # single-frame retrieval returns a wrong frame
+        assert ids[0] == 6 and 6 not in (30,)
+
+    def test_missing_terms_count_zero(self):
+        sims = np.full((20, 20), 0.5)
+        filt = SequenceFilter({"length": 10})
+        # ref 2: only refs 2, 1, 0 exist -> 3 of 10 terms
+        assert filt.score(np.array([15]), np.array([2]), MatrixSource(sims))[0] == pytest.approx(0.15)
+
+    def test_reverse_velocity(self):
+        n = 40
+        sims = np.zeros((n, n))
+        for i in range(10):
+            sims[30 + i, 20 - i] = 0.4  # the map traversed backwards
+        src = MatrixSource(sims)
+        fwd = SequenceFilter({"length": 8}).score(np.array([39]), np.array([11]), src)[0]
+        both = SequenceFilter({"length": 8, "velocities": [1.0, -1.0]}).score(np.array([39]), np.array([11]), src)[0]
+        assert fwd < 0.1 and both == pytest.approx(0.4)
+
+    def test_empty(self):
+        ids, scores = SequenceFilter().update(0, np.zeros(0, np.int64), MatrixSource(np.zeros((1, 1))))
+        assert ids.shape == (0,) and scores.shape == (0,)
+
+    def test_conf_checked(self):
+        with pytest.raises(ConfigError, match="velocities"):
+            SequenceFilter({"velocities": []})
+        with pytest.raises(ConfigError, match="length"):
+            SequenceFilter({"length": 0})
+
+
+class TestNoFilter:
+    def test_single_frame_scores(self):
+        sims = revisit_matrix()
+        ids, scores = NoFilter().update(50, np.array([10, 5]), MatrixSource(sims))
+        assert list(ids) == [5, 10] and scores[0] == pytest.approx(0.6)
+
+
+class TestCreateFilter:
+    def test_by_name(self):
+        assert isinstance(create_filter({"name": "none"}), NoFilter)
+        with pytest.raises(ConfigError, match="unknown temporal filter"):
+            create_filter({"name": "bayes2"})
