@@ -10,8 +10,11 @@ with a score that uses the recent past. Filters plug in by name (conf section ``
   loop keeps its hypothesis while single-frame retrieval misses it. Missing terms (gated frames, the map's start)
   count as 0, so a short sequence never scores like a long one.
 - ``none``: the single-frame cosine score (the paper).
-
-MILD's Bayesian filter over loop hypotheses implements the same interface (``TemporalFilter``).
+- ``bayes``: MILD's Bayesian filter (Han & Fang 2017, eq. 4-7; clean-room from the paper): one hypothesis per
+  earlier keyframe plus "no loop"; the prediction spreads each hypothesis over its neighbours ``[i-2, i+2]``
+  (probability ``stay``) or back to "no loop"; the likelihood of hypothesis ``i`` is the z-score of its similarity
+  in the current row (mean and standard deviation of the row) where it exceeds one standard deviation, else 1,
+  and a constant for "no loop". Its scores are posteriors; MILD declares a loop above 0.7.
 
 The interface, shapes included::
 
@@ -31,9 +34,10 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from core.conf import Floats, Int, Registry, configure
+from core.conf import Float, Floats, Int, Registry, configure
 
-__all__ = ["SimilaritySource", "TemporalFilter", "SequenceFilter", "NoFilter", "FILTERS", "create_filter"]
+__all__ = ["SimilaritySource", "TemporalFilter", "SequenceFilter", "NoFilter", "BayesFilter", "FILTERS",
+           "create_filter"]
 
 
 class SimilaritySource(Protocol):
@@ -140,6 +144,69 @@ class SequenceFilter(TemporalFilter):
             total = np.nan_to_num(sims, nan=0.0).reshape(len(q), -1).sum(1) / len(self._steps)
             best = np.maximum(best, total)
         return best.astype(np.float32)
+
+
+@FILTERS.register("bayes")
+class BayesFilter(TemporalFilter):
+    """MILD's Bayesian filter over loop hypotheses (see the module doc). ``update`` wants every searchable keyframe
+    as a candidate (the whole similarity row); hypotheses come back with their posterior, best first."""
+
+    default_conf: dict[str, Any] = {
+        "name": "bayes",  # temporal filter, by registry name
+        "stay": 0.9,  # probability that a loop hypothesis continues (to itself or a neighbour); MILD: 0.9
+        "neighbourhood": 2,  # a hypothesis moves to keyframes at most this far (MILD: [i-2, i+2])
+        "no_loop_likelihood": 1.0,  # likelihood of "no loop" (MILD: a constant)
+        "max_hypotheses": 64,  # hypotheses returned per query, best first
+    }
+    conf_rules: dict[str, Any] = {"stay": Float(0, 1, lo_open=True, hi_open=True), "neighbourhood": Int(0, 100),
+                                  "no_loop_likelihood": Float(0, lo_open=True), "max_hypotheses": Int(1, 100_000)}
+
+    def __init__(self, conf: dict[str, Any] | None = None) -> None:
+        super().__init__(conf)
+        self.reset()
+
+    def reset(self) -> None:
+        self._ids = np.zeros(0, np.int64)  # keyframes with a hypothesis, ascending
+        self._post = np.zeros(0)  # their posterior
+        self._no_loop = 1.0  # posterior of "no loop"
+
+    def _predict(self, ids: np.ndarray) -> tuple[np.ndarray, float]:
+        """Prior over ``ids`` (the current keyframes) and "no loop", from the last posterior."""
+        old = np.zeros(len(ids))
+        if len(self._ids):
+            old[np.searchsorted(ids, self._ids)] = self._post
+        r = self.conf["neighbourhood"]
+        padded = np.pad(old, r)
+        spread = np.max(np.stack([padded[i:i + len(ids)] for i in range(2 * r + 1)]), axis=0) if len(ids) else old
+        stay = self.conf["stay"]
+        prior = stay * spread + (1 - stay) * self._no_loop / max(len(ids), 1)
+        prior_none = stay * self._no_loop + (1 - stay) * (1 - self._no_loop)
+        return prior, prior_none
+
+    def update(self, query_id: int, candidate_ids: np.ndarray,
+               source: SimilaritySource) -> tuple[np.ndarray, np.ndarray]:
+        ids = np.unique(np.asarray(candidate_ids, np.int64).reshape(-1))
+        ids = ids[(ids >= 0) & (ids < query_id)]
+        if len(ids):
+            ids = ids[source.searchable(ids)]
+        if len(ids) == 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.float32)
+        ids = np.union1d(ids, self._ids[self._ids < query_id]).astype(np.int64)
+        sims = np.nan_to_num(source.pairs(np.full(len(ids), query_id, np.int64), ids), nan=0.0)
+        std = sims.std()
+        z = (sims - sims.mean()) / std if std > 0 else np.zeros(len(sims))
+        likelihood = np.where(z > 1.0, z, 1.0)
+        prior, prior_none = self._predict(ids)
+        post = likelihood * prior
+        none = self.conf["no_loop_likelihood"] * prior_none
+        total = post.sum() + none
+        self._ids, self._post, self._no_loop = ids, post / total, none / total
+        ranked_ids, ranked = _ranked(ids, self._post)
+        return ranked_ids[: self.conf["max_hypotheses"]], ranked[: self.conf["max_hypotheses"]]
+
+    def score(self, query_ids: np.ndarray, ref_ids: np.ndarray, source: SimilaritySource) -> np.ndarray:
+        """The similarity itself: a posterior depends on the whole history, not on one pair."""
+        return np.nan_to_num(source.pairs(np.asarray(query_ids, np.int64), np.asarray(ref_ids, np.int64)), nan=0.0)
 
 
 def _ranked(ids: np.ndarray, scores: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

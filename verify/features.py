@@ -20,7 +20,7 @@ import numpy as np
 from core.conf import Bool, ConfigError, Float, Int, Registry, configure
 from core.images import to_gray_u8
 
-__all__ = ["Features", "FeatureExtractor", "SIFT", "FEATURES", "METRICS", "create_extractor"]
+__all__ = ["Features", "FeatureExtractor", "SIFT", "ORB", "FEATURES", "METRICS", "create_extractor"]
 
 METRICS = ("l2", "hamming")  #: descriptor distances the matchers know
 
@@ -124,3 +124,37 @@ def create_extractor(conf: dict[str, Any] | None = None) -> FeatureExtractor:
     """The extractor named by ``conf["name"]`` (default ``"sift"``), configured by the rest of ``conf``."""
     name = (conf or {}).get("name", "sift")
     return FEATURES.get(name)(conf)
+
+
+@FEATURES.register("orb")
+class ORB(FeatureExtractor):
+    """OpenCV ORB (Rublee et al. 2011): 256-bit binary descriptors packed in 32 bytes, compared by Hamming distance.
+
+    MILD (Han & Fang 2017) uses 800 per image."""
+
+    default_conf: dict[str, Any] = {
+        "name": "orb",  # extractor, by registry name
+        "resize_max": None,  # downscale so the longer side is at most this (None: full resolution); never upscales
+        "max_features": 800,  # keep at most this many keypoints, strongest first (MILD: 800)
+        "scale_factor": 1.2,  # pyramid decimation ratio (OpenCV default)
+        "n_levels": 8,  # pyramid levels (OpenCV default)
+        "fast_threshold": 20,  # FAST corner threshold (OpenCV default)
+    }
+    conf_rules: dict[str, Any] = {"resize_max": Int(16, optional=True), "max_features": Int(1),
+                                  "scale_factor": Float(1, 4, lo_open=True), "n_levels": Int(1, 32),
+                                  "fast_threshold": Int(1, 255)}
+    descriptor_dim = 32
+    descriptor_dtype = np.uint8
+    metric = "hamming"
+
+    def __init__(self, conf: dict[str, Any] | None = None) -> None:
+        super().__init__(conf)
+        c = self.conf
+        self._orb = cv2.ORB_create(nfeatures=c["max_features"], scaleFactor=c["scale_factor"], nlevels=c["n_levels"],
+                                   fastThreshold=c["fast_threshold"])
+
+    def _detect(self, gray: np.ndarray) -> tuple[list, np.ndarray | None]:
+        kps, desc = self._orb.detectAndCompute(gray, None)
+        if desc is not None and len(kps) > self.conf["max_features"]:
+            kps, desc = kps[: self.conf["max_features"]], desc[: self.conf["max_features"]]
+        return list(kps), desc

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from core.conf import ConfigError
-from retrieval.temporal import NoFilter, SequenceFilter, create_filter
+from retrieval.temporal import BayesFilter, NoFilter, SequenceFilter, create_filter
 
 
 class MatrixSource:
@@ -93,3 +93,41 @@ class TestCreateFilter:
         assert isinstance(create_filter({"name": "none"}), NoFilter)
         with pytest.raises(ConfigError, match="unknown temporal filter"):
             create_filter({"name": "bayes2"})
+
+
+class TestBayesFilter:
+    def run(self, sims, queries, filt=None):
+        filt = filt or BayesFilter()
+        src = MatrixSource(sims)
+        out = []
+        for q in queries:
+            ids, post = filt.update(q, np.arange(0, max(q - 10, 0)), src)
+            out.append((q, ids, post))
+        return out
+
+    def test_a_consistent_revisit_wins_a_spike_does_not(self):
+        sims = revisit_matrix(n=60, start=40, offset=40, true_sim=0.35, spike_at=(30, 8), spike=0.9)
+        filt, src = BayesFilter(), MatrixSource(sims)
+        for q in range(20, 60):
+            ids, post = filt.update(q, np.arange(0, q - 10), src)
+            if q == 30:  # one look-alike frame: on top, but far from a loop, and "no loop" keeps weight
+                assert ids[0] == 8 and post[0] < 0.3 and filt._no_loop > 0.2
+            if q < 40:
+                assert post[0] < 0.3
+            if q >= 43:  # a few frames along the revisit: its hypothesis leads, "no loop" has faded
+                assert ids[0] == q - 40 and post[0] > max(0.35, 2.5 * post[1]) and filt._no_loop < 0.05
+
+    def test_posteriors_are_probabilities(self):
+        sims, filt = revisit_matrix(), BayesFilter({"max_hypotheses": 1000})
+        for q in range(20, 60):
+            ids, post = filt.update(q, np.arange(0, q - 10), MatrixSource(sims))
+            assert np.all(post >= 0) and post.sum() + filt._no_loop == pytest.approx(1.0, abs=1e-5)
+
+    def test_no_candidates(self):
+        ids, post = BayesFilter().update(5, np.zeros(0, np.int64), MatrixSource(np.zeros((6, 6))))
+        assert ids.shape == (0,) and post.shape == (0,)
+
+    def test_same_interface(self):
+        assert isinstance(create_filter({"name": "bayes"}), BayesFilter)
+        with pytest.raises(ConfigError, match="stay"):
+            BayesFilter({"stay": 1.5})

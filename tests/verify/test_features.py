@@ -122,3 +122,17 @@ class TestCreateExtractor:
         assert "sift" in FEATURES.names()
         with pytest.raises(ConfigError, match="unknown feature extractor 'surf'"):
             create_extractor({"name": "surf"})
+
+
+class TestORB:
+    def test_binary_hamming_features(self, sample_image):
+        from verify.features import ORB, create_extractor
+        f = create_extractor({"name": "orb"}).extract(sample_image(5))
+        assert isinstance(create_extractor({"name": "orb"}), ORB)
+        assert 100 < len(f) <= 800 and f.descriptors.shape == (len(f), 32) and f.descriptors.dtype == np.uint8
+        assert f.metric == "hamming"
+
+    def test_empty_image_right_shapes(self):
+        from verify.features import ORB
+        f = ORB().extract(np.full((64, 64), 128, np.uint8))
+        assert f.keypoints.shape == (0, 2) and f.descriptors.shape == (0, 32) and f.metric == "hamming"
