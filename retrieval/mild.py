@@ -14,7 +14,10 @@ hold one of fewer than ``m`` differing bits), so both agree on close pairs. Hash
 
 Speed: every table is a pair of flat arrays (keys, feature ids) kept sorted by key; a query looks up all its keys
 with one ``np.searchsorted`` per table and scores the compared pairs in one vectorised pass (XOR + popcount by a
-byte table). ``brute_force_similarity`` is the reference the fast path is tested against.
+byte table). A pair found in several tables is counted once, in the first table where it matches (no sort of the
+pairs). Inserted images go to a small sorted tail that is merged into the big sorted tables when it grows past a
+tenth of them, so inserting stays cheap as the map grows. ``brute_force_similarity`` is the reference the fast path
+is tested against.
 
     >>> index = MultiIndexHash(m=16)
     >>> sims = index.query(desc_n)        # (images,) Phi' against every image added so far   # doctest: +SKIP
@@ -77,11 +80,15 @@ class MultiIndexHash:
         if not isinstance(m, int) or m < 1 or DESCRIPTOR_BITS % m or DESCRIPTOR_BITS // m > 62:
             raise ConfigError(f"m must divide 256 into substrings of at most 62 bits; got {m!r}")
         self.m, self.sigma, self.d0, self.max_bucket = m, float(sigma), int(d0), int(max_bucket)
-        self._desc = np.zeros((0, DESCRIPTOR_BITS // 8), np.uint8)
+        self._chunks: list[tuple[np.ndarray, np.ndarray]] = []  # (descriptors, keys) per image, in order
+        self._desc = np.zeros((0, DESCRIPTOR_BITS // 8), np.uint8)  # all features (rebuilt lazily from _chunks)
+        self._keys = np.zeros((0, m), np.int64)  # feature -> its m keys
         self._image_of = np.zeros(0, np.int64)  # feature -> image index
         self._counts: list[int] = []  # features per image
-        self._keys = np.zeros((0, m), np.int64)  # feature -> its m keys (insertion order)
-        self._sorted: list[tuple[np.ndarray, np.ndarray]] | None = None  # per table: (sorted keys, feature ids)
+        self._n_flat = 0  # features already in the flat arrays above
+        self._sorted: list[tuple[np.ndarray, np.ndarray]] = []  # per table: (sorted keys, feature ids)
+        self._n_sorted = 0  # features in the big sorted tables
+        self._tail: list[tuple[np.ndarray, np.ndarray]] = []  # the same for the features added since (small)
 
     @property
     def n_images(self) -> int:
@@ -90,44 +97,80 @@ class MultiIndexHash:
     def add(self, desc: np.ndarray) -> int:
         """Inserts one image's ``(n, 32)`` uint8 descriptors; returns its image index (0, 1, ...)."""
         d = _check_descriptors(desc)
-        self._desc = np.concatenate([self._desc, d])
-        self._image_of = np.concatenate([self._image_of, np.full(len(d), self.n_images, np.int64)])
-        self._keys = np.concatenate([self._keys, _substrings(d, self.m)])
+        self._chunks.append((d.copy(), _substrings(d, self.m)))
         self._counts.append(len(d))
-        self._sorted = None
         return self.n_images - 1
 
-    def _tables(self) -> list[tuple[np.ndarray, np.ndarray]]:
-        if self._sorted is None:
-            self._sorted = []
-            for t in range(self.m):
-                order = np.argsort(self._keys[:, t], kind="stable")
-                self._sorted.append((self._keys[order, t], order))
-        return self._sorted
+    def _flatten(self) -> None:
+        """Moves the images added since the last query into the flat arrays; re-sorts the tables when the unsorted
+        tail has grown past a tenth of the sorted part."""
+        if not self._chunks:
+            return
+        ids = np.repeat(np.arange(len(self._counts) - len(self._chunks), len(self._counts)),
+                        [len(c[0]) for c in self._chunks])
+        self._desc = np.concatenate([self._desc, *(c[0] for c in self._chunks)])
+        self._keys = np.concatenate([self._keys, *(c[1] for c in self._chunks)])
+        self._image_of = np.concatenate([self._image_of, ids])
+        self._chunks = []
+        if len(self._desc) - self._n_sorted > self._n_sorted // 10:
+            self._sorted, self._n_sorted = _sorted_tables(self._keys, 0), len(self._desc)
+        self._tail = _sorted_tables(self._keys[self._n_sorted:], self._n_sorted)
+
+    def _lookup(self, qkeys: np.ndarray, t: int) -> np.ndarray:
+        """``(P, 2)`` (query feature, stored feature) whose key ``t`` is equal (over-full entries skipped)."""
+        found = [np.zeros((0, 2), np.int64)]
+        for tables in (self._sorted, self._tail):
+            if not tables:
+                continue
+            keys, fids = tables[t]
+            lo = np.searchsorted(keys, qkeys[:, t], "left")
+            size = np.searchsorted(keys, qkeys[:, t], "right") - lo
+            if size.any():
+                qi = np.repeat(np.arange(len(qkeys)), size)
+                offsets = np.arange(size.sum()) - np.repeat(np.cumsum(size) - size, size)
+                found.append(np.stack([qi, fids[np.repeat(lo, size) + offsets]], 1))
+        pairs = np.concatenate(found)
+        if self.max_bucket and len(pairs):
+            pairs = pairs[self._bucket_sizes(qkeys[pairs[:, 0], t], t) <= self.max_bucket]
+        return pairs
 
     def compared_pairs(self, desc: np.ndarray) -> np.ndarray:
         """``(P, 2)`` int64 unique ``(query feature, stored feature)`` pairs that share at least one key."""
         d = _check_descriptors(desc)
+        self._flatten()
         if len(d) == 0 or len(self._desc) == 0:
             return np.zeros((0, 2), np.int64)
         qkeys = _substrings(d, self.m)
         found = []
-        for t, (keys, fids) in enumerate(self._tables()):
-            lo = np.searchsorted(keys, qkeys[:, t], "left")
-            hi = np.searchsorted(keys, qkeys[:, t], "right")
-            size = hi - lo
-            if self.max_bucket:
-                size = np.where(size > self.max_bucket, 0, size)
-            if not size.any():
-                continue
-            qi = np.repeat(np.arange(len(d)), size)
-            offsets = np.arange(size.sum()) - np.repeat(np.cumsum(size) - size, size)
-            found.append(np.stack([qi, fids[np.repeat(lo, size) + offsets]], 1))
-        if not found:
-            return np.zeros((0, 2), np.int64)
-        pairs = np.concatenate(found)
-        key = pairs[:, 0] * len(self._desc) + pairs[:, 1]
-        return pairs[np.unique(key, return_index=True)[1]]
+        for t in range(self.m):
+            pairs = self._lookup(qkeys, t)
+            if t and len(pairs):  # counted once: in the first table where the pair matches
+                earlier = np.any(self._keys[pairs[:, 1], :t] == qkeys[pairs[:, 0], :t], axis=1)
+                if self.max_bucket:  # a match in a skipped (over-full) entry did not count there
+                    earlier &= self._counted_before(qkeys, pairs, t)
+                pairs = pairs[~earlier]
+            found.append(pairs)
+        return np.concatenate(found)
+
+    def _counted_before(self, qkeys: np.ndarray, pairs: np.ndarray, t: int) -> np.ndarray:
+        """For pairs found in table ``t``: True where an earlier table matched them in an entry that is not
+        over-full (so they were counted there)."""
+        out = np.zeros(len(pairs), bool)
+        for s in range(t):
+            same = self._keys[pairs[:, 1], s] == qkeys[pairs[:, 0], s]
+            if same.any():
+                sizes = self._bucket_sizes(qkeys[pairs[same, 0], s], s)
+                out[np.flatnonzero(same)[sizes <= self.max_bucket]] = True
+        return out
+
+    def _bucket_sizes(self, keys: np.ndarray, t: int) -> np.ndarray:
+        """Entries of table ``t`` holding each of ``keys`` (sorted part and unsorted tail)."""
+        size = np.zeros(len(keys), np.int64)
+        for tables in (self._sorted, self._tail):
+            if tables:
+                sk = tables[t][0]
+                size += np.searchsorted(sk, keys, "right") - np.searchsorted(sk, keys, "left")
+        return size
 
     def query(self, desc: np.ndarray) -> np.ndarray:
         """Phi'(n, k) of the query image against every stored image, ``(n_images,)`` float64 (eq. 3)."""
@@ -140,6 +183,15 @@ class MultiIndexHash:
         np.add.at(out, self._image_of[pairs[:, 1]], w)
         counts = np.asarray(self._counts, np.float64)
         return out / np.maximum(len(d) * counts, 1.0)
+
+
+def _sorted_tables(keys: np.ndarray, first_id: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per table: the keys sorted, and the feature ids (``first_id`` + row) in that order."""
+    out = []
+    for t in range(keys.shape[1]):
+        order = np.argsort(keys[:, t], kind="stable")
+        out.append((keys[order, t], order + first_id))
+    return out
 
 
 def brute_force_similarity(query: np.ndarray, images: list[np.ndarray], m: int = 16, sigma: float = 30.0,
