@@ -23,7 +23,8 @@ import cv2
 from core.images import read_image
 from retrieval.detect import SAMPLE_DIR
 
-from .common import REPO, detect_run, ground_truth_pairs, md_table, run_metrics
+from .common import REPO, detect_run, ground_truth_pairs, md_table
+from .methods import method_metrics
 from .run import write_section
 
 __all__ = ["STEPS", "shrunk_sample", "main"]
@@ -72,8 +73,9 @@ def main(data: Path, run_dir: Path, out: Path | None, weights: str | None = None
         truth = ground_truth_pairs(seq)
         for i, (label, conf) in enumerate(STEPS.items()):
             log.info("%s: %s", name, label)
-            summary = detect_run(seq, run_dir / f"{seq.name}_{i}", {**base, **conf})
-            res[(name, label)] = m = run_metrics(summary["out"], truth, 5, "confidence")
+            run_conf = {**base, **conf}
+            summary = detect_run(seq, run_dir / f"{seq.name}_{i}", run_conf)
+            res[(name, label)] = m = method_metrics(summary["out"], run_conf, truth)
             rows.append(_row(label, name, m))
     no_loop = {}
     for name in ("00", "07"):

@@ -262,6 +262,17 @@ def _training(b: _Bench) -> None:
                         "sweep on the calibrated confidence. `cae-lcd bench --training-study`.")
 
 
+def _season_frames(root: Path, season: str) -> list[Path]:
+    """The images of one season, as the data set's ``frames.txt`` names them (``index season source``)."""
+    rows = [line.split() for line in (root / "frames.txt").read_text().splitlines()
+            if line.strip() and not line.startswith("#")]
+    frames = sorted((root / "images").glob("*.png"))
+    picked = [frames[int(r[0])] for r in rows if len(r) >= 2 and r[1] == season and int(r[0]) < len(frames)]
+    if not picked:
+        raise ConfigError(f"{root / 'frames.txt'} names no {season} frame")
+    return picked
+
+
 def _season_study(run_dir: Path, d: _Data) -> tuple[Path, Path, str]:
     """Nordland (../shared) and a folder of links to its summer half: train on one season, score on both."""
     nordland = d.loop.parent.parent.parent / "nordland"
@@ -269,7 +280,7 @@ def _season_study(run_dir: Path, d: _Data) -> tuple[Path, Path, str]:
         raise ConfigError(f"the training study needs {nordland} (Nordland, summer and winter)")
     summer = run_dir / "nordland_summer"
     summer.mkdir(parents=True, exist_ok=True)
-    for src in sorted((nordland / "images").glob("*.png"))[:500]:  # 000000-000499: summer (its README)
+    for src in _season_frames(nordland, "summer"):
         link = summer / src.name
         if not link.exists():
             link.symlink_to(src.resolve())

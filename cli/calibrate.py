@@ -34,7 +34,7 @@ def add_parser(sub: Any) -> None:
 def run(args: Any) -> None:
     conf = resolve_conf(conf_from_args(args))
     seq = open_sequence(detect.SAMPLE_DIR if args.path is None else args.path, args.camera)
-    out = Path(args.out) if args.out else Path("runs") / ("sample" if args.path is None else seq.root.name)
+    out = Path(args.out) if args.out else detect.default_out(seq)
     cal = detect.calibrate_sequence(seq, conf, progress=not args.no_progress)
     run_folder = RunFolder(prepare_out_dir(out))
     if run_folder.database.exists():

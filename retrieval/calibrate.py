@@ -33,7 +33,7 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Any, Iterable
 
 import h5py
 import numpy as np
@@ -48,9 +48,9 @@ from verify.gate import EdgeGate
 from verify.verifier import create_verifier
 
 from .descriptors import GlobalDescriptor
-from .temporal import TemporalFilter
+from .temporal import CodeTable, TemporalFilter
 
-__all__ = ["Calibration", "TooFewFrames", "CALIBRATION_FORMAT", "calibrate", "calibration_frames", "CodeTable"]
+__all__ = ["Calibration", "TooFewFrames", "CALIBRATION_FORMAT", "calibrate", "calibration_frames"]
 
 log = logging.getLogger(__name__)
 
@@ -191,50 +191,6 @@ def _gaussian_log10_sf(z: float) -> float:
     if z < 8:
         return math.log10(max(0.5 * math.erfc(z / math.sqrt(2.0)), 1e-300))
     return (-0.5 * z * z - math.log(z * math.sqrt(2 * math.pi))) / _LN10
-
-
-class CodeTable:
-    """Normalised codes by frame id, as a ``temporal.SimilaritySource`` (NaN for frames not stored)."""
-
-    def __init__(self, dim: int, searchable: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
-        self.dim = dim
-        self._rows: dict[int, int] = {}
-        self._codes = np.zeros((0, dim), np.float32)
-        self._n = 0
-        self._searchable = searchable
-
-    def add(self, frame_id: int, code: np.ndarray) -> None:
-        if self._n == len(self._codes):
-            grown = np.zeros((max(64, 2 * len(self._codes)), self.dim), np.float32)
-            grown[: self._n] = self._codes[: self._n]
-            self._codes = grown
-        self._codes[self._n] = code
-        self._rows[int(frame_id)] = self._n
-        self._n += 1
-
-    def remove_last(self, frame_id: int) -> None:
-        """Undoes the last ``add`` (of ``frame_id``), e.g. when the database refused the frame."""
-        if self._rows.get(int(frame_id)) == self._n - 1:
-            del self._rows[int(frame_id)]
-            self._n -= 1
-
-    def __contains__(self, frame_id: int) -> bool:
-        return int(frame_id) in self._rows
-
-    def pairs(self, queries: np.ndarray, refs: np.ndarray) -> np.ndarray:
-        rq = np.array([self._rows.get(int(i), -1) for i in queries], np.int64)
-        rr = np.array([self._rows.get(int(i), -1) for i in refs], np.int64)
-        out = np.full(len(rq), np.nan, np.float32)
-        ok = (rq >= 0) & (rr >= 0)
-        if ok.any():
-            out[ok] = np.einsum("ij,ij->i", self._codes[rq[ok]], self._codes[rr[ok]])
-        return out
-
-    def searchable(self, refs: np.ndarray) -> np.ndarray:
-        refs = np.asarray(refs, np.int64)
-        if self._searchable is not None:
-            return self._searchable(refs)
-        return np.array([int(r) in self._rows for r in refs], bool)
 
 
 # ------------------------------------------------------------------------------------------------- the calibration

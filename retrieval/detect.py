@@ -33,7 +33,7 @@ from .temporal import create_filter
 from .run_folder import RunFolder
 from .sequences import Sequence, open_sequence
 
-__all__ = ["SAMPLE_DIR", "main", "stage_stats", "check_same_frames", "calibrate_sequence"]
+__all__ = ["SAMPLE_DIR", "main", "stage_stats", "check_same_frames", "calibrate_sequence", "default_out"]
 
 log = logging.getLogger(__name__)
 
@@ -138,7 +138,8 @@ def _calibration(run: RunFolder, seq: Sequence, conf: dict[str, Any], descriptor
     return cal
 
 
-def _default_out(seq: Sequence) -> Path:
+def default_out(seq: Sequence) -> Path:
+    """The run folder when none is given: ``runs/<sequence name>`` (``runs/sample`` for the bundled sample)."""
     return Path("runs") / ("sample" if seq.root.resolve() == SAMPLE_DIR.resolve() else seq.root.name)
 
 
@@ -188,14 +189,13 @@ def main(path: str | Path | None = None, out: str | Path | None = None, conf: di
     """
     seq = open_sequence(SAMPLE_DIR if path is None else path, camera)
     resolved = resolve_conf(conf)
-    out = Path(out) if out is not None else _default_out(seq)
+    out = Path(out) if out is not None else default_out(seq)
     created = not out.exists()
     run = RunFolder(prepare_out_dir(out))
     try:
         descriptor = create_descriptor(resolved["descriptor"])
         cal = _calibration(run, seq, resolved, descriptor, progress)
-        det = LoopDetector(resolved, K=seq.K, database=run.database, calibration=cal,
-                           **({"encoder": descriptor.encoder} if hasattr(descriptor, "encoder") else {}))
+        det = LoopDetector(resolved, K=seq.K, database=run.database, calibration=cal, descriptor=descriptor)
     except BaseException:
         if created:  # e.g. weights that cannot be loaded: leave no trace
             run.calibration.unlink(missing_ok=True)

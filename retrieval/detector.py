@@ -42,10 +42,10 @@ from verify.geometry import GeometricVerifier
 from verify.verifier import MATCHERS, Verification, create_verifier
 
 from .database import CANDIDATE_ROW, FeatureStore, KeyframeDatabase, KeyframeRecord
-from .calibrate import Calibration, CodeTable
-from .descriptors import DESCRIPTORS, create_descriptor
+from .calibrate import Calibration
+from .descriptors import DESCRIPTORS, GlobalDescriptor, create_descriptor
 from .index import INDEXES, KeyframeIndex
-from .temporal import FILTERS, create_filter
+from .temporal import FILTERS, CodeTable, create_filter
 
 __all__ = ["Candidate", "FrameResult", "LoopDetector", "STAGES", "default_conf", "conf_rules",
            "resolve_conf", "RENAMED_SECTIONS"]
@@ -206,6 +206,8 @@ class LoopDetector:
         database: path of an HDF5 keyframe database to write (resumed if it exists), or None to keep
             keyframes in memory only.
         encoder: an already loaded ``cae.Encoder`` for the ``cae`` descriptor (skips loading its weights).
+        descriptor: an already built global descriptor (e.g. the one the calibration used), instead of building one
+            from ``conf["descriptor"]``; its name must be the conf's.
         calibration: what ``retrieval.calibrate`` chose for this camera (gate reference, whitening, thresholds).
             None: the fixed policy (``policy.min_inliers``), the weights' own whitening if they carry one.
 
@@ -216,7 +218,7 @@ class LoopDetector:
 
     def __init__(self, conf: dict[str, Any] | None = None, K: np.ndarray | None = None,
                  database: str | Path | None = None, encoder: torch.nn.Module | None = None,
-                 calibration: Calibration | None = None) -> None:
+                 calibration: Calibration | None = None, descriptor: GlobalDescriptor | None = None) -> None:
         self.conf = resolve_conf(conf)
         c = self.conf
         self.K = None if K is None else _matrix(K, (3, 3), "K")
@@ -227,7 +229,11 @@ class LoopDetector:
                               f"{type(calibration).__name__}")
         self.calibration = calibration if c["calibration"]["enabled"] else None
         self.gate = EdgeGate(c["gate"], None if self.calibration is None else self.calibration.edge_reference)
-        self.descriptor = create_descriptor(c["descriptor"], **({"encoder": encoder} if encoder is not None else {}))
+        if descriptor is not None and not isinstance(descriptor, DESCRIPTORS.get(c["descriptor"]["name"])):
+            raise ConfigError(f"descriptor must be a {c['descriptor']['name']!r} descriptor (the conf's); got "
+                              f"{type(descriptor).__name__}")
+        self.descriptor = descriptor if descriptor is not None else \
+            create_descriptor(c["descriptor"], **({"encoder": encoder} if encoder is not None else {}))
         self.whitening = self.calibration.whitening if self.calibration is not None else \
             (getattr(self.descriptor, "whitening", None)
              if c["whitening"]["enabled"] and c["whitening"]["source"] != "sequence" else None)

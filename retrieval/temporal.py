@@ -22,7 +22,7 @@ The interface, shapes included::
     filt.commit(query_id, kept_ids (j,) int64)     # the hypotheses the caller kept (carried to later frames)
     filt.score(query_ids (n,), ref_ids (n,), source) -> (n,) float32   # any pairs (the calibration's null)
 
-``source`` is a ``SimilaritySource``: ``pairs(queries (n,), refs (n,)) -> (n,) float32`` similarities of stored
+``source`` is a ``SimilaritySource`` (``CodeTable``: normalised codes by frame id): ``pairs(queries (n,), refs (n,)) -> (n,) float32`` similarities of stored
 frames (NaN where a frame is not stored) and ``searchable(refs (n,)) -> (n,) bool``. Hypotheses come back best
 first; an empty candidate list with no recent history gives ``(0,)`` arrays.
 """
@@ -30,14 +30,14 @@ first; an empty candidate list with no recent history gives ``(0,)`` arrays.
 from __future__ import annotations
 
 from collections import deque
-from typing import Any, Protocol
+from typing import Any, Callable, Protocol
 
 import numpy as np
 
 from core.conf import Float, Floats, Int, Registry, configure
 
-__all__ = ["SimilaritySource", "TemporalFilter", "SequenceFilter", "NoFilter", "BayesFilter", "FILTERS",
-           "create_filter"]
+__all__ = ["SimilaritySource", "CodeTable", "TemporalFilter", "SequenceFilter", "NoFilter", "BayesFilter",
+           "FILTERS", "create_filter"]
 
 
 class SimilaritySource(Protocol):
@@ -46,6 +46,50 @@ class SimilaritySource(Protocol):
 
     def searchable(self, refs: np.ndarray) -> np.ndarray:
         """True where the keyframe may be returned as a loop for the current query."""
+
+
+class CodeTable:
+    """Normalised codes by frame id, as a ``temporal.SimilaritySource`` (NaN for frames not stored)."""
+
+    def __init__(self, dim: int, searchable: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
+        self.dim = dim
+        self._rows: dict[int, int] = {}
+        self._codes = np.zeros((0, dim), np.float32)
+        self._n = 0
+        self._searchable = searchable
+
+    def add(self, frame_id: int, code: np.ndarray) -> None:
+        if self._n == len(self._codes):
+            grown = np.zeros((max(64, 2 * len(self._codes)), self.dim), np.float32)
+            grown[: self._n] = self._codes[: self._n]
+            self._codes = grown
+        self._codes[self._n] = code
+        self._rows[int(frame_id)] = self._n
+        self._n += 1
+
+    def remove_last(self, frame_id: int) -> None:
+        """Undoes the last ``add`` (of ``frame_id``), e.g. when the database refused the frame."""
+        if self._rows.get(int(frame_id)) == self._n - 1:
+            del self._rows[int(frame_id)]
+            self._n -= 1
+
+    def __contains__(self, frame_id: int) -> bool:
+        return int(frame_id) in self._rows
+
+    def pairs(self, queries: np.ndarray, refs: np.ndarray) -> np.ndarray:
+        rq = np.array([self._rows.get(int(i), -1) for i in queries], np.int64)
+        rr = np.array([self._rows.get(int(i), -1) for i in refs], np.int64)
+        out = np.full(len(rq), np.nan, np.float32)
+        ok = (rq >= 0) & (rr >= 0)
+        if ok.any():
+            out[ok] = np.einsum("ij,ij->i", self._codes[rq[ok]], self._codes[rr[ok]])
+        return out
+
+    def searchable(self, refs: np.ndarray) -> np.ndarray:
+        refs = np.asarray(refs, np.int64)
+        if self._searchable is not None:
+            return self._searchable(refs)
+        return np.array([int(r) in self._rows for r in refs], bool)
 
 
 class TemporalFilter:
@@ -135,8 +179,8 @@ class SequenceFilter(TemporalFilter):
         if len(q) == 0:
             return np.zeros(0, np.float32)
         best = np.full(len(q), -np.inf)
+        qs = (q - self._steps.astype(np.int64)).ravel()  # the query and the frames before it, for every pair
         for v in self.conf["velocities"]:
-            qs = (q - self._steps.astype(np.int64)).ravel()
             rs = np.rint(r - v * self._steps).astype(np.int64).ravel()
             sims = np.full(len(qs), np.nan, np.float32)
             ok = (qs >= 0) & (rs >= 0) & (rs < qs)

@@ -10,7 +10,7 @@ import pytest
 from core.errors import ConfigError, DatabaseError
 from evaluation.ground_truth import load_ground_truth
 from evaluation.metrics import precision_recall
-from retrieval.calibrate import Calibration, CodeTable, calibration_frames
+from retrieval.calibrate import Calibration, calibration_frames
 from retrieval.detect import main as detect
 from retrieval.run_folder import RunFolder
 
@@ -107,17 +107,6 @@ class TestCalibrationFrames:
         assert np.all(np.diff(picks)[:50] == 1)  # contiguous blocks: far-side pairs exist inside them
 
 
-class TestCodeTable:
-    def test_pairs_and_missing(self):
-        table = CodeTable(2)
-        table.add(3, np.array([1.0, 0.0], np.float32))
-        table.add(5, np.array([0.6, 0.8], np.float32))
-        sims = table.pairs(np.array([5, 5]), np.array([3, 4]))
-        assert sims[0] == pytest.approx(0.6) and np.isnan(sims[1])
-        table.remove_last(5)
-        assert 5 not in table and 3 in table
-
-
 class TestCalibrateRefuses:
     def test_short_exclusion(self, sample_dir):
         from retrieval.detect import calibrate_sequence
@@ -129,7 +118,7 @@ class TestCalibrateRefuses:
 class TestShrunkSample:
     """The bundled sample at 160x120 and 64x32 (``bench.camera.shrunk_sample``), default config."""
 
-    @pytest.mark.parametrize("size,min_recall", [((160, 120), 0.5), ((64, 32), 0.0)])
+    @pytest.mark.parametrize("size,min_recall", [((160, 120), 0.5), ((64, 32), 0.5)])  # measured 1.0 and 0.98
     def test_precision_one(self, tmp_path_factory, size, min_recall):
         from bench.camera import shrunk_sample
         root = tmp_path_factory.mktemp(f"s{size[0]}")

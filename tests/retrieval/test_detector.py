@@ -335,3 +335,13 @@ class TestProcessRefusesBadInput:
         with pytest.raises(ConfigError, match="closed"):
             det.process(sample_image(1), 1)
         assert det.next_frame_id == 1 and len(det.index) == 1
+
+
+class TestGivenDescriptor:
+    def test_used_as_given_and_checked(self, encoder):
+        from retrieval.descriptors import CAEDescriptor
+        d = CAEDescriptor(encoder=encoder)
+        with LoopDetector(descriptor=d) as det:
+            assert det.descriptor is d  # built once (detect shares the calibration's), not again
+        with pytest.raises(ConfigError, match="descriptor must be"):
+            LoopDetector({"descriptor": {"name": "thumbnail"}}, descriptor=d)

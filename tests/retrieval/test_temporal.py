@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from core.conf import ConfigError
-from retrieval.temporal import BayesFilter, NoFilter, SequenceFilter, create_filter
+from retrieval.temporal import BayesFilter, CodeTable, NoFilter, SequenceFilter, create_filter
 
 
 class MatrixSource:
@@ -131,3 +131,14 @@ class TestBayesFilter:
         assert isinstance(create_filter({"name": "bayes"}), BayesFilter)
         with pytest.raises(ConfigError, match="stay"):
             BayesFilter({"stay": 1.5})
+
+
+class TestCodeTable:
+    def test_pairs_and_missing(self):
+        table = CodeTable(2)
+        table.add(3, np.array([1.0, 0.0], np.float32))
+        table.add(5, np.array([0.6, 0.8], np.float32))
+        sims = table.pairs(np.array([5, 5]), np.array([3, 4]))
+        assert sims[0] == pytest.approx(0.6) and np.isnan(sims[1])
+        table.remove_last(5)
+        assert 5 not in table and 3 in table
