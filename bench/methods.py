@@ -1,6 +1,6 @@
-"""Methods side by side on the same frames: the paper's config, the default config, and two baselines (thumbnail
-cosine, tf-idf bag of visual words), all followed by the same verification; and "does training help?" (shipped,
-random and other-data weights)."""
+"""Methods side by side on the same frames: the paper's config, the default config, two baselines (thumbnail
+cosine, tf-idf bag of visual words) followed by the same verification, and MILD alone and in front of that
+verification; and "does training help?" (shipped, random and other-data weights)."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ import torch
 from cae.model import CODE_DIM
 from core.conf import load_conf_file, merge_conf
 from retrieval.detector import resolve_conf
+from retrieval.methods import METHODS
 from retrieval.sequences import open_sequence
 
 from .common import REPO, Budget, detect_run, ground_truth_pairs, md_table, run_metrics
@@ -26,7 +27,8 @@ log = logging.getLogger(__name__)
 
 
 def method_confs(vocabulary: str | Path, override: dict[str, Any] | None = None) -> dict[str, dict[str, Any]]:
-    """Detector confs by method label: paper, default, thumbnail and bovw (each + ``override``)."""
+    """Detector confs by method label: paper, default, thumbnail, bovw, MILD and MILD + verification (each +
+    ``override``)."""
     paper_file = REPO / "configs" / "paper.yaml"
     confs: dict[str, dict[str, Any]] = {}
     if paper_file.is_file():
@@ -36,6 +38,8 @@ def method_confs(vocabulary: str | Path, override: dict[str, Any] | None = None)
     confs["default (CAE)"] = {}
     confs["thumbnail 64x48 + verification"] = {"descriptor": {"name": "thumbnail"}}
     confs["bovw tf-idf + verification"] = {"descriptor": {"name": "bovw", "vocabulary": str(vocabulary)}}
+    confs["MILD (--method mild)"] = METHODS["mild"]
+    confs["MILD + verification (--method mild+verify)"] = METHODS["mild+verify"]
     return {label: merge_conf(c, override, strict=False) for label, c in confs.items()}
 
 

@@ -10,7 +10,8 @@
 - ``recall``: P_recall(m, d) (MILD eq. 8) against the Hamming distance for m = 2..32 tables, with R(m) and E(m)
   (eq. 9): the plot a user reads to pick m (``p_recall.png`` in the run folder).
 
-Writes its tables between ``<!-- bench:mild:begin -->`` and ``<!-- bench:mild:end -->`` of BENCHMARKS.md.
+Writes each part's table between ``<!-- bench:mild-PART:begin -->`` and ``<!-- bench:mild-PART:end -->`` of
+BENCHMARKS.md.
 """
 
 from __future__ import annotations
@@ -41,6 +42,8 @@ log = logging.getLogger(__name__)
 PARTS = ("methods", "speed", "recall")
 KITTI = ("00", "07", "90")
 FLIP_BYTES = 3  #: noisy copies: each bit flipped where 3 random bytes all have it set (p = 1/8)
+DEFAULT_CAP = MildDescriptor.default_conf["max_bucket"]
+UNCAPPED_UP_TO = 10_000
 
 
 def side_by_side(data: Path, run_dir: Path) -> tuple[str, dict[str, Any]]:
@@ -54,7 +57,8 @@ def side_by_side(data: Path, run_dir: Path) -> tuple[str, dict[str, Any]]:
             conf = method_conf(method)
             summary = detect_run(seq, run_dir / f"{seq.name}_{method}", conf)
             res[name, method] = m = method_metrics(summary["out"], conf, truth)
-            rows.append([name, method, f"{m['precision']:.3f} / {m['recall']:.3f}",
+            precision = f"{m['precision']:.3f}" if m["detections"] else "n/a (0 loops)"
+            rows.append([name, method, f"{precision} / {m['recall']:.3f}",
                          "n/a" if m["r100"] is None else f"{m['r100']:.3f}", f"{m['recall_at_k'][1]:.3f}",
                          f"{m['ms_total']:.1f}"])
     false_loops = []
@@ -95,15 +99,16 @@ def _database(real: list[np.ndarray], size: int, max_bucket: float, rng: np.rand
     return index
 
 
-def query_speed(data: Path, sizes: tuple[int, ...], caps: tuple[float, ...] = (0.0, 4.0),
+def query_speed(data: Path, sizes: tuple[int, ...], caps: tuple[float, ...] = (0.0, DEFAULT_CAP),
                 n_queries: int = 20) -> tuple[str, dict[str, Any]]:
-    """Median ms per query (similarity, filter) by database size and cap, on one core; the table and the numbers."""
+    """Median ms per query (similarity, filter) by database size and cap, on one core; the table and the numbers.
+    No cap is measured up to ``UNCAPPED_UP_TO`` images only (beyond, one query compares ~10^8 pairs: GBs)."""
     cv2.setNumThreads(1)
     real, orb_ms = _real_descriptors(data)
     queries = real[:: max(1, len(real) // n_queries)][:n_queries]
     rows, res = [], {}
     for size in sizes:
-        for cap in caps:
+        for cap in (c for c in caps if c > 0 or size <= UNCAPPED_UP_TO):
             t0 = time.perf_counter()
             index = _database(real, size, cap, np.random.default_rng(0))
             build_s = time.perf_counter() - t0
@@ -162,23 +167,27 @@ def recall_analysis(run_dir: Path, ms: tuple[int, ...] = (2, 4, 8, 16, 32)) -> t
 
 def main(data: Path, run_dir: Path, out: Path | None, parts: tuple[str, ...] = PARTS,
          sizes: tuple[int, ...] = (1000, 10_000, 100_000)) -> dict[str, Any]:
-    """Runs the chosen parts; writes their tables into ``out`` (section ``mild``)."""
-    t0 = time.perf_counter()
-    blocks, res = ["### MILD beside the CAE detector (`python -m bench.mild`)"], {}
-    if "methods" in parts:
-        table, res["methods"] = side_by_side(data, run_dir)
-        blocks += ["Same data, same commands (`cae-lcd detect PATH --method cae|mild|mild+verify`), one run:", table]
-    if "speed" in parts:
-        table, res["speed"] = query_speed(data, sizes)
-        blocks += ["Query time on one core (`MultiIndexHash.query` + `BayesFilter.update`):", table]
-    if "recall" in parts:
-        table, res["plot"] = recall_analysis(run_dir)
-        blocks += [f"Recall probability (eq. 8-9; plot: `{res['plot']}`):", table]
-    blocks.append(f"Total {time.perf_counter() - t0:.0f} s.")
-    body = "\n\n".join(blocks)
-    if out is not None:
-        write_section(out, body, "mild")
-    log.info("\n%s", body)
+    """Runs the chosen parts; writes each part's tables into ``out`` (sections ``mild-methods``, ``mild-speed``,
+    ``mild-recall``, so that one part can be measured again alone)."""
+    res: dict[str, Any] = {}
+    for part in parts:
+        t0 = time.perf_counter()
+        if part == "methods":
+            table, res[part] = side_by_side(data, run_dir)
+            head = "Same data, same commands (`cae-lcd detect PATH --method cae|mild|mild+verify`), one run:"
+        elif part == "speed":
+            table, res[part] = query_speed(data, sizes)
+            head = "Query time on one core (`MultiIndexHash.query` + `BayesFilter.update`), one run:"
+        elif part == "recall":
+            table, res[part] = recall_analysis(run_dir)
+            head = f"Recall probability (eq. 8-9; the plot: `{res[part]}`):"
+        else:
+            raise ValueError(f"unknown part {part!r}; choose from {', '.join(PARTS)}")
+        body = f"#### MILD: {part} (`python -m bench.mild --parts {part}`)\n\n{head}\n\n{table}\n\n" \
+               f"{time.perf_counter() - t0:.0f} s."
+        if out is not None:
+            write_section(out, body, f"mild-{part}")
+        log.info("\n%s", body)
     return res
 
 

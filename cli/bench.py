@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 from typing import Any
 
+import bench.mild as bench_mild
 import bench.run as bench_run
 from core.cli import api_defaults
 
@@ -32,6 +34,9 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--skip-scale", action="store_true", help="leave out the index scaling section")
     p.add_argument("--training-study", action="store_true",
                    help="run only the training study (a few minutes; its own section of the output file)")
+    p.add_argument("--mild", action="store_true",
+                   help="run only the MILD comparison (bench/mild.py: cae / mild / mild+verify side by side, query "
+                        "time at 1k-100k images, the P_recall plot; ~15 min; its own section of the output file)")
     p.add_argument("--data", help="KITTI sequences folder with 00, 07, 90 "
                                   "(default: ../shared/datasets/kitti/sequences)")
     p.add_argument("--budget-s", type=float, default=_DEFAULTS["budget_s"],
@@ -56,6 +61,10 @@ def sections_of(args: Any) -> tuple[str, ...]:
 
 
 def run(args: Any) -> None:
+    if args.mild:
+        data = Path(args.data).parents[1] if args.data else bench_run.DATA_DIR.parents[1]
+        bench_mild.main(data, Path(args.run_dir) / "mild", Path(args.out))
+        return
     res = bench_run.main(args.out, args.run_dir, args.quick, sections_of(args), args.data, args.budget_s,
                          args.index_memory_gib, args.index_sizes, args.training_epochs)
     sys.stdout.write(res["head"] + "\n\n" + "\n\n".join(res["markdown"].values()) + "\n")

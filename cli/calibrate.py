@@ -10,6 +10,7 @@ import logging
 from pathlib import Path
 from typing import Any
 
+from core.conf import ConfigError
 from core.files import prepare_out_dir
 from retrieval import detect
 from retrieval.detector import resolve_conf
@@ -33,6 +34,9 @@ def add_parser(sub: Any) -> None:
 
 def run(args: Any) -> None:
     conf = resolve_conf(conf_from_args(args))
+    if not conf["calibration"]["enabled"]:
+        why = f", as --method {args.method} sets" if args.method != "cae" else ""
+        raise ConfigError(f"this configuration is not calibrated (calibration.enabled: false{why}); nothing to calibrate")
     seq = open_sequence(detect.SAMPLE_DIR if args.path is None else args.path, args.camera)
     out = Path(args.out) if args.out else detect.default_out(seq)
     cal = detect.calibrate_sequence(seq, conf, progress=not args.no_progress)

@@ -164,6 +164,10 @@ def resolve_conf(conf: dict[str, Any] | None = None) -> dict[str, Any]:
         base[section] = units[section].default_conf
     resolved = merge_conf(base, conf)
     check_conf(resolved, {**conf_rules, **{s: unit.conf_rules for s, unit in units.items()}})
+    if resolved["calibration"]["enabled"] and units["descriptor"].searched_by != "cosine":
+        raise ConfigError(f"calibration.enabled needs a descriptor compared by cosine; "
+                          f"'{resolved['descriptor']['name']}' is compared by {units['descriptor'].searched_by}: set "
+                          "calibration.enabled: false (the fixed policy; --method mild does)")
     return resolved
 
 
@@ -473,17 +477,16 @@ class LoopDetector:
         """The accepted candidate.
 
         Calibrated: the most confident one whose confidence reaches ``Calibration.accept_at``. Uncalibrated: one that
-        passes every policy threshold; most inliers, then most matches, then score (verifying), else the first in
-        the temporal filter's ranking.
+        passes every policy threshold; most inliers, then most matches, then score (verifying), else the best
+        temporal score (as ``evaluation``'s sweep on ``confidence`` picks it).
         """
         if self.calibration is not None:
             passing = [(cd, ch) for cd, ch in zip(candidates, checks) if cd.confidence >= self.calibration.accept_at]
             key = (lambda pair: (pair[0].confidence, pair[0].inliers, pair[0].seq_score))
         else:
             passing = [(cd, ch) for cd, ch in zip(candidates, checks) if self._passes_policy(cd)]
-            if passing and not self._verify:  # the scores alone: the filter's own ranking decides
-                return passing[0]
-            key = (lambda pair: (pair[0].inliers, pair[0].matches, pair[0].score))
+            key = (lambda pair: (pair[0].inliers, pair[0].matches, pair[0].score)) if self._verify else \
+                (lambda pair: (pair[0].seq_score, pair[0].inliers, pair[0].score))
         if not passing:
             return None, None
         return max(passing, key=key)

@@ -14,9 +14,9 @@ with a score that uses the recent past. Filters plug in by name (conf section ``
   earlier keyframe plus "no loop"; the prediction spreads each hypothesis over its neighbours ``[i-2, i+2]``
   (probability ``stay``) or back to "no loop"; the likelihood of hypothesis ``i`` is the z-score of its similarity
   in the current row (mean and standard deviation of the row) where it exceeds one standard deviation, else 1,
-  and a constant for "no loop". A hypothesis' score is the posterior summed over its neighbourhood (the filter
-  spreads a loop over neighbouring keyframes, so the place, not one keyframe, holds the probability); hypotheses
-  are ranked by their own posterior. MILD declares a loop above 0.7 (``policy.min_seq_score``).
+  and a constant for "no loop". The filter spreads a loop over neighbouring keyframes, so a place, not one keyframe,
+  holds its probability: a hypothesis that is the posterior's peak within ``score_window`` keyframes scores the
+  posterior summed over them, any other its own posterior. MILD declares a loop above 0.7 (``policy.min_seq_score``).
 
 The interface, shapes included::
 
@@ -204,7 +204,7 @@ class BayesFilter(TemporalFilter):
         "stay": 0.9,  # probability that a loop hypothesis continues (to itself or a neighbour); MILD: 0.9
         "neighbourhood": 2,  # a hypothesis moves to keyframes at most this far (MILD: [i-2, i+2])
         "no_loop_likelihood": 1.0,  # likelihood of "no loop" (MILD: a constant)
-        "score_window": 2,  # a hypothesis' score is the posterior summed over keyframes at most this far (0: its own)
+        "score_window": 2,  # a posterior peak scores the posterior summed over keyframes at most this far (0: its own)
         "max_hypotheses": 64,  # hypotheses returned per query, best first
     }
     conf_rules: dict[str, Any] = {"stay": Float(0, 1, lo_open=True, hi_open=True), "neighbourhood": Int(0, 100),
@@ -250,9 +250,10 @@ class BayesFilter(TemporalFilter):
         none = self.conf["no_loop_likelihood"] * prior_none
         total = post.sum() + none
         self._ids, self._post, self._no_loop = ids, post / total, none / total
-        order = np.lexsort((ids, -self._post))[: self.conf["max_hypotheses"]]  # by own posterior, best first
-        scores = _window(self._post, self.conf["score_window"], np.sum)  # ... scored by their place's posterior
-        return ids[order], scores[order].astype(np.float32)
+        w = self.conf["score_window"]
+        peak = self._post >= _window(self._post, w, np.max)  # a place: a posterior peak and its neighbours
+        ranked_ids, ranked = _ranked(ids, np.where(peak, _window(self._post, w, np.sum), self._post))
+        return ranked_ids[: self.conf["max_hypotheses"]], ranked[: self.conf["max_hypotheses"]]
 
     def score(self, query_ids: np.ndarray, ref_ids: np.ndarray, source: SimilaritySource) -> np.ndarray:
         """The similarity itself: a posterior depends on the whole history, not on one pair."""

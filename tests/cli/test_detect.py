@@ -221,6 +221,37 @@ class TestDetectErrors:
         assert len(errors) == 1 and "policy.bogus" in errors[0]
 
 
+class TestDetectMethod:
+    def test_mild_writes_the_same_run_folder(self, sample_dir, tmp_path, capsys):
+        out = tmp_path / "mild"
+        code, err = run_detect([sample_dir, "--method", "mild", "--out", out], capsys)
+        assert code == 0, err
+        assert {p.name for p in out.iterdir()} >= {"loops.csv", "candidates.csv", "keyframes.h5", "conf.yaml",
+                                                   "summary.json"}
+        assert read_csv(out / "loops.csv")[0][:2] == ["query", "match"]
+        conf = yaml.safe_load((out / "conf.yaml").read_text())
+        assert conf["descriptor"]["name"] == "mild" and conf["temporal"]["name"] == "bayes"
+        summary = json.loads((out / "summary.json").read_text())
+        assert summary["loops"] >= 30 and summary["ground_truth"]["precision"] >= 0.9  # measured: 35 loops, 1.000
+        assert summary["calibration"] is None
+        with KeyframeDatabase(out / "keyframes.h5", mode="r") as db:
+            rec = next(iter(db))
+        assert rec.code.dtype == np.uint8 and rec.code.shape[1] == 32  # the ORB descriptors the hash is rebuilt from
+
+    def test_calibration_needs_a_cosine_descriptor(self, sample_dir, tmp_path, capsys):
+        cfg = tmp_path / "c.yaml"
+        cfg.write_text("descriptor:\n  name: mild\n")
+        code, err = run_detect([sample_dir, "--config", cfg, "--out", tmp_path / "o"], capsys)
+        assert_one_line_error(code, err, "calibration.enabled", "'mild'")
+        assert not (tmp_path / "o").exists()
+        code = main(["calibrate", str(sample_dir), "--method", "mild", "--out", str(tmp_path / "o2")])
+        assert_one_line_error(code, capsys.readouterr().err, "not calibrated", "--method mild")
+
+    def test_unknown_method(self, sample_dir, tmp_path, capsys):
+        assert main(["detect", str(sample_dir), "--method", "fabmap", "--out", str(tmp_path / "o")]) == 2
+        assert "invalid choice: 'fabmap'" in capsys.readouterr().err and not (tmp_path / "o").exists()
+
+
 class TestCalibrateCommand:
     def test_calibrate_then_detect_uses_it(self, sample_dir, tmp_path, caplog):
         import logging
