@@ -1,0 +1,14 @@
+"""The fleet server's library: several robots send keyframes, the server finds where two of them saw the same place,
+estimates the similarity transform between their maps and keeps one global pose graph (issue 12).
+
+- ``sim3``: the similarity transform ``Sim3``, Umeyama's closed form, RANSAC with a robust refinement.
+- ``graph``: the global pose graph in gtsam (``Similarity3`` nodes, odometry, loop and overlap edges).
+- ``store``: robots, hashed tokens, keyframe acknowledgements, edges and transforms (``FleetStore``, SQLite).
+- ``overlap``: the "n consecutive matching keyframes" rule and the 3D-3D correspondences of a matched pair.
+
+Layer: uses ``core``, ``verify`` and ``retrieval``; never ``evaluation`` or ``bench``; the CLI sits on top.
+"""
+
+from .sim3 import Sim3, ransac_sim3, umeyama
+
+__all__ = ["Sim3", "umeyama", "ransac_sim3"]
