@@ -87,6 +87,24 @@ class Sim3:
         s = float(np.cbrt(det))
         return cls(s, M[:3, :3] / s, M[:3, 3])
 
+    @classmethod
+    def from_pose(cls, pose: np.ndarray, tol: float = 1e-3) -> "Sim3":
+        """A robot's ``(3, 4)`` or ``(4, 4)`` pose -> ``Sim3``; a 3x3 block that is a rotation (times a scale) up to
+        ``tol`` is projected onto the nearest one (SLAM systems and text files round).
+
+        Raises:
+            ConfigError: wrong shape, NaN/inf, a last row other than ``0 0 0 1``, or a block that is no similarity.
+        """
+        M = np.asarray(pose, np.float64)
+        if M.shape not in ((3, 4), (4, 4)) or not np.isfinite(M).all():
+            raise ConfigError(f"a pose is a finite (3, 4) or (4, 4) matrix; got shape {M.shape}")
+        if M.shape == (4, 4) and np.abs(M[3] - [0, 0, 0, 1]).max() > tol:
+            raise ConfigError("a (4, 4) pose must end with the row 0 0 0 1")
+        U, d, Vt = np.linalg.svd(M[:3, :3])
+        if np.linalg.det(U @ Vt) <= 0 or d[0] <= 0 or (d[0] - d[2]) > tol * d[0]:
+            raise ConfigError("a pose's 3x3 block must be a rotation (or a rotation times a scale)")
+        return cls(float(np.cbrt(np.prod(d))), U @ Vt, M[:3, 3])
+
     def matrix(self) -> np.ndarray:
         """``(4, 4)`` homogeneous matrix ``[[s R, t], [0, 1]]``."""
         M = np.eye(4)
