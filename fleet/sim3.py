@@ -131,8 +131,9 @@ class Sim3:
         Returns:
             ``(rotation angle in degrees, |s / s_ref - 1|, ||t - t_ref||)``.
         """
-        cos = (np.trace(self.R @ reference.R.T) - 1.0) / 2.0
-        angle = math.degrees(math.acos(min(1.0, max(-1.0, cos))))
+        D = self.R @ reference.R.T
+        sin = np.linalg.norm([D[2, 1] - D[1, 2], D[0, 2] - D[2, 0], D[1, 0] - D[0, 1]]) / 2.0
+        angle = math.degrees(math.atan2(sin, (np.trace(D) - 1.0) / 2.0))  # exact near 0, unlike acos
         return angle, abs(self.s / reference.s - 1.0), float(np.linalg.norm(self.t - reference.t))
 
 
