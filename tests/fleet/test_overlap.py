@@ -128,6 +128,15 @@ class TestPointTriangulator:
         np.testing.assert_allclose(X, a.inverse().apply(world), atol=1e-6)
         assert np.isnan(PointTriangulator().triangulate(px[0], px[1] + 20, p[100], p[102], K)).all()
 
+    def test_low_parallax_points_are_dropped(self, scene):
+        """A point 300 m ahead seen from 0.84 m apart: its depth is not measurable, so no point (default 1 deg)."""
+        K, p = scene["K"], scene["poses"]
+        a, b = Sim3.from_pose(p[100]), Sim3.from_pose(p[102])
+        world = a.apply(np.array([[5.0, 1.0, 300.0], [-3.0, 1.0, 10.0]]))
+        px = [(q := T.inverse().apply(world) @ K.T)[:, :2] / q[:, 2:] for T in (a, b)]
+        X = PointTriangulator().triangulate(px[0], px[1], p[100], p[102], K)
+        assert np.isnan(X[0]).all() and np.isfinite(X[1]).all()
+
 
 class TestEstimateOverlap:
     def test_recovers_the_relative_similarity_from_real_images(self, triangulated, cross_pairs, scene):
