@@ -5,6 +5,8 @@ estimates the similarity transform between their maps and keeps one global pose 
 - ``graph``: the global pose graph in gtsam (``Similarity3`` nodes, odometry, loop and overlap edges).
 - ``store``: robots, hashed tokens, keyframe acknowledgements, edges and transforms (``FleetStore``, SQLite).
 - ``overlap``: the "n consecutive matching keyframes" rule and the 3D-3D correspondences of a matched pair.
+- ``service``: robots, tokens, keyframes and the graph over a store, without HTTP; ``server``: the FastAPI app
+  (``create_app``); ``client``: a small httpx client. Place recognition across robots is not wired in yet.
 
 Layer: uses ``core``, ``verify`` and ``retrieval``; never ``evaluation`` or ``bench``; the CLI sits on top.
 """
