@@ -96,11 +96,11 @@ def _cli() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "datasets")
     ap.add_argument("--run-dir", type=Path, default=Path("runs/bench/camera"))
-    ap.add_argument("--out", type=Path, default=REPO / "BENCHMARKS.md", help="Markdown file to update ('' = none)")
+    ap.add_argument("--out", default=str(REPO / "BENCHMARKS.md"), help="Markdown file to update ('' = none)")
     ap.add_argument("--weights", help="encoder checkpoint (default: the shipped weights)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    main(args.data, args.run_dir, args.out if str(args.out) else None, args.weights)
+    main(args.data, args.run_dir, Path(args.out) if args.out else None, args.weights)
 
 
 if __name__ == "__main__":

@@ -46,11 +46,13 @@ def slug(label: str) -> str:
 
 def method_metrics(out: str | Path, conf: dict[str, Any], ground_truth: np.ndarray | None) -> dict[str, Any]:
     """``run_metrics`` with the run's own ``min_matches``; swept on what the run's acceptance rule thresholds: the
-    confidence when calibrated, else inliers (cosine when geometry is off)."""
+    confidence when calibrated or when the policy does not verify (MILD: the posterior), else inliers (cosine when
+    geometry is off)."""
     resolved = resolve_conf(conf)
-    score = "confidence" if resolved["calibration"]["enabled"] else \
+    verify = resolved["policy"]["verify"] or resolved["calibration"]["enabled"]
+    score = "confidence" if resolved["calibration"]["enabled"] or not verify else \
         "cosine" if resolved["geometry"]["model"] == "none" else "inliers"
-    return run_metrics(out, ground_truth, resolved["policy"]["min_matches"], score)
+    return run_metrics(out, ground_truth, resolved["policy"]["min_matches"] if verify else 0, score)
 
 
 def run_methods(sequence: str | Path, run_dir: str | Path, confs: dict[str, dict[str, Any]],

@@ -9,6 +9,7 @@ from core.conf import ConfigError, load_conf_file
 from evaluation.evaluate import score_run
 from evaluation.ground_truth import load_ground_truth
 from retrieval import detect
+from retrieval.methods import METHODS, method_conf
 from retrieval.sequences import open_sequence
 
 __all__ = ["add_parser", "run", "log_summary", "conf_from_args", "add_sequence_arguments"]
@@ -44,8 +45,12 @@ def add_parser(sub: Any) -> None:
 
 
 def add_sequence_arguments(p: Any) -> None:
-    """PATH, --config, --camera, --weights, --no-progress: what every command that reads a sequence takes."""
+    """PATH, --method, --config, --camera, --weights, --no-progress: what every command that reads a sequence
+    takes."""
     p.add_argument("path", nargs="?", help="KITTI sequence folder or image folder (default: bundled sample)")
+    p.add_argument("--method", choices=list(METHODS), default="cae",
+                   help="detection method (default: cae; mild: MILD, Han & Fang 2017; mild+verify: MILD's "
+                        "candidates + SIFT/geometric verification); --config merges on top")
     p.add_argument("--config", help="YAML config (default: the built-in defaults = configs/default.yaml)")
     p.add_argument("--camera", choices=["image_0", "image_1", "image_2", "image_3", "images"],
                    help="camera folder inside PATH")
@@ -54,8 +59,8 @@ def add_sequence_arguments(p: Any) -> None:
 
 
 def conf_from_args(args: Any) -> dict[str, Any]:
-    """The conf overrides from ``--config`` and ``--weights``."""
-    conf = load_conf_file(args.config) if args.config else {}
+    """The conf overrides from ``--method``, ``--config`` and ``--weights``."""
+    conf = method_conf(args.method, load_conf_file(args.config) if args.config else {})
     if args.weights:
         section = "encoder" if "encoder" in conf else "descriptor"  # the old name still works (deprecated)
         conf.setdefault(section, {})

@@ -144,7 +144,7 @@ def _pr_section(cands: np.ndarray, det: np.ndarray, truth: GroundTruth, score: s
 
 
 def _run_poses(truth: GroundTruth, summary: dict[str, Any], n_frames: int,
-               kf: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> np.ndarray | None:
+               kf: tuple[np.ndarray | None, np.ndarray, np.ndarray] | None) -> np.ndarray | None:
     """Poses for the trajectory plot: the ground truth's, the sequence's, or those stored with the keyframes."""
     if truth.poses is not None:
         return truth.poses
@@ -167,19 +167,24 @@ def _run_poses(truth: GroundTruth, summary: dict[str, Any], n_frames: int,
     return None
 
 
-def _keyframes(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """Codes ``(n, D)``, frame ids ``(n,)`` and poses ``(n, 3, 4)`` (NaN when unknown) from ``keyframes.h5``."""
+def _keyframes(path: Path) -> tuple[np.ndarray | None, np.ndarray, np.ndarray] | None:
+    """Codes ``(n, D)`` (None when the keyframes hold binary descriptors, as MILD's do), frame ids ``(n,)`` and poses
+    ``(n, 3, 4)`` (NaN when unknown) from ``keyframes.h5``."""
     if not path.is_file():
         return None
     with KeyframeDatabase(path, mode="r") as db:
-        codes, ids = db.codes()
+        entries = [(fid, code) for fid, code, _, _ in db.search_entries()]
         poses = db.poses()
-    return (codes.astype(np.float32) if len(codes) else np.zeros((0, 1), np.float32)), ids, poses
+    ids = np.array([fid for fid, _ in entries], np.int64)
+    if any(code.ndim != 1 for _, code in entries):
+        return None, ids, poses
+    codes = np.stack([code for _, code in entries]).astype(np.float32) if entries else np.zeros((0, 1), np.float32)
+    return codes, ids, poses
 
 
 def _plots(report: dict[str, Any], out: Path, title: str, truth: GroundTruth, det: np.ndarray,
            correct: np.ndarray, n_frames: int, poses: np.ndarray | None,
-           kf: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> None:
+           kf: tuple[np.ndarray | None, np.ndarray, np.ndarray] | None) -> None:
     from .plots import plot_similarity, plot_trajectory  # matplotlib only when evaluating
 
     if n_frames > MAX_PLOTTED_FRAMES:
@@ -193,11 +198,13 @@ def _plots(report: dict[str, Any], out: Path, title: str, truth: GroundTruth, de
         report["skipped"].append("trajectory")
         log.info("no poses known for the run (ground truth is a pairs file, none beside the sequence or in "
                  "keyframes.h5): trajectory plot skipped")
-    if kf is not None:
+    if kf is not None and kf[0] is not None:
         report["plots"]["similarity"] = str(plot_similarity(kf[0], kf[1], n_frames, truth.pairs,
                                                             out / "similarity.png", det, correct, title))
     else:
         report["skipped"].append("similarity")
+        if kf is not None:
+            log.info("the keyframes hold binary descriptors (MILD), not codes: similarity plot skipped")
         log.info("no keyframes.h5 in the run folder: similarity plot skipped")
 
 

@@ -6,6 +6,7 @@ from .detector import Candidate, FrameResult, LoopDetector, resolve_conf
 from .index import INDEXES, KeyframeIndex, create_index
 from .sequences import Sequence, open_sequence
 from . import baselines  # noqa: F401,E402  (registers the baseline global descriptors: thumbnail, bovw)
+from . import mild  # noqa: F401,E402  (registers MILD's descriptor: mild)
 
 __all__ = ["LoopDetector", "FrameResult", "Candidate", "resolve_conf", "KeyframeDatabase", "KeyframeRecord",
            "KeyframeIndex", "INDEXES", "create_index", "Sequence", "open_sequence"]

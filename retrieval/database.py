@@ -1,10 +1,11 @@
 """The keyframe database, persisted in HDF5: what a detector has seen, so a run can resume or be inspected.
 
-Layout (``format_version`` 3)::
+Layout (``format_version`` 4)::
 
     /                       attrs: format_version, conf (JSON), descriptor (weights identity), software, created
     /keyframes/<id:08d>/    one group per keyframe, visible only once fully written
-        code         (D,)       float32, unit norm
+        code         (D,)       float32, unit norm (cosine descriptors: CAE, baselines), or
+                     (n, 32)    uint8 binary descriptors (hashed descriptors: MILD's ORB)
         keypoints    (N, 2)     float32, original-image pixels
         descriptors  (N, F)     uint8 when lossless (SIFT), else the extractor's dtype
         scales       (N,)       float32
@@ -47,7 +48,7 @@ __all__ = ["FORMAT_VERSION", "CANDIDATE_ROW", "SKIP_REASONS", "MIN_FREE_BYTES", 
 
 log = logging.getLogger(__name__)
 
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4  #: 4: codes may be binary descriptors (MILD)
 CANDIDATE_ROW = ("frame_id", "score", "matches", "inliers", "seq_score", "confidence")  #: a stored candidate row
 SKIP_REASONS = ("gated", "unreadable")  #: why a frame is not a keyframe
 MIN_FREE_BYTES = 64 << 20  #: no record is written with less free space than this on the database's disk
@@ -102,7 +103,7 @@ class FeatureStore:
 @dataclass
 class KeyframeRecord:
     frame_id: int
-    code: np.ndarray  #: (D,) float32
+    code: np.ndarray  #: (D,) float32 code, or (n, 32) uint8 binary descriptors
     features: Features
     timestamp: float | None = None
     pose: np.ndarray | None = None  #: (3, 4) camera-to-world, when known
@@ -283,7 +284,8 @@ class KeyframeDatabase:
     def append(self, rec: KeyframeRecord) -> None:
         """Writes one keyframe atomically (temporary group, then rename)."""
         feats = rec.features.compact()
-        arrays = {"code": np.asarray(rec.code, np.float32), "keypoints": feats.keypoints.astype(np.float32),
+        code = np.asarray(rec.code)
+        arrays = {"code": code if code.dtype == np.uint8 and code.ndim == 2 else code.astype(np.float32), "keypoints": feats.keypoints.astype(np.float32),
                   "descriptors": feats.descriptors, "scales": feats.scales.astype(np.float32),
                   "candidates": (np.zeros((0, len(CANDIDATE_ROW))) if rec.candidates is None
                                  else np.asarray(rec.candidates, np.float64)).reshape(-1, len(CANDIDATE_ROW))}
@@ -440,8 +442,9 @@ class KeyframeDatabase:
         return np.stack(out).astype(np.float64) if out else np.zeros((0, 3, 4))
 
     def codes(self) -> tuple[np.ndarray, np.ndarray]:
-        """All codes, ``(n, D)`` float32, with their frame ids ``(n,)``."""
-        entries = [(fid, code) for fid, code, _, _ in self.search_entries()]
+        """All codes, ``(n, D)`` float32, with their frame ids ``(n,)``; ``(0, 0)`` and ``(0,)`` when the keyframes
+        hold binary descriptors (MILD) instead of codes."""
+        entries = [(fid, code) for fid, code, _, _ in self.search_entries() if code.ndim == 1]
         if not entries:
             return np.zeros((0, 0), np.float32), np.zeros(0, np.int64)
         return np.stack([c for _, c in entries]), np.array([f for f, _ in entries], np.int64)

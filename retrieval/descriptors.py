@@ -27,6 +27,7 @@ class GlobalDescriptor:
     default_conf: dict[str, Any] = {"name": ""}
     conf_rules: dict[str, Any] = {}
     needs_features = False  #: True when ``__call__`` uses the frame's local features
+    searched_by = "cosine"  #: the place memory that stores and searches it (``retrieval.places.PLACES``)
 
     def __init__(self, conf: dict[str, Any] | None = None) -> None:
         self.conf = configure(self, conf, "descriptor")

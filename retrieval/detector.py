@@ -1,5 +1,6 @@
-"""The loop-closure detector: gate -> encode -> normalise -> search -> temporal filter -> verify -> decide -> insert,
-one frame at a time.
+"""The loop-closure detector: gate -> describe -> search -> temporal filter -> verify -> decide -> insert, one frame
+at a time. How a frame is described and searched is the global descriptor's (``descriptor``: the CAE code by
+default, searched by cosine; MILD's ORB descriptors, searched by multi-index hashing: ``retrieval.places``).
 
     >>> det = LoopDetector(K=K, database="run/keyframes.h5", calibration=cal)   # doctest: +SKIP
     >>> res = det.process(image, frame_id=i, timestamp=t)            # doctest: +SKIP
@@ -44,8 +45,9 @@ from verify.verifier import MATCHERS, Verification, create_verifier
 from .database import CANDIDATE_ROW, FeatureStore, KeyframeDatabase, KeyframeRecord
 from .calibrate import Calibration
 from .descriptors import DESCRIPTORS, GlobalDescriptor, create_descriptor
-from .index import INDEXES, KeyframeIndex
-from .temporal import FILTERS, CodeTable, create_filter
+from .index import INDEXES
+from .places import create_places
+from .temporal import FILTERS, create_filter
 
 __all__ = ["Candidate", "FrameResult", "LoopDetector", "STAGES", "default_conf", "conf_rules",
            "resolve_conf", "RENAMED_SECTIONS"]
@@ -56,7 +58,7 @@ STAGES = ("gate", "encode", "features", "search", "filter", "verify", "insert", 
 
 default_conf: dict[str, Any] = {
     "gate": EdgeGate.default_conf,  # image-quality gate (Canny edge ratio)
-    "descriptor": {"name": "cae"},  # global descriptor by registry name (cae; thumbnail, bovw) and its options
+    "descriptor": {"name": "cae"},  # global descriptor by registry name (cae; thumbnail, bovw; mild) and its options
     "whitening": {
         "enabled": True,  # False: the paper's raw cosine on the 4096-d code
         "source": "auto",  # "auto": fitted on the sequence when calibrating, else the weights' own (if any);
@@ -65,7 +67,7 @@ default_conf: dict[str, Any] = {
         "shrink": DEFAULT_SHRINK,  # added to each component's variance, times their mean (regularises small sets)
     },
     "index": {"name": "flat"},  # code index by registry name (flat, fp16, sq8, hnsw) and its options
-    "temporal": {"name": "sequence"},  # temporal-consistency filter by registry name (sequence, none)
+    "temporal": {"name": "sequence"},  # temporal-consistency filter by registry name (sequence, none, bayes)
     "search": {
         "k": 10,  # candidates retrieved per query (paper: top-10)
         "exclude_recent": 50,  # frames younger than this many frames are not searched (paper: 9)
@@ -85,9 +87,11 @@ default_conf: dict[str, Any] = {
         "verification": "auto",  # "auto": used when features suffice; "on": always; "off": global + temporal only
         "max_frames": 2000,  # frames the calibration reads at most (blocks spread over longer sequences)
     },
-    "policy": {
+    "policy": {  # the acceptance rule when not calibrated (calibration.enabled: false, or no calibration given)
+        "verify": True,  # check candidates with local features and geometry; False: the scores alone decide (MILD)
         "min_matches": 5,  # putative (ratio-test) matches a candidate needs (paper: 5)
         "min_inliers": 50,  # uncalibrated: geometric inliers a candidate needs (0: none); chosen on KITTI
+        "min_seq_score": None,  # uncalibrated: the temporal filter's score a candidate needs (MILD: posterior 0.7)
         "check_all": False,  # True: geometric check on every candidate; False: skip those that cannot win (same loops)
     },
     "runtime": {
@@ -103,7 +107,8 @@ default_conf: dict[str, Any] = {
 conf_rules: dict[str, Any] = {
     "search": {"k": Int(1, 10_000), "exclude_recent": Int(0), "exclude_recent_s": Float(0, optional=True),
                "min_score": Float(-1, 1)},
-    "policy": {"min_matches": Int(0), "min_inliers": Int(0), "check_all": Bool()},
+    "policy": {"verify": Bool(), "min_matches": Int(0), "min_inliers": Int(0),
+               "min_seq_score": Float(-1e9, 1e9, optional=True), "check_all": Bool()},
     "whitening": {"enabled": Bool(), "source": Choice("auto", "sequence", "weights"), "dim": Int(1, 4096),
                   "shrink": Float(0, 100)},
     "calibration": {"enabled": Bool(), "expected_false_loops": Float(0, 100, lo_open=True),
@@ -167,9 +172,10 @@ class Candidate:
     frame_id: int  #: the keyframe (a hypothesis of the temporal filter)
     score: float  #: single-frame cosine similarity of the (normalised) codes
     matches: int = 0  #: putative matches after the ratio test
-    inliers: int = 0  #: geometric inliers; -1 when the check did not run (the pair could not pass or win)
+    inliers: int = 0  #: geometric inliers; -1 when the check did not run (could not pass or win, or no verification)
     seq_score: float = 0.0  #: the temporal filter's score (equals ``score`` with ``temporal.name: none``)
     confidence: float = 0.0  #: what the acceptance rule thresholds: -log10 NFA when calibrated, else inliers
+    #                            (the temporal score when the policy does not verify)
 
     def as_row(self) -> tuple[int, float, int, int, float, float]:
         """The stored candidate row, in ``retrieval.database.CANDIDATE_ROW`` order."""
@@ -243,10 +249,9 @@ class LoopDetector:
         self.extractor = create_extractor(c["features"])
         self.verifier = create_verifier(c["matcher"], c["geometry"])
         self.verifier.geometry.model_for(self.K)  # fail now, not at the first loop, if E is asked without K
-        dim = self.descriptor.dim if self.whitening is None else self.whitening.dim
-        self.index = KeyframeIndex(dim, c["index"], c["search"]["exclude_recent"], c["search"]["exclude_recent_s"])
-        self.codes = CodeTable(dim, self._searchable)
+        self.places = create_places(self.descriptor, self.whitening, c)
         self.filter = create_filter(c["temporal"])
+        self._verify = bool(self.calibration.inlier_null) if self.calibration is not None else c["policy"]["verify"]
         self._min_inliers = c["policy"]["min_inliers"]
         if self.calibration is not None:
             self._min_inliers = self.calibration.thresholds()["inliers"] or 0
@@ -274,31 +279,28 @@ class LoopDetector:
                 raise
 
     def _load(self, db: KeyframeDatabase) -> None:
+        """Rebuilds the place memory and the filter's history from the database, as the uninterrupted run had them:
+        each keyframe is searched again in frame order (the filter updated with what it saw then), then committed
+        with its stored hypotheses and inserted."""
         n = 0
+        results = {q: cands for q, cands, _ in db.results()}
         for fid, code, timestamp, feats in db.search_entries():
-            if code.shape != (self.descriptor.dim,) or not np.isfinite(code).all():
-                raise ConfigError(f"{db.path}: keyframe {fid} has a code of shape {code.shape} (expected "
-                                  f"({self.descriptor.dim},), finite); the database is damaged")
-            normed = self._normalise(code)
-            self.index.add(fid, normed, timestamp)
-            self.codes.add(fid, normed)
+            try:
+                self.places.check(code)
+            except ConfigError as err:
+                raise ConfigError(f"{db.path}: keyframe {fid}: {err}; the database is damaged") from None
+            entry = self.places.entry(code)
+            scores, ids = self.places.search(fid, entry, timestamp, self.conf["search"]["k"])
+            if self.filter.replays_history:  # its state depends on every update, not only on the kept hypotheses
+                self.filter.update(fid, ids[scores >= self.conf["search"]["min_score"]], self.places.source)
+            self.filter.commit(fid, results[fid][:, 0].astype(np.int64))
+            self.places.insert(fid, entry, timestamp)
             if self.features.db is None:  # memory mode: everything back in memory
                 self.features[fid] = feats
             n += 1
         self._next_id = db.last_frame_id() + 1
-        for q, cands, _ in db.results():  # the filter's history, as the uninterrupted run built it
-            self.filter.commit(q, cands[:, 0].astype(np.int64))
         if n:
             log.info("resumed %s: %d keyframes, next frame %d", db.path, n, self._next_id)
-
-    def _normalise(self, code: np.ndarray) -> np.ndarray:
-        """The code the index searches: whitened when there is a whitening, else as the descriptor gives it."""
-        return code if self.whitening is None else self.whitening.transform(code)
-
-    def _searchable(self, refs: np.ndarray) -> np.ndarray:
-        """True for keyframes the current query may match (admitted to the index: old enough)."""
-        newest = self.index.frame_ids[-1] if self.index.frame_ids else -1
-        return np.array([r <= newest and r in self.codes for r in np.asarray(refs).tolist()], bool)
 
     @property
     def next_frame_id(self) -> int:
@@ -365,31 +367,32 @@ class LoopDetector:
             ms["total"] = (time.perf_counter() - t_start) * 1e3
             return FrameResult(fid, True, gate.edge_ratio, ms=ms)
 
-        feats, code, normed, candidates = self._describe_and_search(image, gray, net, fid, ts, ms)
+        feats, code, entry, candidates = self._describe_and_search(image, gray, net, fid, ts, ms)
         try:
-            loop, best = self._verify_and_insert(fid, gate.edge_ratio, feats, code, normed, candidates, ts, pose34,
+            loop, best = self._verify_and_insert(fid, gate.edge_ratio, feats, code, entry, candidates, ts, pose34,
                                                  source, fingerprint, ms)
         except BaseException:
-            self.codes.remove_last(fid)  # the frame is not in the map: the state is as it was
+            self.places.undo(fid)  # the frame is not in the map: the state is as it was
             raise
         ms["total"] = (time.perf_counter() - t_start) * 1e3
         geo = best.geometry if best is not None else None
         return FrameResult(fid, False, gate.edge_ratio, candidates, loop, getattr(geo, "R", None),
                            getattr(geo, "t", None), ms)
 
-    def _verify_and_insert(self, fid: int, edge_ratio: float, feats: Features, code: np.ndarray, normed: np.ndarray,
+    def _verify_and_insert(self, fid: int, edge_ratio: float, feats: Features, code: np.ndarray, entry: np.ndarray,
                            candidates: list[Candidate], ts: float | None, pose34: np.ndarray | None, source: str,
                            fingerprint: str, ms: dict[str, float]) -> tuple[Candidate | None, Verification | None]:
         """Verifies the hypotheses, decides, and stores the keyframe (database first, then memory)."""
         t0 = time.perf_counter()
         c = self.conf
-        verify = self.calibration is None or bool(self.calibration.inlier_null)
         checks = self.verifier.verify(feats, [self.features[cd.frame_id] for cd in candidates], self.K,
                                       c["policy"]["min_matches"], self._min_inliers, c["policy"]["check_all"]) \
-            if verify else [None] * len(candidates)
+            if self._verify else [None] * len(candidates)
         for cand, check in zip(candidates, checks):
             if check is not None:
                 cand.matches, cand.inliers = check.matches, check.inliers
+            else:
+                cand.inliers = -1
             cand.confidence = self._confidence(cand)
         loop, best = self._decide(candidates, checks)
         ms["verify"] = (time.perf_counter() - t0) * 1e3
@@ -399,7 +402,7 @@ class LoopDetector:
             rows = np.array([cd.as_row() for cd in candidates], np.float64).reshape(-1, len(CANDIDATE_ROW))
             self.db.append(KeyframeRecord(fid, code, feats, ts, pose34, source, edge_ratio, rows,
                                           -1 if loop is None else loop.frame_id, fingerprint))
-        self.index.add(fid, normed, ts)
+        self.places.insert(fid, entry, ts)
         self.filter.commit(fid, np.array([cd.frame_id for cd in candidates], np.int64))
         self.features[fid] = feats  # after the database has it: database mode may read it back from there
         self._next_id = fid + 1
@@ -408,36 +411,41 @@ class LoopDetector:
 
     def _describe_and_search(self, image: np.ndarray, gray: np.ndarray, net: np.ndarray, fid: int, ts: float | None,
                              ms: dict[str, float]) -> tuple[Features, np.ndarray, np.ndarray, list[Candidate]]:
-        """Local features, the raw and normalised codes, and the top-k hypotheses of one frame (stage times into
-        ``ms``). The normalised code is in ``self.codes`` when this returns (``remove_last`` undoes it)."""
-        # local features: first when the descriptor needs them, else in the worker thread (parallel) or after search
+        """Local features, the raw code and the searched entry, and the top-k hypotheses of one frame (stage times
+        into ``ms``). The search registered the frame in ``places.source`` (``places.undo`` forgets it)."""
+        # local features: first when the descriptor needs them, else in the worker thread (parallel) or after search;
+        # none when nothing verifies with them
         feats, pending = None, None
         if self.descriptor.needs_features:
             feats, ms["features"] = self._timed_extract(gray)
-        elif self._pool is not None:
+        elif self._pool is not None and self._verify:
             pending = self._pool.submit(self._timed_extract, gray)
         t0 = time.perf_counter()
         code = self.descriptor(image, feats, network_image=net)
-        normed = self._normalise(code)
+        entry = self.places.entry(code)
         ms["encode"] = (time.perf_counter() - t0) * 1e3
         t0 = time.perf_counter()
         k = self.conf["search"]["k"]
-        self.index.admit(fid, ts)
-        scores, ids = self.index.search(normed, k)
+        scores, ids = self.places.search(fid, entry, ts, k)
         ids = ids[scores >= self.conf["search"]["min_score"]]
         ms["search"] = (time.perf_counter() - t0) * 1e3
         t0 = time.perf_counter()
-        self.codes.add(fid, normed)
-        hyp, seq = self.filter.update(fid, ids, self.codes)
+        hyp, seq = self.filter.update(fid, ids, self.places.source)
         hyp, seq = hyp[:k], seq[:k]
-        single = self.codes.pairs(np.full(len(hyp), fid), hyp)
+        single = self.places.source.pairs(np.full(len(hyp), fid), hyp)
         candidates = [Candidate(int(i), float(s), seq_score=float(q)) for i, s, q in zip(hyp, single, seq)]
         ms["filter"] = (time.perf_counter() - t0) * 1e3
         if feats is None:
             t0 = time.perf_counter()
-            feats, ms["features"] = pending.result() if pending is not None else self._timed_extract(gray)
+            if pending is not None:
+                feats, ms["features"] = pending.result()
+            elif self._verify:
+                feats, ms["features"] = self._timed_extract(gray)
+            else:
+                feats, ms["features"] = Features.empty(self.extractor.descriptor_dim, self.extractor.descriptor_dtype,
+                                                       self.extractor.metric), 0.0
             ms["features_wait"] = (time.perf_counter() - t0) * 1e3  # what the frame waited for them
-        return feats, code, normed, candidates
+        return feats, code, entry, candidates
 
     def _timed_extract(self, gray: np.ndarray) -> tuple[Features, float]:
         t0 = time.perf_counter()
@@ -445,27 +453,36 @@ class LoopDetector:
         return feats, (time.perf_counter() - t0) * 1e3
 
     def _confidence(self, cand: Candidate) -> float:
-        """Calibrated: ``-log10 NFA`` on the deciding path (``Calibration.path``); else the inlier count."""
+        """Calibrated: ``-log10 NFA`` on the deciding path (``Calibration.path``); else the inlier count (the
+        temporal score when the policy does not verify)."""
         cal = self.calibration
         if cal is None:
-            return float(cand.inliers)
+            return float(cand.inliers) if self._verify else cand.seq_score
         inl = cand.inliers if cand.matches >= self.conf["policy"]["min_matches"] else -1
         return float(max(cal.confidence(cand.seq_score, inl), -1e9))
+
+    def _passes_policy(self, cand: Candidate) -> bool:
+        """The uncalibrated acceptance rule (``policy``)."""
+        p = self.conf["policy"]
+        if self._verify and (cand.matches < p["min_matches"] or cand.inliers < p["min_inliers"]):
+            return False
+        return p["min_seq_score"] is None or cand.seq_score >= p["min_seq_score"]
 
     def _decide(self, candidates: list[Candidate],
                 checks: list[Verification | None]) -> tuple[Candidate | None, Verification | None]:
         """The accepted candidate.
 
         Calibrated: the most confident one whose confidence reaches ``Calibration.accept_at``. Uncalibrated: one that
-        passes every policy threshold; most inliers, then most matches, then score.
+        passes every policy threshold; most inliers, then most matches, then score (verifying), else the first in
+        the temporal filter's ranking.
         """
-        p = self.conf["policy"]
         if self.calibration is not None:
             passing = [(cd, ch) for cd, ch in zip(candidates, checks) if cd.confidence >= self.calibration.accept_at]
             key = (lambda pair: (pair[0].confidence, pair[0].inliers, pair[0].seq_score))
         else:
-            passing = [(cd, ch) for cd, ch in zip(candidates, checks)
-                       if cd.matches >= p["min_matches"] and cd.inliers >= p["min_inliers"]]
+            passing = [(cd, ch) for cd, ch in zip(candidates, checks) if self._passes_policy(cd)]
+            if passing and not self._verify:  # the scores alone: the filter's own ranking decides
+                return passing[0]
             key = (lambda pair: (pair[0].inliers, pair[0].matches, pair[0].score))
         if not passing:
             return None, None

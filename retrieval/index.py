@@ -22,7 +22,7 @@ import numpy as np
 
 from core.conf import Float, Int, Registry, configure, merge_conf
 
-__all__ = ["CodeIndex", "FlatIndex", "FP16Index", "SQ8Index", "HNSWIndex", "INDEXES", "create_index", "KeyframeIndex",
+__all__ = ["AdmissionQueue", "CodeIndex", "FlatIndex", "FP16Index", "SQ8Index", "HNSWIndex", "INDEXES", "create_index", "KeyframeIndex",
            "brute_force_search"]
 
 
@@ -120,14 +120,44 @@ def create_index(dim: int, conf: dict[str, Any] | None = None) -> CodeIndex:
     return INDEXES.get((conf or {}).get("name", "flat"))(dim, conf)
 
 
+class AdmissionQueue:
+    """Keyframes wait here until they are old enough to be matched by the current query: at least
+    ``exclude_recent`` frames earlier and, when timestamps are given, ``exclude_recent_s`` seconds earlier (the one
+    rule for "too recent", shared by every place memory). Frames come in increasing id (and timestamp) order."""
+
+    def __init__(self, exclude_recent: int = 0, exclude_recent_s: float | None = None) -> None:
+        self.exclude_recent = int(exclude_recent)
+        self.exclude_recent_s = exclude_recent_s
+        self._pending: deque[tuple[int, float | None, Any]] = deque()
+
+    def __len__(self) -> int:
+        return len(self._pending)
+
+    def push(self, frame_id: int, timestamp: float | None, item: Any) -> None:
+        self._pending.append((int(frame_id), timestamp, item))
+
+    def pop_ready(self, frame_id: int, timestamp: float | None = None) -> list[tuple[int, Any]]:
+        """``(frame id, item)`` of every queued keyframe old enough for a query at ``frame_id`` (and ``timestamp``),
+        oldest first; they leave the queue."""
+        ready = []
+        while self._pending:
+            fid, ts, item = self._pending[0]
+            if frame_id - fid < self.exclude_recent:
+                break
+            if self.exclude_recent_s is not None and timestamp is not None and ts is not None \
+                    and timestamp - ts < self.exclude_recent_s:
+                break
+            self._pending.popleft()
+            ready.append((fid, item))
+        return ready
+
+
 class KeyframeIndex:
     """Keyframe codes searchable by cosine, with recent frames excluded.
 
-    A code becomes searchable only once it is old enough relative to the query: at least ``exclude_recent`` frames
-    earlier and, when timestamps are given, ``exclude_recent_s`` seconds earlier. Codes wait in a queue until
-    ``admit`` moves them into the index, so the exclusion costs nothing at search time and works with every index
-    type (none needs deletion); ``search`` only reads. Frames are expected in increasing ``frame_id`` (and
-    timestamp) order, as a camera delivers them.
+    A code becomes searchable only once it is old enough relative to the query (``AdmissionQueue``). Codes wait in
+    the queue until ``admit`` moves them into the index, so the exclusion costs nothing at search time and works
+    with every index type (none needs deletion); ``search`` only reads.
 
         >>> index.admit(frame_id, timestamp)        # codes old enough for this frame become searchable
         >>> scores, ids = index.search(code, k)     # doctest: +SKIP
@@ -136,33 +166,22 @@ class KeyframeIndex:
     def __init__(self, dim: int, index_conf: dict[str, Any] | None = None, exclude_recent: int = 0,
                  exclude_recent_s: float | None = None) -> None:
         self.index = create_index(dim, index_conf)
-        self.exclude_recent = int(exclude_recent)
-        self.exclude_recent_s = exclude_recent_s
         self.frame_ids: list[int] = []  # position in the index -> frame id
-        self._pending: deque[tuple[int, float | None, np.ndarray]] = deque()
+        self._queue = AdmissionQueue(exclude_recent, exclude_recent_s)
 
     def __len__(self) -> int:
-        return len(self.frame_ids) + len(self._pending)
+        return len(self.frame_ids) + len(self._queue)
 
     def add(self, frame_id: int, code: np.ndarray, timestamp: float | None = None) -> None:
         """Queues a keyframe's unit-norm ``(d,)`` code."""
-        self._pending.append((int(frame_id), timestamp, np.asarray(code, np.float32).reshape(-1)))
+        self._queue.push(frame_id, timestamp, np.asarray(code, np.float32).reshape(-1))
 
     def admit(self, frame_id: int, timestamp: float | None = None) -> None:
         """Makes searchable every queued code old enough for a query at ``frame_id`` (and ``timestamp``)."""
-        ready = []
-        while self._pending:
-            fid, ts, code = self._pending[0]
-            if frame_id - fid < self.exclude_recent:
-                break
-            if self.exclude_recent_s is not None and timestamp is not None and ts is not None \
-                    and timestamp - ts < self.exclude_recent_s:
-                break
-            self._pending.popleft()
-            self.frame_ids.append(fid)
-            ready.append(code)
+        ready = self._queue.pop_ready(frame_id, timestamp)
         if ready:
-            self.index.add(np.stack(ready))
+            self.frame_ids.extend(fid for fid, _ in ready)
+            self.index.add(np.stack([code for _, code in ready]))
 
     def search(self, code: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         """Top-``k`` among the admitted keyframes (call ``admit`` for the query frame first); changes nothing.

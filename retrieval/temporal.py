@@ -14,7 +14,9 @@ with a score that uses the recent past. Filters plug in by name (conf section ``
   earlier keyframe plus "no loop"; the prediction spreads each hypothesis over its neighbours ``[i-2, i+2]``
   (probability ``stay``) or back to "no loop"; the likelihood of hypothesis ``i`` is the z-score of its similarity
   in the current row (mean and standard deviation of the row) where it exceeds one standard deviation, else 1,
-  and a constant for "no loop". Its scores are posteriors; MILD declares a loop above 0.7.
+  and a constant for "no loop". A hypothesis' score is the posterior summed over its neighbourhood (the filter
+  spreads a loop over neighbouring keyframes, so the place, not one keyframe, holds the probability); hypotheses
+  are ranked by their own posterior. MILD declares a loop above 0.7 (``policy.min_seq_score``).
 
 The interface, shapes included::
 
@@ -97,6 +99,8 @@ class TemporalFilter:
 
     default_conf: dict[str, Any] = {"name": ""}
     conf_rules: dict[str, Any] = {}
+    replays_history = False  #: True: the state depends on every ``update``, so a resume replays them (not only
+    #                            ``commit``)
 
     def __init__(self, conf: dict[str, Any] | None = None) -> None:
         self.conf = configure(self, conf, "temporal")
@@ -200,10 +204,13 @@ class BayesFilter(TemporalFilter):
         "stay": 0.9,  # probability that a loop hypothesis continues (to itself or a neighbour); MILD: 0.9
         "neighbourhood": 2,  # a hypothesis moves to keyframes at most this far (MILD: [i-2, i+2])
         "no_loop_likelihood": 1.0,  # likelihood of "no loop" (MILD: a constant)
+        "score_window": 2,  # a hypothesis' score is the posterior summed over keyframes at most this far (0: its own)
         "max_hypotheses": 64,  # hypotheses returned per query, best first
     }
     conf_rules: dict[str, Any] = {"stay": Float(0, 1, lo_open=True, hi_open=True), "neighbourhood": Int(0, 100),
-                                  "no_loop_likelihood": Float(0, lo_open=True), "max_hypotheses": Int(1, 100_000)}
+                                  "no_loop_likelihood": Float(0, lo_open=True), "score_window": Int(0, 100),
+                                  "max_hypotheses": Int(1, 100_000)}
+    replays_history = True
 
     def __init__(self, conf: dict[str, Any] | None = None) -> None:
         super().__init__(conf)
@@ -219,9 +226,7 @@ class BayesFilter(TemporalFilter):
         old = np.zeros(len(ids))
         if len(self._ids):
             old[np.searchsorted(ids, self._ids)] = self._post
-        r = self.conf["neighbourhood"]
-        padded = np.pad(old, r)
-        spread = np.max(np.stack([padded[i:i + len(ids)] for i in range(2 * r + 1)]), axis=0) if len(ids) else old
+        spread = _window(old, self.conf["neighbourhood"], np.max)
         stay = self.conf["stay"]
         prior = stay * spread + (1 - stay) * self._no_loop / max(len(ids), 1)
         prior_none = stay * self._no_loop + (1 - stay) * (1 - self._no_loop)
@@ -245,12 +250,21 @@ class BayesFilter(TemporalFilter):
         none = self.conf["no_loop_likelihood"] * prior_none
         total = post.sum() + none
         self._ids, self._post, self._no_loop = ids, post / total, none / total
-        ranked_ids, ranked = _ranked(ids, self._post)
-        return ranked_ids[: self.conf["max_hypotheses"]], ranked[: self.conf["max_hypotheses"]]
+        order = np.lexsort((ids, -self._post))[: self.conf["max_hypotheses"]]  # by own posterior, best first
+        scores = _window(self._post, self.conf["score_window"], np.sum)  # ... scored by their place's posterior
+        return ids[order], scores[order].astype(np.float32)
 
     def score(self, query_ids: np.ndarray, ref_ids: np.ndarray, source: SimilaritySource) -> np.ndarray:
         """The similarity itself: a posterior depends on the whole history, not on one pair."""
         return np.nan_to_num(source.pairs(np.asarray(query_ids, np.int64), np.asarray(ref_ids, np.int64)), nan=0.0)
+
+
+def _window(values: np.ndarray, radius: int, reduce: Callable[..., np.ndarray]) -> np.ndarray:
+    """``reduce`` (max or sum) of ``values`` over positions ``[i - radius, i + radius]`` (zero beyond the ends)."""
+    if radius == 0 or len(values) == 0:
+        return values
+    padded = np.pad(values, radius)
+    return reduce(np.stack([padded[i:i + len(values)] for i in range(2 * radius + 1)]), axis=0)
 
 
 def _ranked(ids: np.ndarray, scores: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

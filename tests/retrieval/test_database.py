@@ -83,7 +83,7 @@ class TestKeyframeDatabase:
 
     def test_storage_layout(self, db_path, records):
         with h5py.File(db_path, "r") as f:
-            assert int(f.attrs["format_version"]) == FORMAT_VERSION == 3
+            assert int(f.attrs["format_version"]) == FORMAT_VERSION == 4
             assert f.attrs["descriptor"] == ENCODER_ID
             assert sorted(f["keyframes"]) == ["00000003", "00000007", "00000012"]
             grp = f["keyframes/00000003"]

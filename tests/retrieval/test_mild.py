@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
 from core.errors import ConfigError
-from retrieval.mild import (MultiIndexHash, brute_force_similarity, expected_recall, hamming_distances,
-                            recall_probability)
+from retrieval.mild import (MildDescriptor, MultiIndexHash, brute_force_similarity, bucket_cap, expected_recall,
+                            hamming_distances, recall_probability)
 from verify.features import ORB
 
 
@@ -32,6 +33,40 @@ class TestMultiIndexHash:
         for d in stored:
             index.add(d)
         np.testing.assert_allclose(index.query(query), brute_force_similarity(query, stored, 16), rtol=1e-12)
+
+    @pytest.mark.parametrize("m", [8, 32])  # 32-bit keys: binary search; 8-bit keys: direct addressing
+    def test_equals_brute_force_other_m(self, orb_descriptors, m):
+        *stored, query = orb_descriptors
+        index = MultiIndexHash(m=m)
+        for d in stored:
+            index.add(d)
+        np.testing.assert_allclose(index.query(query), brute_force_similarity(query, stored, m), rtol=1e-12)
+
+    def test_equals_brute_force_with_over_full_entries_skipped(self, orb_descriptors):
+        *stored, query = orb_descriptors
+        rng = np.random.default_rng(1)
+        base = query[:20]
+
+        def randomised(desc, keep):  # 16-bit substrings outside ``keep`` replaced by random bits
+            words = desc.view(">u2").copy()
+            others = [t for t in range(16) if t not in keep]
+            words[:, others] = rng.integers(0, 1 << 16, (len(desc), len(others)))
+            return words.view(np.uint8)
+
+        # A is the query with one bit flipped in each of substrings 1-4: it shares substring 0 and 5-15 with it. Five
+        # descriptors per query feature that share only substring 0 crowd its entries past the cap, so A's pairs
+        # count through table 5 (the first table where they match in an entry that is not skipped)
+        near = base.view(">u2").copy()
+        near[:, 1:5] ^= 1
+        stored = [*stored, near.view(np.uint8), *[randomised(base, (0,)) for _ in range(5)]]
+        index = MultiIndexHash(m=16, max_bucket=2.0)
+        for i, d in enumerate(stored):
+            index.add(d)
+            if i == 1:
+                index.query(query)  # the first images go to the sorted tables, the rest to the tail
+        got = index.query(query)
+        np.testing.assert_allclose(got, brute_force_similarity(query, stored, 16, max_bucket=2.0), rtol=1e-12)
+        assert got[3] > 0
 
     def test_equals_eq1_for_pairs_that_must_share_a_key(self, orb_descriptors):
         # with d0 < m every pair that phi counts is under m bits apart, so it shares a substring: eq. 3 == eq. 1
@@ -68,6 +103,29 @@ class TestMultiIndexHash:
             index.add(np.zeros((3, 128), np.float32))
         with pytest.raises(ConfigError, match="divide 256"):
             MultiIndexHash(m=7)
+
+
+class TestBucketCap:
+    def test_relative_to_the_mean_entry(self):
+        assert bucket_cap(0, 10**6, 16) == float("inf")
+        assert bucket_cap(4.0, 1000, 16) == 4.0  # fewer features than keys: at least 1 a key
+        assert bucket_cap(4.0, 2 * 65536, 16) == 8.0
+
+
+class TestMildDescriptor:
+    def test_orb_descriptors_and_small_frames_enlarged(self, sample_image):
+        frame = sample_image(5)
+        desc = MildDescriptor()(frame)
+        assert desc.dtype == np.uint8 and desc.shape[1] == 32 and 700 <= len(desc) <= 800
+        tiny = cv2.resize(frame, (64, 32), interpolation=cv2.INTER_AREA)
+        assert len(MildDescriptor()(tiny)) > 50  # enlarged to 256 first
+        assert MildDescriptor({"min_size": None})(tiny).shape == (0, 32)  # ORB's border leaves nothing at 64x32
+
+    def test_conf_checked(self):
+        with pytest.raises(ConfigError, match="divide 256"):
+            MildDescriptor({"m": 7})
+        with pytest.raises(ConfigError, match="max_bucket"):
+            MildDescriptor({"max_bucket": -1})
 
 
 class TestHammingDistances:

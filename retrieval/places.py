@@ -1,0 +1,193 @@
+"""The place memory: where the detector keeps what it has seen and finds the candidates of a query.
+
+What a descriptor gives decides how it is stored and compared (``GlobalDescriptor.searched_by``):
+
+- ``cosine`` (``CodePlaces``): a unit-norm code per frame (CAE, thumbnail, bovw), whitened when a whitening is
+  given, searched by cosine top-k in a faiss index; the temporal filter reads similarities from a ``CodeTable``.
+- ``hash`` (``HashPlaces``): a frame's binary descriptors (MILD), in multi-index hash tables; a query scores every
+  admitted keyframe (MILD eq. 3), so the whole similarity row is returned (MILD's Bayesian filter needs it); the
+  filter reads similarities from the rows of the recent queries (``RowTable``).
+
+Both exclude keyframes too recent for the query with the same rule (``retrieval.index.AdmissionQueue``). The
+interface, shapes included::
+
+    places.check(code)                        # a stored code this memory cannot use -> ConfigError
+    entry = places.entry(code)                # what is searched: the normalised code / the descriptors
+    scores, ids = places.search(frame_id, entry, timestamp, k)   # (m,) float32 best first, (m,) int64
+    places.insert(frame_id, entry, timestamp) # the frame becomes a keyframe (searchable once old enough)
+    places.undo(frame_id)                     # the frame was not inserted after all (search registered it)
+    places.source                             # temporal.SimilaritySource over the stored frames
+    len(places)                               # keyframes inserted (searchable or still too recent)
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from typing import Any
+
+import numpy as np
+
+from cae.whitening import Whitening
+from core.conf import ConfigError, Registry
+
+from .descriptors import GlobalDescriptor
+from .index import AdmissionQueue, KeyframeIndex
+from .temporal import CodeTable
+
+__all__ = ["Places", "CodePlaces", "HashPlaces", "RowTable", "PLACES", "create_places"]
+
+
+class Places:
+    """Base of the place memories (see the module doc)."""
+
+    source: Any
+
+    def check(self, code: np.ndarray) -> None:
+        raise NotImplementedError
+
+    def entry(self, code: np.ndarray) -> np.ndarray:
+        return code
+
+    def search(self, frame_id: int, entry: np.ndarray, timestamp: float | None,
+               k: int) -> tuple[np.ndarray, np.ndarray]:
+        raise NotImplementedError
+
+    def insert(self, frame_id: int, entry: np.ndarray, timestamp: float | None) -> None:
+        raise NotImplementedError
+
+    def undo(self, frame_id: int) -> None:
+        raise NotImplementedError
+
+    def __len__(self) -> int:
+        raise NotImplementedError
+
+
+PLACES: Registry[Places] = Registry("place memory")
+
+
+@PLACES.register("cosine")
+class CodePlaces(Places):
+    """Codes searched by cosine top-k (faiss), whitened first when a whitening is given."""
+
+    def __init__(self, descriptor: GlobalDescriptor, whitening: Whitening | None, conf: dict[str, Any]) -> None:
+        self.descriptor, self.whitening = descriptor, whitening
+        dim = descriptor.dim if whitening is None else whitening.dim
+        s = conf["search"]
+        self.index = KeyframeIndex(dim, conf["index"], s["exclude_recent"], s["exclude_recent_s"])
+        self.source = CodeTable(dim, self._searchable)
+
+    def check(self, code: np.ndarray) -> None:
+        if code.shape != (self.descriptor.dim,) or not np.isfinite(code).all():
+            raise ConfigError(f"a stored code has shape {code.shape} (expected ({self.descriptor.dim},), finite)")
+
+    def entry(self, code: np.ndarray) -> np.ndarray:
+        return code if self.whitening is None else self.whitening.transform(code)
+
+    def _searchable(self, refs: np.ndarray) -> np.ndarray:
+        """True for keyframes the current query may match (admitted to the index: old enough)."""
+        newest = self.index.frame_ids[-1] if self.index.frame_ids else -1
+        return np.array([r <= newest and r in self.source for r in np.asarray(refs).tolist()], bool)
+
+    def search(self, frame_id: int, entry: np.ndarray, timestamp: float | None,
+               k: int) -> tuple[np.ndarray, np.ndarray]:
+        self.index.admit(frame_id, timestamp)
+        scores, ids = self.index.search(entry, k)
+        self.source.add(frame_id, entry)
+        return scores, ids
+
+    def insert(self, frame_id: int, entry: np.ndarray, timestamp: float | None) -> None:
+        self.index.add(frame_id, entry, timestamp)
+
+    def undo(self, frame_id: int) -> None:
+        self.source.remove_last(frame_id)
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+
+class RowTable:
+    """Similarity rows of the most recent queries against the keyframes admitted for them, as a
+    ``temporal.SimilaritySource`` (NaN for pairs no kept row holds).
+
+    Args:
+        keep: rows kept (the oldest dropped first); a sequence filter longer than this sees missing terms.
+    """
+
+    def __init__(self, keep: int = 32) -> None:
+        self.keep = keep
+        self._rows: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
+
+    def set(self, query_id: int, ids: np.ndarray, sims: np.ndarray) -> None:
+        """The row of ``query_id``: ``ids (n,)`` ascending keyframe ids, ``sims (n,)``."""
+        self._rows[int(query_id)] = (np.asarray(ids, np.int64), np.asarray(sims, np.float32))
+        while len(self._rows) > self.keep:
+            self._rows.popitem(last=False)
+
+    def drop(self, query_id: int) -> None:
+        self._rows.pop(int(query_id), None)
+
+    def pairs(self, queries: np.ndarray, refs: np.ndarray) -> np.ndarray:
+        queries, refs = np.asarray(queries, np.int64), np.asarray(refs, np.int64)
+        out = np.full(len(queries), np.nan, np.float32)
+        for q in np.unique(queries).tolist():
+            if q not in self._rows:
+                continue
+            ids, sims = self._rows[q]
+            sel = np.flatnonzero(queries == q)
+            pos = np.minimum(np.searchsorted(ids, refs[sel]), max(len(ids) - 1, 0))
+            hit = (ids[pos] == refs[sel]) if len(ids) else np.zeros(len(sel), bool)
+            out[sel[hit]] = sims[pos[hit]]
+        return out
+
+    def searchable(self, refs: np.ndarray) -> np.ndarray:
+        """In the latest query's row (admitted for it)."""
+        refs = np.asarray(refs, np.int64)
+        if not self._rows:
+            return np.zeros(len(refs), bool)
+        ids = next(reversed(self._rows.values()))[0]
+        return np.isin(refs, ids)
+
+
+@PLACES.register("hash")
+class HashPlaces(Places):
+    """Binary descriptors in MILD's multi-index hash tables; ``search`` returns the whole row, best first."""
+
+    def __init__(self, descriptor: GlobalDescriptor, whitening: Whitening | None, conf: dict[str, Any]) -> None:
+        if whitening is not None:
+            raise ConfigError(f"the {descriptor.conf['name']!r} descriptor is compared by hashing; a whitening does "
+                              "not apply (set whitening.enabled: false)")
+        self.hash = descriptor.new_hash()
+        self.queue = AdmissionQueue(conf["search"]["exclude_recent"], conf["search"]["exclude_recent_s"])
+        self.frame_ids: list[int] = []  # hash image index -> frame id (ascending)
+        self.source = RowTable()
+        self.dim = descriptor.dim
+
+    def check(self, code: np.ndarray) -> None:
+        if code.ndim != 2 or code.shape[1] != self.dim or code.dtype != np.uint8:
+            raise ConfigError(f"a stored entry has shape {code.shape} {code.dtype} (expected (n, {self.dim}) uint8 "
+                              "binary descriptors)")
+
+    def search(self, frame_id: int, entry: np.ndarray, timestamp: float | None,
+               k: int) -> tuple[np.ndarray, np.ndarray]:
+        for fid, desc in self.queue.pop_ready(frame_id, timestamp):
+            self.hash.add(desc)
+            self.frame_ids.append(fid)
+        ids = np.asarray(self.frame_ids, np.int64)
+        sims = self.hash.query(entry).astype(np.float32)
+        self.source.set(frame_id, ids, sims)
+        order = np.lexsort((ids, -sims))  # best first; ties: older keyframe first
+        return sims[order], ids[order]
+
+    def insert(self, frame_id: int, entry: np.ndarray, timestamp: float | None) -> None:
+        self.queue.push(frame_id, timestamp, entry)
+
+    def undo(self, frame_id: int) -> None:
+        self.source.drop(frame_id)
+
+    def __len__(self) -> int:
+        return self.hash.n_images + len(self.queue)
+
+
+def create_places(descriptor: GlobalDescriptor, whitening: Whitening | None, conf: dict[str, Any]) -> Places:
+    """The place memory for ``descriptor`` (by its ``searched_by``), configured by the detector's resolved conf."""
+    return PLACES.get(descriptor.searched_by)(descriptor, whitening, conf)
