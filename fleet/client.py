@@ -41,8 +41,9 @@ class FleetClient:
         self._http = client if client is not None else httpx.Client(base_url=base_url, timeout=timeout)
         self._headers = {"Authorization": f"Bearer {token}"}
 
-    def _call(self, method: str, path: str, body: dict[str, Any] | None = None) -> Any:
-        response = self._http.request(method, path, json=body, headers=self._headers)
+    def _call(self, method: str, path: str, body: dict[str, Any] | None = None,
+              params: dict[str, Any] | None = None) -> Any:
+        response = self._http.request(method, path, json=body, headers=self._headers, params=params)
         if response.status_code >= 400:
             try:
                 detail = response.json().get("detail")
@@ -72,13 +73,15 @@ class FleetClient:
     def loops(self, robot: str) -> list[dict[str, Any]]:
         return self._call("GET", f"/robots/{robot}/loops")
 
-    def poses(self, robot: str) -> dict[int, np.ndarray]:
-        """Corrected keyframe poses: keyframe id -> ``(4, 4)`` camera-to-global pose."""
-        return {p["keyframe"]: np.array(p["pose"]) for p in self._call("GET", f"/robots/{robot}/poses")}
+    def poses(self, robot: str, wait: bool = False) -> dict[int, np.ndarray]:
+        """Corrected keyframe poses: keyframe id -> ``(4, 4)`` camera-to-global pose (the latest solution;
+        ``wait``: one that includes every keyframe acknowledged so far)."""
+        rows = self._call("GET", f"/robots/{robot}/poses", params={"wait": wait})
+        return {p["keyframe"]: np.array(p["pose"]) for p in rows}
 
     def overlaps(self) -> list[dict[str, Any]]:
         return self._call("GET", "/overlaps")
 
-    def transforms(self) -> dict[str, np.ndarray]:
-        """Robot -> ``(4, 4)`` map-to-global similarity matrix."""
-        return {r: np.array(m) for r, m in self._call("GET", "/transforms").items()}
+    def transforms(self, wait: bool = False) -> dict[str, np.ndarray]:
+        """Robot -> ``(4, 4)`` map-to-global similarity matrix (``wait``: as for ``poses``)."""
+        return {r: np.array(m) for r, m in self._call("GET", "/transforms", params={"wait": wait}).items()}

@@ -194,6 +194,15 @@ class PoseGraph:
         self._edges.append(edge)
         return edge
 
+    def copy(self) -> "PoseGraph":
+        """A copy that later ``add_keyframe``/``add_edge`` calls on this graph do not change (nodes and edges are
+        immutable, so they are shared)."""
+        other = PoseGraph.__new__(PoseGraph)
+        other.conf, other.anchor = self.conf, self.anchor
+        other._local, other._last = dict(self._local), dict(self._last)
+        other._edges, other._guess = list(self._edges), dict(self._guess)
+        return other
+
     def set_transform(self, robot: str, transform: Sim3) -> None:
         """An initial guess of ``robot``'s map-to-global transform (otherwise derived from the overlap edges)."""
         self._guess[robot] = transform

@@ -66,3 +66,11 @@ def landmarks():
 def with_outliers():
     """``with_outliers(dst, fraction, rng)`` -> ``(points, outlier mask)``: rows replaced by other rows."""
     return _with_outliers
+
+
+@pytest.fixture(scope="session")
+def cae_descriptor():
+    """The CAE descriptor with the shipped weights, loaded once for every server of the session."""
+    from retrieval.descriptors import create_descriptor
+
+    return create_descriptor({"name": "cae"})

@@ -27,15 +27,22 @@ def jpeg(sample_dir):
 
 
 @pytest.fixture
-def server(tmp_path):
+def server(tmp_path, cae_descriptor):
     """``server()`` -> (TestClient, admin FleetClient) over the state in ``tmp_path/state`` (reopened each call)."""
     from fastapi.testclient import TestClient
 
+    apps = []
+
     def start():
-        http = TestClient(create_app(tmp_path / "state", ADMIN))
+        if apps:
+            apps[-1].state.service.close()  # as a stopped server does: the robots' databases are released
+        apps.append(create_app(tmp_path / "state", ADMIN, descriptor=cae_descriptor))
+        http = TestClient(apps[-1])
         return http, FleetClient("", ADMIN, client=http)
 
-    return start
+    yield start
+    if apps:
+        apps[-1].state.service.close()
 
 
 def submit(client, robot, frames, sample_poses, jpeg):
@@ -63,10 +70,10 @@ class TestKeyframes:
         robot = FleetClient("", admin.register("A"), client=http)
         assert submit(robot, "A", range(5), sample_poses, jpeg) == [True] * 5
         assert not robot.submit_keyframe("A", 3, 0.1 * 3, sample_poses[3], jpeg(3))  # a retry
-        poses = robot.poses("A")
+        poses = robot.poses("A", wait=True)
         assert sorted(poses) == list(range(5))
         np.testing.assert_allclose(poses[4][:3], sample_poses[4], atol=1e-5)  # the first robot's frame is global
-        assert np.allclose(robot.transforms()["A"], np.eye(4), atol=1e-6)
+        assert np.allclose(robot.transforms(wait=True)["A"], np.eye(4), atol=1e-6)
 
     def test_a_robot_writes_only_its_own_data(self, server, sample_poses, jpeg):
         http, admin = server()
@@ -75,7 +82,7 @@ class TestKeyframes:
         with pytest.raises(FleetError, match="403"):
             b.submit_keyframe("A", 0, 0.0, sample_poses[0], jpeg(0))
         with pytest.raises(FleetError, match="403"):
-            b.poses("A")
+            b.poses("A", wait=True)
         with pytest.raises(FleetError, match="404"):
             b.loops("nobody")
 
@@ -92,7 +99,7 @@ class TestKeyframes:
         args = {"pose": sample_poses[0], "image": jpeg(0), **change}
         with pytest.raises(FleetError, match=reason):
             robot.submit_keyframe("A", 0, 0.0, **args)
-        assert robot.poses("A") == {}
+        assert robot.poses("A", wait=True) == {}
 
     def test_a_depth_map_of_the_image_size_is_accepted(self, server, sample_poses, jpeg, sample_K):
         http, admin = server()
@@ -105,7 +112,7 @@ class TestKeyframes:
         submit(FleetClient("", token, client=http), "A", range(3), sample_poses, jpeg)
         http, _ = server()  # a new app over the same state folder
         robot = FleetClient("", token, client=http)
-        assert sorted(robot.poses("A")) == [0, 1, 2]
+        assert sorted(robot.poses("A", wait=True)) == [0, 1, 2]
         assert submit(robot, "A", [3], sample_poses, jpeg) == [True]
         with pytest.raises(FleetError, match="other content"):
             robot.submit_keyframe("A", 1, 0.0, sample_poses[2], jpeg(1))  # keyframe 1 again, another pose
@@ -125,8 +132,8 @@ class TestOverlapThroughTheService:
         rel = gt[4].inverse().compose(known_sim3).compose(Sim3(1.0, *(lambda L: (L.R, L.t))(
             known_sim3.inverse().compose(gt[5]))))
         http.app.state.service.add_edge(EdgeRecord("overlap", "A", 4, "B", 5, rel, 40.0))
-        T = Sim3.from_matrix(a.transforms()["B"])
+        T = Sim3.from_matrix(a.transforms(wait=True)["B"])
         angle, scale, trans = T.errors(known_sim3)
         assert angle < 0.1 and scale < 1e-3 and trans < 0.1
         assert [loop["kind"] for loop in b.loops("B")] == ["overlap"]
-        np.testing.assert_allclose(b.poses("B")[5][:3, 3], sample_poses[5][:, 3], atol=0.05)
+        np.testing.assert_allclose(b.poses("B", wait=True)[5][:3, 3], sample_poses[5][:, 3], atol=0.05)
