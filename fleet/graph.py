@@ -251,7 +251,7 @@ class PoseGraph:
         for robot in transforms:
             result.transforms[robot] = mean_sim3([poses[n].compose(self._local[n].inverse())
                                                   for n in nodes if n.robot == robot])
-        log.info("pose graph: %d nodes, %d factors, error %.4g -> %.4g in %d iterations", len(nodes),
+        log.debug("pose graph: %d nodes, %d factors, error %.4g -> %.4g in %d iterations", len(nodes),
                  graph.size(), result.error_before, result.error_after, result.iterations)
         return result
 

@@ -81,7 +81,15 @@ class FleetService:
         for e in self.store.edges():
             if e.kind != "odometry":
                 self._graph.add_edge(e.kind, Node(e.robot_a, e.keyframe_a), Node(e.robot_b, e.keyframe_b), e.relative)
+        self._set_anchor()
         log.info("fleet state: %d robots, %d keyframes", len(self.store.robots()), len(self._graph.nodes))
+
+    def _set_anchor(self) -> None:
+        """The global frame is the map of the first registered robot that has keyframes (whoever sent first)."""
+        present = {n.robot for n in self._graph.nodes} if self._graph.anchor is not None else set()
+        first = next((r for r in self.store.robots() if r in present), None)
+        if first is not None:
+            self._graph.anchor = first
 
     def register(self, name: str) -> str:
         """Registers a robot; returns its new token ``NAME.SECRET`` (shown once, stored hashed).
@@ -142,6 +150,7 @@ class FleetService:
                 self.store.add_overlap(overlap)
             with self._lock:
                 self._graph.add_keyframe(robot, ack.keyframe, ack.pose)
+                self._set_anchor()
                 for e in found.edges:
                     self._graph.add_edge(e.kind, Node(e.robot_a, e.keyframe_a), Node(e.robot_b, e.keyframe_b),
                                          e.relative)
