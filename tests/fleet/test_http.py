@@ -22,18 +22,6 @@ LIMITS = {"limits": {"max_request_mb": 1.0, "max_image_pixels": 500_000}}
 
 
 @pytest.fixture(scope="module")
-def sample_poses(sample_dir):
-    from retrieval.sequences import read_kitti_poses
-
-    return read_kitti_poses(sample_dir / "poses.txt")
-
-
-@pytest.fixture(scope="module")
-def jpeg(sample_dir):
-    return lambda i: (sample_dir / "image_0" / f"{i:06d}.jpg").read_bytes()
-
-
-@pytest.fixture(scope="module")
 def live(tmp_path_factory, cae_descriptor):
     """A server on a free loopback port with robots A and B registered: ``(url, state dir, {robot: token})``."""
     state = tmp_path_factory.mktemp("http_state")

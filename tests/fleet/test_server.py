@@ -14,18 +14,6 @@ from fleet.store import EdgeRecord
 ADMIN = "admin-secret"
 
 
-@pytest.fixture(scope="module")
-def sample_poses(sample_dir):
-    from retrieval.sequences import read_kitti_poses
-
-    return read_kitti_poses(sample_dir / "poses.txt")
-
-
-@pytest.fixture(scope="module")
-def jpeg(sample_dir):
-    return lambda i: (sample_dir / "image_0" / f"{i:06d}.jpg").read_bytes()
-
-
 @pytest.fixture
 def server(tmp_path, cae_descriptor):
     """``server()`` -> (TestClient, admin FleetClient) over the state in ``tmp_path/state`` (reopened each call)."""
