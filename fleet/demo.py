@@ -26,6 +26,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from core.conf import ConfigError
 from core.errors import LCDError
 from core.files import prepare_out_dir, write_text_atomic
 from retrieval.sequences import read_kitti_calib, read_kitti_poses, read_times
@@ -160,6 +161,8 @@ def run_demo(out: str | Path, kitti_root: str | Path, negative: bool = False, fr
     Raises:
         ConfigError: bad KITTI files or ``out``. LCDError: a robot's keyframe was refused.
     """
+    if not 4 <= frames <= 200:
+        raise ConfigError(f"--frames must be in 4..200 (KITTI 00 here has 200 frames); got {frames}")
     out = prepare_out_dir(out)
     state = out / "state"
     if state.exists():

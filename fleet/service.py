@@ -70,8 +70,7 @@ class FleetService:
             return self._graph.copy()
 
     def _publish(self, result: GraphResult) -> None:
-        if result.transforms:
-            self.store.set_transforms(result.transforms)
+        self.store.set_transforms(result.transforms)
 
     def _rebuild(self) -> None:
         """The graph from the store: every robot's acknowledged keyframes, then the loop and overlap edges."""

@@ -147,7 +147,8 @@ class FleetStore(ABC):
 
     @abstractmethod
     def set_transforms(self, transforms: dict[str, Sim3]) -> None:
-        """Stores robots' map-to-global transforms, all in one transaction."""
+        """Stores the robots' map-to-global transforms of the latest solution, all in one transaction; robots absent
+        from ``transforms`` are not merged (their old transform is dropped)."""
 
     @abstractmethod
     def transforms(self) -> dict[str, Sim3]:
@@ -327,7 +328,8 @@ class SQLiteStore(FleetStore):
     def set_transforms(self, transforms: dict[str, Sim3]) -> None:
         now = time.time()
         with self._transaction() as db:
-            db.executemany("INSERT OR REPLACE INTO transforms VALUES (?, ?, ?)",
+            db.execute("DELETE FROM transforms")
+            db.executemany("INSERT INTO transforms VALUES (?, ?, ?)",
                            [(robot, _sim3_json(T), now) for robot, T in transforms.items()])
 
     def transforms(self) -> dict[str, Sim3]:

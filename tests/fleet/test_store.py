@@ -108,6 +108,8 @@ class TestSQLiteStore:
         assert o.matches == 4 and o.transform.errors(known_sim3.inverse()) == pytest.approx((0, 0, 0), abs=1e-6)
         store.set_transforms({"A": Sim3.identity(), "B": known_sim3})
         assert store.transforms()["B"].errors(known_sim3) == pytest.approx((0, 0, 0), abs=1e-6)
+        store.set_transforms({"A": Sim3.identity()})  # a later solution without B: B is no longer merged
+        assert list(store.transforms()) == ["A"]
         with pytest.raises(ConfigError):
             store.set_transforms({"nobody": known_sim3})
 
