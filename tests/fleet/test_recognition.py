@@ -17,8 +17,8 @@ def kitti(kitti_sequences, kitti_poses):
     """``frame(seq, i)`` -> (image, pose (4, 4), K)."""
     from retrieval.sequences import read_kitti_calib
 
-    poses = {s: kitti_poses(s) for s in ("00", "07")}
-    calib = {s: read_kitti_calib(kitti_sequences / s / "calib.txt") for s in ("00", "07")}
+    poses = {s: kitti_poses(s) for s in ("00", "07", "90")}
+    calib = {s: read_kitti_calib(kitti_sequences / s / "calib.txt") for s in ("00", "07", "90")}
 
     def frame(seq: str, i: int):
         image = cv2.imread(str(kitti_sequences / seq / "image_0" / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED)
@@ -91,6 +91,20 @@ class TestFleetRecognizer:
         found = stream(rec, kitti, [(r, s, i) for i in range(0, 40, 2) for r, s in (("A", "00"), ("B", "07"))])
         rec.close()
         assert not [e for r in found for e in r.edges] and not [o for r in found for o in r.overlaps]
+
+    def test_a_robot_revisiting_a_place_reports_a_loop(self, tmp_path, kitti, cae_descriptor):
+        """KITTI 90: frames 134-145 drive again past frames 34-45 (about 0.7 m beside them)."""
+        rec = FleetRecognizer(tmp_path, descriptor=cae_descriptor)
+        found = stream(rec, kitti, [("A", "90", i) for i in [*range(34, 46), *range(134, 146)]])
+        rec.close()
+        loops = [e for r in found for e in r.edges]
+        assert loops and {e.kind for e in loops} == {"loop"} and not [o for r in found for o in r.overlaps]
+        for e in loops:
+            assert e.robot_a == e.robot_b == "A" and e.keyframe_a < 46 and e.keyframe_b >= 134
+            truth = Sim3.from_pose(kitti("90", e.keyframe_a)[1]).inverse().compose(
+                Sim3.from_pose(kitti("90", e.keyframe_b)[1]))
+            angle, scale, trans = e.relative.errors(truth)
+            assert angle < 3.0 and scale < 0.05 and trans < 1.0  # metres, scenes 10-30 m deep
 
     def test_a_restarted_recognizer_continues(self, overlapping, cae_descriptor, kitti):
         state, _ = overlapping
