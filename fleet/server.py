@@ -28,7 +28,7 @@ import hmac
 import io
 import logging
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import cv2
 import numpy as np
@@ -151,11 +151,24 @@ def create_app(state_dir: str | Path, admin_token: str, conf: dict[str, Any] | N
     if not admin_token:
         raise ConfigError("the admin token must not be empty")
     recognizer = FleetRecognizer(state_dir, recognition, descriptor) if recognize else None
-    service = FleetService(SQLiteStore(Path(state_dir) / "fleet.sqlite"), conf, recognizer)
+    try:
+        service = FleetService(SQLiteStore(Path(state_dir) / "fleet.sqlite"), conf, recognizer)
+    except BaseException:
+        if recognizer is not None:
+            recognizer.close()
+        raise
     app = FastAPI(title="cae-lcd fleet server", on_shutdown=[service.close])
     app.state.service = service
-    limits = service.conf["limits"]
-    _size_limit(app, int(limits["max_request_mb"] * 2**20))
+    _size_limit(app, int(service.conf["limits"]["max_request_mb"] * 2**20))
+    caller, owner_or_admin = _auth(service, admin_token)
+    _write_routes(app, service, caller, owner_or_admin)
+    _read_routes(app, service, caller, owner_or_admin)
+    return app
+
+
+def _auth(service: FleetService, admin_token: str) -> tuple[Callable[..., str], Callable[[str, str], None]]:
+    """The ``caller`` dependency (token -> robot name or ``ADMIN``; 401) and the ``owner_or_admin`` check (404, 403).
+    """
 
     def caller(authorization: str = Header(default="")) -> str:
         token = authorization.removeprefix("Bearer ").strip()
@@ -171,6 +184,14 @@ def create_app(state_dir: str | Path, admin_token: str, conf: dict[str, Any] | N
             raise HTTPException(404, f"no robot {name!r}")
         if who not in (name, ADMIN):
             raise HTTPException(403, f"this token cannot access robot {name!r}")
+
+    return caller, owner_or_admin
+
+
+def _write_routes(app: FastAPI, service: FleetService, caller: Callable[..., str],
+                  owner_or_admin: Callable[[str, str], None]) -> None:
+    """``POST /robots`` and ``POST /robots/{name}/keyframes``."""
+    max_pixels = service.conf["limits"]["max_image_pixels"]
 
     @app.post("/robots", status_code=201)
     def register(body: RobotIn, who: str = Depends(caller)) -> dict[str, str]:
@@ -190,12 +211,17 @@ def create_app(state_dir: str | Path, admin_token: str, conf: dict[str, Any] | N
         if who != name:
             raise HTTPException(403, "only the robot itself submits its keyframes")
         pose = _pose(body.pose)
-        image, K, depth = _decode_keyframe(body, limits["max_image_pixels"])
+        image, K, depth = _decode_keyframe(body, max_pixels)
         try:
             stored = service.submit_keyframe(name, body.keyframe, body.timestamp, pose, image, K, depth)
         except LCDError as err:
             raise HTTPException(400, str(err)) from None
         return {"robot": name, "keyframe": body.keyframe, "stored": stored}
+
+
+def _read_routes(app: FastAPI, service: FleetService, caller: Callable[..., str],
+                 owner_or_admin: Callable[[str, str], None]) -> None:
+    """Loops, poses, overlaps and transforms."""
 
     @app.get("/robots/{name}/loops")
     def loops(name: str, who: str = Depends(caller)) -> list[dict[str, Any]]:
@@ -219,4 +245,3 @@ def create_app(state_dir: str | Path, admin_token: str, conf: dict[str, Any] | N
         service.optimize(wait)
         return {robot: T.matrix().tolist() for robot, T in service.store.transforms().items()}
 
-    return app
