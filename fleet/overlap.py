@@ -98,6 +98,12 @@ class OverlapTracker:
                 accepted.append(other)
         return sorted(accepted)
 
+    def accept(self, robot: str, other: str) -> None:
+        """Marks the pair's overlap accepted in both directions (e.g. one stored before a restart)."""
+        for key in ((robot, other), (other, robot)):
+            rule = self.rules.setdefault(key, OverlapRule(self.conf["required"], self.conf["max_match_gap"]))
+            rule.accepted = rule.accepted or []
+
     def accepted(self, robot: str, other: str) -> bool:
         """Whether an overlap of either robot with the other was accepted."""
         return any(r.accepted is not None for key in ((robot, other), (other, robot)) if (r := self.rules.get(key)))

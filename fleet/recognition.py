@@ -137,7 +137,7 @@ class FleetRecognizer:
         self.tracker = OverlapTracker(self.conf["overlap"])
         self.triangulator = PointTriangulator(self.conf["triangulation"])
         self.robots: dict[str, _Robot] = {}
-        self._run: dict[tuple[str, str], list[tuple[int, int, Verification]]] = {}
+        self._checks: dict[tuple[str, str], dict[int, Verification]] = {}  # recent verified matches per robot pair
         self._edges: dict[tuple[str, str], int] = {}
         self._recorded: set[frozenset[str]] = set()  # robot pairs whose overlap was recorded (this run)
         for folder in sorted(self.root.glob("*/camera.json")):
@@ -207,14 +207,16 @@ class FleetRecognizer:
         """Searches and verifies against every other robot, updates the overlap rules, adds edges."""
         matches = {o: m for o in self.robots if o != robot and (m := self._best_match(robot, keyframe, o))}
         accepted = self.tracker.update(robot, keyframe, {o: m[0] for o, m in matches.items()})
-        for other in [o for o in self.robots if o != robot]:
-            run = self._run.setdefault((robot, other), [])
-            run[:] = [] if other not in matches else run + [(keyframe, *matches[other])]
-            del run[:-self.conf["overlap"]["required"]]
+        keep = self.conf["overlap"]["required"]
         for other, (match, check) in matches.items():
-            if other in accepted:
-                for kf, m, v in self._run[(robot, other)]:
-                    self._add_edge(out, "overlap", (other, m), (robot, kf), v)
+            recent = self._checks.setdefault((robot, other), {})
+            recent[keyframe] = check
+            for old in sorted(recent)[:-keep]:
+                del recent[old]
+            if other in accepted:  # the accepting run's matches, each an edge
+                for kf, m in self.tracker.rules[(robot, other)].accepted or []:
+                    if kf in recent:
+                        self._add_edge(out, "overlap", (other, m), (robot, kf), recent[kf])
             elif self.tracker.accepted(robot, other):
                 self._add_edge(out, "overlap", (other, match), (robot, keyframe), check)
             pair = frozenset((robot, other))
@@ -222,6 +224,16 @@ class FleetRecognizer:
             if rec is not None and pair not in self._recorded:  # the first edge of an accepted overlap records it
                 self._recorded.add(pair)
                 out.overlaps.append(self._overlap_record(rec))
+
+    def resume(self, overlaps: list[OverlapRecord], edges: list[EdgeRecord]) -> None:
+        """Continues after a restart: overlaps already accepted (stored) stay accepted, and the overlap edges already
+        stored count towards ``max_edges_per_pair``."""
+        for o in overlaps:
+            self._recorded.add(frozenset((o.robot_a, o.robot_b)))
+            self.tracker.accept(o.robot_a, o.robot_b)
+        for e in edges:
+            if e.kind == "overlap":
+                self._edges[(e.robot_a, e.robot_b)] = self._edges.get((e.robot_a, e.robot_b), 0) + 1
 
     def _best_match(self, robot: str, keyframe: int, other: str) -> tuple[int, Verification] | None:
         """The other robot's keyframe that verifies best against the query (None: none passes)."""

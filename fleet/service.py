@@ -63,6 +63,8 @@ class FleetService:
         self._verified: set[bytes] = set()  # sha256(name, token) of tokens already checked (PBKDF2 is slow)
         self._graph = PoseGraph(self.conf["graph"])
         self._rebuild()
+        if recognizer is not None:
+            recognizer.resume(self.store.overlaps(), self.store.edges(kind="overlap"))
         self.optimizer = BackgroundOptimizer(self._snapshot, self._publish, self.conf["optimizer"])
 
     def _snapshot(self) -> PoseGraph:

@@ -69,6 +69,12 @@ class TestOverlapTracker:
         assert tracker.update("B", 2, {"A": 12, "C": 4}) == ["A"]
         assert tracker.accepted("A", "B") and not tracker.accepted("B", "C")
 
+    def test_accept_marks_both_directions(self):
+        t = OverlapTracker()
+        t.accept("A", "B")
+        assert t.accepted("A", "B") and t.accepted("B", "A") and not t.accepted("A", "C")
+        assert t.update("B", 7, {"A": 3}) == []  # already accepted: no second acceptance
+
     def test_own_robot_is_ignored(self):
         tracker = OverlapTracker({"required": 1})
         assert tracker.update("A", 0, {"A": 0}) == []

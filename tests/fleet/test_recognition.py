@@ -45,10 +45,10 @@ def stream(rec, kitti, frames, known_sim3=None):
 
 @pytest.fixture(scope="module")
 def overlapping(tmp_path_factory, kitti, cae_descriptor, known_sim3):
-    """A recognizer after A = 00 frames 100, 102, ... and B = 101, 103, ... (B in ``known_sim3``'s map)."""
+    """A recognizer after A = 00 frames 100, 102, ..., 118 and B = 101, ..., 119 (B in ``known_sim3``'s map)."""
     state = tmp_path_factory.mktemp("fleet_state")
     rec = FleetRecognizer(state, descriptor=cae_descriptor)
-    found = stream(rec, kitti, [("A" if i % 2 == 0 else "B", "00", i) for i in range(100, 128)], known_sim3)
+    found = stream(rec, kitti, [("A" if i % 2 == 0 else "B", "00", i) for i in range(100, 120)], known_sim3)
     rec.close()
     return state, found
 
@@ -111,13 +111,24 @@ class TestFleetRecognizer:
         rec = FleetRecognizer(state, descriptor=cae_descriptor)
         try:
             assert sorted(rec.robots) == ["A", "B"]
-            assert rec.robots["A"].ids == list(range(100, 128, 2))
-            assert rec.has("B", 127) and not rec.has("B", 129)
+            assert rec.robots["A"].ids == list(range(100, 120, 2))
+            assert rec.has("B", 119) and not rec.has("B", 121)
             np.testing.assert_allclose(rec.robots["A"].K, kitti("00", 0)[2])
             with pytest.raises(ConfigError, match="not after"):
-                stream(rec, kitti, [("A", "00", 126)])
+                stream(rec, kitti, [("A", "00", 118)])
         finally:
             rec.close()
+
+    def test_a_resumed_overlap_stays_accepted(self, overlapping, cae_descriptor, kitti, known_sim3):
+        state, found = overlapping
+        rec = FleetRecognizer(state, descriptor=cae_descriptor)
+        try:
+            rec.resume([o for r in found for o in r.overlaps], [e for r in found for e in r.edges])
+            after = stream(rec, kitti, [("A", "00", 120), ("B", "00", 121)], known_sim3)
+        finally:
+            rec.close()
+        assert not [o for r in after for o in r.overlaps]  # recorded once, before the restart
+        assert [e.kind for r in after for e in r.edges][:1] == ["overlap"]  # no new run of 3 needed
 
     def test_other_intrinsics_are_refused(self, overlapping, cae_descriptor, kitti):
         rec = FleetRecognizer(overlapping[0], descriptor=cae_descriptor)
