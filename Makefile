@@ -8,7 +8,7 @@ TORCH ?= torch==2.13.0
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: install demo test bench clean
+.PHONY: install demo fleet-demo test bench clean
 
 install: $(STAMP)
 
@@ -22,6 +22,9 @@ $(STAMP): pyproject.toml
 demo: install
 	rm -rf runs/demo
 	$(VENV)/bin/cae-lcd detect --out runs/demo
+
+fleet-demo: install
+	$(VENV)/bin/cae-lcd fleet-demo --out runs/fleet-demo
 
 test: install
 	$(PY) -m pytest -q

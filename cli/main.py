@@ -10,11 +10,11 @@ from typing import Sequence
 
 from core.cli import run_cli
 
-from . import bench, calibrate, detect, evaluate, train
+from . import bench, calibrate, detect, evaluate, fleet_demo, serve, train
 
 __all__ = ["main", "build_parser", "COMMANDS"]
 
-COMMANDS = (detect, calibrate, evaluate, bench, train)  #: modules that contribute a subcommand through ``add_parser(subparsers)``
+COMMANDS = (detect, calibrate, evaluate, bench, train, serve, fleet_demo)  #: modules that contribute a subcommand through ``add_parser(subparsers)``
 
 
 class _Parser(argparse.ArgumentParser):

@@ -1,0 +1,83 @@
+"""``cae-lcd serve --state DIR``: the fleet server (``fleet.server``) on uvicorn, on loopback by default.
+
+The admin token (it registers robots) comes from ``--admin-token``, else the ``CAE_LCD_ADMIN_TOKEN`` environment
+variable, else a random one printed once on start. A server stopped or killed continues from ``--state``.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import secrets
+import sys
+from typing import Any
+
+import uvicorn
+
+from core.conf import ConfigError, load_conf_file
+
+__all__ = ["add_parser", "run", "serve", "admin_token", "TOKEN_ENV"]
+
+log = logging.getLogger("cae_lcd.serve")
+
+TOKEN_ENV = "CAE_LCD_ADMIN_TOKEN"  #: environment variable holding the admin token
+
+
+def admin_token(given: str | None) -> tuple[str, bool]:
+    """The admin token: ``given``, else ``$CAE_LCD_ADMIN_TOKEN``, else a new random one.
+
+    Returns:
+        ``(token, generated)``.
+    """
+    token = given or os.environ.get(TOKEN_ENV, "")
+    return (token, False) if token else (secrets.token_urlsafe(32), True)
+
+
+def serve(state: str, host: str = "127.0.0.1", port: int = 8765, admin: str | None = None,
+          config: str | None = None) -> None:
+    """Runs the fleet server until interrupted.
+
+    Args:
+        state: the state folder (created, or continued).
+        host: interface to listen on (loopback by default: put a TLS proxy in front to serve a network).
+        port: TCP port.
+        admin: the admin token (None: the environment's, else a generated one printed once).
+        config: YAML with ``service`` (``FleetService.default_conf``) and ``recognition``
+            (``FleetRecognizer.default_conf``) sections.
+
+    Raises:
+        ConfigError: a bad config, port or state folder.
+    """
+    from fleet.server import create_app  # here: the CLI's other commands do not load FastAPI
+
+    if not 0 < port < 65536:
+        raise ConfigError(f"--port must be in 1..65535; got {port}")
+    conf = load_conf_file(config) if config else {}
+    unknown = set(conf) - {"service", "recognition"}
+    if unknown:
+        raise ConfigError(f"{config}: unknown sections {sorted(unknown)}; allowed: service, recognition")
+    token, generated = admin_token(admin)
+    app = create_app(state, token, conf.get("service"), conf.get("recognition"))
+    if generated:
+        print(f"admin token (shown once; set {TOKEN_ENV} to choose one): {token}", file=sys.stderr, flush=True)
+    log.info("fleet server on http://%s:%d, state in %s", host, port, state)
+    uvicorn.run(app, host=host, port=port, log_level="warning")
+
+
+def add_parser(sub: Any) -> None:
+    from core.cli import api_defaults
+
+    d = api_defaults(serve)
+    p = sub.add_parser("serve", help="run the fleet server (robots submit keyframes over HTTP)",
+                       description=__doc__.split("\n\n")[0])
+    p.add_argument("--state", required=True, help="state folder (created, or continued after a stop or a crash)")
+    p.add_argument("--host", default=d["host"], help=f"interface (default: {d['host']}, loopback only)")
+    p.add_argument("--port", type=int, default=d["port"], help=f"TCP port (default: {d['port']})")
+    p.add_argument("--admin-token", default=d["admin"],
+                   help=f"admin token (default: ${TOKEN_ENV}, else generated and printed once)")
+    p.add_argument("--config", default=d["config"], help="YAML with 'service' and 'recognition' sections")
+    p.set_defaults(func=run)
+
+
+def run(args: Any) -> None:
+    serve(args.state, args.host, args.port, args.admin_token, args.config)

@@ -1,0 +1,300 @@
+"""Place recognition across a fleet: the ``detect`` pipeline on every robot's keyframes, intra-robot loops and
+inter-robot overlaps, each turned into a pose-graph edge (a similarity from 3D-3D matches).
+
+- One ``retrieval.LoopDetector`` per robot, its keyframes in ``STATE/robots/NAME/keyframes.h5`` (resumed on start),
+  all sharing one global descriptor (the CAE encoder is loaded once per server). It reports the robot's own loops,
+  with its usual recent-frame exclusion and its fixed acceptance policy (``policy.min_inliers``).
+- Inter-robot: the query's code is searched against every OTHER robot's keyframes (cosine top-``cross.k``, no recency
+  exclusion: another robot's frame is never "recent") and verified by the same verifier (SIFT + geometry, fixed
+  inlier threshold ``cross.min_inliers``). Each robot pair's matches feed ``OverlapTracker``: an overlap is accepted
+  after ``overlap.required`` consecutive matching keyframes; from then on every verified match becomes an edge (at
+  most ``max_edges_per_pair``).
+- An edge's similarity: 3D points of the matched features on both sides (the depth map when the keyframe came with
+  one, else triangulated from the robot's own neighbouring keyframe with its local poses), then ``estimate_overlap``.
+
+Camera intrinsics are per robot (the first keyframe's), kept in ``STATE/robots/NAME/camera.json``. Depth maps are
+kept in memory only: after a restart, keyframes that had one fall back to triangulation.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from core.conf import ConfigError, Float, Int, check_conf, merge_conf
+from core.files import write_text_atomic
+from retrieval.descriptors import GlobalDescriptor, create_descriptor
+from retrieval.detector import LoopDetector, resolve_conf
+from verify.verifier import Verification
+
+from .overlap import OverlapTracker, PointTriangulator, estimate_overlap, points_from_depth
+from .sim3 import Sim3, Sim3Ransac
+from .store import EdgeRecord, OverlapRecord
+
+__all__ = ["FleetRecognizer", "Recognition", "CAMERA_FORMAT_VERSION"]
+
+log = logging.getLogger(__name__)
+
+CAMERA_FORMAT_VERSION = 1  #: format of ``camera.json``
+
+
+@dataclass
+class Recognition:
+    """What one keyframe found: loop and overlap edges (keyframe ``b`` is the query) and newly accepted overlaps."""
+
+    edges: list[EdgeRecord] = field(default_factory=list)
+    overlaps: list[OverlapRecord] = field(default_factory=list)
+    gated: bool = False  #: the quality gate refused the image (no place memory entry)
+
+
+def remembering(descriptor: GlobalDescriptor) -> GlobalDescriptor:
+    """The same descriptor (same object state, so the same encoder), remembering its last code in ``.last``.
+
+    It stays an instance of the descriptor's own class, as ``LoopDetector`` requires.
+    """
+    base = type(descriptor)
+
+    class Remembering(base):  # type: ignore[valid-type, misc]
+        def __init__(self) -> None:  # no super().__init__: the wrapped descriptor's state is shared, not rebuilt
+            self.__dict__ = descriptor.__dict__
+            self.last: np.ndarray | None = None
+
+        def __call__(self, image: np.ndarray, features: Any = None, network_image: Any = None) -> np.ndarray:
+            self.last = base.__call__(self, image, features, network_image)
+            return self.last
+
+    return Remembering()
+
+
+class _Robot:
+    """One robot's detector, intrinsics, local poses and searchable codes."""
+
+    def __init__(self, detector: LoopDetector, K: np.ndarray | None) -> None:
+        self.detector, self.K = detector, K
+        self.poses: dict[int, np.ndarray] = {}  # keyframe -> (4, 4) local pose
+        self.ids: list[int] = []  # keyframes in the place memory (passed the gate), ascending
+        self.codes = np.zeros((0, 0), np.float32)  # (len(ids), dim) searched entries
+        self.points: dict[int, np.ndarray] = {}  # keyframe -> (N, 3) feature points, when known
+
+    def add(self, keyframe: int, entry: np.ndarray) -> None:
+        entry = np.asarray(entry, np.float32).reshape(1, -1)
+        self.codes = entry if not self.ids else np.concatenate([self.codes, entry])
+        self.ids.append(int(keyframe))
+
+    def neighbour(self, keyframe: int) -> int | None:
+        """The keyframe in the place memory nearest to ``keyframe`` (another one), None if there is none."""
+        others = [i for i in self.ids if i != keyframe]
+        return min(others, key=lambda i: (abs(i - keyframe), i)) if others else None
+
+
+class FleetRecognizer:
+    """Loops and overlaps of every robot's keyframes (see the module doc); not thread-safe: callers serialise.
+
+    Args:
+        state_dir: the server's state folder (robots' databases go in ``robots/NAME/``).
+        conf: overrides of ``default_conf``.
+        descriptor: an already built global descriptor; None: built once from ``detector.descriptor``.
+
+    Raises:
+        ConfigError: a bad conf. DatabaseError: a damaged robot database.
+    """
+
+    default_conf: dict[str, Any] = {
+        "detector": {"calibration": {"enabled": False}},  # LoopDetector conf of every robot (fixed policy)
+        "cross": {
+            "k": 3,  # candidates of each other robot verified per query
+            "min_score": 0.0,  # candidates under this cosine similarity are not verified
+            "min_matches": 5,  # putative matches a candidate needs
+            "min_inliers": 50,  # geometric inliers a cross-robot match needs (the detector's fixed policy)
+        },
+        "overlap": OverlapTracker.default_conf,  # n-consecutive-match acceptance of an overlap
+        "triangulation": PointTriangulator.default_conf,  # 3D points from a robot's neighbouring keyframe
+        "sim3": Sim3Ransac.default_conf,  # RANSAC of an edge's similarity from 3D-3D matches
+        "min_points": 20,  # 3D-3D RANSAC inliers an edge needs
+        "max_edges_per_pair": 30,  # overlap edges kept per robot pair (the accepting run's first)
+    }
+    conf_rules: dict[str, Any] = {
+        "cross": {"k": Int(1, 1000), "min_score": Float(-1, 1), "min_matches": Int(0), "min_inliers": Int(0)},
+        "overlap": OverlapTracker.conf_rules, "triangulation": PointTriangulator.conf_rules,
+        "sim3": Sim3Ransac.conf_rules, "min_points": Int(3), "max_edges_per_pair": Int(1)}
+
+    def __init__(self, state_dir: str | Path, conf: dict[str, Any] | None = None,
+                 descriptor: GlobalDescriptor | None = None) -> None:
+        conf = dict(conf or {})
+        user_detector = conf.pop("detector", None)  # checked by the detector's own rules (its units' sections)
+        self.conf = merge_conf({k: v for k, v in self.default_conf.items() if k != "detector"}, conf, "recognition")
+        check_conf(self.conf, self.conf_rules, "recognition")
+        self.detector_conf = resolve_conf(merge_conf(self.default_conf["detector"], user_detector, strict=False))
+        self.conf["detector"] = self.detector_conf
+        self.root = Path(state_dir) / "robots"
+        self.descriptor = remembering(descriptor or create_descriptor(self.detector_conf["descriptor"]))
+        self.tracker = OverlapTracker(self.conf["overlap"])
+        self.triangulator = PointTriangulator(self.conf["triangulation"])
+        self.robots: dict[str, _Robot] = {}
+        self._checks: dict[tuple[str, str], dict[int, Verification]] = {}  # recent verified matches per robot pair
+        self._edges: dict[tuple[str, str], int] = {}
+        self._recorded: set[frozenset[str]] = set()  # robot pairs whose overlap was recorded (this run)
+        for folder in sorted(self.root.glob("*/camera.json")):
+            self._open(folder.parent.name, None)
+
+    def _open(self, name: str, K: np.ndarray | None) -> _Robot:
+        """The robot's detector, resumed from its database; ``K`` is stored on first use and must match after."""
+        folder = self.root / name
+        camera = folder / "camera.json"
+        if camera.exists():
+            stored = json.loads(camera.read_text())
+            if stored.get("format_version") != CAMERA_FORMAT_VERSION:
+                raise ConfigError(f"{camera}: format_version {stored.get('format_version')} is not "
+                                  f"{CAMERA_FORMAT_VERSION}")
+            K = None if stored["K"] is None else np.asarray(stored["K"], np.float64)
+        else:
+            folder.mkdir(parents=True, exist_ok=True)
+            write_text_atomic(camera, json.dumps({"format_version": CAMERA_FORMAT_VERSION,
+                                                  "K": None if K is None else np.asarray(K).tolist()}))
+        det = LoopDetector(self.detector_conf, K=K, database=folder / "keyframes.h5", descriptor=self.descriptor)
+        robot = self.robots[name] = _Robot(det, K)
+        for rec in det.db:
+            if rec.pose is not None:
+                robot.poses[rec.frame_id] = Sim3.from_pose(rec.pose).matrix()
+            robot.add(rec.frame_id, det.places.entry(rec.code))
+        return robot
+
+    def has(self, robot: str, keyframe: int) -> bool:
+        """True when the robot's database already holds ``keyframe`` (or a later one)."""
+        return robot in self.robots and keyframe < self.robots[robot].detector.next_frame_id
+
+    def check(self, robot: str, K: np.ndarray | None) -> None:
+        """Refuses intrinsics that differ from the robot's first ones; changes nothing."""
+        r = self.robots.get(robot)
+        if r is not None and K is not None and (r.K is None or not np.allclose(r.K, K)):
+            raise ConfigError(f"robot {robot}: intrinsics differ from its first keyframe's")
+
+    def process(self, robot: str, keyframe: int, timestamp: float, pose: np.ndarray, image: np.ndarray,
+                K: np.ndarray | None = None, depth: np.ndarray | None = None) -> Recognition:
+        """Runs one keyframe through the robot's detector (stored in its database) and across the other robots.
+
+        Args:
+            robot: its name. keyframe: its id (after the robot's last). timestamp: seconds.
+            pose: ``(4, 4)`` camera-to-map pose in the robot's map. image: ``(H, W[, C])`` image.
+            K: ``(3, 3)`` intrinsics (the first keyframe's are kept). depth: ``(H, W)`` depth map, or None.
+
+        Raises:
+            ConfigError, ImageError: a bad input; nothing was stored.
+        """
+        self.check(robot, K)
+        r = self.robots.get(robot) or self._open(robot, K)
+        self.descriptor.last = None
+        res = r.detector.process(image, frame_id=keyframe, timestamp=timestamp, pose=pose)
+        r.poses[keyframe] = np.asarray(pose, np.float64)
+        if res.gated or self.descriptor.last is None:
+            return Recognition(gated=True)
+        r.add(keyframe, r.detector.places.entry(self.descriptor.last))
+        if depth is not None and r.K is not None:
+            r.points[keyframe] = points_from_depth(r.detector.features[keyframe].keypoints, depth, r.K)
+        out = Recognition()
+        if res.loop is not None:
+            self._add_edge(out, "loop", (robot, res.loop.frame_id), (robot, keyframe), None)
+        self._cross(out, robot, keyframe)
+        return out
+
+    def _cross(self, out: Recognition, robot: str, keyframe: int) -> None:
+        """Searches and verifies against every other robot, updates the overlap rules, adds edges."""
+        matches = {o: m for o in self.robots if o != robot and (m := self._best_match(robot, keyframe, o))}
+        accepted = self.tracker.update(robot, keyframe, {o: m[0] for o, m in matches.items()})
+        keep = self.conf["overlap"]["required"]
+        for other, (match, check) in matches.items():
+            recent = self._checks.setdefault((robot, other), {})
+            recent[keyframe] = check
+            for old in sorted(recent)[:-keep]:
+                del recent[old]
+            if other in accepted:  # the accepting run's matches, each an edge
+                for kf, m in self.tracker.rules[(robot, other)].accepted or []:
+                    if kf in recent:
+                        self._add_edge(out, "overlap", (other, m), (robot, kf), recent[kf])
+            elif self.tracker.accepted(robot, other):
+                self._add_edge(out, "overlap", (other, match), (robot, keyframe), check)
+            pair = frozenset((robot, other))
+            rec = next((e for e in out.edges if e.kind == "overlap" and e.robot_a == other), None)
+            if rec is not None and pair not in self._recorded:  # the first edge of an accepted overlap records it
+                self._recorded.add(pair)
+                out.overlaps.append(self._overlap_record(rec))
+
+    def resume(self, overlaps: list[OverlapRecord], edges: list[EdgeRecord]) -> None:
+        """Continues after a restart: overlaps already accepted (stored) stay accepted, and the overlap edges already
+        stored count towards ``max_edges_per_pair``."""
+        for o in overlaps:
+            self._recorded.add(frozenset((o.robot_a, o.robot_b)))
+            self.tracker.accept(o.robot_a, o.robot_b)
+        for e in edges:
+            if e.kind == "overlap":
+                self._edges[(e.robot_a, e.robot_b)] = self._edges.get((e.robot_a, e.robot_b), 0) + 1
+
+    def _best_match(self, robot: str, keyframe: int, other: str) -> tuple[int, Verification] | None:
+        """The other robot's keyframe that verifies best against the query (None: none passes)."""
+        q, o, c = self.robots[robot], self.robots[other], self.conf["cross"]
+        if not o.ids:
+            return None
+        sims = o.codes @ q.codes[-1]
+        top = [i for i in np.argsort(-sims, kind="stable")[:c["k"]] if sims[i] >= c["min_score"]]
+        if not top:
+            return None
+        det = q.detector
+        K = q.K if q.K is not None and o.K is not None and np.allclose(q.K, o.K) else None
+        checks = det.verifier.verify(det.features[keyframe], [o.detector.features[o.ids[i]] for i in top], K,
+                                     c["min_matches"], c["min_inliers"], False)
+        best = max(range(len(top)), key=lambda j: (checks[j].inliers, checks[j].matches))
+        if checks[best].inliers < max(c["min_inliers"], 1):
+            return None
+        return o.ids[top[best]], checks[best]
+
+    def _add_edge(self, out: Recognition, kind: str, a: tuple[str, int], b: tuple[str, int],
+                  check: Verification | None) -> None:
+        """Appends the edge ``a -> b`` (``node_a^-1 o node_b``) when its similarity can be estimated."""
+        pair = (a[0], b[0])
+        if kind == "overlap" and self._edges.get(pair, 0) >= self.conf["max_edges_per_pair"]:
+            return
+        ra, rb = self.robots[a[0]], self.robots[b[0]]
+        if check is None:  # a loop: the detector's verification is not kept, check the pair again
+            check = rb.detector.verifier.verify(rb.detector.features[b[1]], [ra.detector.features[a[1]]], rb.K)[0]
+        pts_a, pts_b = self._points(a[0], a[1]), self._points(b[0], b[1])
+        if pts_a is None or pts_b is None or check.inliers <= 0:
+            return
+        pairs = check.pairs[check.geometry.mask][:, ::-1]  # (feature in a, feature in b)
+        found = estimate_overlap(pairs, pts_a, pts_b, self.conf["sim3"])
+        if found is None or found[1].sum() < self.conf["min_points"]:
+            log.debug("%s %s -> %s: no similarity from %d matches", kind, a, b, len(pairs))
+            return
+        self._edges[pair] = self._edges.get(pair, 0) + 1
+        out.edges.append(EdgeRecord(kind, a[0], a[1], b[0], b[1], found[0], float(found[1].sum())))
+
+    def _points(self, robot: str, keyframe: int) -> np.ndarray | None:
+        """``(N, 3)`` 3D points of the keyframe's features in its camera frame (cached), None without intrinsics."""
+        r = self.robots[robot]
+        if keyframe in r.points:
+            return r.points[keyframe]
+        near = r.neighbour(keyframe)
+        if r.K is None or near is None or keyframe not in r.poses or near not in r.poses:
+            return None
+        feats = r.detector.features
+        r.points[keyframe] = self.triangulator(feats[keyframe], r.poses[keyframe], feats[near], r.poses[near], r.K)
+        return r.points[keyframe]
+
+    def _overlap_record(self, edge: EdgeRecord) -> OverlapRecord:
+        """The accepted overlap: the similarity mapping robot b's map into robot a's, from ``edge``."""
+        pa = Sim3.from_pose(self.robots[edge.robot_a].poses[edge.keyframe_a])
+        pb = Sim3.from_pose(self.robots[edge.robot_b].poses[edge.keyframe_b])
+        T = pa.compose(edge.relative).compose(pb.inverse())
+        log.info("overlap accepted: robot %s keyframe %d ~ robot %s keyframe %d (scale %.3f)", edge.robot_b,
+                 edge.keyframe_b, edge.robot_a, edge.keyframe_a, T.s)
+        return OverlapRecord(edge.robot_a, edge.robot_b, T, self.conf["overlap"]["required"], time.time())
+
+    def close(self) -> None:
+        """Flushes and closes every robot's database."""
+        for r in self.robots.values():
+            r.detector.close()

@@ -1,0 +1,196 @@
+"""The fleet server's core without HTTP: robots and tokens, keyframes, place recognition across robots
+(``fleet.recognition``) and the global pose graph re-optimised in the background (``fleet.optimizer``), kept in a
+``FleetStore`` (SQLite) and the robots' HDF5 keyframe databases, and rebuilt from them on start: a server killed with
+``kill -9`` continues with every keyframe it acknowledged (a keyframe is in both before ``submit_keyframe`` returns).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import re
+import secrets
+import threading
+from typing import Any
+
+import numpy as np
+
+from core.conf import ConfigError, Float, Int, configure
+
+from .graph import GraphResult, Node, PoseGraph
+from .optimizer import BackgroundOptimizer
+from .recognition import FleetRecognizer, Recognition
+from .sim3 import Sim3
+from .store import EdgeRecord, FleetStore, KeyframeAck
+
+__all__ = ["FleetService", "ROBOT_NAME"]
+
+log = logging.getLogger(__name__)
+
+ROBOT_NAME = r"[A-Za-z0-9_-]{1,64}"  #: what a robot's name may be
+
+
+class FleetService:
+    """Robots, keyframes, place recognition and the pose graph over one store; safe to call from several threads
+    (keyframes are processed one at a time; the graph is solved in a worker thread).
+
+    Args:
+        store: the robots, tokens, keyframes and edges.
+        conf: overrides of ``default_conf``.
+        recognizer: place recognition over the robots' keyframes; None: keyframes are only acknowledged (overlaps
+            then come through ``add_edge`` alone).
+    """
+
+    default_conf: dict[str, Any] = {
+        "graph": PoseGraph.default_conf,  # the global pose graph (fleet.graph.PoseGraph)
+        "optimizer": BackgroundOptimizer.default_conf,  # when the graph is solved (fleet.optimizer)
+        "limits": {
+            "max_request_mb": 32.0,  # larger request bodies are refused (HTTP 413)
+            "max_image_pixels": 16_000_000,  # larger images are refused (HTTP 413)
+        },
+    }
+    conf_rules: dict[str, Any] = {"graph": PoseGraph.conf_rules, "optimizer": BackgroundOptimizer.conf_rules,
+                                  "limits": {"max_request_mb": Float(0, lo_open=True),
+                                             "max_image_pixels": Int(64)}}
+
+    def __init__(self, store: FleetStore, conf: dict[str, Any] | None = None,
+                 recognizer: FleetRecognizer | None = None) -> None:
+        self.conf = configure(self, conf, "fleet")
+        self.store = store
+        self.recognizer = recognizer
+        self._lock = threading.Lock()  # the graph
+        self._submit = threading.Lock()  # one keyframe at a time through recognition and the store
+        self._verified: set[bytes] = set()  # sha256(name, token) of tokens already checked (PBKDF2 is slow)
+        self._graph = PoseGraph(self.conf["graph"])
+        self._rebuild()
+        if recognizer is not None:
+            recognizer.resume(self.store.overlaps(), self.store.edges(kind="overlap"))
+        self.optimizer = BackgroundOptimizer(self._snapshot, self._publish, self.conf["optimizer"])
+
+    def _snapshot(self) -> PoseGraph:
+        with self._lock:
+            return self._graph.copy()
+
+    def _publish(self, result: GraphResult) -> None:
+        self.store.set_transforms(result.transforms)
+
+    def _rebuild(self) -> None:
+        """The graph from the store: every robot's acknowledged keyframes, then the loop and overlap edges."""
+        for robot in self.store.robots():
+            for ack in self.store.keyframes(robot):
+                self._graph.add_keyframe(robot, ack.keyframe, ack.pose)
+        for e in self.store.edges():
+            if e.kind != "odometry":
+                self._graph.add_edge(e.kind, Node(e.robot_a, e.keyframe_a), Node(e.robot_b, e.keyframe_b), e.relative)
+        self._set_anchor()
+        log.info("fleet state: %d robots, %d keyframes", len(self.store.robots()), len(self._graph.nodes))
+
+    def _set_anchor(self) -> None:
+        """The global frame is the map of the first registered robot that has keyframes (whoever sent first)."""
+        present = {n.robot for n in self._graph.nodes} if self._graph.anchor is not None else set()
+        first = next((r for r in self.store.robots() if r in present), None)
+        if first is not None:
+            self._graph.anchor = first
+
+    def register(self, name: str) -> str:
+        """Registers a robot; returns its new token ``NAME.SECRET`` (shown once, stored hashed).
+
+        Raises:
+            ConfigError: a bad or taken name.
+        """
+        if not isinstance(name, str) or not re.fullmatch(ROBOT_NAME, name):
+            raise ConfigError(f"a robot name must match {ROBOT_NAME}; got {name!r}")
+        token = f"{name}.{secrets.token_urlsafe(32)}"
+        self.store.add_robot(name, token)
+        return token
+
+    def authenticate(self, name: str, token: str) -> bool:
+        """True when ``token`` is robot ``name``'s (checked against the stored hash once, then remembered)."""
+        key = hashlib.sha256(f"{name}\0{token}".encode()).digest()
+        if key in self._verified:
+            return True
+        if self.store.verify_token(name, token):
+            self._verified.add(key)
+            return True
+        return False
+
+    def submit_keyframe(self, robot: str, keyframe: int, timestamp: float, pose: np.ndarray,
+                        image: np.ndarray | None = None, K: np.ndarray | None = None,
+                        depth: np.ndarray | None = None) -> bool:
+        """Acknowledges a keyframe: place recognition on its image (stored in the robot's keyframe database), then
+        the keyframe, its odometry edge and any loop or overlap edge it found in the store, then the graph.
+
+        Args:
+            robot: a registered robot. keyframe: its id, after the robot's last. timestamp: seconds, finite.
+            pose: ``(3, 4)``/``(4, 4)`` camera-to-map pose in the robot's map. image: the keyframe's image, or None
+                (no recognition). K: ``(3, 3)`` intrinsics. depth: ``(H, W)`` depth map in map units.
+
+        Returns:
+            True when new, False for a retry of a stored keyframe.
+
+        Raises:
+            ConfigError, ImageError: a bad value, an id not after the robot's last, or a conflicting retry; nothing
+                was stored.
+        """
+        local = Sim3.from_pose(pose)
+        if not np.isfinite(timestamp):
+            raise ConfigError(f"timestamp must be a finite number of seconds; got {timestamp!r}")
+        with self._submit:
+            ack = KeyframeAck(robot, int(keyframe), float(timestamp), local.matrix())
+            acks = self.store.keyframes(robot)
+            if any(a.keyframe == ack.keyframe for a in acks):
+                return self.store.ack_keyframe(ack)  # a retry (False) or a conflict (ConfigError)
+            last = max(acks, key=lambda a: a.keyframe) if acks else None
+            if last is not None and ack.keyframe < last.keyframe:
+                raise ConfigError(f"robot {robot}: keyframe {keyframe} is not after its last one ({last.keyframe})")
+            found = self._recognize(ack, image, K, depth)
+            edges = [] if last is None else [EdgeRecord("odometry", robot, last.keyframe, robot, ack.keyframe,
+                                                        Sim3.from_pose(last.pose).inverse().compose(local))]
+            self.store.ack_keyframe(ack, edges + found.edges)
+            for overlap in found.overlaps:
+                self.store.add_overlap(overlap)
+            with self._lock:
+                self._graph.add_keyframe(robot, ack.keyframe, ack.pose)
+                self._set_anchor()
+                for e in found.edges:
+                    self._graph.add_edge(e.kind, Node(e.robot_a, e.keyframe_a), Node(e.robot_b, e.keyframe_b),
+                                         e.relative)
+            self.optimizer.changed()
+            return True
+
+    def _recognize(self, ack: KeyframeAck, image: np.ndarray | None, K: np.ndarray | None,
+                   depth: np.ndarray | None) -> Recognition:
+        """Place recognition of a new keyframe (nothing without an image or a recognizer, or when the robot's
+        keyframe database already holds it: a server killed between the two writes)."""
+        if self.recognizer is None or image is None:
+            return Recognition()
+        if self.recognizer.has(ack.robot, ack.keyframe):
+            self.recognizer.check(ack.robot, K)
+            return Recognition()
+        return self.recognizer.process(ack.robot, ack.keyframe, ack.timestamp, ack.pose, image, K, depth)
+
+    def add_edge(self, edge: EdgeRecord) -> None:
+        """Stores a loop or overlap edge and adds it to the graph."""
+        with self._lock:
+            a, b = Node(edge.robot_a, edge.keyframe_a), Node(edge.robot_b, edge.keyframe_b)
+            self._graph.add_edge(edge.kind, a, b, edge.relative)  # checks kind and nodes before the store
+            self.store.add_edges([edge])
+        self.optimizer.changed()
+
+    def optimize(self, wait: bool = True, timeout: float = 30.0) -> GraphResult:
+        """The optimised graph: one that includes every change so far (``wait``, up to ``timeout`` s), else the
+        latest finished one."""
+        return self.optimizer.wait(timeout) if wait else self.optimizer.latest()
+
+    def poses(self, robot: str, wait: bool = False) -> list[dict[str, Any]]:
+        """``[{"keyframe", "pose" (4x4 rows), "scale"}]`` of the robot's corrected keyframes (empty: not merged)."""
+        result = self.optimize(wait)
+        return [{"keyframe": n.keyframe, "pose": result.pose_matrix(n).tolist(), "scale": T.s}
+                for n, T in sorted(result.poses.items()) if n.robot == robot]
+
+    def close(self) -> None:
+        """Stops the optimizer, closes the robots' databases and the store."""
+        self.optimizer.close()
+        if self.recognizer is not None:
+            self.recognizer.close()
+        self.store.close()

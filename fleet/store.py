@@ -1,0 +1,346 @@
+"""The fleet server's state besides the keyframe images: robots and their hashed tokens, acknowledged keyframes (id,
+timestamp, local pose), edges (odometry, loop, overlap, with their relative similarity and score), accepted overlaps
+between robots and each robot's map-to-global transform.
+
+``FleetStore`` is the interface the server uses; ``SQLiteStore`` implements it on an embedded SQLite file (stdlib
+``sqlite3``: WAL journal, ``synchronous=FULL``, every write one transaction, foreign keys on), so a server killed
+with ``kill -9`` and restarted has every keyframe it acknowledged. A server database could implement the same
+interface later.
+
+Tokens are never stored: a salted PBKDF2-HMAC-SHA256 hash is (salt and iteration count kept per robot), and a token
+is checked with ``hmac.compare_digest``. Similarities are stored as their 4x4 matrices (``Sim3.matrix``) in JSON.
+
+Layout (``format_version`` 1, in table ``meta``)::
+
+    meta(key, value)                    format_version, created
+    robots(name, salt, token_hash, iterations, created)
+    keyframes(robot, keyframe, timestamp, pose)                      pose: 16 numbers, row-major 4x4
+    edges(id, kind, robot_a, keyframe_a, robot_b, keyframe_b, sim3, score)
+    overlaps(robot_a, robot_b, sim3, matches, accepted)              sim3 maps robot_b's map into robot_a's
+    transforms(robot, sim3, updated)                                 robot's map -> the global frame
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import json
+import logging
+import os
+import sqlite3
+import threading
+import time
+from abc import ABC, abstractmethod
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterator, Sequence
+
+import numpy as np
+
+from core.conf import ConfigError, Int, configure
+from core.errors import DatabaseError
+
+from .graph import EDGE_KINDS
+from .sim3 import Sim3
+
+__all__ = ["FORMAT_VERSION", "KeyframeAck", "EdgeRecord", "OverlapRecord", "FleetStore", "SQLiteStore",
+           "hash_token"]
+
+log = logging.getLogger(__name__)
+
+FORMAT_VERSION = 1  #: version of the SQLite layout; a file of another version is refused
+
+
+@dataclass(frozen=True)
+class KeyframeAck:
+    """A keyframe the server acknowledged."""
+
+    robot: str
+    keyframe: int
+    timestamp: float
+    pose: np.ndarray  #: (4, 4) camera-to-map pose in the robot's own map
+
+
+@dataclass(frozen=True)
+class EdgeRecord:
+    """A pose-graph edge measuring ``node_a^-1 o node_b`` (``fleet.graph``)."""
+
+    kind: str  #: one of ``fleet.graph.EDGE_KINDS``
+    robot_a: str
+    keyframe_a: int
+    robot_b: str
+    keyframe_b: int
+    relative: Sim3
+    score: float = 0.0  #: how strong the evidence is (e.g. RANSAC inliers); 0 for odometry
+
+
+@dataclass(frozen=True)
+class OverlapRecord:
+    """An accepted overlap: ``transform`` maps robot_b's map into robot_a's."""
+
+    robot_a: str
+    robot_b: str
+    transform: Sim3
+    matches: int  #: consecutive matching keyframes that led to the acceptance
+    accepted: float  #: Unix time
+
+
+def hash_token(token: str, salt: bytes, iterations: int) -> bytes:
+    """PBKDF2-HMAC-SHA256 of ``token`` (32 bytes)."""
+    return hashlib.pbkdf2_hmac("sha256", token.encode("utf-8"), salt, iterations)
+
+
+def _sim3_json(T: Sim3) -> str:
+    return json.dumps(T.matrix().ravel().tolist())
+
+
+def _sim3_from_json(text: str) -> Sim3:
+    return Sim3.from_matrix(np.array(json.loads(text), np.float64).reshape(4, 4))
+
+
+class FleetStore(ABC):
+    """What the fleet server keeps besides images; every method is atomic, readers see only committed data."""
+
+    @abstractmethod
+    def add_robot(self, name: str, token: str) -> None:
+        """Registers a robot with its token (stored hashed). Raises ``ConfigError`` if the name is taken."""
+
+    @abstractmethod
+    def robots(self) -> list[str]:
+        """Registered robot names, in registration order."""
+
+    @abstractmethod
+    def verify_token(self, name: str, token: str) -> bool:
+        """True when ``token`` is ``name``'s token (False for an unknown robot)."""
+
+    @abstractmethod
+    def ack_keyframe(self, ack: KeyframeAck, edges: Sequence[EdgeRecord] = ()) -> bool:
+        """Stores a keyframe and edges that come with it, all or nothing.
+
+        Returns:
+            True when stored, False when exactly this keyframe was stored before (a retry).
+
+        Raises:
+            ConfigError: an unknown robot, or the same keyframe id stored before with other content.
+        """
+
+    @abstractmethod
+    def keyframes(self, robot: str) -> list[KeyframeAck]:
+        """The robot's acknowledged keyframes, by id."""
+
+    @abstractmethod
+    def add_edges(self, edges: Sequence[EdgeRecord]) -> None:
+        """Stores edges between stored keyframes, all or nothing."""
+
+    @abstractmethod
+    def edges(self, kind: str | None = None, robot: str | None = None) -> list[EdgeRecord]:
+        """Stored edges (of one kind; touching one robot), in insertion order."""
+
+    @abstractmethod
+    def add_overlap(self, overlap: OverlapRecord) -> None:
+        """Stores (or replaces) the accepted overlap of a robot pair."""
+
+    @abstractmethod
+    def overlaps(self) -> list[OverlapRecord]:
+        """Accepted overlaps, in acceptance order."""
+
+    @abstractmethod
+    def set_transforms(self, transforms: dict[str, Sim3]) -> None:
+        """Stores the robots' map-to-global transforms of the latest solution, all in one transaction; robots absent
+        from ``transforms`` are not merged (their old transform is dropped)."""
+
+    @abstractmethod
+    def transforms(self) -> dict[str, Sim3]:
+        """Each merged robot's map-to-global transform."""
+
+    @abstractmethod
+    def close(self) -> None:
+        """Releases the store; further calls fail."""
+
+
+_SCHEMA = """
+CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE robots (name TEXT PRIMARY KEY, salt BLOB NOT NULL, token_hash BLOB NOT NULL,
+                     iterations INTEGER NOT NULL, created REAL NOT NULL);
+CREATE TABLE keyframes (robot TEXT NOT NULL REFERENCES robots(name), keyframe INTEGER NOT NULL,
+                        timestamp REAL NOT NULL, pose TEXT NOT NULL, PRIMARY KEY (robot, keyframe));
+CREATE TABLE edges (id INTEGER PRIMARY KEY AUTOINCREMENT, kind TEXT NOT NULL,
+                    robot_a TEXT NOT NULL, keyframe_a INTEGER NOT NULL, robot_b TEXT NOT NULL,
+                    keyframe_b INTEGER NOT NULL, sim3 TEXT NOT NULL, score REAL NOT NULL,
+                    FOREIGN KEY (robot_a, keyframe_a) REFERENCES keyframes(robot, keyframe),
+                    FOREIGN KEY (robot_b, keyframe_b) REFERENCES keyframes(robot, keyframe));
+CREATE TABLE overlaps (robot_a TEXT NOT NULL REFERENCES robots(name), robot_b TEXT NOT NULL REFERENCES robots(name),
+                       sim3 TEXT NOT NULL, matches INTEGER NOT NULL, accepted REAL NOT NULL,
+                       PRIMARY KEY (robot_a, robot_b));
+CREATE TABLE transforms (robot TEXT PRIMARY KEY REFERENCES robots(name), sim3 TEXT NOT NULL, updated REAL NOT NULL);
+"""
+
+
+class SQLiteStore(FleetStore):
+    """``FleetStore`` on one SQLite file; safe to share between the threads of one process (one lock).
+
+    Args:
+        path: the database file (created with its folder if missing).
+        conf: overrides of ``default_conf``.
+
+    Raises:
+        DatabaseError: the file is not a fleet database, has another ``format_version``, or is damaged or locked.
+    """
+
+    default_conf: dict[str, Any] = {
+        "token_iterations": 100_000,  # PBKDF2 iterations for a new robot's token (kept per robot)
+        "busy_timeout_ms": 5000,  # how long a write waits for another process's lock before failing
+    }
+    conf_rules: dict[str, Any] = {"token_iterations": Int(1, 10_000_000), "busy_timeout_ms": Int(0, 3_600_000)}
+
+    def __init__(self, path: str | Path, conf: dict[str, Any] | None = None) -> None:
+        self.conf = configure(self, conf, "store")
+        self.path = Path(path)
+        self._lock = threading.Lock()
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
+            self._db.execute(f"PRAGMA busy_timeout = {self.conf['busy_timeout_ms']}")
+            self._db.execute("PRAGMA journal_mode = WAL")
+            self._db.execute("PRAGMA synchronous = FULL")
+            self._db.execute("PRAGMA foreign_keys = ON")
+            self._open_or_create()
+        except sqlite3.DatabaseError as err:
+            raise DatabaseError(f"{self.path}: not a usable fleet database ({err})") from None
+
+    def _open_or_create(self) -> None:
+        tables = {r[0] for r in self._db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+        if not tables:
+            with self._transaction() as db:
+                for statement in filter(str.strip, _SCHEMA.split(";")):
+                    db.execute(statement)
+                db.executemany("INSERT INTO meta VALUES (?, ?)",
+                               [("format_version", str(FORMAT_VERSION)), ("created", repr(time.time()))])
+            return
+        row = self._db.execute("SELECT value FROM meta WHERE key = 'format_version'").fetchone() \
+            if "meta" in tables else None
+        if row is None:
+            raise DatabaseError(f"{self.path} is not a fleet database (no format_version)")
+        if row[0] != str(FORMAT_VERSION):
+            raise DatabaseError(f"{self.path} has format_version {row[0]}; this version reads {FORMAT_VERSION}")
+        if self._db.execute("PRAGMA quick_check").fetchone()[0] != "ok":
+            raise DatabaseError(f"{self.path} is damaged (SQLite quick_check failed)")
+
+    @contextmanager
+    def _transaction(self) -> Iterator[sqlite3.Connection]:
+        """One write transaction (BEGIN IMMEDIATE ... COMMIT, ROLLBACK on any error), under the thread lock."""
+        with self._lock:
+            try:
+                self._db.execute("BEGIN IMMEDIATE")
+                try:
+                    yield self._db
+                except BaseException:
+                    self._db.execute("ROLLBACK")
+                    raise
+                self._db.execute("COMMIT")
+            except sqlite3.IntegrityError as err:
+                raise ConfigError(f"refused by the fleet database: {err}") from None
+            except sqlite3.OperationalError as err:
+                raise DatabaseError(f"{self.path}: {err}") from None
+
+    def _read(self, sql: str, args: Sequence[Any] = ()) -> list[tuple]:
+        with self._lock:
+            try:
+                return self._db.execute(sql, args).fetchall()
+            except sqlite3.Error as err:
+                raise DatabaseError(f"{self.path}: {err}") from None
+
+    # ----------------------------------------------------------------------------------------------------- robots
+    def add_robot(self, name: str, token: str) -> None:
+        if not name or not token:
+            raise ConfigError("a robot needs a non-empty name and token")
+        salt = os.urandom(16)
+        iterations = self.conf["token_iterations"]
+        with self._transaction() as db:
+            if db.execute("SELECT 1 FROM robots WHERE name = ?", (name,)).fetchone():
+                raise ConfigError(f"robot {name!r} is already registered")
+            db.execute("INSERT INTO robots VALUES (?, ?, ?, ?, ?)",
+                       (name, salt, hash_token(token, salt, iterations), iterations, time.time()))
+
+    def robots(self) -> list[str]:
+        return [r[0] for r in self._read("SELECT name FROM robots ORDER BY rowid")]
+
+    def verify_token(self, name: str, token: str) -> bool:
+        rows = self._read("SELECT salt, token_hash, iterations FROM robots WHERE name = ?", (name,))
+        # an unknown robot costs a hash too, so the answer's timing does not tell which names exist
+        salt, stored, iterations = rows[0] if rows else (b"", b"", self.conf["token_iterations"])
+        return hmac.compare_digest(hash_token(token, salt, iterations), stored) and bool(rows)
+
+    # -------------------------------------------------------------------------------------------------- keyframes
+    def ack_keyframe(self, ack: KeyframeAck, edges: Sequence[EdgeRecord] = ()) -> bool:
+        pose = json.dumps(np.asarray(ack.pose, np.float64).reshape(4, 4).ravel().tolist())
+        with self._transaction() as db:
+            if not db.execute("SELECT 1 FROM robots WHERE name = ?", (ack.robot,)).fetchone():
+                raise ConfigError(f"unknown robot {ack.robot!r}")
+            old = db.execute("SELECT timestamp, pose FROM keyframes WHERE robot = ? AND keyframe = ?",
+                             (ack.robot, int(ack.keyframe))).fetchone()
+            if old is not None:
+                if old != (float(ack.timestamp), pose):
+                    raise ConfigError(f"robot {ack.robot!r} sent keyframe {ack.keyframe} before, with other content")
+                return False
+            db.execute("INSERT INTO keyframes VALUES (?, ?, ?, ?)",
+                       (ack.robot, int(ack.keyframe), float(ack.timestamp), pose))
+            self._insert_edges(db, edges)
+        return True
+
+    def keyframes(self, robot: str) -> list[KeyframeAck]:
+        rows = self._read("SELECT keyframe, timestamp, pose FROM keyframes WHERE robot = ? ORDER BY keyframe",
+                          (robot,))
+        return [KeyframeAck(robot, k, t, np.array(json.loads(p)).reshape(4, 4)) for k, t, p in rows]
+
+    # ------------------------------------------------------------------------------------------------------ edges
+    @staticmethod
+    def _insert_edges(db: sqlite3.Connection, edges: Sequence[EdgeRecord]) -> None:
+        for e in edges:
+            if e.kind not in EDGE_KINDS:
+                raise ConfigError(f"edge kind must be one of {', '.join(EDGE_KINDS)}; got {e.kind!r}")
+            db.execute("INSERT INTO edges (kind, robot_a, keyframe_a, robot_b, keyframe_b, sim3, score) "
+                       "VALUES (?, ?, ?, ?, ?, ?, ?)", (e.kind, e.robot_a, int(e.keyframe_a), e.robot_b,
+                                                        int(e.keyframe_b), _sim3_json(e.relative), float(e.score)))
+
+    def add_edges(self, edges: Sequence[EdgeRecord]) -> None:
+        with self._transaction() as db:
+            self._insert_edges(db, edges)
+
+    def edges(self, kind: str | None = None, robot: str | None = None) -> list[EdgeRecord]:
+        rows = self._read("SELECT kind, robot_a, keyframe_a, robot_b, keyframe_b, sim3, score FROM edges "
+                          "WHERE (?1 IS NULL OR kind = ?1) AND (?2 IS NULL OR robot_a = ?2 OR robot_b = ?2) "
+                          "ORDER BY id", (kind, robot))
+        return [EdgeRecord(k, ra, ka, rb, kb, _sim3_from_json(m), sc) for k, ra, ka, rb, kb, m, sc in rows]
+
+    # ------------------------------------------------------------------------------------- overlaps, transforms
+    def add_overlap(self, overlap: OverlapRecord) -> None:
+        with self._transaction() as db:
+            db.execute("INSERT OR REPLACE INTO overlaps VALUES (?, ?, ?, ?, ?)",
+                       (overlap.robot_a, overlap.robot_b, _sim3_json(overlap.transform), int(overlap.matches),
+                        float(overlap.accepted)))
+
+    def overlaps(self) -> list[OverlapRecord]:
+        rows = self._read("SELECT robot_a, robot_b, sim3, matches, accepted FROM overlaps ORDER BY accepted, rowid")
+        return [OverlapRecord(a, b, _sim3_from_json(m), n, t) for a, b, m, n, t in rows]
+
+    def set_transforms(self, transforms: dict[str, Sim3]) -> None:
+        now = time.time()
+        with self._transaction() as db:
+            db.execute("DELETE FROM transforms")
+            db.executemany("INSERT INTO transforms VALUES (?, ?, ?)",
+                           [(robot, _sim3_json(T), now) for robot, T in transforms.items()])
+
+    def transforms(self) -> dict[str, Sim3]:
+        return {r: _sim3_from_json(m) for r, m in self._read("SELECT robot, sim3 FROM transforms ORDER BY rowid")}
+
+    def close(self) -> None:
+        with self._lock:
+            self._db.close()
+
+    def __enter__(self) -> "SQLiteStore":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

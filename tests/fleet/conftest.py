@@ -1,0 +1,90 @@
+"""Fixtures of the fleet tests: real KITTI ground-truth poses and 3D points built from them, a known similarity."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+#: 3D points in the camera frame (KITTI: x right, y down, z forward), metres: road edges, facades, a far point and
+#: the camera centre. Placed at every real pose they make a real-shaped scene along the real trajectory.
+CAMERA_OFFSETS = np.array([[-6.0, -3.0, 12.0], [6.0, -3.0, 12.0], [-4.0, 1.6, 8.0], [4.0, 1.6, 8.0],
+                           [0.0, -8.0, 30.0], [0.0, 0.0, 0.0]])
+
+
+@pytest.fixture(scope="session")
+def known_sim3():
+    """The similarity robot B's frame differs by in these tests: s = 2.5, a 75 deg rotation, a translation."""
+    from fleet.sim3 import Sim3
+
+    return Sim3(2.5, cv2.Rodrigues(np.array([0.3, -1.2, 0.5]))[0], np.array([10.0, -4.0, 7.0]))
+
+
+def _landmarks(poses: np.ndarray) -> np.ndarray:
+    """``(N, 3, 4)`` camera-to-world poses -> ``(6 N, 3)`` world points at ``CAMERA_OFFSETS`` of every pose."""
+    return np.concatenate([CAMERA_OFFSETS @ p[:, :3].T + p[:, 3] for p in poses])
+
+
+def _with_outliers(dst: np.ndarray, fraction: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """``dst`` with ``fraction`` of its rows replaced by other rows (wrong matches to real structure).
+
+    Returns:
+        ``(points (n, 3), outlier mask (n,))``.
+    """
+    out = dst.copy()
+    idx = rng.choice(len(dst), int(round(fraction * len(dst))), replace=False)
+    out[idx] = dst[np.roll(idx, 1)]
+    mask = np.zeros(len(dst), bool)
+    mask[idx] = np.linalg.norm(out[idx] - dst[idx], axis=1) > 0
+    return out, mask
+
+
+@pytest.fixture(scope="session")
+def kitti_poses(kitti_sequences):
+    """``kitti_poses(seq)`` -> ``(N, 3, 4)`` ground-truth camera-to-world poses of ``../shared`` KITTI ``seq``."""
+    from retrieval.sequences import read_kitti_poses
+
+    def get(seq: str) -> np.ndarray:
+        return read_kitti_poses(kitti_sequences.parent / "poses" / f"{seq}.txt")
+
+    return get
+
+
+@pytest.fixture(scope="session")
+def kitti_landmarks(kitti_poses) -> np.ndarray:
+    """``(600, 3)`` points along KITTI 00 (``landmarks`` of every second pose), metres."""
+    return _landmarks(kitti_poses("00")[::2])
+
+
+@pytest.fixture(scope="session")
+def landmarks():
+    """``landmarks(poses (N, 3, 4))`` -> ``(6 N, 3)`` points at ``CAMERA_OFFSETS`` of every pose."""
+    return _landmarks
+
+
+@pytest.fixture(scope="session")
+def with_outliers():
+    """``with_outliers(dst, fraction, rng)`` -> ``(points, outlier mask)``: rows replaced by other rows."""
+    return _with_outliers
+
+
+@pytest.fixture(scope="session")
+def cae_descriptor():
+    """The CAE descriptor with the shipped weights, loaded once for every server of the session."""
+    from retrieval.descriptors import create_descriptor
+
+    return create_descriptor({"name": "cae"})
+
+
+@pytest.fixture(scope="session")
+def sample_poses(sample_dir):
+    """``(100, 3, 4)`` ground-truth poses of the bundled sample's frames."""
+    from retrieval.sequences import read_kitti_poses
+
+    return read_kitti_poses(sample_dir / "poses.txt")
+
+
+@pytest.fixture(scope="session")
+def jpeg(sample_dir):
+    """``jpeg(i)`` -> the bundled sample's frame ``i`` as JPEG bytes (what a robot sends)."""
+    return lambda i: (sample_dir / "image_0" / f"{i:06d}.jpg").read_bytes()

@@ -1,0 +1,152 @@
+"""The fleet server over real HTTP on loopback (uvicorn in a thread on a free port, ``fleet.runner.ServerThread``),
+with the bundled sample's real KITTI JPEG frames: concurrent robots, tokens, and hostile input that must be refused
+with a clear 4xx and leave the state as it was."""
+
+from __future__ import annotations
+
+import base64
+import json
+import threading
+
+import cv2
+import httpx
+import numpy as np
+import pytest
+
+from fleet.client import FleetClient
+from fleet.runner import ServerThread
+from fleet.server import create_app
+
+ADMIN = "http-admin-secret"
+LIMITS = {"limits": {"max_request_mb": 1.0, "max_image_pixels": 500_000}}
+
+
+@pytest.fixture(scope="module")
+def live(tmp_path_factory, cae_descriptor):
+    """A server on a free loopback port with robots A and B registered: ``(url, state dir, {robot: token})``."""
+    state = tmp_path_factory.mktemp("http_state")
+    with ServerThread(create_app(state, ADMIN, LIMITS, descriptor=cae_descriptor)) as server:
+        admin = FleetClient(server.url, ADMIN)
+        yield server.url, state, {r: admin.register(r) for r in ("A", "B")}
+
+
+def body(i, sample_poses, jpeg, K=None, **change):
+    out = {"keyframe": i, "timestamp": 0.1 * i, "pose": sample_poses[i].tolist(),
+           "image": base64.b64encode(jpeg(i)).decode()}
+    if K is not None:
+        out["intrinsics"] = np.asarray(K).tolist()
+    out.update(change)
+    return out
+
+
+def state_of(state, robot):
+    """What a refused request must not change: the robot's acknowledged keyframes and its database's bytes."""
+    from fleet.store import SQLiteStore
+
+    store = SQLiteStore(state / "fleet.sqlite")
+    try:
+        acks = [(a.keyframe, a.timestamp) for a in store.keyframes(robot)]
+    finally:
+        store.close()
+    h5 = state / "robots" / robot / "keyframes.h5"
+    return acks, h5.read_bytes() if h5.exists() else b""
+
+
+class TestConcurrentRobots:
+    def test_two_robots_submit_at_once(self, live, sample_poses, jpeg, sample_K):
+        url, _, tokens = live
+        errors = []
+
+        def run(robot, frames):
+            client = FleetClient(url, tokens[robot])
+            try:
+                for i in frames:
+                    assert client.submit_keyframe(robot, i, 0.1 * i, sample_poses[i], jpeg(i), sample_K)
+            except Exception as err:  # noqa: BLE001 - reported below
+                errors.append(err)
+
+        threads = [threading.Thread(target=run, args=("A", range(0, 16, 2))),
+                   threading.Thread(target=run, args=("B", range(1, 16, 2)))]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        assert not errors
+        a, b = FleetClient(url, tokens["A"]), FleetClient(url, tokens["B"])
+        assert sorted(a.poses("A", wait=True)) == list(range(0, 16, 2))
+        assert set(a.transforms(wait=True)) >= {"A"}
+        assert b.loops("B") == [] or {e["kind"] for e in b.loops("B")} <= {"loop", "overlap"}
+
+
+class TestTokens:
+    def test_no_token_is_401(self, live, sample_poses, jpeg):
+        url = live[0]
+        r = httpx.post(f"{url}/robots/A/keyframes", json=body(40, sample_poses, jpeg))
+        assert r.status_code == 401 and "token" in r.json()["detail"]
+
+    def test_a_forged_token_is_401(self, live, sample_poses, jpeg):
+        url, _, tokens = live
+        forged = "A." + tokens["B"].split(".", 1)[1]
+        r = httpx.get(f"{url}/robots/A/poses", headers={"Authorization": f"Bearer {forged}"})
+        assert r.status_code == 401
+
+    def test_another_robots_id_is_403(self, live, sample_poses, jpeg):
+        url, state, tokens = live
+        before = state_of(state, "A")
+        r = httpx.post(f"{url}/robots/A/keyframes", json=body(40, sample_poses, jpeg),
+                       headers={"Authorization": f"Bearer {tokens['B']}"})
+        assert r.status_code == 403 and "robot 'A'" in r.json()["detail"]
+        assert state_of(state, "A") == before
+
+
+def _big_image(jpeg):
+    image = cv2.imdecode(np.frombuffer(jpeg(0), np.uint8), cv2.IMREAD_UNCHANGED)
+    return base64.b64encode(cv2.imencode(".png", cv2.resize(image, (1240, 564)))[1].tobytes()).decode()
+
+
+BAD = {  # name -> (change to a good body, expected status, words of the reason)
+    "not-an-image": (lambda j: {"image": base64.b64encode(b"GIF89a not an image").decode()}, 400, "PNG or JPEG"),
+    "not-base64": (lambda j: {"image": "%%%"}, 400, "base64"),
+    "pose-shape": (lambda j: {"pose": np.eye(3).tolist()}, 400, "pose"),
+    "pose-ragged": (lambda j: {"pose": [[1, 0, 0, 0], [0, 1, 0], [0, 0, 1, 0]]}, 400, "pose"),
+    "pose-nan": (lambda j: {"pose": [[float("nan")] * 4] * 3}, 400, "finite"),
+    "timestamp-nan": (lambda j: {"timestamp": float("nan")}, 400, "timestamp"),
+    "intrinsics-shape": (lambda j: {"intrinsics": np.eye(4).tolist()}, 422, "at most 3"),
+    "intrinsics-nan": (lambda j: {"intrinsics": [[float("nan")] * 3] * 3}, 400, "intrinsics"),
+    "negative-id": (lambda j: {"keyframe": -1}, 422, "keyframe"),
+    "image-too-large": (lambda j: {"image": _big_image(j)}, 413, "pixels"),
+}
+
+
+class TestMalformedInput:
+    @pytest.mark.parametrize("name", list(BAD))
+    def test_refused_with_a_clear_4xx_and_the_state_untouched(self, live, sample_poses, jpeg, name):
+        url, state, tokens = live
+        change, status, words = BAD[name]
+        before = state_of(state, "A")
+        payload = json.dumps(body(40, sample_poses, jpeg, **change(jpeg)))  # NaN as JSON's common extension
+        r = httpx.post(f"{url}/robots/A/keyframes", content=payload,
+                       headers={"Authorization": f"Bearer {tokens['A']}", "Content-Type": "application/json"})
+        assert r.status_code == status, r.text
+        assert words in json.dumps(r.json()["detail"])
+        assert state_of(state, "A") == before
+
+    def test_an_oversized_body_is_413(self, live, sample_poses, jpeg):
+        url, state, tokens = live
+        before = state_of(state, "A")
+        padded = body(40, sample_poses, jpeg, image=base64.b64encode(b"\0" * 1_200_000).decode())
+        r = httpx.post(f"{url}/robots/A/keyframes", json=padded, headers={"Authorization": f"Bearer {tokens['A']}"})
+        assert r.status_code == 413 and "bytes" in r.json()["detail"]
+        assert state_of(state, "A") == before
+
+    def test_an_unknown_robot_is_404(self, live, sample_poses, jpeg):
+        url, state, _ = live
+        r = httpx.post(f"{url}/robots/C/keyframes", json=body(40, sample_poses, jpeg),
+                       headers={"Authorization": f"Bearer {ADMIN}"})
+        assert r.status_code == 404 and "no robot 'C'" in r.json()["detail"]
+        assert not (state / "robots" / "C").exists()
+
+    def test_a_good_keyframe_after_the_refusals_is_stored(self, live, sample_poses, jpeg, sample_K):
+        url, state, tokens = live
+        assert FleetClient(url, tokens["A"]).submit_keyframe("A", 40, 4.0, sample_poses[40], jpeg(40), sample_K)
+        assert state_of(state, "A")[0][-1] == (40, 4.0)

@@ -1,0 +1,127 @@
+"""fleet.server, fleet.client and fleet.service through FastAPI's TestClient, with the bundled sample's real KITTI
+JPEG frames and ground-truth poses."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fleet.client import FleetClient, FleetError
+from fleet.server import create_app
+from fleet.sim3 import Sim3
+from fleet.store import EdgeRecord
+
+ADMIN = "admin-secret"
+
+
+@pytest.fixture
+def server(tmp_path, cae_descriptor):
+    """``server()`` -> (TestClient, admin FleetClient) over the state in ``tmp_path/state`` (reopened each call)."""
+    from fastapi.testclient import TestClient
+
+    apps = []
+
+    def start():
+        if apps:
+            apps[-1].state.service.close()  # as a stopped server does: the robots' databases are released
+        apps.append(create_app(tmp_path / "state", ADMIN, descriptor=cae_descriptor))
+        http = TestClient(apps[-1])
+        return http, FleetClient("", ADMIN, client=http)
+
+    yield start
+    if apps:
+        apps[-1].state.service.close()
+
+
+def submit(client, robot, frames, sample_poses, jpeg):
+    return [client.submit_keyframe(robot, i, 0.1 * i, sample_poses[i], jpeg(i)) for i in frames]
+
+
+class TestRegistration:
+    def test_admin_registers_robots_with_their_own_tokens(self, server):
+        http, admin = server()
+        token = admin.register("A")
+        assert token.startswith("A.") and len(token) > 40
+        with pytest.raises(FleetError, match="409"):
+            admin.register("A")
+        with pytest.raises(FleetError, match="403"):
+            FleetClient("", token, client=http).register("B")
+        with pytest.raises(FleetError, match="401"):
+            FleetClient("", "A.guess", client=http).register("B")
+        with pytest.raises(FleetError, match="400"):
+            admin.register("no spaces allowed")
+
+
+class TestKeyframes:
+    def test_submit_then_read_corrected_poses(self, server, sample_poses, jpeg):
+        http, admin = server()
+        robot = FleetClient("", admin.register("A"), client=http)
+        assert submit(robot, "A", range(5), sample_poses, jpeg) == [True] * 5
+        assert not robot.submit_keyframe("A", 3, 0.1 * 3, sample_poses[3], jpeg(3))  # a retry
+        poses = robot.poses("A", wait=True)
+        assert sorted(poses) == list(range(5))
+        np.testing.assert_allclose(poses[4][:3], sample_poses[4], atol=1e-5)  # the first robot's frame is global
+        assert np.allclose(robot.transforms(wait=True)["A"], np.eye(4), atol=1e-6)
+
+    def test_a_robot_writes_only_its_own_data(self, server, sample_poses, jpeg):
+        http, admin = server()
+        admin.register("A")
+        b = FleetClient("", admin.register("B"), client=http)
+        with pytest.raises(FleetError, match="403"):
+            b.submit_keyframe("A", 0, 0.0, sample_poses[0], jpeg(0))
+        with pytest.raises(FleetError, match="403"):
+            b.poses("A", wait=True)
+        with pytest.raises(FleetError, match="404"):
+            b.loops("nobody")
+
+    @pytest.mark.parametrize("change, reason", [
+        ({"image": b"not an image"}, "PNG or JPEG"),
+        ({"pose": np.eye(3)}, "pose"),
+        ({"pose": np.c_[2 * np.eye(3) + np.diag([0, 0, 1.0]), np.zeros(3)]}, "rotation"),
+        ({"depth": np.zeros((10, 10))}, "depth must be"),
+        ({"intrinsics": np.eye(4)}, "intrinsics"),
+    ], ids=["image", "pose-shape", "pose-not-rigid", "depth-shape", "intrinsics"])
+    def test_bad_keyframes_are_refused_with_one_line(self, server, sample_poses, jpeg, change, reason):
+        http, admin = server()
+        robot = FleetClient("", admin.register("A"), client=http)
+        args = {"pose": sample_poses[0], "image": jpeg(0), **change}
+        with pytest.raises(FleetError, match=reason):
+            robot.submit_keyframe("A", 0, 0.0, **args)
+        assert robot.poses("A", wait=True) == {}
+
+    def test_a_depth_map_of_the_image_size_is_accepted(self, server, sample_poses, jpeg, sample_K):
+        http, admin = server()
+        robot = FleetClient("", admin.register("A"), client=http)
+        assert robot.submit_keyframe("A", 0, 0.0, sample_poses[0], jpeg(0), sample_K, np.full((188, 620), 7.5))
+
+    def test_a_restarted_server_continues(self, server, sample_poses, jpeg):
+        http, admin = server()
+        token = admin.register("A")
+        submit(FleetClient("", token, client=http), "A", range(3), sample_poses, jpeg)
+        http, _ = server()  # a new app over the same state folder
+        robot = FleetClient("", token, client=http)
+        assert sorted(robot.poses("A", wait=True)) == [0, 1, 2]
+        assert submit(robot, "A", [3], sample_poses, jpeg) == [True]
+        with pytest.raises(FleetError, match="other content"):
+            robot.submit_keyframe("A", 1, 0.0, sample_poses[2], jpeg(1))  # keyframe 1 again, another pose
+
+
+class TestOverlapThroughTheService:
+    def test_an_overlap_edge_merges_the_second_robot(self, server, sample_poses, jpeg, known_sim3):
+        """B's poses are the sample's in B's own frame (``known_sim3`` maps them back); one overlap edge."""
+        http, admin = server()
+        a = FleetClient("", admin.register("A"), client=http)
+        b = FleetClient("", admin.register("B"), client=http)
+        submit(a, "A", range(0, 10, 2), sample_poses, jpeg)
+        gt = [Sim3.from_pose(p) for p in sample_poses]
+        for i in range(1, 10, 2):
+            local = known_sim3.inverse().compose(gt[i])
+            b.submit_keyframe("B", i, 0.1 * i, np.c_[local.R, local.t], jpeg(i))
+        rel = gt[4].inverse().compose(known_sim3).compose(Sim3(1.0, *(lambda L: (L.R, L.t))(
+            known_sim3.inverse().compose(gt[5]))))
+        http.app.state.service.add_edge(EdgeRecord("overlap", "A", 4, "B", 5, rel, 40.0))
+        T = Sim3.from_matrix(a.transforms(wait=True)["B"])
+        angle, scale, trans = T.errors(known_sim3)
+        assert angle < 0.1 and scale < 1e-3 and trans < 0.1
+        assert [loop["kind"] for loop in b.loops("B")] == ["overlap"]
+        np.testing.assert_allclose(b.poses("B", wait=True)[5][:3, 3], sample_poses[5][:, 3], atol=0.05)

@@ -1,0 +1,187 @@
+"""fleet.store: SQLiteStore round trips (real KITTI poses), hashed tokens, atomic writes, refusal of other files, and a
+writer process killed with kill -9 at random moments: every acknowledged keyframe is there and the file is consistent."""
+
+from __future__ import annotations
+
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+import textwrap
+import time
+
+import numpy as np
+import pytest
+
+from core.errors import ConfigError, DatabaseError
+from fleet.sim3 import Sim3
+from fleet.store import FORMAT_VERSION, EdgeRecord, KeyframeAck, OverlapRecord, SQLiteStore
+
+REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+FAST = {"token_iterations": 1000}  #: fewer PBKDF2 rounds where hashing is not what is tested
+
+
+@pytest.fixture
+def store(tmp_path):
+    with SQLiteStore(tmp_path / "state" / "fleet.sqlite", FAST) as s:
+        yield s
+
+
+def poses4(kitti_poses, n: int) -> list[np.ndarray]:
+    return [np.vstack([p, [0, 0, 0, 1]]) for p in kitti_poses("00")[:n]]
+
+
+class TestSQLiteStore:
+    def test_robots_and_tokens(self, store):
+        store.add_robot("A", "secret-a")
+        store.add_robot("B", "secret-b")
+        assert store.robots() == ["A", "B"]
+        assert store.verify_token("A", "secret-a") and not store.verify_token("A", "secret-b")
+        assert not store.verify_token("C", "secret-a") and not store.verify_token("A", "")
+        with pytest.raises(ConfigError, match="already registered"):
+            store.add_robot("A", "other")
+
+    def test_tokens_are_stored_salted_and_hashed(self, tmp_path):
+        path = tmp_path / "fleet.sqlite"
+        with SQLiteStore(path) as s:  # the default iteration count
+            s.add_robot("A", "same-token-xyz")
+            s.add_robot("B", "same-token-xyz")
+        raw = b"".join(p.read_bytes() for p in tmp_path.iterdir())
+        assert b"same-token-xyz" not in raw
+        rows = sqlite3.connect(path).execute("SELECT salt, token_hash, iterations FROM robots").fetchall()
+        assert rows[0][1] != rows[1][1] and rows[0][0] != rows[1][0] and rows[0][2] == 100_000
+
+    def test_keyframes_round_trip(self, store, kitti_poses):
+        store.add_robot("A", "t")
+        poses = poses4(kitti_poses, 20)
+        for k, pose in enumerate(poses):
+            assert store.ack_keyframe(KeyframeAck("A", 2 * k, 0.1 * k, pose))
+        back = store.keyframes("A")
+        assert [a.keyframe for a in back] == list(range(0, 40, 2))
+        np.testing.assert_array_equal(np.stack([a.pose for a in back]), np.stack(poses))
+        assert back[3].timestamp == pytest.approx(0.3)
+
+    def test_a_retry_is_idempotent_and_a_conflict_refused(self, store, kitti_poses):
+        store.add_robot("A", "t")
+        pose = poses4(kitti_poses, 2)
+        assert store.ack_keyframe(KeyframeAck("A", 0, 1.0, pose[0]))
+        assert not store.ack_keyframe(KeyframeAck("A", 0, 1.0, pose[0]))
+        with pytest.raises(ConfigError, match="other content"):
+            store.ack_keyframe(KeyframeAck("A", 0, 1.0, pose[1]))
+        with pytest.raises(ConfigError, match="unknown robot"):
+            store.ack_keyframe(KeyframeAck("Z", 0, 1.0, pose[0]))
+        assert len(store.keyframes("A")) == 1 and store.keyframes("Z") == []
+
+    def test_edges_round_trip_and_filter(self, store, kitti_poses, known_sim3):
+        for robot in ("A", "B"):
+            store.add_robot(robot, "t")
+            for k, pose in enumerate(poses4(kitti_poses, 3)):
+                store.ack_keyframe(KeyframeAck(robot, k, float(k), pose))
+        store.add_edges([EdgeRecord("odometry", "A", 0, "A", 1, Sim3.identity()),
+                         EdgeRecord("overlap", "A", 2, "B", 1, known_sim3, 57.0),
+                         EdgeRecord("loop", "B", 0, "B", 2, known_sim3.inverse(), 30.0)])
+        assert [e.kind for e in store.edges()] == ["odometry", "overlap", "loop"]
+        assert [e.kind for e in store.edges(robot="B")] == ["overlap", "loop"]
+        (overlap,) = store.edges(kind="overlap")
+        assert overlap.score == 57.0 and overlap.relative.errors(known_sim3) == pytest.approx((0, 0, 0), abs=1e-6)
+
+    def test_a_keyframe_and_its_edges_are_all_or_nothing(self, store, kitti_poses):
+        store.add_robot("A", "t")
+        pose = poses4(kitti_poses, 2)
+        store.ack_keyframe(KeyframeAck("A", 0, 0.0, pose[0]))
+        bad = [EdgeRecord("odometry", "A", 0, "A", 1, Sim3.identity()), EdgeRecord("teleport", "A", 0, "A", 1,
+                                                                                   Sim3.identity())]
+        with pytest.raises(ConfigError, match="edge kind"):
+            store.ack_keyframe(KeyframeAck("A", 1, 1.0, pose[1]), bad)
+        dangling = [EdgeRecord("loop", "A", 0, "A", 7, Sim3.identity())]  # keyframe 7 does not exist
+        with pytest.raises(ConfigError, match="refused"):
+            store.ack_keyframe(KeyframeAck("A", 1, 1.0, pose[1]), dangling)
+        assert [a.keyframe for a in store.keyframes("A")] == [0] and store.edges() == []
+
+    def test_overlaps_and_transforms_round_trip(self, store, known_sim3):
+        store.add_robot("A", "t")
+        store.add_robot("B", "t")
+        store.add_overlap(OverlapRecord("A", "B", known_sim3, 3, 100.0))
+        store.add_overlap(OverlapRecord("A", "B", known_sim3.inverse(), 4, 101.0))  # replaced
+        (o,) = store.overlaps()
+        assert o.matches == 4 and o.transform.errors(known_sim3.inverse()) == pytest.approx((0, 0, 0), abs=1e-6)
+        store.set_transforms({"A": Sim3.identity(), "B": known_sim3})
+        assert store.transforms()["B"].errors(known_sim3) == pytest.approx((0, 0, 0), abs=1e-6)
+        store.set_transforms({"A": Sim3.identity()})  # a later solution without B: B is no longer merged
+        assert list(store.transforms()) == ["A"]
+        with pytest.raises(ConfigError):
+            store.set_transforms({"nobody": known_sim3})
+
+    def test_reopening_continues(self, tmp_path, kitti_poses):
+        path = tmp_path / "fleet.sqlite"
+        with SQLiteStore(path, FAST) as s:
+            s.add_robot("A", "t")
+            s.ack_keyframe(KeyframeAck("A", 0, 0.0, poses4(kitti_poses, 1)[0]))
+        with SQLiteStore(path, FAST) as s:
+            assert s.verify_token("A", "t") and len(s.keyframes("A")) == 1
+            s.ack_keyframe(KeyframeAck("A", 1, 1.0, poses4(kitti_poses, 2)[1]))
+        meta = dict(sqlite3.connect(path).execute("SELECT key, value FROM meta").fetchall())
+        assert meta["format_version"] == str(FORMAT_VERSION)
+
+    def test_other_files_are_refused(self, tmp_path):
+        text = tmp_path / "notes.sqlite"
+        text.write_text("not a database at all " * 100)
+        with pytest.raises(DatabaseError, match="not a usable"):
+            SQLiteStore(text)
+        foreign = tmp_path / "foreign.sqlite"
+        sqlite3.connect(foreign).execute("CREATE TABLE x (y)").connection.commit()
+        with pytest.raises(DatabaseError, match="no format_version"):
+            SQLiteStore(foreign)
+        newer = tmp_path / "newer.sqlite"
+        SQLiteStore(newer).close()
+        with sqlite3.connect(newer) as db:
+            db.execute("UPDATE meta SET value = '99' WHERE key = 'format_version'")
+        with pytest.raises(DatabaseError, match="format_version 99"):
+            SQLiteStore(newer)
+
+    def test_every_conf_key_has_a_rule(self):
+        assert set(SQLiteStore.default_conf) == set(SQLiteStore.conf_rules)
+
+
+WRITER = textwrap.dedent("""
+    import sys
+    import numpy as np
+    sys.path.insert(0, {repo!r})
+    from fleet.sim3 import Sim3
+    from fleet.store import EdgeRecord, KeyframeAck, SQLiteStore
+    store = SQLiteStore({path!r}, {{"token_iterations": 1000}})
+    if "A" not in store.robots():
+        store.add_robot("A", "t")
+    start = len(store.keyframes("A"))
+    step = Sim3(1.0, np.eye(3), [0.0, 0.0, 0.8])
+    for k in range(start, start + 100000):
+        pose = np.eye(4)
+        pose[2, 3] = 0.8 * k
+        edges = [EdgeRecord("odometry", "A", k - 1, "A", k, step, 0.0)] if k else []
+        store.ack_keyframe(KeyframeAck("A", k, 0.1 * k, pose), edges)
+        print(k, flush=True)
+""")
+
+
+class TestKillNine:
+    def test_every_acknowledged_keyframe_survives(self, tmp_path):
+        """Five writer processes in turn, each killed with SIGKILL at a random moment while writing: what they
+        acknowledged (printed after the commit) is all there, ids are contiguous, every keyframe has its edge."""
+        path = tmp_path / "fleet.sqlite"
+        script = WRITER.format(repo=REPO, path=str(path))
+        rng = np.random.default_rng(0)
+        acked: list[int] = []
+        for _ in range(5):
+            proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+            first = proc.stdout.readline()  # the writer is running
+            time.sleep(float(rng.uniform(0.05, 0.3)))
+            os.kill(proc.pid, signal.SIGKILL)
+            acked += [int(first)] + [int(line) for line in proc.stdout.read().split()]
+            proc.wait()
+        with SQLiteStore(path, FAST) as s:
+            ids = [a.keyframe for a in s.keyframes("A")]
+            edges = s.edges(kind="odometry")
+        assert set(acked) <= set(ids) and ids == list(range(len(ids))) and len(ids) > len(set(acked)) - 1
+        assert [e.keyframe_b for e in edges] == ids[1:]
+        assert sqlite3.connect(path).execute("PRAGMA integrity_check").fetchone()[0] == "ok"
