@@ -12,8 +12,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from cae.model import CODE_DIM
 from core.conf import load_conf_file, merge_conf
+from retrieval.descriptors import create_descriptor
 from retrieval.detector import resolve_conf
 from retrieval.methods import METHODS
 from retrieval.sequences import open_sequence
@@ -101,13 +101,7 @@ def false_loops(sequences: dict[str, str | Path], run_dir: str | Path, confs: di
 
 
 def _dim(conf: dict[str, Any]) -> str:
-    enc = resolve_conf(conf)["descriptor"]
-    if enc["name"] == "thumbnail":
-        return str(enc["width"] * enc["height"])
-    if enc["name"] == "bovw":
-        from retrieval.baselines import load_vocabulary
-        return str(len(load_vocabulary(enc["vocabulary"])[0]))
-    return str(CODE_DIM)
+    return create_descriptor(resolve_conf(conf)["descriptor"]).size_text()
 
 
 def methods_table(res: dict[str, dict[str, Any]], confs: dict[str, dict[str, Any]],

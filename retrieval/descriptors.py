@@ -35,6 +35,10 @@ class GlobalDescriptor:
         self.identity = ""
         self.whitening = None  #: a ``cae.whitening.Whitening`` that came with the weights, if any
 
+    def size_text(self) -> str:
+        """What one frame's description holds, for tables (``"4096"``; MILD: ``"800 x 256 bits"``)."""
+        return str(self.dim)
+
     def __call__(self, image: np.ndarray, features: Features | None = None,
                  network_image: np.ndarray | None = None) -> np.ndarray:
         """One frame -> ``(dim,)`` float32 unit-norm vector.

@@ -329,6 +329,9 @@ class MildDescriptor(GlobalDescriptor):
         self.dim = DESCRIPTOR_BITS // 8
         self.identity = f"mild orb{c['max_features']} min_size {c['min_size']}"
 
+    def size_text(self) -> str:
+        return f"{self.conf['max_features']} x {DESCRIPTOR_BITS} bits"
+
     def new_hash(self) -> MultiIndexHash:
         """An empty image database with this descriptor's hashing options."""
         c = self.conf
