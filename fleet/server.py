@@ -33,6 +33,8 @@ from typing import Any, Callable
 import cv2
 import numpy as np
 from fastapi import Depends, FastAPI, Header, HTTPException, Request
+from fastapi.encoders import jsonable_encoder
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, Field
 
@@ -160,10 +162,19 @@ def create_app(state_dir: str | Path, admin_token: str, conf: dict[str, Any] | N
     app = FastAPI(title="cae-lcd fleet server", on_shutdown=[service.close])
     app.state.service = service
     _size_limit(app, int(service.conf["limits"]["max_request_mb"] * 2**20))
+    app.add_exception_handler(RequestValidationError, _one_line_422)
     caller, owner_or_admin = _auth(service, admin_token)
     _write_routes(app, service, caller, owner_or_admin)
     _read_routes(app, service, caller, owner_or_admin)
     return app
+
+
+async def _one_line_422(request: Request, exc: RequestValidationError) -> JSONResponse:
+    """Schema errors as one line (``"body.keyframe: Input should be greater than or equal to 0"``), like the others;
+    the details stay in ``errors``."""
+    lines = [".".join(str(p) for p in e.get("loc", ())) + ": " + str(e.get("msg", "invalid")) for e in exc.errors()]
+    return JSONResponse(status_code=422, content={"detail": "; ".join(lines) or "invalid request",
+                                                  "errors": jsonable_encoder(exc.errors())})
 
 
 def _auth(service: FleetService, admin_token: str) -> tuple[Callable[..., str], Callable[[str, str], None]]:
