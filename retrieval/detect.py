@@ -1,6 +1,6 @@
 """Offline detection over a sequence (the same path as ``LoopDetector.process``), writing a run folder
 (``retrieval.run_folder``): ``conf.yaml``, ``calibration.h5``, ``keyframes.h5``, ``loops.csv``, ``candidates.csv``,
-``summary.json``.
+``summary.json`` and the loops' relative poses for a back end (``loop_edges.g2o/.csv/.json``, ``retrieval.edges``).
 
 First the calibration (``retrieval.calibrate``) looks at the sequence and chooses the gate's reference, the code
 normalisation and the acceptance thresholds for this camera; a resumed run reuses the calibration it saved.
@@ -29,6 +29,7 @@ from .calibrate import Calibration, TooFewFrames, calibrate, calibration_frames
 from .database import KeyframeDatabase
 from .descriptors import GlobalDescriptor, create_descriptor
 from .detector import STAGES, LoopDetector, resolve_conf
+from .edges import loop_edges
 from .temporal import create_filter
 from .run_folder import RunFolder
 from .sequences import Sequence, open_sequence
@@ -212,13 +213,16 @@ def main(path: str | Path | None = None, out: str | Path | None = None, conf: di
             log.info("resuming at frame %d of %d", start, len(seq))
         timings = _run_frames(det, seq, start, progress)
         loops = run.write_tables(det.db.results())
+        verified = bool(cal.inlier_null) if cal is not None else bool(resolved["policy"]["verify"])
+        edges = loop_edges(det.db, loops, seq.K, resolved) if verified else []  # a pose only where it was verified
+        run.write_edges(edges, seq.poses)
         frames = det.db.frames()
         keyframes = len(det.db)
     unreadable = [e.source for e in frames if e.kind == "unreadable"]
     summary: dict[str, Any] = {
         "sequence": str(seq.root.resolve()), "frames": len(seq), "processed_this_run": len(timings),
         "resumed_at": start, "keyframes": keyframes, "gated_out": sum(e.kind == "gated" for e in frames),
-        "unreadable": len(unreadable), "unreadable_files": unreadable, "loops": len(loops),
+        "unreadable": len(unreadable), "unreadable_files": unreadable, "loops": len(loops), "loop_edges": len(edges),
         "ms_per_frame": stage_stats(timings), "out": str(run.root),
         "ground_truth_file": None if seq.ground_truth is None else str(seq.ground_truth),
         "calibration": None if cal is None else {"notes": cal.notes, "accept_at_confidence": cal.accept_at,

@@ -7,6 +7,11 @@ columns.
     loops.csv        LOOPS_COLUMNS, one row per accepted loop (best match per query)
     candidates.csv   CANDIDATE_COLUMNS, every hypothesis judged (for PR curves)
     summary.json     counts, ms/frame by stage (and precision/recall when the CLI knew the ground truth)
+    loop_edges.g2o   one ``EDGE_SE3:QUAT match query`` per accepted loop with a pose (``retrieval.edges``: the query
+                     camera in the match camera's frame, translation up to scale, information from the inlier
+                     count), preceded by ``VERTEX_SE3:QUAT`` lines with the frames' stored poses when known
+    loop_edges.csv   EDGE_COLUMNS, the same edges (sigmas instead of the information matrix)
+    loop_edges.json  the same edges with ``R``, ``t``, the information matrix and a note on what they mean
 
 Tables and the summary are written to a temporary file and renamed, so a crash never leaves half a file where a
 good one was; what is read back is checked (numeric, finite, integer frame ids).
@@ -26,12 +31,18 @@ import numpy as np
 from core.errors import ConfigError
 from core.files import atomic_write, write_text_atomic
 
-__all__ = ["RunFolder", "LOOPS_COLUMNS", "CANDIDATE_COLUMNS", "MAX_FRAME_ID", "read_csv_table"]
+from .edges import LoopEdge, rotation_to_quaternion
+
+__all__ = ["RunFolder", "LOOPS_COLUMNS", "CANDIDATE_COLUMNS", "EDGE_COLUMNS", "MAX_FRAME_ID", "read_csv_table"]
 
 log = logging.getLogger(__name__)
 
 LOOPS_COLUMNS = ("query", "match", "score", "matches", "inliers", "seq_score", "confidence")
 CANDIDATE_COLUMNS = ("query", "candidate", "score", "matches", "inliers", "seq_score", "confidence", "accepted")
+EDGE_COLUMNS = ("query", "match", "inliers", "tx", "ty", "tz", "qx", "qy", "qz", "qw", "sigma_trans", "sigma_rot_rad")
+EDGE_NOTE = ("relative pose of the query camera in the match camera's frame (x_match = R x_query + t); t is a unit "
+             "direction: the translation is known up to scale only (two images, no depth); information = inliers / "
+             "sigma_1^2 per axis (retrieval/edges.py)")  #: what the edge files hold, written into the JSON
 MAX_FRAME_ID = 10**9  #: larger frame ids in a table are refused (they would be a damaged file, not a sequence)
 
 
@@ -134,6 +145,53 @@ class RunFolder:
     def read_candidates(self) -> np.ndarray | None:
         """``(C, 8)`` float64 rows of ``CANDIDATE_COLUMNS``; None when the run has no candidates.csv."""
         return read_csv_table(self.candidates, CANDIDATE_COLUMNS) if self.candidates.is_file() else None
+
+    @property
+    def edges_g2o(self) -> Path:
+        return self.root / "loop_edges.g2o"
+
+    @property
+    def edges_csv(self) -> Path:
+        return self.root / "loop_edges.csv"
+
+    @property
+    def edges_json(self) -> Path:
+        return self.root / "loop_edges.json"
+
+    def write_edges(self, edges: list[LoopEdge], poses: np.ndarray | None = None) -> None:
+        """Writes ``loop_edges.g2o``, ``.csv`` and ``.json`` (see the module doc).
+
+        Args:
+            edges: the loops' relative poses (``retrieval.edges.loop_edges``).
+            poses: ``(n, 3, 4)`` camera-to-world poses by frame id (NaN where unknown), for the g2o vertices; None:
+                edges only.
+        """
+        ids = sorted({e.match for e in edges} | {e.query for e in edges})
+        vertices = [] if poses is None else [i for i in ids if i < len(poses) and np.isfinite(poses[i]).all()]
+        g2o = []
+        for i in vertices:
+            q = rotation_to_quaternion(poses[i][:, :3])
+            g2o.append(f"VERTEX_SE3:QUAT {i} " + " ".join(f"{v:.9g}" for v in (*poses[i][:, 3], *q)))
+        rows, items = [], []
+        for e in edges:
+            info = e.information()
+            upper = info[np.triu_indices(6)]
+            g2o.append(f"EDGE_SE3:QUAT {e.match} {e.query} " + " ".join(f"{v:.9g}" for v in (*e.t, *e.quaternion()))
+                       + " " + " ".join(f"{v:.9g}" for v in upper))
+            sig = 1.0 / np.sqrt(np.diag(info))
+            rows.append([e.query, e.match, e.inliers, *(f"{v:.9g}" for v in (*e.t, *e.quaternion(), sig[0], sig[3]))])
+            items.append({"query": e.query, "match": e.match, "inliers": e.inliers, "R": e.R.tolist(),
+                          "t": e.t.tolist(), "information": info.tolist()})
+        write_text_atomic(self.edges_g2o, "".join(line + "\n" for line in g2o))
+        with atomic_write(self.edges_csv, newline="") as f:
+            w = csv.writer(f)
+            w.writerow(EDGE_COLUMNS)
+            w.writerows(rows)
+        write_text_atomic(self.edges_json, json.dumps({"note": EDGE_NOTE, "edges": items}, indent=1))
+
+    def read_edges(self) -> np.ndarray:
+        """``(E, 12)`` float64 rows of ``EDGE_COLUMNS``."""
+        return read_csv_table(self.edges_csv, EDGE_COLUMNS)
 
     def write_summary(self, summary: dict[str, Any]) -> None:
         write_text_atomic(self.summary, json.dumps(summary, indent=1))
