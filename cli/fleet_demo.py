@@ -21,7 +21,7 @@ def add_parser(sub: Any) -> None:
     defaults = api_defaults(run_demo)
     p = sub.add_parser("fleet-demo", help="fleet server demo: two robots stream KITTI 00, the server merges them",
                        description=__doc__.split("\n\n")[0])
-    p.add_argument("--out", required=True, help="output folder (fleet_demo.json, trajectories.png, state/)")
+    p.add_argument("--out", required=True, help="output folder (fleet_demo.json, trajectories.png, trajectories/, state/)")
     p.add_argument("--kitti", default=str(DEFAULT_KITTI), help=f"KITTI folder (default: {DEFAULT_KITTI})")
     p.add_argument("--frames", type=int, default=defaults["frames"],
                    help=f"first frames of 00 streamed (default: {defaults['frames']})")
@@ -45,4 +45,4 @@ def run(args: Any) -> None:
                  s["merged_b_rmse_m"])
     else:
         log.warning("the server did not merge robot B")
-    log.info("wrote %s/{fleet_demo.json,trajectories.png}", args.out)
+    log.info("wrote %s/{fleet_demo.json,trajectories.png,trajectories/*.tum,*.kitti}", args.out)

@@ -8,7 +8,8 @@ client; the server must find where they overlap and recover the transform betwee
 - ``negative``: robot A on ``00``, robot B on ``07`` (they never meet): any overlap is a false one.
 
 ``run_demo`` returns the summary it writes to ``OUT/fleet_demo.json``; ``OUT/trajectories.png`` shows both
-trajectories before and after the merge.
+trajectories before and after the merge; ``OUT/trajectories/NAME.tum`` and ``NAME.kitti`` are each robot's corrected
+trajectory in the global frame (``fleet.export``; e.g. ``evo_ape tum GT OUT/trajectories/B.tum``).
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import cv2
 import numpy as np
@@ -32,6 +33,7 @@ from core.files import prepare_out_dir, write_text_atomic
 from retrieval.sequences import read_kitti_calib, read_kitti_poses, read_times
 
 from .client import FleetClient
+from .export import FORMATS, trajectory_rows, write_trajectory
 from .plots import plot_merge
 from .runner import ServerThread
 from .server import create_app
@@ -145,18 +147,35 @@ def _score(admin: FleetClient, robots: list[RobotStream], truth: Sim3 | None,
     return out
 
 
+def _export(folder: Path, robots: list[RobotStream], merged: dict[str, dict[int, np.ndarray]]) -> dict[str, str]:
+    """Writes each merged robot's corrected trajectory as ``folder/NAME.tum`` and ``NAME.kitti``; returns their
+    paths by ``NAME.format``."""
+    folder.mkdir(parents=True, exist_ok=True)
+    out = {}
+    for r in robots:
+        if merged.get(r.name):
+            _, times, poses = trajectory_rows(merged[r.name], dict(zip(r.frames, r.times.tolist())))
+            for fmt in FORMATS:
+                out[f"{r.name}.{fmt}"] = str(write_trajectory(folder / f"{r.name}.{fmt}", times, poses, fmt))
+    return out
+
+
 def run_demo(out: str | Path, kitti_root: str | Path, negative: bool = False, frames: int = 200,
-             truth: Sim3 = DEMO_TRUTH, admin_token: str | None = None) -> dict[str, Any]:
+             truth: Sim3 = DEMO_TRUTH, admin_token: str | None = None,
+             while_serving: Callable[[str, str], None] | None = None) -> dict[str, Any]:
     """Runs the demo (see the module doc) with a fresh server state in ``OUT/state``.
 
     Args:
-        out: folder for ``fleet_demo.json``, ``trajectories.png`` and the server's state (replaced).
+        out: folder for ``fleet_demo.json``, ``trajectories.png``, ``trajectories/`` and the server's state
+            (replaced).
         kitti_root: the KITTI folder (``sequences/``, ``poses/``).
         negative: robots on ``00`` and ``07`` instead (no overlap expected).
         frames: first frames of ``00`` used (robot A the even ones, B the odd ones; ``negative``: A the even ones
             of ``00``, B the even ones of ``07``).
         truth: robot B's map in the overlap demo (ignored with ``negative``).
         admin_token: the server's admin token (None: a random one).
+        while_serving: called as ``while_serving(url, admin_token)`` once the robots have streamed, while the
+            server still runs (e.g. a screenshot of its ``/map`` page: ``python -m bench.fleet_map``).
 
     Raises:
         ConfigError: bad KITTI files or ``out``. LCDError: a robot's keyframe was refused.
@@ -177,11 +196,14 @@ def run_demo(out: str | Path, kitti_root: str | Path, negative: bool = False, fr
     with ServerThread(create_app(state, token)) as server:
         admin = FleetClient(server.url, token, timeout=120.0)
         wall = _stream_all(server.url, admin, [a, b])
+        if while_serving is not None:
+            while_serving(server.url, token)
         summary = _score(admin, [a, b], None if negative else truth, world_b)
         merged = {r.name: admin.poses(r.name, wait=True) for r in (a, b)}
     summary.update({"format_version": DEMO_FORMAT_VERSION, "mode": "negative" if negative else "overlap",
                     "wall_s": wall, "keyframes_per_s": (len(a.frames) + len(b.frames)) / wall,
                     "truth_B_map_from_world": None if negative else truth.matrix().tolist()})
+    summary["trajectories"] = _export(out / "trajectories", [a, b], merged)
     write_text_atomic(out / "fleet_demo.json", json.dumps(summary, indent=2))
     plot_merge(out / "trajectories.png", {r.name: r.poses[:, :3, 3] for r in (a, b)},
                {name: np.array([p[:3, 3] for _, p in sorted(m.items())]) for name, m in merged.items() if m},

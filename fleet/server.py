@@ -11,6 +11,8 @@ keyframes and read. Bodies are JSON; images travel base64-encoded (PNG or JPEG b
     GET  /robots/{name}/poses?wait=    robot name or admin   corrected keyframe poses in the global frame
     GET  /overlaps                     any robot or admin    accepted overlaps
     GET  /transforms?wait=             any robot or admin    each merged robot's map-to-global similarity
+    GET  /robots/{name}/trajectory     robot name or admin   ?format=tum|kitti: corrected trajectory (fleet.export)
+    GET  /map                          none (holds no data)  live map page polling the routes above (fleet.map_page)
 
 Each keyframe runs through place recognition (``fleet.recognition``) before it is acknowledged; the pose graph is
 re-solved in the background, and reads return the latest solution (``wait=true``: one that includes every keyframe
@@ -42,6 +44,7 @@ from core.conf import ConfigError
 from core.errors import LCDError
 from retrieval.descriptors import GlobalDescriptor
 
+from .map_page import map_router
 from .recognition import FleetRecognizer
 from .service import FleetService
 from .store import SQLiteStore
@@ -166,6 +169,7 @@ def create_app(state_dir: str | Path, admin_token: str, conf: dict[str, Any] | N
     caller, owner_or_admin = _auth(service, admin_token)
     _write_routes(app, service, caller, owner_or_admin)
     _read_routes(app, service, caller, owner_or_admin)
+    app.include_router(map_router(service, caller, owner_or_admin))  # GET /map, GET /robots/{name}/trajectory
     return app
 
 

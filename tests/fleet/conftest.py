@@ -88,3 +88,15 @@ def sample_poses(sample_dir):
 def jpeg(sample_dir):
     """``jpeg(i)`` -> the bundled sample's frame ``i`` as JPEG bytes (what a robot sends)."""
     return lambda i: (sample_dir / "image_0" / f"{i:06d}.jpg").read_bytes()
+
+
+@pytest.fixture(scope="session")
+def fleet_demo_run(tmp_path_factory):
+    """A short real fleet demo (``fleet.demo.run_demo``, 40 frames of KITTI 00, two robots): ``(out, summary,
+    admin token)``; its state (``out/state``) can be served again with that token."""
+    from cli.fleet_demo import DEFAULT_KITTI
+    from fleet.demo import run_demo
+
+    out = tmp_path_factory.mktemp("fleet_demo")
+    token = "demo-admin-secret"
+    return out, run_demo(out, DEFAULT_KITTI, frames=40, admin_token=token), token
