@@ -2,7 +2,8 @@
 
 Reports precision/recall per query at the operating point, the PR curve swept over the verification score (max
 recall at 100 % precision, AUC as average precision), and Recall@1/5/10 of the retrieval stage alone. Writes
-``evaluation.json`` (``format_version`` 1) and ``pr_curve.png``, ``trajectory.png``, ``similarity.png``.
+``evaluation.json`` (``format_version`` 1) and ``pr_curve.png``, ``trajectory.png``, ``similarity.png``, and the
+montages ``loops_montage.png`` (accepted loops, wrong ones framed red) and ``missed_montage.png`` (``evaluation.montage``).
 Everything read is checked first: a damaged table, summary or ground truth is an error or a warning, never a
 wrong figure.
 """
@@ -21,7 +22,7 @@ from core.conf import ConfigError
 from core.files import prepare_out_dir, write_text_atomic
 from retrieval.database import KeyframeDatabase
 from retrieval.run_folder import CANDIDATE_COLUMNS, LOOPS_COLUMNS, RunFolder, read_csv_table
-from retrieval.sequences import kitti_metadata_file, read_kitti_poses, read_times
+from retrieval.sequences import kitti_metadata_file, open_sequence, read_kitti_poses, read_times
 
 from .ground_truth import GroundTruth, load_ground_truth, sniff_ground_truth
 from .metrics import SCORES, best_per_query, correct_mask, pr_curve, precision_recall, recall_at_k
@@ -208,6 +209,29 @@ def _plots(report: dict[str, Any], out: Path, title: str, truth: GroundTruth, de
         log.info("no keyframes.h5 in the run folder: similarity plot skipped")
 
 
+def _montages(report: dict[str, Any], out: Path, summary: dict[str, Any], det: np.ndarray, correct: np.ndarray,
+              truth: GroundTruth, title: str) -> None:
+    """``loops_montage.png`` and ``missed_montage.png`` (``evaluation.montage``) from the run's sequence frames."""
+    from .montage import missed_pairs, write_montage
+
+    sequence = summary.get("sequence")
+    try:
+        frames = open_sequence(sequence).frames if isinstance(sequence, str) else []
+    except ConfigError as err:
+        log.info("the run's sequence cannot be read (%s): montages skipped", err)
+        frames = []
+    ids = np.concatenate([det.ravel(), truth.pairs.ravel()])
+    if not frames or (len(ids) and ids.max() >= len(frames)):
+        report["skipped"] += ["loops_montage", "missed_montage"]
+        log.info("the run's frames are not where summary.json says: montages skipped")
+        return
+    report["plots"]["loops_montage"] = str(write_montage(out / "loops_montage.png", frames, det, correct,
+                                                         title=f"accepted loops, {title}"))
+    report["plots"]["missed_montage"] = str(write_montage(out / "missed_montage.png", frames,
+                                                          missed_pairs(det, correct, truth.pairs), missed=True,
+                                                          title=f"missed loops, {title}"))
+
+
 def _check_args(radius: float, min_gap: int, min_gap_s: float | None, score: str) -> None:
     if score not in SCORES:
         raise ConfigError(f"unknown score '{score}'; choose one of {', '.join(SCORES)}")
@@ -279,6 +303,7 @@ def main(run: Path, gt: Path, out: Path | None = None, radius: float = 5.0, min_
         log.info("no candidates.csv beside %s: PR curve and Recall@k skipped", loops_csv)
     poses = _run_poses(truth, summary, n_frames, kf)
     _plots(report, out, f"{run_dir.name} vs {truth.path.name}", truth, det, correct, n_frames, poses, kf)
+    _montages(report, out, summary, det, correct, truth, f"{run_dir.name} vs {truth.path.name}")
     write_text_atomic(out / "evaluation.json", json.dumps(report, indent=1))
     _log_report(report)
     log.info("wrote %s", ", ".join([str(out / "evaluation.json"), *report["plots"].values()]))

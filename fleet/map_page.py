@@ -80,21 +80,23 @@ function draw(d) {
   const pad = 0.05 * Math.max(x1 - x0, y1 - y0, 1);
   svg.setAttribute("viewBox", [x0 - pad, y0 - pad, x1 - x0 + 2 * pad, y1 - y0 + 2 * pad].join(" "));
   const w = 0.004 * Math.max(x1 - x0, y1 - y0, 1), seen = new Set(); let loops = 0, overlaps = 0;
+  d.robots.forEach((name, i) => {
+    const line = d.poses[name].map(p => at[name + "/" + p.keyframe].join(",")).join(" ");
+    const g = el("g", {id: "robot-" + name, "data-keyframes": d.poses[name].length}, svg);
+    el("polyline", {points: line, fill: "none", stroke: COLOURS[i % COLOURS.length], "stroke-width": 2.5 * w}, g);
+    const last = at[name + "/" + d.poses[name][d.poses[name].length - 1].keyframe];
+    el("text", {x: last[0] + 2 * w, y: last[1] + 14 * w * i, "font-size": 12 * w, fill: COLOURS[i % COLOURS.length]}, g)
+      .textContent = name;
+  });
   for (const e of d.edges) {
     const a = at[e.a.join("/")], b = at[e.b.join("/")], key = [e.a, e.b].join("|");
     if (!a || !b || seen.has(key)) continue;
     seen.add(key); e.kind === "overlap" ? overlaps++ : loops++;
     el("line", {x1: a[0], y1: a[1], x2: b[0], y2: b[1], "stroke-width": w, class: "edge-" + e.kind,
       stroke: e.kind === "overlap" ? "#d00" : "#888", "stroke-dasharray": e.kind === "overlap" ? 3 * w : "none"}, svg);
+    if (e.kind === "overlap") for (const p of [a, b]) el("circle", {cx: p[0], cy: p[1], r: 1.6 * w, fill: "none",
+      stroke: "#d00", "stroke-width": 0.6 * w}, svg);
   }
-  d.robots.forEach((name, i) => {
-    const line = d.poses[name].map(p => at[name + "/" + p.keyframe].join(",")).join(" ");
-    const g = el("g", {id: "robot-" + name, "data-keyframes": d.poses[name].length}, svg);
-    el("polyline", {points: line, fill: "none", stroke: COLOURS[i % COLOURS.length], "stroke-width": 2.5 * w}, g);
-    const last = at[name + "/" + d.poses[name][d.poses[name].length - 1].keyframe];
-    el("text", {x: last[0] + 2 * w, y: last[1], "font-size": 12 * w, fill: COLOURS[i % COLOURS.length]}, g)
-      .textContent = name;
-  });
   return {keyframes: pts.length, loops, overlaps};
 }
 async function poll() {
@@ -103,8 +105,10 @@ async function poll() {
     const d = await load(), n = draw(d);
     Object.assign(status.dataset, {robots: d.robots.length, keyframes: n.keyframes, loops: n.loops,
                                    overlaps: n.overlaps, polls: +status.dataset.polls + 1});
-    status.innerHTML = `<span>robots ${d.robots.length}</span><span>keyframes ${n.keyframes}</span>` +
-      `<span style="color:#888">loop edges ${n.loops}</span><span style="color:#d00">overlap edges ${n.overlaps}</span>` +
+    const swatches = d.robots.map((r, i) => `<b style="color:${COLOURS[i % COLOURS.length]}">&#9632; ${r}</b>`);
+    status.innerHTML = `<span>robots ${d.robots.length}: ${swatches.join(" ")}</span><span>keyframes ${n.keyframes}</span>` +
+      `<span style="color:#888">loop edges ${n.loops}</span><span style="color:#d00">overlap edges ${n.overlaps} ` +
+      `(dashed, circled keyframes)</span>` +
       `<span>accepted overlaps ${d.overlaps.length}</span>`;
     updated.textContent = "updated " + new Date().toLocaleTimeString(); updated.className = "";
   } catch (e) { updated.textContent = String(e.message); updated.className = "err"; }

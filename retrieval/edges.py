@@ -28,7 +28,8 @@ import numpy as np
 
 from verify.verifier import create_verifier
 
-__all__ = ["LoopEdge", "loop_edges", "rotation_to_quaternion", "ROTATION_SIGMA_1", "TRANSLATION_SIGMA_1"]
+__all__ = ["LoopEdge", "loop_edges", "edge_errors", "rotation_to_quaternion", "ROTATION_SIGMA_1",
+           "TRANSLATION_SIGMA_1"]
 
 ROTATION_SIGMA_1 = 0.1  #: rotation standard deviation (radians) an edge would have from one inlier
 TRANSLATION_SIGMA_1 = 1.0  #: translation-direction standard deviation from one inlier (the translation is unit)
@@ -93,4 +94,25 @@ def loop_edges(db: Any, loops: Iterable[tuple[int, int]], K: np.ndarray | None,
         if geo.R is not None and geo.t is not None:
             out.append(LoopEdge(int(q), int(m), int(geo.inliers), np.asarray(geo.R, np.float64),
                                 np.asarray(geo.t, np.float64).reshape(3)))
+    return out
+
+
+def edge_errors(edges: list[LoopEdge], poses: np.ndarray) -> np.ndarray:
+    """Each edge against ground-truth poses: ``(E, 2)`` rotation error and translation-direction error, degrees.
+
+    Args:
+        edges: loop edges.
+        poses: ``(N, 3|4, 4)`` camera-to-world poses by frame id; the true relative pose of an edge is
+            ``poses[match]^-1 poses[query]``. The translation is compared by direction only (the edge's is unit);
+            NaN where the true translation is under 1 mm.
+    """
+    out = np.full((len(edges), 2), np.nan)
+    for i, e in enumerate(edges):
+        Rm, tm = poses[e.match][:3, :3], poses[e.match][:3, 3]
+        R_true = Rm.T @ poses[e.query][:3, :3]
+        t_true = Rm.T @ (poses[e.query][:3, 3] - tm)
+        out[i, 0] = np.degrees(np.arccos(np.clip((np.trace(R_true.T @ e.R) - 1) / 2, -1.0, 1.0)))
+        norm = np.linalg.norm(t_true)
+        if norm > 1e-3:
+            out[i, 1] = np.degrees(np.arccos(np.clip(t_true @ e.t / norm / np.linalg.norm(e.t), -1.0, 1.0)))
     return out

@@ -193,6 +193,20 @@ class RunFolder:
         """``(E, 12)`` float64 rows of ``EDGE_COLUMNS``."""
         return read_csv_table(self.edges_csv, EDGE_COLUMNS)
 
+    def read_edge_list(self) -> list[LoopEdge]:
+        """The edges of ``loop_edges.json`` as ``LoopEdge`` objects.
+
+        Raises:
+            ConfigError: a missing or malformed file.
+        """
+        try:
+            items = json.loads(self.edges_json.read_text(encoding="utf-8"))["edges"]
+            return [LoopEdge(int(d["query"]), int(d["match"]), int(d["inliers"]),
+                             np.array(d["R"], np.float64).reshape(3, 3), np.array(d["t"], np.float64).reshape(3))
+                    for d in items]
+        except (OSError, ValueError, KeyError, TypeError) as err:
+            raise ConfigError(f"cannot read {self.edges_json}: {type(err).__name__}") from None
+
     def write_summary(self, summary: dict[str, Any]) -> None:
         write_text_atomic(self.summary, json.dumps(summary, indent=1))
 
