@@ -3,7 +3,8 @@
 Reports precision/recall per query at the operating point, the PR curve swept over the verification score (max
 recall at 100 % precision, AUC as average precision), and Recall@1/5/10 of the retrieval stage alone. Writes
 ``evaluation.json`` (``format_version`` 1) and ``pr_curve.png``, ``trajectory.png``, ``similarity.png``, and the
-montages ``loops_montage.png`` (accepted loops, wrong ones framed red) and ``missed_montage.png`` (``evaluation.montage``).
+montages ``loops_montage.png`` (accepted loops, wrong ones framed red) and ``missed_montage.png``
+(``evaluation.montage``).
 Everything read is checked first: a damaged table, summary or ground truth is an error or a warning, never a
 wrong figure.
 """

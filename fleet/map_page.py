@@ -106,7 +106,8 @@ async function poll() {
     Object.assign(status.dataset, {robots: d.robots.length, keyframes: n.keyframes, loops: n.loops,
                                    overlaps: n.overlaps, polls: +status.dataset.polls + 1});
     const swatches = d.robots.map((r, i) => `<b style="color:${COLOURS[i % COLOURS.length]}">&#9632; ${r}</b>`);
-    status.innerHTML = `<span>robots ${d.robots.length}: ${swatches.join(" ")}</span><span>keyframes ${n.keyframes}</span>` +
+    status.innerHTML = `<span>robots ${d.robots.length}: ${swatches.join(" ")}</span>` +
+      `<span>keyframes ${n.keyframes}</span>` +
       `<span style="color:#888">loop edges ${n.loops}</span><span style="color:#d00">overlap edges ${n.overlaps} ` +
       `(dashed, circled keyframes)</span>` +
       `<span>accepted overlaps ${d.overlaps.length}</span>`;
@@ -137,7 +138,7 @@ def map_router(service: Any, caller: Callable[..., str], owner_or_admin: Callabl
     router = APIRouter()
     html = page_html()
 
-    @router.get("/map", response_class=HTMLResponse)
+    @router.get("/map", response_class=HTMLResponse, include_in_schema=False)
     def fleet_map() -> str:
         return html
 

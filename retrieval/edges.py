@@ -46,7 +46,8 @@ class LoopEdge:
     t: np.ndarray  #: (3,) unit translation direction (scale unknown)
 
     def information(self) -> np.ndarray:
-        """``(6, 6)`` diagonal information matrix, g2o order (translation x y z, then rotation), by the module's rule."""
+        """``(6, 6)`` diagonal information matrix in g2o's order (translation x y z, then rotation): the module's
+        rule."""
         n = max(self.inliers, 1)
         return np.diag([n / TRANSLATION_SIGMA_1**2] * 3 + [n / ROTATION_SIGMA_1**2] * 3)
 
