@@ -116,7 +116,8 @@ class TestMainOnSample:
         shutil.copy(run / "loops.csv", tmp_path / "loops.csv")
         r = evaluate.main(tmp_path / "loops.csv", SAMPLE_DIR / "loops.txt")
         assert r["pr_curve"] is None and r["retrieval"] is None
-        assert set(r["skipped"]) == {"pr_curve", "retrieval", "trajectory", "similarity"}
+        assert set(r["skipped"]) == {"pr_curve", "retrieval", "trajectory", "similarity", "loops_montage",
+                                     "missed_montage"}  # no summary.json: the frames are not known
         assert (tmp_path / "evaluation.json").is_file() and not any((tmp_path / n).exists() for n in PNGS)
         assert r["operating_point"]["true_positives"] == independent_counts(run)["tp"]
         r = evaluate.main(tmp_path / "loops.csv", SAMPLE_DIR / "poses.txt")  # poses: the trajectory can be drawn
