@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 from typing import Any
 
+from core.cli import api_defaults
 from core.conf import ConfigError, load_conf_file
 from evaluation.evaluate import score_run
 from evaluation.ground_truth import load_ground_truth
@@ -15,6 +16,8 @@ from retrieval.sequences import open_sequence
 __all__ = ["add_parser", "run", "log_summary", "conf_from_args", "add_sequence_arguments"]
 
 log = logging.getLogger("cae_lcd.detect")
+
+_DEFAULTS = api_defaults(detect.main)
 
 
 def log_summary(s: dict[str, Any]) -> None:
@@ -48,7 +51,8 @@ def add_parser(sub: Any) -> None:
 def add_sequence_arguments(p: Any) -> None:
     """PATH, --method, --config, --camera, --weights, --no-progress: what every command that reads a sequence
     takes."""
-    p.add_argument("path", nargs="?", help="KITTI sequence folder or image folder (default: bundled sample)")
+    p.add_argument("path", nargs="?", help="a sequence: KITTI, TUM, EuRoC or image folder, a ROS bag (.bag, .db3, "
+                   ".mcap, ROS 2 bag folder) or a video (default: bundled sample)")
     p.add_argument("--method", choices=list(METHODS), default="cae",
                    help="detection method (default: cae; mild: MILD, Han & Fang 2017; mild+verify: MILD's "
                         "candidates + SIFT/geometric verification); --config merges on top")
@@ -56,6 +60,9 @@ def add_sequence_arguments(p: Any) -> None:
     p.add_argument("--camera", choices=["image_0", "image_1", "image_2", "image_3", "images"],
                    help="camera folder inside PATH")
     p.add_argument("--weights", help="encoder checkpoint (default: the shipped weights)")
+    p.add_argument("--topic", default=_DEFAULTS["topic"], help="a bag's image topic (default: the bag's only one)")
+    p.add_argument("--stride", type=int, default=_DEFAULTS["stride"],
+                   help="a video: take every n-th frame (default %(default)s)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -73,10 +80,10 @@ def conf_from_args(args: Any) -> dict[str, Any]:
 
 def run(args: Any) -> None:
     conf = conf_from_args(args)
-    seq = open_sequence(detect.SAMPLE_DIR if args.path is None else args.path, args.camera)
+    seq = open_sequence(detect.SAMPLE_DIR if args.path is None else args.path, args.camera, args.topic, args.stride)
     if seq.ground_truth is not None:
         load_ground_truth(seq.ground_truth)  # a broken ground-truth file is refused before anything is written
-    summary = detect.main(args.path, args.out, conf, args.camera, progress=not args.no_progress)
+    summary = detect.main(args.path, args.out, conf, args.camera, not args.no_progress, args.topic, args.stride)
     if summary.get("ground_truth_file"):
         summary = score_run(summary["out"], summary["ground_truth_file"])
     log_summary(summary)
