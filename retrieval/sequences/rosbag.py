@@ -111,9 +111,12 @@ def _camera_info(reader: Any, image_topic: str) -> np.ndarray | None:
     infos = [c for c in reader.connections if c.msgtype == CAMERA_INFO]
     beside = [c for c in infos if c.topic.rsplit("/", 1)[0] == image_topic.rsplit("/", 1)[0]]
     conns = beside or (infos if len(infos) == 1 else [])
+    if not conns:  # (no connections would mean every message to rosbags)
+        return None
     for conn, _, raw in reader.messages(connections=conns[:1]):
         msg = reader.deserialize(raw, conn.msgtype)
-        K = np.asarray(getattr(msg, "k", getattr(msg, "K", None)), np.float64).reshape(3, 3)
+        K = np.asarray(getattr(msg, "k", getattr(msg, "K", ())), np.float64).reshape(-1)
+        K = K.reshape(3, 3) if K.size == 9 else np.zeros((3, 3))
         if np.isfinite(K).all() and K[0, 0] > 0 and K[1, 1] > 0:
             return K
         log.warning("%s: CameraInfo K is not a camera matrix (finite, fx and fy > 0); not used", conn.topic)
@@ -140,6 +143,8 @@ class BagFrames:
         if reader is None:
             reader = self._local.reader = _open_reader(self.path)
         conns = [c for c in reader.connections if c.topic == self.topic and c.msgtype == self.msgtype]
+        if not conns:
+            raise ImageError(f"{self.name(i)}: topic gone from {self.path}")
         t = int(self.stamps_ns[i])
         same = int(np.sum(self.stamps_ns[:i] == t))  # earlier messages received in the same nanosecond
         for k, (conn, _, raw) in enumerate(reader.messages(connections=conns, start=t, stop=t + 1)):

@@ -101,3 +101,32 @@ def sample_loops(cli_sample_run) -> np.ndarray:
     code, out = cli_sample_run
     assert code == 0
     return RunFolder(out).read_loops()[:, :2]
+
+
+@pytest.fixture(scope="session")
+def assert_same_frames(sample_images):
+    """``assert_same_frames(seq)``: ``seq`` gives the sample's frames pixel for pixel (as ``detect`` reads them)."""
+
+    def check(seq) -> None:
+        assert len(seq) == len(sample_images)
+        for i, image in enumerate(sample_images):
+            got = seq.read_frame(i)[0]
+            assert isinstance(got, np.ndarray) and got.shape == image.shape and np.array_equal(got, image), i
+
+    return check
+
+
+@pytest.fixture(scope="session")
+def detect_like_sample(cli_sample_run):
+    """``detect_like_sample(path, out, *args)``: ``cae-lcd detect path`` into ``out``, seeded with the sample run's
+    calibration (what detect would compute again from the same pixels: saves a calibration per test), returning
+    its loops ``(L, 2)``."""
+    from cli.main import main
+
+    def run(path, out: Path, *args: str) -> np.ndarray:
+        out.mkdir(parents=True)
+        shutil.copyfile(RunFolder(cli_sample_run[1]).calibration, RunFolder(out).calibration)
+        assert main(["detect", str(path), "--out", str(out), "--no-progress", *args]) == 0
+        return RunFolder(out).read_loops()[:, :2]
+
+    return run
