@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import logging
+from functools import partial
+from pathlib import Path
 from typing import Any
 
 from core.cli import api_defaults
@@ -11,13 +13,15 @@ from evaluation.evaluate import score_run
 from evaluation.ground_truth import load_ground_truth
 from retrieval import detect
 from retrieval.methods import METHODS, method_conf
-from retrieval.sequences import open_sequence
+from retrieval.batch import run_batch
+from retrieval.sequences import find_sequences, open_sequence
 
-__all__ = ["add_parser", "run", "log_summary", "conf_from_args", "add_sequence_arguments"]
+__all__ = ["add_parser", "run", "log_summary", "log_table", "detect_one", "conf_from_args", "add_sequence_arguments"]
 
 log = logging.getLogger("cae_lcd.detect")
 
 _DEFAULTS = api_defaults(detect.main)
+_BATCH = api_defaults(run_batch)
 
 
 def log_summary(s: dict[str, Any]) -> None:
@@ -44,7 +48,12 @@ def add_parser(sub: Any) -> None:
     p = sub.add_parser("detect", help="detect loop closures over a sequence (no PATH: the bundled sample)",
                        description=detect.__doc__.split("\n\n")[0])
     add_sequence_arguments(p)
-    p.add_argument("--out", help="run folder (default: runs/<sequence name>); an existing run is resumed")
+    p.add_argument("--out", help="run folder (default: runs/<sequence name>); an existing run is resumed. PATH "
+                   "holding many sequences (a folder of them, or a .txt list): one run folder a sequence in OUT")
+    p.add_argument("--workers", type=int, default=_BATCH["workers"],
+                   help="many sequences: sequences at once on a local Ray (default: one a core)")
+    p.add_argument("--ray-address", default=_BATCH["address"],
+                   help="many sequences: a Ray cluster to run on (default: a local Ray)")
     p.set_defaults(func=run)
 
 
@@ -78,12 +87,41 @@ def conf_from_args(args: Any) -> dict[str, Any]:
     return conf
 
 
-def run(args: Any) -> None:
-    conf = conf_from_args(args)
-    seq = open_sequence(detect.SAMPLE_DIR if args.path is None else args.path, args.camera, args.topic, args.stride)
+def detect_one(path: str | Path | None, out: str | Path | None, conf: dict[str, Any], camera: str | None = None,
+               progress: bool = True, topic: str | None = None, stride: int = 1) -> dict[str, Any]:
+    """``detect.main`` on one sequence, then precision/recall when it has ground truth; returns the summary."""
+    seq = open_sequence(detect.SAMPLE_DIR if path is None else path, camera, topic, stride)
     if seq.ground_truth is not None:
         load_ground_truth(seq.ground_truth)  # a broken ground-truth file is refused before anything is written
-    summary = detect.main(args.path, args.out, conf, args.camera, not args.no_progress, args.topic, args.stride)
+    summary = detect.main(path, out, conf, camera, progress, topic, stride)
     if summary.get("ground_truth_file"):
         summary = score_run(summary["out"], summary["ground_truth_file"])
-    log_summary(summary)
+    return summary
+
+
+def log_table(rows: list[dict[str, Any]], out: Path) -> None:
+    """The batch's summary table, one logged line a sequence."""
+    log.info("%-28s %6s %6s %9s %7s %9s  %s", "sequence", "frames", "loops", "precision", "recall", "ms/frame",
+             "status")
+    for r in rows:
+        cells = [("-" if r[k] is None else f"{r[k]:.3f}" if isinstance(r[k], float) else r[k])
+                 for k in ("frames", "loops", "precision", "recall", "ms_per_frame")]
+        log.info("%-28s %6s %6s %9s %7s %9s  %s", Path(r["sequence"]).name[:28], *cells, r["status"])
+    log.info("wrote %s/{summary.csv,summary.json} and one run folder a sequence", out)
+
+
+def run(args: Any) -> None:
+    conf = conf_from_args(args)
+    many = None if args.path is None else find_sequences(args.path)
+    if many is None:
+        log_summary(detect_one(args.path, args.out, conf, args.camera, not args.no_progress, args.topic, args.stride))
+        return
+    if args.out is None:
+        raise ConfigError(f"{args.path} holds {len(many)} sequences: pass --out DIR (one run folder a sequence)")
+    task = partial(detect_one, conf=conf, camera=args.camera, progress=False, topic=args.topic, stride=args.stride)
+    rows = run_batch(many, args.out, task, args.workers, args.ray_address, not args.no_progress)
+    log_table(rows, Path(args.out))
+    failed = [r for r in rows if r["status"] != "ok"]
+    if failed:
+        raise ConfigError(f"{len(failed)} of {len(rows)} sequences failed (first: {failed[0]['sequence']}: "
+                          f"{failed[0]['status']}); the others' results are written")

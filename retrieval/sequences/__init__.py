@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from core.conf import ConfigError
+from core.images import image_entries
 
 from .base import FrameStream, Sequence, read_numbers, read_stamped_names
 from .euroc import is_euroc, open_euroc
@@ -23,7 +24,7 @@ from .rosbag import is_bag, open_bag
 from .tum import is_tum, open_tum
 from .video import is_video, open_video
 
-__all__ = ["Sequence", "FrameStream", "Layout", "LAYOUTS", "open_sequence", "read_kitti_calib", "read_kitti_poses",
+__all__ = ["Sequence", "FrameStream", "Layout", "LAYOUTS", "open_sequence", "find_sequences", "read_kitti_calib", "read_kitti_poses",
            "read_numbers", "read_stamped_names", "read_times", "kitti_metadata_file", "CAMERAS", "OPTIONS"]
 
 #: what each option of ``open_sequence`` is, for the message when a layout does not take it
@@ -78,3 +79,39 @@ def open_sequence(path: str | Path, camera: str | None = None, topic: str | None
     if refused:
         raise ConfigError(f"{root} is a {layout.name} sequence: {', '.join(refused)} does not apply to it")
     return layout.open(root, **given)
+
+
+def _is_sequence(path: Path) -> bool:
+    """Whether ``path`` is one sequence: a bag, a video, TUM, EuRoC, KITTI (a camera folder) or a folder holding
+    images itself."""
+    if any(lay.matches(path) for lay in LAYOUTS[:-1]):
+        return True
+    return path.is_dir() and (any((path / c).is_dir() for c in CAMERAS) or bool(image_entries(path)))
+
+
+def find_sequences(root: str | Path) -> list[Path] | None:
+    """The sequences a collection holds, in name order; None when ``root`` is one sequence itself.
+
+    A collection is a folder that is no sequence but whose entries are (``kitti/sequences/`` holding ``00``,
+    ``07``, ...), or a ``.txt`` list file of sequence paths, one a line (``#`` comments; relative to the file).
+
+    Raises:
+        ConfigError: a list naming a missing path, or a folder that holds no sequence.
+    """
+    root = Path(root)
+    if root.is_file() and root.suffix.lower() == ".txt":
+        try:
+            lines = root.read_text(encoding="utf-8").splitlines()
+        except (OSError, UnicodeDecodeError) as err:
+            raise ConfigError(f"cannot read sequence list {root}: {getattr(err, 'strerror', None) or err}") from None
+        paths = [root.parent / ln.split("#")[0].strip() for ln in lines if ln.split("#")[0].strip()]
+        missing = [str(p) for p in paths if not p.exists()]
+        if missing or not paths:
+            raise ConfigError(f"{root}: " + (f"no such sequence {missing[0]}" if missing else "lists no sequence"))
+        return paths
+    if not root.is_dir() or _is_sequence(root):
+        return None
+    found = sorted(p for p in root.iterdir() if not p.name.startswith(".") and _is_sequence(p))
+    if not found:
+        raise ConfigError(f"no images found in {root}, and no sequence inside it")
+    return found
