@@ -79,11 +79,10 @@ def conf_from_args(args: Any) -> dict[str, Any]:
     """The conf overrides from ``--method``, ``--config`` and ``--weights``."""
     conf = method_conf(args.method, load_conf_file(args.config) if args.config else {})
     if args.weights:
-        section = "encoder" if "encoder" in conf else "descriptor"  # the old name still works (deprecated)
-        conf.setdefault(section, {})
-        if not isinstance(conf[section], dict):
-            raise ConfigError(f"config section '{section}' must be a mapping")
-        conf[section]["weights"] = args.weights
+        conf.setdefault("descriptor", {})
+        if not isinstance(conf["descriptor"], dict):
+            raise ConfigError("config section 'descriptor' must be a mapping")
+        conf["descriptor"]["weights"] = args.weights
     return conf
 
 
