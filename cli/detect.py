@@ -9,14 +9,13 @@ from typing import Any
 
 from core.cli import api_defaults
 from core.conf import ConfigError, load_conf_file
-from evaluation.evaluate import score_run
-from evaluation.ground_truth import load_ground_truth
+from evaluation.scored import detect_and_score
 from retrieval import detect
 from retrieval.methods import METHODS, method_conf
 from retrieval.batch import run_batch
-from retrieval.sequences import find_sequences, open_sequence
+from retrieval.sequences import find_sequences
 
-__all__ = ["add_parser", "run", "log_summary", "log_table", "detect_one", "conf_from_args", "add_sequence_arguments"]
+__all__ = ["add_parser", "run", "log_summary", "log_table", "conf_from_args", "add_sequence_arguments"]
 
 log = logging.getLogger("cae_lcd.detect")
 
@@ -86,18 +85,6 @@ def conf_from_args(args: Any) -> dict[str, Any]:
     return conf
 
 
-def detect_one(path: str | Path | None, out: str | Path | None, conf: dict[str, Any], camera: str | None = None,
-               progress: bool = True, topic: str | None = None, stride: int = 1) -> dict[str, Any]:
-    """``detect.main`` on one sequence, then precision/recall when it has ground truth; returns the summary."""
-    seq = open_sequence(detect.SAMPLE_DIR if path is None else path, camera, topic, stride)
-    if seq.ground_truth is not None:
-        load_ground_truth(seq.ground_truth)  # a broken ground-truth file is refused before anything is written
-    summary = detect.main(path, out, conf, camera, progress, topic, stride)
-    if summary.get("ground_truth_file"):
-        summary = score_run(summary["out"], summary["ground_truth_file"])
-    return summary
-
-
 def log_table(rows: list[dict[str, Any]], out: Path) -> None:
     """The batch's summary table, one logged line a sequence."""
     log.info("%-28s %6s %6s %9s %7s %9s  %s", "sequence", "frames", "loops", "precision", "recall", "ms/frame",
@@ -113,11 +100,12 @@ def run(args: Any) -> None:
     conf = conf_from_args(args)
     many = None if args.path is None else find_sequences(args.path)
     if many is None:
-        log_summary(detect_one(args.path, args.out, conf, args.camera, not args.no_progress, args.topic, args.stride))
+        log_summary(detect_and_score(args.path, args.out, conf, args.camera, not args.no_progress, args.topic,
+                                     args.stride))
         return
     if args.out is None:
         raise ConfigError(f"{args.path} holds {len(many)} sequences: pass --out DIR (one run folder a sequence)")
-    task = partial(detect_one, conf=conf, camera=args.camera, progress=False, topic=args.topic, stride=args.stride)
+    task = partial(detect_and_score, conf=conf, camera=args.camera, progress=False, topic=args.topic, stride=args.stride)
     rows = run_batch(many, args.out, task, args.workers, args.ray_address, not args.no_progress)
     log_table(rows, Path(args.out))
     failed = [r for r in rows if r["status"] != "ok"]

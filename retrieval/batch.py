@@ -20,7 +20,7 @@ from core.conf import ConfigError
 from core.files import prepare_out_dir, write_text_atomic
 from core.progress import progress_bar
 
-__all__ = ["run_batch", "batch_outs", "SUMMARY_COLUMNS"]
+__all__ = ["run_batch", "batch_outs", "local_ray_options", "SUMMARY_COLUMNS"]
 
 log = logging.getLogger(__name__)
 
@@ -43,6 +43,13 @@ def batch_outs(paths: list[Path], out: Path) -> list[Path]:
     return [out / n for n in names]
 
 
+def local_ray_options(cpus: int) -> dict[str, Any]:
+    """``ray.init`` arguments of a new local Ray of ``cpus`` CPUs: always a new one (never another user's running on
+    this machine), on loopback only, without the dashboard."""
+    return {"address": "local", "num_cpus": cpus, "_node_ip_address": "127.0.0.1", "include_dashboard": False,
+            "log_to_driver": False, "object_store_memory": _OBJECT_STORE_BYTES}
+
+
 def _ray(address: str | None, workers: int | None) -> tuple[Any, bool]:
     """The ``ray`` module, initialised; and whether this call started it (then it is shut down at the end)."""
     try:
@@ -54,8 +61,7 @@ def _ray(address: str | None, workers: int | None) -> tuple[Any, bool]:
     if address is not None:
         ray.init(address=address, log_to_driver=False)
     else:
-        ray.init(num_cpus=workers or os.cpu_count() or 1, include_dashboard=False, log_to_driver=False,
-                 object_store_memory=_OBJECT_STORE_BYTES)
+        ray.init(**local_ray_options(workers or os.cpu_count() or 1))
     return ray, True
 
 

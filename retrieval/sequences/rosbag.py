@@ -193,7 +193,7 @@ def open_bag(root: Path, topic: str | None = None) -> Sequence:
     if not len(received):
         raise ConfigError(f"{root}: no message on {conn.topic}")
     times = stamps
-    if not np.all(stamps > 0) or np.any(np.diff(stamps) < 0):
+    if not np.any(stamps != 0) or np.any(np.diff(stamps) < 0):
         log.warning("%s: header stamps unset or going backwards; using the bag's receive times", conn.topic)
         times = (received - received[0]) * 1e-9
     if K is None:

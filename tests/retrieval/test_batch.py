@@ -13,7 +13,7 @@ import yaml
 from cli.main import main
 from core.conf import ConfigError
 from retrieval import detect
-from retrieval.batch import batch_outs
+from retrieval.batch import batch_outs, local_ray_options
 from retrieval.run_folder import RunFolder
 
 CONF = {"search": {"exclude_recent": 5}}  # 20-frame sequences: loops 10 frames apart count
@@ -35,7 +35,7 @@ def local_ray():
     """One local Ray for the module (``run_batch`` uses a running Ray and leaves it running; starting one is slow)."""
     import ray
 
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, object_store_memory=80 * 1024 ** 2)
+    ray.init(**local_ray_options(2))
     yield
     ray.shutdown()
 
