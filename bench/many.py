@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import logging
 import shutil
 import time
@@ -54,7 +55,8 @@ def main(shared: Path, out: Path, work: Path) -> dict:
         walls[f"ray_{workers}_workers"] = time.perf_counter() - t0
     identical = {f"{p.name} ({w} workers)": _same_tables(work / "single" / p.name, work / f"ray{w}" / p.name)
                  for w in (1, 2) for p in paths}
-    result = {"walls_s": {k: round(v, 1) for k, v in walls.items()},
+    result = {"load_avg_1min": round(os.getloadavg()[0], 1),
+              "walls_s": {k: round(v, 1) for k, v in walls.items()},
               "speedup_1_to_2_workers": round(walls["ray_1_workers"] / walls["ray_2_workers"], 2),
               "identical_tables": identical, "rows": rows[2],
               "single": {k: {"loops": v["loops"], "ground_truth": v.get("ground_truth")} for k, v in single.items()}}
@@ -80,7 +82,7 @@ def _table(r: dict) -> str:
     lines += ["", f"Wall time: four single runs one after the other {w['single_sequential']} s; one command on Ray "
               f"with 1 worker {w['ray_1_workers']} s, with 2 workers {w['ray_2_workers']} s: "
               f"**{r['speedup_1_to_2_workers']}x** from 1 to 2 workers (Ray's start included). Measured under load "
-              "(shared 2-core machine) unless re-measured."]
+              f"(load average {r['load_avg_1min']} on this machine's cores) unless re-measured."]
     return "\n".join(lines)
 
 
