@@ -27,11 +27,12 @@ def bags(tmp_path_factory, sample_seq, sample_images):
     return root
 
 
-@pytest.mark.parametrize("name, has_K", [("ros2", True), ("ros2.mcap", False), ("ros1.bag", True)])
-def test_reads_frames_stamps_and_camera_info(bags, name, has_K, sample_seq, assert_same_frames):
+@pytest.mark.parametrize("name, storage, has_K", [("ros2", None, True), ("ros2", "*.db3", True),
+                                                  ("ros2.mcap", "*.mcap", False), ("ros1.bag", None, True)])
+def test_reads_frames_stamps_and_camera_info(bags, name, storage, has_K, sample_seq, assert_same_frames):
     path = bags / name
-    if name.endswith(".mcap"):  # rosbags writes an mcap bag as a folder; one storage file is a bag too
-        path = next(path.glob("*.mcap"))
+    if storage:  # a ROS 2 bag is a folder; its one storage file (.db3, .mcap) alone is a bag too
+        path = next(path.glob(storage))
     seq = open_sequence(path, topic=TOPIC)
     assert seq.kind == "rosbag" and seq.frame_name(3).startswith(TOPIC + "@")
     assert_same_frames(seq)
