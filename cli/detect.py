@@ -44,7 +44,7 @@ def log_summary(s: dict[str, Any]) -> None:
 
 
 def add_parser(sub: Any) -> None:
-    p = sub.add_parser("detect", help="detect loop closures over a sequence (no PATH: the bundled sample)",
+    p = sub.add_parser("detect", help="detect loop closures over a sequence, or many on Ray (no PATH: the bundled sample)",
                        description=detect.__doc__.split("\n\n")[0])
     add_sequence_arguments(p)
     p.add_argument("--out", help="run folder (default: runs/<sequence name>); an existing run is resumed. PATH "

@@ -49,6 +49,7 @@ def test_same_loops_as_the_sample(bags, sample_loops, detect_like_sample, tmp_pa
 
 
 def test_topic_errors(bags):
+    assert open_sequence(bags / "ros2").stream.topic == TOPIC  # no --topic: the bag's only image topic
     with pytest.raises(ConfigError, match=r"has no image topic /nope; image topics: /cam0/image_raw"):
         open_sequence(bags / "ros2", topic="/nope")
     with pytest.raises(ConfigError, match="is a rosbag sequence: --camera"):
