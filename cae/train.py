@@ -27,7 +27,7 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 import torch.nn.functional as F
-from tqdm import tqdm
+from core.progress import progress_bar as tqdm  # a bar on a terminal, log lines in a log
 
 from core.conf import ConfigError, Float, Int, Text, check_conf, conf_diff, dump_conf, merge_conf
 from core.errors import ImageError

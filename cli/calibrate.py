@@ -37,7 +37,7 @@ def run(args: Any) -> None:
     if not conf["calibration"]["enabled"]:
         why = f", as --method {args.method} sets" if args.method != "cae" else ""
         raise ConfigError(f"this configuration is not calibrated (calibration.enabled: false{why}); nothing to calibrate")
-    seq = open_sequence(detect.SAMPLE_DIR if args.path is None else args.path, args.camera)
+    seq = open_sequence(detect.SAMPLE_DIR if args.path is None else args.path, args.camera, args.topic, args.stride)
     out = Path(args.out) if args.out else detect.default_out(seq)
     cal = detect.calibrate_sequence(seq, conf, progress=not args.no_progress)
     run_folder = RunFolder(prepare_out_dir(out))

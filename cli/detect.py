@@ -3,18 +3,24 @@
 from __future__ import annotations
 
 import logging
+from functools import partial
+from pathlib import Path
 from typing import Any
 
+from core.cli import api_defaults
 from core.conf import ConfigError, load_conf_file
-from evaluation.evaluate import score_run
-from evaluation.ground_truth import load_ground_truth
+from evaluation.scored import detect_and_score
 from retrieval import detect
 from retrieval.methods import METHODS, method_conf
-from retrieval.sequences import open_sequence
+from retrieval.batch import run_batch
+from retrieval.sequences import find_sequences
 
-__all__ = ["add_parser", "run", "log_summary", "conf_from_args", "add_sequence_arguments"]
+__all__ = ["add_parser", "run", "log_summary", "log_table", "conf_from_args", "add_sequence_arguments"]
 
 log = logging.getLogger("cae_lcd.detect")
+
+_DEFAULTS = api_defaults(detect.main)
+_BATCH = api_defaults(run_batch)
 
 
 def log_summary(s: dict[str, Any]) -> None:
@@ -39,17 +45,23 @@ def log_summary(s: dict[str, Any]) -> None:
 
 
 def add_parser(sub: Any) -> None:
-    p = sub.add_parser("detect", help="detect loop closures over a sequence (no PATH: the bundled sample)",
+    p = sub.add_parser("detect", help="detect loop closures over a sequence, or many on Ray (no PATH: the bundled sample)",
                        description=detect.__doc__.split("\n\n")[0])
     add_sequence_arguments(p)
-    p.add_argument("--out", help="run folder (default: runs/<sequence name>); an existing run is resumed")
+    p.add_argument("--out", help="run folder (default: runs/<sequence name>); an existing run is resumed. PATH "
+                   "holding many sequences (a folder of them, or a .txt list): one run folder a sequence in OUT")
+    p.add_argument("--workers", type=int, default=_BATCH["workers"],
+                   help="many sequences: sequences at once on a local Ray (default: one a core)")
+    p.add_argument("--ray-address", default=_BATCH["address"],
+                   help="many sequences: a Ray cluster to run on (default: a local Ray)")
     p.set_defaults(func=run)
 
 
 def add_sequence_arguments(p: Any) -> None:
     """PATH, --method, --config, --camera, --weights, --no-progress: what every command that reads a sequence
     takes."""
-    p.add_argument("path", nargs="?", help="KITTI sequence folder or image folder (default: bundled sample)")
+    p.add_argument("path", nargs="?", help="a sequence: KITTI, TUM, EuRoC or image folder, a ROS bag (.bag, .db3, "
+                   ".mcap, ROS 2 bag folder) or a video (default: bundled sample)")
     p.add_argument("--method", choices=list(METHODS), default="cae",
                    help="detection method (default: cae; mild: MILD, Han & Fang 2017; mild+verify: MILD's "
                         "candidates + SIFT/geometric verification); --config merges on top")
@@ -57,6 +69,9 @@ def add_sequence_arguments(p: Any) -> None:
     p.add_argument("--camera", choices=["image_0", "image_1", "image_2", "image_3", "images"],
                    help="camera folder inside PATH")
     p.add_argument("--weights", help="encoder checkpoint (default: the shipped weights)")
+    p.add_argument("--topic", default=_DEFAULTS["topic"], help="a bag's image topic (default: the bag's only one)")
+    p.add_argument("--stride", type=int, default=_DEFAULTS["stride"],
+                   help="a video: take every n-th frame (default %(default)s)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -64,20 +79,37 @@ def conf_from_args(args: Any) -> dict[str, Any]:
     """The conf overrides from ``--method``, ``--config`` and ``--weights``."""
     conf = method_conf(args.method, load_conf_file(args.config) if args.config else {})
     if args.weights:
-        section = "encoder" if "encoder" in conf else "descriptor"  # the old name still works (deprecated)
-        conf.setdefault(section, {})
-        if not isinstance(conf[section], dict):
-            raise ConfigError(f"config section '{section}' must be a mapping")
-        conf[section]["weights"] = args.weights
+        conf.setdefault("descriptor", {})
+        if not isinstance(conf["descriptor"], dict):
+            raise ConfigError("config section 'descriptor' must be a mapping")
+        conf["descriptor"]["weights"] = args.weights
     return conf
+
+
+def log_table(rows: list[dict[str, Any]], out: Path) -> None:
+    """The batch's summary table, one logged line a sequence."""
+    log.info("%-28s %6s %6s %9s %7s %9s  %s", "sequence", "frames", "loops", "precision", "recall", "ms/frame",
+             "status")
+    for r in rows:
+        cells = [("-" if r[k] is None else f"{r[k]:.3f}" if isinstance(r[k], float) else r[k])
+                 for k in ("frames", "loops", "precision", "recall", "ms_per_frame")]
+        log.info("%-28s %6s %6s %9s %7s %9s  %s", Path(r["sequence"]).name[:28], *cells, r["status"])
+    log.info("wrote %s/{summary.csv,summary.json} and one run folder a sequence", out)
 
 
 def run(args: Any) -> None:
     conf = conf_from_args(args)
-    seq = open_sequence(detect.SAMPLE_DIR if args.path is None else args.path, args.camera)
-    if seq.ground_truth is not None:
-        load_ground_truth(seq.ground_truth)  # a broken ground-truth file is refused before anything is written
-    summary = detect.main(args.path, args.out, conf, args.camera, progress=not args.no_progress)
-    if summary.get("ground_truth_file"):
-        summary = score_run(summary["out"], summary["ground_truth_file"])
-    log_summary(summary)
+    many = None if args.path is None else find_sequences(args.path)
+    if many is None:
+        log_summary(detect_and_score(args.path, args.out, conf, args.camera, not args.no_progress, args.topic,
+                                     args.stride))
+        return
+    if args.out is None:
+        raise ConfigError(f"{args.path} holds {len(many)} sequences: pass --out DIR (one run folder a sequence)")
+    task = partial(detect_and_score, conf=conf, camera=args.camera, progress=False, topic=args.topic, stride=args.stride)
+    rows = run_batch(many, args.out, task, args.workers, args.ray_address, not args.no_progress)
+    log_table(rows, Path(args.out))
+    failed = [r for r in rows if r["status"] != "ok"]
+    if failed:
+        raise ConfigError(f"{len(failed)} of {len(rows)} sequences failed (first: {failed[0]['sequence']}: "
+                          f"{failed[0]['status']}); the others' results are written")

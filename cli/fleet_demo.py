@@ -7,8 +7,7 @@ import logging
 from pathlib import Path
 from typing import Any
 
-from core.cli import api_defaults
-from fleet.demo import run_demo
+from core.cli import add_missing_extra, api_defaults
 
 __all__ = ["add_parser", "run", "DEFAULT_KITTI"]
 
@@ -18,6 +17,11 @@ DEFAULT_KITTI = Path(__file__).resolve().parents[1].parent / "shared" / "dataset
 
 
 def add_parser(sub: Any) -> None:
+    try:  # here, not at the top: the detector installs without the fleet's dependencies
+        from fleet.demo import run_demo
+    except ImportError as err:
+        add_missing_extra(sub, "fleet-demo", "fleet", err)
+        return
     defaults = api_defaults(run_demo)
     p = sub.add_parser("fleet-demo", help="fleet server demo: two robots stream KITTI 00, the server merges them",
                        description=__doc__.split("\n\n")[0])
@@ -31,6 +35,8 @@ def add_parser(sub: Any) -> None:
 
 
 def run(args: Any) -> None:
+    from fleet.demo import run_demo
+
     logging.getLogger("httpx").setLevel(logging.WARNING)  # one line a request otherwise
     s = run_demo(args.out, args.kitti, negative=args.negative, frames=args.frames)
     log.info("%s demo: %d + %d keyframes in %.1f s (%.2f keyframes/s); overlaps %d, overlap edges %d", s["mode"],

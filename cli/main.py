@@ -6,13 +6,16 @@ Every command reports a failure as one ``error: ...`` line with exit code 2, nev
 from __future__ import annotations
 
 import argparse
+from importlib import metadata
 from typing import Sequence
 
 from core.cli import run_cli
 
 from . import bench, calibrate, detect, evaluate, fleet_demo, serve, train
 
-__all__ = ["main", "build_parser", "COMMANDS"]
+__all__ = ["main", "build_parser", "version", "COMMANDS", "DISTRIBUTION"]
+
+DISTRIBUTION = "cae-loop-closure"  #: the name the package is installed under
 
 COMMANDS = (detect, calibrate, evaluate, bench, train, serve, fleet_demo)  #: modules that contribute a subcommand through ``add_parser(subparsers)``
 
@@ -24,9 +27,18 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"error: {self.prog}: {message}\n")
 
 
+def version() -> str:
+    """The installed package's version (its one home is ``pyproject.toml``)."""
+    try:
+        return metadata.version(DISTRIBUTION)
+    except metadata.PackageNotFoundError:
+        return "unknown (not installed: pip install -e .)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="cae-lcd", description="Appearance-based loop-closure detection (CAE + SIFT).")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    parser.add_argument("--version", action="version", version=f"%(prog)s {version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_Parser)
     for module in COMMANDS:
         module.add_parser(sub)

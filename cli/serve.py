@@ -12,8 +12,6 @@ import secrets
 import sys
 from typing import Any
 
-import uvicorn
-
 from core.conf import ConfigError, load_conf_file
 
 __all__ = ["add_parser", "run", "serve", "admin_token", "TOKEN_ENV"]
@@ -48,7 +46,9 @@ def serve(state: str, host: str = "127.0.0.1", port: int = 8765, admin: str | No
     Raises:
         ConfigError: a bad config, port or state folder.
     """
-    from fleet.server import create_app  # here: the CLI's other commands do not load FastAPI
+    import uvicorn  # here: the CLI's other commands do not load the fleet's dependencies (the [fleet] extra)
+
+    from fleet.server import create_app
 
     if not 0 < port < 65536:
         raise ConfigError(f"--port must be in 1..65535; got {port}")
@@ -65,8 +65,13 @@ def serve(state: str, host: str = "127.0.0.1", port: int = 8765, admin: str | No
 
 
 def add_parser(sub: Any) -> None:
-    from core.cli import api_defaults
+    from core.cli import add_missing_extra, api_defaults
 
+    try:
+        import fastapi  # noqa: F401 - only whether the [fleet] extra is installed
+    except ImportError as err:
+        add_missing_extra(sub, "serve", "fleet", err)
+        return
     d = api_defaults(serve)
     p = sub.add_parser("serve", help="run the fleet server (robots submit keyframes over HTTP)",
                        description=__doc__.split("\n\n")[0])

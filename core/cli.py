@@ -7,15 +7,16 @@ Exit codes: 0 success; 2 an expected error (bad argument, config value, input fi
 
 from __future__ import annotations
 
+import argparse
 import inspect
 import logging
 import os
 import sys
 from typing import Any, Callable
 
-from .errors import LCDError
+from .errors import ConfigError, LCDError
 
-__all__ = ["setup_logging", "run_cli", "api_defaults", "EXPECTED_ERRORS"]
+__all__ = ["setup_logging", "run_cli", "api_defaults", "add_missing_extra", "EXPECTED_ERRORS"]
 
 #: errors that are the user's input or environment, not a bug: reported as ``error: ...`` with exit code 2
 EXPECTED_ERRORS = (LCDError, OSError, MemoryError)
@@ -25,6 +26,19 @@ def api_defaults(fn: Callable[..., object]) -> dict[str, Any]:
     """Default value of each parameter of ``fn``: CLI options take their defaults from the Python API's ``main``,
     so the two can never drift apart."""
     return {k: p.default for k, p in inspect.signature(fn).parameters.items()}
+
+
+def add_missing_extra(sub: Any, command: str, extra: str, err: ImportError) -> None:
+    """Adds ``command`` as a subcommand that only says which optional extra it needs (its package is missing)."""
+    why = (f"cae-lcd {command} needs the '{extra}' extra ({err.name or err} is not installed): "
+           f"pip install 'cae-loop-closure[{extra}]'")
+    p = sub.add_parser(command, help=f"(needs the '{extra}' extra)", description=why, prefix_chars="\x01")
+    p.add_argument("args", nargs="*", help=argparse.SUPPRESS)  # whatever was passed: the command cannot run anyway
+
+    def refuse(args: Any) -> None:
+        raise ConfigError(why)
+
+    p.set_defaults(func=refuse)
 
 
 def setup_logging(verbose: bool = False) -> None:

@@ -244,14 +244,16 @@ def _check_args(radius: float, min_gap: int, min_gap_s: float | None, score: str
         raise ConfigError(f"--min-gap-s must be a finite number >= 0; got {min_gap_s}")
 
 
-def main(run: Path, gt: Path, out: Path | None = None, radius: float = 5.0, min_gap: int = 50,
+def main(run: Path, gt: Path | None = None, out: Path | None = None, radius: float = 5.0, min_gap: int = 50,
          min_gap_s: float | None = None, score: str = "confidence", times: Path | None = None) -> dict[str, Any]:
     """Evaluates a detect run against ground truth and writes the report and plots.
 
     Args:
         run: run folder written by ``cae-lcd detect``, or a ``loops.csv`` file (then only the operating point is
             computed unless ``candidates.csv`` / ``keyframes.h5`` lie beside it).
-        gt: pairs file (``i j`` a line, 0-based) or KITTI poses file (12 numbers a line; row = frame id).
+        gt: pairs file (``i j`` a line, 0-based) or KITTI poses file (12 numbers a line; row = frame id); None =
+            the ground truth ``detect`` found for the run's sequence (``summary.json`` ``ground_truth_file``: its
+            ``loops.txt``, or the poses of a TUM / EuRoC recording, from which the loops are derived).
         out: folder for ``evaluation.json`` and the PNGs; None = the run folder.
         radius: metres, for pose-derived ground truth.
         min_gap: minimum frame gap, for pose-derived ground truth.
@@ -272,6 +274,11 @@ def main(run: Path, gt: Path, out: Path | None = None, radius: float = 5.0, min_
     run_dir, loops_csv = _resolve_run(run)
     folder = RunFolder(run_dir)
     summary, run_conf = folder.read_summary(), _read_run_conf(folder.conf)
+    if gt is None:
+        gt = summary.get("ground_truth_file")
+        if not isinstance(gt, str):
+            raise ConfigError(f"{run_dir}: its sequence has no ground truth (no loops.txt, no ground-truth poses); "
+                              "pass --gt")
     truth, used_time = _load_truth(Path(gt), radius, min_gap, min_gap_s, times, summary)
     loops = read_csv_table(loops_csv, LOOPS_COLUMNS[:2])  # the pairs are all the operating point needs
     cands = folder.read_candidates()

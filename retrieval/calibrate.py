@@ -37,7 +37,7 @@ from typing import Any, Iterable
 
 import h5py
 import numpy as np
-from tqdm import tqdm
+from core.progress import progress_bar as tqdm  # a bar on a terminal, log lines in a log
 
 from cae.whitening import MIN_FIT_CODES, Whitening
 from core.conf import ConfigError

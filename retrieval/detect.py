@@ -18,12 +18,11 @@ from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
-from tqdm import tqdm
 
 from core.conf import ConfigError, dump_conf
 from core.errors import ImageError
 from core.files import prepare_out_dir
-from core.images import decode_image, fingerprint, read_file
+from core.progress import progress_bar
 
 from .calibrate import Calibration, TooFewFrames, calibrate, calibration_frames
 from .database import KeyframeDatabase
@@ -49,33 +48,15 @@ def stage_stats(timings: list[dict[str, float]]) -> dict[str, dict[str, float]]:
             for s in STAGES if full and all(s in t for t in full)}
 
 
-def _read_frame(path: Path) -> tuple[np.ndarray | ImageError, str]:
-    """``(image or the reason it cannot be read, fingerprint of the file or "")``."""
-    try:
-        data = read_file(path)
-    except ImageError as err:
-        return err, ""
-    try:
-        return decode_image(data, path), fingerprint(data)
-    except ImageError as err:
-        return err, fingerprint(data)
-
-
-def _prefetch(paths: list[Path]) -> Iterator[tuple[np.ndarray | ImageError, str]]:
-    """Reads and decodes the next image in a worker thread while the current one is processed (one frame ahead)."""
+def _prefetch(seq: Sequence, ids: list[int]) -> Iterator[tuple[np.ndarray | ImageError, str]]:
+    """Reads and decodes frame ``ids`` of ``seq`` in a worker thread, one frame ahead of the one processed:
+    ``(image or the reason it cannot be read, fingerprint)`` each."""
     with ThreadPoolExecutor(1, thread_name_prefix="read") as pool:
-        pending = pool.submit(_read_frame, paths[0]) if paths else None
-        for nxt in [*paths[1:], None]:
+        pending = pool.submit(seq.read_frame, ids[0]) if ids else None
+        for nxt in [*ids[1:], None]:
             current = pending.result()
-            pending = pool.submit(_read_frame, nxt) if nxt is not None else None
+            pending = pool.submit(seq.read_frame, nxt) if nxt is not None else None
             yield current
-
-
-def _current_fingerprint(path: Path) -> str:
-    try:
-        return fingerprint(read_file(path))
-    except ImageError:
-        return "unreadable"
 
 
 def check_same_frames(db: KeyframeDatabase, seq: Sequence) -> None:
@@ -95,12 +76,12 @@ def check_same_frames(db: KeyframeDatabase, seq: Sequence) -> None:
         if e.frame_id >= len(seq):
             raise ConfigError(f"{where}: it holds frame {e.frame_id} ({e.source}) but the folder has only "
                               f"{len(seq)} images; choose another --out")
-        if e.source != seq.frames[e.frame_id].name:
+        if e.source != seq.frame_name(e.frame_id):
             raise ConfigError(f"{where}: frame {e.frame_id} was {e.source}, now it is "
-                              f"{seq.frames[e.frame_id].name} (a file added or removed?); choose another --out")
+                              f"{seq.frame_name(e.frame_id)} (a file added or removed?); choose another --out")
     picks = np.unique(np.linspace(0, len(entries) - 1, min(len(entries), _FINGERPRINT_CHECKS)).round().astype(int))
     for e in (entries[i] for i in picks):
-        if e.fingerprint and _current_fingerprint(seq.frames[e.frame_id]) != e.fingerprint:
+        if e.fingerprint and (seq.read_frame(e.frame_id)[1] or "unreadable") != e.fingerprint:
             raise ConfigError(f"{where}: frame {e.frame_id} ({e.source}) has changed since it was processed; "
                               "choose another --out")
 
@@ -112,7 +93,7 @@ def calibrate_sequence(seq: Sequence, conf: dict[str, Any], descriptor: GlobalDe
     descriptor = descriptor if descriptor is not None else create_descriptor(conf["descriptor"])
     picks = calibration_frames(len(seq), conf["search"]["exclude_recent"], conf["temporal"].get("length", 1),
                                conf["calibration"]["max_frames"])
-    images = ((int(i), image) for i, (image, _) in zip(picks, _prefetch([seq.frames[i] for i in picks]))
+    images = ((int(i), image) for i, (image, _) in zip(picks, _prefetch(seq, [int(i) for i in picks]))
               if not isinstance(image, ImageError))
     return calibrate(images, len(seq), conf, descriptor, create_filter(conf["temporal"]), seq.K, progress)
 
@@ -141,17 +122,17 @@ def _calibration(run: RunFolder, seq: Sequence, conf: dict[str, Any], descriptor
 
 def default_out(seq: Sequence) -> Path:
     """The run folder when none is given: ``runs/<sequence name>`` (``runs/sample`` for the bundled sample)."""
-    return Path("runs") / ("sample" if seq.root.resolve() == SAMPLE_DIR.resolve() else seq.root.name)
+    return Path("runs") / ("sample" if seq.root.resolve() == SAMPLE_DIR.resolve() else seq.name)
 
 
 def _run_frames(det: LoopDetector, seq: Sequence, start: int, progress: bool) -> list[dict[str, float]]:
     """Processes frames ``start..`` of ``seq``; returns the stage timings of the frames that ran."""
     timings: list[dict[str, float]] = []
-    bar = tqdm(range(start, len(seq)), desc=f"detect {seq.root.name}", unit="frame", disable=not progress,
-               initial=start, total=len(seq))
+    bar = progress_bar(range(start, len(seq)), desc=f"detect {seq.name}", unit="frame", disable=not progress,
+                       initial=start, total=len(seq))
     n_loops = 0
-    for i, (image, print_) in zip(bar, _prefetch(seq.frames[start:])):
-        name = seq.frames[i].name
+    for i, (image, print_) in zip(bar, _prefetch(seq, list(range(start, len(seq))))):
+        name = seq.frame_name(i)
         if not isinstance(image, ImageError):
             try:
                 res = det.process(image, i, None if seq.timestamps is None else float(seq.timestamps[i]),
@@ -169,16 +150,20 @@ def _run_frames(det: LoopDetector, seq: Sequence, start: int, progress: bool) ->
 
 
 def main(path: str | Path | None = None, out: str | Path | None = None, conf: dict[str, Any] | None = None,
-         camera: str | None = None, progress: bool = True) -> dict[str, Any]:
+         camera: str | None = None, progress: bool = True, topic: str | None = None,
+         stride: int = 1) -> dict[str, Any]:
     """Runs loop-closure detection over a sequence and writes the run folder.
 
     Args:
-        path: KITTI sequence folder or folder of images; None = the bundled sample.
+        path: a sequence of any layout ``retrieval.sequences.open_sequence`` reads (KITTI, TUM, EuRoC or image
+            folder, bag, video); None = the bundled sample.
         out: run folder; None = ``runs/<sequence name>`` (``runs/sample`` for the sample). An existing run there
             is resumed (same conf, weights and images required).
         conf: overrides of the detector's ``default_conf``.
         camera: KITTI camera folder (``image_0``, ``image_2``); None = the first present.
         progress: show a progress bar.
+        topic: a bag's image topic; None = the bag's only one.
+        stride: a video's frames taken: every ``stride``-th.
 
     Returns:
         The summary dict also written to ``summary.json``.
@@ -188,7 +173,7 @@ def main(path: str | Path | None = None, out: str | Path | None = None, conf: di
             anything is written.
         DatabaseError: the database is damaged, locked or cannot be written; files already written stay as they were.
     """
-    seq = open_sequence(SAMPLE_DIR if path is None else path, camera)
+    seq = open_sequence(SAMPLE_DIR if path is None else path, camera, topic, stride)
     resolved = resolve_conf(conf)
     out = Path(out) if out is not None else default_out(seq)
     created = not out.exists()
@@ -219,12 +204,15 @@ def main(path: str | Path | None = None, out: str | Path | None = None, conf: di
         frames = det.db.frames()
         keyframes = len(det.db)
     unreadable = [e.source for e in frames if e.kind == "unreadable"]
+    truth = seq.ground_truth
+    if truth is None and seq.poses_are_truth and seq.poses is not None:
+        truth = run.write_ground_truth_poses(seq.poses)
     summary: dict[str, Any] = {
         "sequence": str(seq.root.resolve()), "frames": len(seq), "processed_this_run": len(timings),
         "resumed_at": start, "keyframes": keyframes, "gated_out": sum(e.kind == "gated" for e in frames),
         "unreadable": len(unreadable), "unreadable_files": unreadable, "loops": len(loops), "loop_edges": len(edges),
         "ms_per_frame": stage_stats(timings), "out": str(run.root),
-        "ground_truth_file": None if seq.ground_truth is None else str(seq.ground_truth),
+        "ground_truth_file": None if truth is None else str(truth),
         "calibration": None if cal is None else {"notes": cal.notes, "accept_at_confidence": cal.accept_at,
                                                  "thresholds": cal.thresholds(),
                                                  "verification": bool(cal.inlier_null)},

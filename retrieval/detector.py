@@ -23,7 +23,6 @@ from __future__ import annotations
 import logging
 import os
 import time
-import warnings
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -50,7 +49,7 @@ from .places import create_places
 from .temporal import FILTERS, create_filter
 
 __all__ = ["Candidate", "FrameResult", "LoopDetector", "STAGES", "default_conf", "conf_rules",
-           "resolve_conf", "RENAMED_SECTIONS"]
+           "resolve_conf"]
 
 log = logging.getLogger(__name__)
 
@@ -122,30 +121,13 @@ _UNIT_SECTIONS = {"descriptor": DESCRIPTORS, "index": INDEXES, "features": FEATU
                   "temporal": FILTERS}
 _FIXED_SECTIONS = {"gate": EdgeGate, "geometry": GeometricVerifier}
 _NOT_PERSISTED = ("runtime",)  # sections that may change between a run and its resumption
-RENAMED_SECTIONS = {"encoder": "descriptor", "matching": "matcher"}  #: old section name -> new (deprecated)
-
-
-def _renamed(conf: dict[str, Any]) -> dict[str, Any]:
-    """Moves deprecated section names to their new names, with a warning."""
-    conf = dict(conf)
-    for old, new in RENAMED_SECTIONS.items():
-        if old in conf:
-            if new in conf:
-                raise ConfigError(f"config sections '{old}' and '{new}' both given; '{old}' is the old name of "
-                                  f"'{new}': keep only '{new}'")
-            msg = f"config section '{old}' is deprecated; call it '{new}'"
-            warnings.warn(msg, DeprecationWarning, stacklevel=3)
-            log.warning(msg)
-            conf[new] = conf.pop(old)
-    return conf
 
 
 def resolve_conf(conf: dict[str, Any] | None = None) -> dict[str, Any]:
     """Merges a user conf onto ``default_conf`` and checks every value; nothing is created or written.
 
     A named unit's section (``descriptor``, ``index``, ``temporal``, ``features``, ``matcher``) merges onto that unit's
-    own defaults and is checked against its ``conf_rules``. Old section names (``encoder``, ``matching``) still work,
-    with a deprecation warning.
+    own defaults and is checked against its ``conf_rules``.
 
     Raises:
         ConfigError: unknown key (named, with the allowed ones), unknown unit name, or a value of the wrong type or
@@ -153,7 +135,7 @@ def resolve_conf(conf: dict[str, Any] | None = None) -> dict[str, Any]:
     """
     if conf is not None and not isinstance(conf, dict):
         raise ConfigError(f"the configuration must be a mapping; got {type(conf).__name__}")
-    conf = _renamed(conf or {})
+    conf = dict(conf or {})
     base = dict(default_conf)
     units: dict[str, Any] = dict(_FIXED_SECTIONS)
     for section, registry in _UNIT_SECTIONS.items():

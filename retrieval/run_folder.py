@@ -12,6 +12,8 @@ columns.
                      count), preceded by ``VERTEX_SE3:QUAT`` lines with the frames' stored poses when known
     loop_edges.csv   EDGE_COLUMNS, the same edges (sigmas instead of the information matrix)
     loop_edges.json  the same edges with ``R``, ``t``, the information matrix and a note on what they mean
+    ground_truth_poses.txt  the sequence's ground-truth poses, one KITTI row a frame (TUM, EuRoC: layouts whose
+                     poses are ground truth; ``evaluate`` derives the loop ground truth from them)
 
 Tables and the summary are written to a temporary file and renamed, so a crash never leaves half a file where a
 good one was; what is read back is checked (numeric, finite, integer frame ids).
@@ -115,6 +117,16 @@ class RunFolder:
     @property
     def summary(self) -> Path:
         return self.root / "summary.json"
+
+    @property
+    def ground_truth_poses(self) -> Path:
+        return self.root / "ground_truth_poses.txt"
+
+    def write_ground_truth_poses(self, poses: np.ndarray) -> Path:
+        """Writes ``(N, 3, 4)`` camera-to-world poses as a KITTI poses file (12 numbers a line); returns its path."""
+        rows = np.asarray(poses, np.float64).reshape(-1, 12)
+        write_text_atomic(self.ground_truth_poses, "".join(" ".join(f"{v:.9g}" for v in r) + "\n" for r in rows))
+        return self.ground_truth_poses
 
     def write_tables(self, results: Iterable[tuple[int, np.ndarray, int]]) -> np.ndarray:
         """Writes ``loops.csv`` and ``candidates.csv`` from ``(query, candidates (k, 6), loop)`` rows (as

@@ -237,15 +237,12 @@ class TestResolveConf:
         user = load_conf_file(REPO / "configs" / "train.yaml")
         assert merge_conf(default_conf, user) == {**default_conf, **user}
 
-    def test_old_section_names_still_work_with_a_warning(self, caplog):
+    @pytest.mark.parametrize("old", ["encoder", "matching"])
+    def test_old_section_names_are_unknown_keys(self, old):
         from retrieval.detector import resolve_conf
 
-        with pytest.warns(DeprecationWarning, match="'encoder' is deprecated; call it 'descriptor'"):
-            conf = resolve_conf({"encoder": {"name": "thumbnail"}, "matching": {"ratio": 0.7}})
-        assert conf["descriptor"]["name"] == "thumbnail" and conf["matcher"]["ratio"] == 0.7
-        assert "encoder" not in conf and "matching" not in conf
-        with pytest.raises(ConfigError, match="both given"):
-            resolve_conf({"encoder": {}, "descriptor": {}})
+        with pytest.raises(ConfigError, match=f"'{old}'"):
+            resolve_conf({old: {}})
 
     @pytest.mark.parametrize("override, key", [
         ({"search": {"k": 0}}, "search.k"), ({"search": {"k": True}}, "search.k"),

@@ -1,7 +1,4 @@
-"""Sequence readers: a KITTI odometry sequence folder, or a plain folder of images in name order.
-
-A ``Sequence`` gives frame paths, and when known timestamps ``(N,)``, poses ``(N, 3, 4)`` camera-to-world,
-intrinsics ``K (3, 3)`` and the path of its ground-truth loop pairs (read by ``evaluation.ground_truth``).
+"""A KITTI odometry sequence folder, or a plain folder of images in name order.
 
 Every entry with an image extension is a frame, also one that cannot be read (a broken link, a folder named like an
 image): it keeps its frame id and the detector skips and counts it, so ids never shift. Metadata files that cannot
@@ -11,7 +8,6 @@ be parsed are refused with the file and line named.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -19,26 +15,13 @@ import numpy as np
 from core.conf import ConfigError
 from core.images import image_entries
 
-__all__ = ["Sequence", "open_sequence", "read_kitti_calib", "read_kitti_poses", "read_numbers", "read_times",
-           "kitti_metadata_file", "CAMERAS"]
+from .base import Sequence, read_numbers
+
+__all__ = ["open_folder", "read_kitti_calib", "read_kitti_poses", "read_times", "kitti_metadata_file", "CAMERAS"]
 
 log = logging.getLogger(__name__)
 
 CAMERAS = ("image_0", "image_2", "image_1", "image_3", "images")  #: camera folders, in the order looked for
-
-
-@dataclass
-class Sequence:
-    root: Path
-    frames: list[Path]
-    timestamps: np.ndarray | None = None  #: (N,) seconds
-    poses: np.ndarray | None = None  #: (N, 3, 4) camera-to-world
-    K: np.ndarray | None = field(default=None, repr=False)  #: (3, 3) intrinsics of the camera used
-    ground_truth: Path | None = None  #: ``loops.txt`` beside the frames, when present
-    kind: str = "folder"
-
-    def __len__(self) -> int:
-        return len(self.frames)
 
 
 def kitti_metadata_file(root: str | Path, what: str) -> Path | None:
@@ -51,38 +34,6 @@ def kitti_metadata_file(root: str | Path, what: str) -> Path | None:
     places = {"poses": [root / "poses.txt", root.parent.parent / "poses" / f"{root.name}.txt"],
               "times": [root / "times.txt"], "calib": [root / "calib.txt"], "loops": [root / "loops.txt"]}[what]
     return next((p for p in places if p.is_file()), None)
-
-
-def read_numbers(path: str | Path, per_line: int | None = None, what: str = "numbers") -> np.ndarray:
-    """A whitespace-separated numeric text file -> ``(R, C)`` float64; ``#`` comments and blank lines skipped.
-
-    Raises:
-        ConfigError: unreadable file, a non-numeric or non-finite value, or a line of another length (the message
-            names the file and line).
-    """
-    path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as err:
-        raise ConfigError(f"cannot read {what} file {path}: {getattr(err, 'strerror', None) or err}") from None
-    rows = []
-    for n, line in enumerate(text.splitlines(), 1):
-        parts = line.split("#")[0].split()
-        if not parts:
-            continue
-        try:
-            values = [float(v) for v in parts]
-        except ValueError:
-            raise ConfigError(f"{path}, line {n}: not a number in {line.strip()[:60]!r}") from None
-        if per_line is not None and len(values) != per_line:
-            raise ConfigError(f"{path}, line {n}: expected {per_line} numbers, got {len(values)}")
-        if not np.isfinite(values).all():
-            raise ConfigError(f"{path}, line {n}: NaN or infinite value in {what}")
-        rows.append(values)
-    width = per_line if per_line is not None else (len(rows[0]) if rows else 0)
-    if any(len(r) != width for r in rows):
-        raise ConfigError(f"{path}: lines of different lengths")
-    return np.array(rows, np.float64).reshape(-1, width)
 
 
 def read_kitti_calib(path: str | Path, camera: str = "image_0") -> np.ndarray:
@@ -149,21 +100,17 @@ def _metadata(seq: Sequence, camera: str) -> Sequence:
     return seq
 
 
-def open_sequence(path: str | Path, camera: str | None = None) -> Sequence:
+def open_folder(root: Path, camera: str | None = None) -> Sequence:
     """Opens a KITTI sequence folder (``image_0/`` or ``image_2/``, ``calib.txt``, ``times.txt``, poses in
     ``poses.txt`` or ``../../poses/NN.txt``, ``loops.txt``) or a plain folder of images.
 
     Args:
-        path: the sequence folder.
+        root: the sequence folder.
         camera: ``"image_0"`` or ``"image_2"`` for KITTI; None picks the first present.
 
     Raises:
         ConfigError: missing folder, no images, or metadata that cannot be parsed.
     """
-    root = Path(path)
-    if not root.is_dir():
-        raise ConfigError(f"sequence folder not found: {root}" if not root.exists()
-                          else f"{root} is not a folder; pass a sequence folder")
     cams = [camera] if camera else list(CAMERAS)
     cam = next((c for c in cams if (root / c).is_dir()), None)
     if camera and cam is None:

@@ -1,0 +1,137 @@
+"""Many sequences, one command: one Ray task a sequence (a local Ray by default, or a cluster's address), one
+progress bar, and a summary table of all sequences (``summary.csv`` and ``summary.json`` in the output folder).
+
+Each task writes its own run folder ``OUT/<sequence name>`` exactly as a single run does, so results are those of
+running each sequence alone, and a batch stopped half-way resumes per sequence (finished ones only rewrite their
+tables). Ray is the ``[ray]`` extra, imported only here and only when a batch runs.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import logging
+import os
+from pathlib import Path
+from typing import Any, Callable
+
+from core.conf import ConfigError
+from core.files import prepare_out_dir, write_text_atomic
+from core.progress import progress_bar
+
+__all__ = ["run_batch", "batch_outs", "local_ray_options", "SUMMARY_COLUMNS"]
+
+log = logging.getLogger(__name__)
+
+#: columns of ``summary.csv``: one row a sequence
+SUMMARY_COLUMNS = ("sequence", "frames", "keyframes", "loops", "precision", "recall", "ms_per_frame", "status", "out")
+_OBJECT_STORE_BYTES = 128 * 1024 ** 2  #: a local Ray's object store: tasks pass paths and summaries only
+
+
+def batch_outs(paths: list[Path], out: Path) -> list[Path]:
+    """The run folder of each sequence: ``out/<sequence name>``.
+
+    Raises:
+        ConfigError: two sequences of the same name (their run folders would collide).
+    """
+    names = [p.name if p.is_dir() else p.stem for p in paths]
+    dupes = sorted({n for n in names if names.count(n) > 1})
+    if dupes:
+        raise ConfigError(f"two sequences named {dupes[0]!r}: their run folders in {out} would collide; "
+                          "rename one or run them separately")
+    return [out / n for n in names]
+
+
+def local_ray_options(cpus: int) -> dict[str, Any]:
+    """``ray.init`` arguments of a new local Ray of ``cpus`` CPUs: always a new one (never another user's running on
+    this machine), on loopback only, without the dashboard."""
+    return {"address": "local", "num_cpus": cpus, "_node_ip_address": "127.0.0.1", "include_dashboard": False,
+            "log_to_driver": False, "object_store_memory": _OBJECT_STORE_BYTES}
+
+
+def _ray(address: str | None, workers: int | None) -> tuple[Any, bool]:
+    """The ``ray`` module, initialised; and whether this call started it (then it is shut down at the end)."""
+    try:
+        import ray
+    except ImportError:
+        raise ConfigError("many sequences at once need Ray: pip install 'cae-loop-closure[ray]'") from None
+    if ray.is_initialized():
+        return ray, False
+    if address is not None:
+        ray.init(address=address, log_to_driver=False)
+    else:
+        ray.init(**local_ray_options(workers or os.cpu_count() or 1))
+    return ray, True
+
+
+def _call(task: Callable[[Path, Path], dict[str, Any]], path: Path, out: Path) -> dict[str, Any]:
+    """One sequence, in a Ray worker (``task`` travels pickled: a function or a ``functools.partial`` of one)."""
+    return task(path, out)
+
+
+def _row(path: Path, out: Path, summary: dict[str, Any] | None, error: str | None) -> dict[str, Any]:
+    if summary is None:
+        return {**dict.fromkeys(SUMMARY_COLUMNS), "sequence": str(path), "status": f"error: {error}", "out": str(out)}
+    g = summary.get("ground_truth") or {}
+    ms = (summary.get("ms_per_frame") or {}).get("total", {}).get("median")
+    return {"sequence": str(path), "frames": summary["frames"], "keyframes": summary["keyframes"],
+            "loops": summary["loops"], "precision": g.get("precision"), "recall": g.get("recall"),
+            "ms_per_frame": None if ms is None else round(ms, 1), "status": "ok", "out": str(out)}
+
+
+def _write_summary(out: Path, rows: list[dict[str, Any]]) -> None:
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, SUMMARY_COLUMNS)
+    writer.writeheader()
+    writer.writerows(rows)
+    write_text_atomic(out / "summary.csv", buf.getvalue())
+    write_text_atomic(out / "summary.json", json.dumps({"sequences": rows}, indent=1))
+
+
+def run_batch(paths: list[Path], out: str | Path, task: Callable[[Path, Path], dict[str, Any]],
+              workers: int | None = None, address: str | None = None, progress: bool = True) -> list[dict[str, Any]]:
+    """Runs ``task(sequence, run_folder)`` for every sequence as a Ray task and writes the summary table.
+
+    Args:
+        paths: the sequences (``retrieval.sequences.find_sequences``).
+        out: the output folder; sequence ``p`` runs into ``out/<name of p>`` (resumed when it exists).
+        task: ``(sequence path, run folder) -> summary dict`` (``detect.main``'s), a module-level function or a
+            ``functools.partial`` of one.
+        workers: tasks at once on a local Ray (None: one a core); ignored with ``address``.
+        address: a Ray cluster's address (``ray://host:10001``, ``auto``); None starts a local Ray.
+        progress: one progress bar over the sequences.
+
+    Returns:
+        One row a sequence (``SUMMARY_COLUMNS``), in the order of ``paths``; a sequence that failed has
+        ``status`` ``"error: ..."`` and the others still ran.
+
+    Raises:
+        ConfigError: a bad ``workers``, colliding sequence names, Ray missing or unreachable.
+    """
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
+        raise ConfigError(f"--workers must be an integer >= 1; got {workers!r}")
+    out = prepare_out_dir(Path(out))
+    outs = batch_outs(paths, out)
+    ray, started = _ray(address, workers)
+    try:
+        remote = ray.remote(num_cpus=1, max_retries=0)(_call)
+        pending = {remote.remote(task, p, o): k for k, (p, o) in enumerate(zip(paths, outs))}
+        rows: list[dict[str, Any] | None] = [None] * len(paths)
+        bar = progress_bar(total=len(paths), desc="sequences", unit="seq", disable=not progress)
+        while pending:
+            done, _ = ray.wait(list(pending), num_returns=1)
+            k = pending.pop(done[0])
+            try:
+                rows[k] = _row(paths[k], outs[k], ray.get(done[0]), None)
+            except ray.exceptions.RayTaskError as err:
+                cause = getattr(err, "cause", None) or err
+                log.error("%s failed: %s", paths[k], " ".join(str(cause).split())[:300])
+                rows[k] = _row(paths[k], outs[k], None, " ".join(str(cause).split())[:300])
+            bar.update(1)
+        bar.close()
+    finally:
+        if started:
+            ray.shutdown()
+    _write_summary(out, rows)  # type: ignore[arg-type]
+    return rows  # type: ignore[return-value]

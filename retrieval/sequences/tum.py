@@ -1,0 +1,38 @@
+"""TUM RGB-D layout: ``rgb.txt`` (``timestamp rgb/NAME.png`` a line), ``groundtruth.txt`` (``timestamp tx ty tz qx
+qy qz qw``, the camera in a z-up world) when present. The ground truth gives each frame a pose (interpolated at
+its timestamp), from which ``evaluate`` derives the loop ground truth; TUM ships no intrinsics file (the
+fundamental matrix is used).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from core.conf import ConfigError
+
+from .base import Sequence, poses_at, read_numbers, read_stamped_names
+
+__all__ = ["is_tum", "open_tum"]
+
+
+def is_tum(root: Path) -> bool:
+    """A folder with ``rgb.txt``."""
+    return root.is_dir() and (root / "rgb.txt").is_file()
+
+
+def open_tum(root: Path) -> Sequence:
+    """Opens a TUM RGB-D sequence folder.
+
+    Raises:
+        ConfigError: ``rgb.txt`` or ``groundtruth.txt`` cannot be parsed, or lists no frame.
+    """
+    times, names = read_stamped_names(root / "rgb.txt")
+    if not names:
+        raise ConfigError(f"{root / 'rgb.txt'} lists no frame")
+    seq = Sequence(root, [root / n for n in names], timestamps=times, kind="tum")
+    gt = root / "groundtruth.txt"
+    if gt.is_file():
+        track = read_numbers(gt, 8, "ground-truth poses")
+        seq.poses = poses_at(times, track[track[:, 0].argsort()], gt)
+        seq.poses_are_truth = seq.poses is not None
+    return seq

@@ -1,0 +1,36 @@
+"""The EuRoC / ASL reader on the bundled sample laid out as a EuRoC folder (``conftest.euroc_folder``)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from core.conf import ConfigError
+from retrieval.sequences import open_sequence
+
+
+def test_reads_frames_times_intrinsics_and_poses(euroc_folder, sample_seq, assert_same_frames):
+    for path in (euroc_folder, euroc_folder / "mav0"):  # the folder holding mav0/, or mav0/ itself
+        seq = open_sequence(path)
+        assert seq.kind == "euroc" and seq.poses_are_truth
+        assert_same_frames(seq)
+        np.testing.assert_allclose(seq.K, sample_seq.K)
+        np.testing.assert_allclose(seq.timestamps, sample_seq.timestamps + 1000.0, atol=1e-6)
+        np.testing.assert_allclose(seq.poses, sample_seq.poses, atol=1e-4)
+
+
+def test_no_ground_truth_no_poses(euroc_folder, tmp_path):
+    import shutil
+
+    copy = tmp_path / "MH"
+    shutil.copytree(euroc_folder / "mav0" / "cam0", copy / "mav0" / "cam0")
+    seq = open_sequence(copy)
+    assert seq.poses is None and not seq.poses_are_truth and seq.K is not None
+
+
+def test_bad_data_csv_is_one_error(tmp_path):
+    cam = tmp_path / "mav0" / "cam0"
+    cam.mkdir(parents=True)
+    (cam / "data.csv").write_text("#timestamp [ns],filename\n100,a.png\n100;b.png\n")
+    with pytest.raises(ConfigError, match=r"data.csv, line 3: expected 'timestamp,file name'"):
+        open_sequence(tmp_path)
