@@ -12,6 +12,7 @@ keeps its frame id and is counted. A killed run resumes from its database; a dat
 
 from __future__ import annotations
 
+import functools
 import logging
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -60,14 +61,47 @@ def _read_frame(path: Path) -> tuple[np.ndarray | ImageError, str]:
         return err, fingerprint(data)
 
 
-def _prefetch(paths: list[Path]) -> Iterator[tuple[np.ndarray | ImageError, str]]:
-    """Reads and decodes the next image in a worker thread while the current one is processed (one frame ahead)."""
-    with ThreadPoolExecutor(1, thread_name_prefix="read") as pool:
-        pending = pool.submit(_read_frame, paths[0]) if paths else None
-        for nxt in [*paths[1:], None]:
+Ahead = tuple[np.ndarray | ImageError, str, np.ndarray | None]  #: (image or why not, fingerprint, raw code or None)
+
+
+def _read_and_encode(paths: list[Path], descriptor: GlobalDescriptor | None) -> list[Ahead]:
+    """Reads and decodes ``paths``, then encodes the readable ones in one batch (codes None without a descriptor
+    that encodes images alone, or when the batch fails: ``LoopDetector.process`` then encodes and reports)."""
+    frames = [_read_frame(p) for p in paths]
+    codes: list[np.ndarray | None] = [None] * len(frames)
+    ok = [i for i, (image, _) in enumerate(frames) if not isinstance(image, ImageError)]
+    if descriptor is not None and ok:
+        try:
+            batch = descriptor.encode_batch([frames[i][0] for i in ok])
+        except ImageError:
+            batch = [None] * len(ok)
+        for i, code in zip(ok, batch):
+            codes[i] = code
+    return [(image, print_, code) for (image, print_), code in zip(frames, codes)]
+
+
+def _ahead(paths: list[Path], descriptor: GlobalDescriptor | None = None, batch: int = 8) -> Iterator[Ahead]:
+    """Reads, decodes and encodes (batches of ``batch``) in a worker thread, one batch ahead of the frame being
+    processed: with single-threaded libraries (``core.threads``) the worker and the caller each hold a core.
+
+    Yields:
+        ``(image or the reason it cannot be read, fingerprint, raw code or None)`` per path, in order.
+    """
+    chunks = [paths[i:i + batch] for i in range(0, len(paths), batch)]
+    with ThreadPoolExecutor(1, thread_name_prefix="read-encode") as pool:
+        pending = pool.submit(_read_and_encode, chunks[0], descriptor) if chunks else None
+        for nxt in [*chunks[1:], None]:
             current = pending.result()
-            pending = pool.submit(_read_frame, nxt) if nxt is not None else None
-            yield current
+            pending = pool.submit(_read_and_encode, nxt, descriptor) if nxt is not None else None
+            yield from current
+
+
+def _frame_again(seq: Sequence, frame_id: int) -> np.ndarray:
+    """Frame ``frame_id`` of ``seq`` read again (``LoopDetector``'s ``frame_source``: features needed late)."""
+    image, _ = _read_frame(seq.frames[frame_id])
+    if isinstance(image, ImageError):  # it was read when processed: changed or removed since
+        raise ImageError(f"{seq.frames[frame_id]} can no longer be read ({image}); it was read when processed")
+    return image
 
 
 def _current_fingerprint(path: Path) -> str:
@@ -105,20 +139,41 @@ def check_same_frames(db: KeyframeDatabase, seq: Sequence) -> None:
 
 
 def calibrate_sequence(seq: Sequence, conf: dict[str, Any], descriptor: GlobalDescriptor | None = None,
-                       progress: bool = True) -> Calibration:
-    """Calibrates on ``seq`` (unreadable frames are left out; ``detect`` warns about them)."""
+                       progress: bool = True, codes: dict[int, np.ndarray] | None = None,
+                       features: dict[int, Any] | None = None) -> Calibration:
+    """Calibrates on ``seq`` (unreadable frames are left out; ``detect`` warns about them).
+
+    Args:
+        codes: a dict that receives the raw codes of the frames read (encoded ahead, in batches, in a worker
+            thread), for the run to reuse.
+        features: a dict that receives the local features the calibration extracted, for the run to reuse.
+    """
     conf = resolve_conf(conf)
     descriptor = descriptor if descriptor is not None else create_descriptor(conf["descriptor"])
     picks = calibration_frames(len(seq), conf["search"]["exclude_recent"], conf["temporal"].get("length", 1),
                                conf["calibration"]["max_frames"])
-    images = ((int(i), image) for i, (image, _) in zip(picks, _prefetch([seq.frames[i] for i in picks]))
-              if not isinstance(image, ImageError))
-    return calibrate(images, len(seq), conf, descriptor, create_filter(conf["temporal"]), seq.K, progress)
+    codes = {} if codes is None else codes
+
+    def frames() -> Iterator[tuple[int, np.ndarray]]:
+        for i, (image, _, code) in zip(picks, _ahead([seq.frames[i] for i in picks], _batch_encoder(descriptor))):
+            if not isinstance(image, ImageError):
+                if code is not None:
+                    codes[int(i)] = code
+                yield int(i), image
+
+    return calibrate(frames(), len(seq), conf, descriptor, create_filter(conf["temporal"]), seq.K, progress,
+                     codes, features)
+
+
+def _batch_encoder(descriptor: GlobalDescriptor) -> GlobalDescriptor | None:
+    """The descriptor when it can encode ahead in batches (same codes as one at a time), else None."""
+    return descriptor if descriptor.encodes_in_batches and not descriptor.needs_features else None
 
 
 def _calibration(run: RunFolder, seq: Sequence, conf: dict[str, Any], descriptor: GlobalDescriptor,
-                 progress: bool) -> Calibration | None:
-    """The run's calibration: the one saved in the run folder, else a new one (saved); None when disabled."""
+                 progress: bool, codes: dict[int, np.ndarray], features: dict[int, Any]) -> Calibration | None:
+    """The run's calibration: the one saved in the run folder, else a new one (saved; its codes and features go
+    into ``codes`` and ``features``); None when disabled."""
     if not conf["calibration"]["enabled"]:
         return None
     if run.calibration.is_file():
@@ -129,7 +184,7 @@ def _calibration(run: RunFolder, seq: Sequence, conf: dict[str, Any], descriptor
         log.info("using the calibration in %s", run.calibration)
         return cal
     try:
-        cal = calibrate_sequence(seq, conf, descriptor, progress)
+        cal = calibrate_sequence(seq, conf, descriptor, progress, codes, features)
     except TooFewFrames as err:
         log.warning("not calibrated (%s): using the fixed policy (policy.min_inliers %d) and raw codes",
                     err, conf["policy"]["min_inliers"])
@@ -143,18 +198,24 @@ def default_out(seq: Sequence) -> Path:
     return Path("runs") / ("sample" if seq.root.resolve() == SAMPLE_DIR.resolve() else seq.root.name)
 
 
-def _run_frames(det: LoopDetector, seq: Sequence, start: int, progress: bool) -> list[dict[str, float]]:
-    """Processes frames ``start..`` of ``seq``; returns the stage timings of the frames that ran."""
+def _run_frames(det: LoopDetector, seq: Sequence, start: int, progress: bool,
+                codes: dict[int, np.ndarray] | None = None) -> list[dict[str, float]]:
+    """Processes frames ``start..`` of ``seq`` (``codes``: raw codes already computed, popped as they are used;
+    the others are encoded ahead in a worker thread); returns the stage timings of the frames that ran."""
+    codes = {} if codes is None else codes
     timings: list[dict[str, float]] = []
     bar = tqdm(range(start, len(seq)), desc=f"detect {seq.root.name}", unit="frame", disable=not progress,
                initial=start, total=len(seq))
     n_loops = 0
-    for i, (image, print_) in zip(bar, _prefetch(seq.frames[start:])):
+    todo = seq.frames[start:]
+    encoder = _batch_encoder(det.descriptor) if len(codes) < len(todo) else None
+    for i, (image, print_, code) in zip(bar, _ahead(todo, encoder)):
         name = seq.frames[i].name
+        code = codes.pop(i, code)
         if not isinstance(image, ImageError):
             try:
                 res = det.process(image, i, None if seq.timestamps is None else float(seq.timestamps[i]),
-                                  None if seq.poses is None else seq.poses[i], name, print_)
+                                  None if seq.poses is None else seq.poses[i], name, print_, code)
             except ImageError as err:
                 image = err
             else:
@@ -194,8 +255,11 @@ def main(path: str | Path | None = None, out: str | Path | None = None, conf: di
     run = RunFolder(prepare_out_dir(out))
     try:
         descriptor = create_descriptor(resolved["descriptor"])
-        cal = _calibration(run, seq, resolved, descriptor, progress)
-        det = LoopDetector(resolved, K=seq.K, database=run.database, calibration=cal, descriptor=descriptor)
+        codes: dict[int, np.ndarray] = {}  # the calibration's codes and features, reused by the run
+        features: dict[int, Any] = {}
+        cal = _calibration(run, seq, resolved, descriptor, progress, codes, features)
+        det = LoopDetector(resolved, K=seq.K, database=run.database, calibration=cal, descriptor=descriptor,
+                           frame_source=functools.partial(_frame_again, seq), features=features)
     except BaseException:
         if created:  # e.g. weights that cannot be loaded: leave no trace
             run.calibration.unlink(missing_ok=True)
@@ -210,7 +274,7 @@ def main(path: str | Path | None = None, out: str | Path | None = None, conf: di
             log.info("%s already holds all %d frames; rewriting the tables", run.database, len(seq))
         elif start:
             log.info("resuming at frame %d of %d", start, len(seq))
-        timings = _run_frames(det, seq, start, progress)
+        timings = _run_frames(det, seq, start, progress, codes)
         loops = run.write_tables(det.db.results())
         frames = det.db.frames()
         keyframes = len(det.db)
