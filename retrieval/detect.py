@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Iterator
@@ -257,7 +258,9 @@ def main(path: str | Path | None = None, out: str | Path | None = None, conf: di
         descriptor = create_descriptor(resolved["descriptor"])
         codes: dict[int, np.ndarray] = {}  # the calibration's codes and features, reused by the run
         features: dict[int, Any] = {}
+        t0 = time.perf_counter()
         cal = _calibration(run, seq, resolved, descriptor, progress, codes, features)
+        seconds = {"calibration": time.perf_counter() - t0}
         det = LoopDetector(resolved, K=seq.K, database=run.database, calibration=cal, descriptor=descriptor,
                            frame_source=functools.partial(_frame_again, seq), features=features)
     except BaseException:
@@ -274,7 +277,9 @@ def main(path: str | Path | None = None, out: str | Path | None = None, conf: di
             log.info("%s already holds all %d frames; rewriting the tables", run.database, len(seq))
         elif start:
             log.info("resuming at frame %d of %d", start, len(seq))
+        t0 = time.perf_counter()
         timings = _run_frames(det, seq, start, progress, codes)
+        seconds["frames"] = time.perf_counter() - t0
         loops = run.write_tables(det.db.results())
         frames = det.db.frames()
         keyframes = len(det.db)
@@ -283,7 +288,7 @@ def main(path: str | Path | None = None, out: str | Path | None = None, conf: di
         "sequence": str(seq.root.resolve()), "frames": len(seq), "processed_this_run": len(timings),
         "resumed_at": start, "keyframes": keyframes, "gated_out": sum(e.kind == "gated" for e in frames),
         "unreadable": len(unreadable), "unreadable_files": unreadable, "loops": len(loops),
-        "ms_per_frame": stage_stats(timings), "out": str(run.root),
+        "ms_per_frame": stage_stats(timings), "seconds": seconds, "out": str(run.root),
         "ground_truth_file": None if seq.ground_truth is None else str(seq.ground_truth),
         "calibration": None if cal is None else {"notes": cal.notes, "accept_at_confidence": cal.accept_at,
                                                  "thresholds": cal.thresholds(),
