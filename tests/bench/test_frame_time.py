@@ -15,12 +15,13 @@ def test_report_ratios():
     res = {"sequence": "kitti/90", "before_rev": "abc", "same_loops": True,
            "system": {"cores": 2, "cpu": "cpu", "load_avg": (1, 1, 1)},
            "quiet": {"sift_ms": 20.0, "new": _summary(10.0, 4.0, 0.5), "before": _summary(40.0, 20.0),
-                     "api": {"median": 15.0, "p90": 30.0, "loops": 100}},
+                     "api": {"median": 15.0, "p90": 30.0, "loops": 100},
+                     "new_calibration_given": _summary(9.0, 3.6, 0.0)},
            "busy": {"sift_ms": 30.0, "new": _summary(15.0, 6.0, 1.0)}}
     text = report(res)
     assert "| this code, quiet | 10.0 | 0.50x | 20.0 | 1.00x | 12 % | 700 | 100 |" in text
     assert "1.50x the quiet run" in text and "median ms/frame 4.0x, wall time 5.0x" in text
-    assert "identical: True" in text
+    assert "identical: True" in text and "what it adds to the run: 10 %" in text
 
 
 def test_write_section_replaces_its_own_part(tmp_path):
