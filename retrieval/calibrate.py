@@ -31,6 +31,7 @@ import json
 import logging
 import math
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable
@@ -43,6 +44,7 @@ from cae.whitening import MIN_FIT_CODES, Whitening
 from core.conf import ConfigError
 from core.errors import DatabaseError
 from core.files import atomic_write
+from core.threads import cpu_count
 from verify.features import create_extractor
 from verify.gate import EdgeGate
 from verify.verifier import create_verifier
@@ -336,6 +338,19 @@ def _score_path(cal: Calibration, null: np.ndarray) -> None:
                      "in the run")
 
 
+def _extract_side_by_side(fconf: dict[str, Any], images: dict[int, np.ndarray], fids: list[int]) -> dict[int, Any]:
+    """Local features of ``images[fid]`` for ``fids``, on every core: one single-threaded extractor per worker
+    (``core.threads``), the same features as one after another."""
+    n = min(cpu_count(), max(1, len(fids)))
+
+    def part(chunk: list[int]) -> list[tuple[int, Any]]:
+        extractor = create_extractor(fconf)
+        return [(fid, extractor.extract(images[fid])) for fid in chunk]
+
+    with ThreadPoolExecutor(n, thread_name_prefix="calibrate-features") as pool:
+        return dict(pair for done in pool.map(part, [fids[i::n] for i in range(n)]) for pair in done)
+
+
 def _inlier_path(cal: Calibration, conf: dict[str, Any], images: dict[int, np.ndarray], null: np.ndarray,
                  K: np.ndarray | None, progress: bool, feats: dict[int, Any] | None = None) -> None:
     """Verifies the hardest far-side pair of sampled queries; fits the inlier null or switches verification off."""
@@ -343,21 +358,21 @@ def _inlier_path(cal: Calibration, conf: dict[str, Any], images: dict[int, np.nd
     if cc["verification"] == "off":
         cal.notes.append("verification: off (calibration.verification)")
         return
-    extractor = create_extractor(conf["features"])
     verifier = create_verifier(conf["matcher"], conf["geometry"])
     queries = np.unique(null[:, 0]).astype(np.int64)
     picks = queries[np.unique(np.linspace(0, len(queries) - 1, min(len(queries), cc["null_pairs"])).astype(int))]
     feats = {} if feats is None else feats
-    inliers, keypoints = [], []
     rng = np.random.default_rng(0)  # the same pairs every time: a resumed or repeated calibration agrees
-    for q in tqdm(picks, desc="calibrate: verify", unit="pair", disable=not progress, leave=False):
+    pairs = []
+    for q in picks:
         refs = null[null[:, 0] == q, 1]
-        r = int(refs[rng.integers(len(refs))])
-        for fid in (int(q), r):
-            if fid not in feats:
-                feats[fid] = extractor.extract(images[fid])
-                keypoints.append(len(feats[fid]))
-        check = verifier.verify(feats[int(q)], [feats[r]], K, 0, 0, True)[0]
+        pairs.append((int(q), int(refs[rng.integers(len(refs))])))
+    todo = sorted({fid for pair in pairs for fid in pair} - set(feats))
+    feats.update(_extract_side_by_side(conf["features"], images, todo))
+    keypoints = [len(feats[fid]) for fid in todo]
+    inliers = []
+    for q, r in tqdm(pairs, desc="calibrate: verify", unit="pair", disable=not progress, leave=False):
+        check = verifier.verify(feats[q], [feats[r]], K, 0, 0, True)[0]
         inliers.append(max(check.inliers, 0))
     median_kp = float(np.median(keypoints))
     if cc["verification"] == "auto" and median_kp < cc["min_features"]:
