@@ -194,6 +194,17 @@ def _calibration(run: RunFolder, seq: Sequence, conf: dict[str, Any], descriptor
     return cal
 
 
+def _calibrated_detector(run: RunFolder, seq: Sequence, conf: dict[str, Any], progress: bool,
+                         codes: dict[int, np.ndarray]) -> tuple[Calibration | None, LoopDetector]:
+    """The run's calibration (``_calibration``; its codes go into ``codes``) and the detector that uses it, its
+    local features and the sequence's files (to read a frame again when its features are needed late)."""
+    descriptor = create_descriptor(conf["descriptor"])
+    features: dict[int, Any] = {}
+    cal = _calibration(run, seq, conf, descriptor, progress, codes, features)
+    return cal, LoopDetector(conf, K=seq.K, database=run.database, calibration=cal, descriptor=descriptor,
+                             frame_source=functools.partial(_frame_again, seq), features=features)
+
+
 def default_out(seq: Sequence) -> Path:
     """The run folder when none is given: ``runs/<sequence name>`` (``runs/sample`` for the bundled sample)."""
     return Path("runs") / ("sample" if seq.root.resolve() == SAMPLE_DIR.resolve() else seq.root.name)
@@ -254,15 +265,11 @@ def main(path: str | Path | None = None, out: str | Path | None = None, conf: di
     out = Path(out) if out is not None else default_out(seq)
     created = not out.exists()
     run = RunFolder(prepare_out_dir(out))
+    codes: dict[int, np.ndarray] = {}  # the calibration's codes, reused by the run
     try:
-        descriptor = create_descriptor(resolved["descriptor"])
-        codes: dict[int, np.ndarray] = {}  # the calibration's codes and features, reused by the run
-        features: dict[int, Any] = {}
         t0 = time.perf_counter()
-        cal = _calibration(run, seq, resolved, descriptor, progress, codes, features)
+        cal, det = _calibrated_detector(run, seq, resolved, progress, codes)
         seconds = {"calibration": time.perf_counter() - t0}
-        det = LoopDetector(resolved, K=seq.K, database=run.database, calibration=cal, descriptor=descriptor,
-                           frame_source=functools.partial(_frame_again, seq), features=features)
     except BaseException:
         if created:  # e.g. weights that cannot be loaded: leave no trace
             run.calibration.unlink(missing_ok=True)

@@ -281,14 +281,7 @@ class LoopDetector:
         if c["runtime"]["parallel"]:  # the feature worker and the encoder run at once: split the cores between them
             threads = max(1, (threads or cpu_count()) // 2)
         apply_thread_policy(threads)
-        # lazy only where a frame can be had again after a restart: in memory, or with a frame_source
-        self._lazy = c["runtime"]["lazy_features"] and not c["runtime"]["parallel"] \
-            and not self.descriptor.needs_features and (database is None or frame_source is not None)
-        self._frame_source = frame_source
-        self._given: dict[int, Features] = dict(features or {})  # frame -> features extracted before (calibration)
-        self._unextracted: set[int] = set()  # keyframes whose features were not extracted when they were processed
-        self._copies: dict[int, tuple[bytes, float]] = {}  # without frame_source: their prepared grey image (PNG)
-        self._late = functools.lru_cache(maxsize=c["runtime"]["feature_cache"])(self._extract_late)
+        self._init_lazy(database is not None, frame_source, features)
         self._next_id = 0
         self._closed = False
         self.db: KeyframeDatabase | None = None
@@ -306,6 +299,19 @@ class LoopDetector:
             except BaseException:
                 self.close()
                 raise
+
+    def _init_lazy(self, has_database: bool, frame_source: Callable[[int], np.ndarray] | None,
+                   features: dict[int, Features] | None) -> None:
+        """The state of late feature extraction (``runtime.lazy_features``)."""
+        c = self.conf
+        # lazy only where a frame can be had again after a restart: in memory, or with a frame_source
+        self._lazy = c["runtime"]["lazy_features"] and not c["runtime"]["parallel"] \
+            and not self.descriptor.needs_features and (not has_database or frame_source is not None)
+        self._frame_source = frame_source
+        self._given: dict[int, Features] = dict(features or {})  # frame -> features extracted before (calibration)
+        self._unextracted: set[int] = set()  # keyframes whose features were not extracted when they were processed
+        self._copies: dict[int, tuple[bytes, float]] = {}  # without frame_source: their prepared grey image (PNG)
+        self._late = functools.lru_cache(maxsize=c["runtime"]["feature_cache"])(self._extract_late)
 
     def _load(self, db: KeyframeDatabase) -> None:
         """Rebuilds the place memory and the filter's history from the database, as the uninterrupted run had them:
