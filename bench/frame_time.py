@@ -182,6 +182,11 @@ def report(res: dict[str, Any]) -> str:
              f"{q['new']['wall_s']:.1f} s).",
              f"- Beside a busy neighbour (2 torch threads multiplying matrices): median {new_b:.1f} ms, "
              f"{new_b / new_q:.2f}x the quiet run."]
+    load = (res["system"].get("load_avg") or [0])[0]
+    if load > res["system"]["cores"]:
+        lines.append(f"- Measured under load (load average {load:.0f} on {res['system']['cores']} cores: other "
+                     "processes shared the machine): absolute times are inflated; read the ratios, taken side by "
+                     "side in this run, and re-measure on a quiet machine (`--from-json` rewrites the section).")
     if "before" in q:
         old_q = q["before"]
         lines.append(f"- Speed-up against {res['before_rev']}: median ms/frame "
@@ -210,8 +215,13 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     p.add_argument("--before-under-load", action="store_true", help="also run the old code beside the neighbour")
     p.add_argument("--out", type=Path, default=REPO / "BENCHMARKS.md")
     p.add_argument("--json", type=Path, default=REPO / "runs/bench/frame_time.json")
+    p.add_argument("--from-json", action="store_true", help="rewrite the section from --json, measuring nothing")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    if args.from_json:
+        res = json.loads(args.json.read_text())
+        write_section(args.out, report(res))
+        return res
     res: dict[str, Any] = {"sequence": str(args.sequence), "before_rev": args.before, "system": system_info()}
     with tempfile.TemporaryDirectory(prefix="frame_time_") as tmp_name:
         tmp = Path(tmp_name)
