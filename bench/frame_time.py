@@ -156,9 +156,9 @@ def _line(name: str, s: dict[str, Any], sift: float) -> list[str]:
 def report(res: dict[str, Any]) -> str:
     """The Markdown section from ``main``'s results."""
     q, b = res["quiet"], res["busy"]
-    rows = [_line("this code, quiet", q["new"], q["sift_ms"])]
+    rows = [_line("this code, no neighbour added", q["new"], q["sift_ms"])]
     if "before" in q:
-        rows.append(_line(f"before ({res['before_rev']}), quiet", q["before"], q["sift_ms"]))
+        rows.append(_line(f"before ({res['before_rev']}), no neighbour added", q["before"], q["sift_ms"]))
     rows.append(_line("this code, busy neighbour", b["new"], b["sift_ms"]))
     if "before" in b:
         rows.append(_line(f"before ({res['before_rev']}), busy neighbour", b["before"], b["sift_ms"]))
@@ -181,7 +181,7 @@ def report(res: dict[str, Any]) -> str:
              f"{added:.0f} % (the same run with the calibration given: {given['wall_s']:.1f} s against "
              f"{q['new']['wall_s']:.1f} s).",
              f"- Beside a busy neighbour (2 torch threads multiplying matrices): median {new_b:.1f} ms, "
-             f"{new_b / new_q:.2f}x the quiet run."]
+             f"{new_b / new_q:.2f}x the run without it (same benchmark run)."]
     load = (res["system"].get("load_avg") or [0])[0]
     if load > res["system"]["cores"]:
         lines.append(f"- Measured under load (load average {load:.0f} on {res['system']['cores']} cores: other "

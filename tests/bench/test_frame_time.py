@@ -19,8 +19,8 @@ def test_report_ratios():
                      "new_calibration_given": _summary(9.0, 3.6, 0.0)},
            "busy": {"sift_ms": 30.0, "new": _summary(15.0, 6.0, 1.0)}}
     text = report(res)
-    assert "| this code, quiet | 10.0 | 0.50x | 20.0 | 1.00x | 12 % | 700 | 100 |" in text
-    assert "1.50x the quiet run" in text and "median ms/frame 4.0x, wall time 5.0x" in text
+    assert "| this code, no neighbour added | 10.0 | 0.50x | 20.0 | 1.00x | 12 % | 700 | 100 |" in text
+    assert "1.50x the run without it" in text and "median ms/frame 4.0x, wall time 5.0x" in text
     assert "identical: True" in text and "what it adds to the run: 10 %" in text
 
 
