@@ -31,6 +31,7 @@ import json
 import logging
 import math
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable
@@ -43,6 +44,7 @@ from cae.whitening import MIN_FIT_CODES, Whitening
 from core.conf import ConfigError
 from core.errors import DatabaseError
 from core.files import atomic_write
+from core.threads import cpu_count
 from verify.features import create_extractor
 from verify.gate import EdgeGate
 from verify.verifier import create_verifier
@@ -207,8 +209,11 @@ def calibration_frames(n_frames: int, window: int, length: int, max_frames: int)
 
 
 def _encode_all(frames: Iterable[tuple[int, np.ndarray]], gate: EdgeGate, descriptor: GlobalDescriptor,
-                progress: bool) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray], float]:
-    """Pass over the frames: edge ratios first (the reference), then codes of the frames that pass the gate."""
+                progress: bool, known: dict[int, np.ndarray] | None = None
+                ) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray], float]:
+    """Pass over the frames: edge ratios first (the reference), then codes of the frames that pass the gate (taken
+    from ``known`` where it has them: codes computed ahead from the same images)."""
+    known = {} if known is None else known
     images: dict[int, np.ndarray] = {}
     ratios = {}
     for fid, image in tqdm(frames, desc="calibrate: read", unit="frame", disable=not progress, leave=False):
@@ -219,7 +224,7 @@ def _encode_all(frames: Iterable[tuple[int, np.ndarray]], gate: EdgeGate, descri
     codes = {}
     for fid in tqdm(list(images), desc="calibrate: encode", unit="frame", disable=not progress, leave=False):
         if not gate.conf["enabled"] or ratios[fid] >= gate.threshold:
-            codes[fid] = descriptor(images[fid])
+            codes[fid] = known[fid] if fid in known else descriptor(images[fid])
     return images, codes, reference
 
 
@@ -243,7 +248,8 @@ def _tail_fit(values: np.ndarray) -> tuple[float, float, float]:
 
 def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dict[str, Any],
               descriptor: GlobalDescriptor, filt: TemporalFilter, K: np.ndarray | None = None,
-              progress: bool = True) -> Calibration:
+              progress: bool = True, codes: dict[int, np.ndarray] | None = None,
+              features: dict[int, Any] | None = None) -> Calibration:
     """Calibrates on a sequence's frames (see the module doc).
 
     Args:
@@ -253,6 +259,10 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
         descriptor: the global descriptor the run uses (raw codes; the whitening is fitted here).
         filt: the run's temporal filter (its ``score`` is the score path's statistic).
         K: ``(3, 3)`` intrinsics for the geometric check, or None.
+        codes: raw codes already computed from the same images (``{frame_id: (dim,)}``, read when the frames are
+            encoded, so it may fill while ``frames`` is consumed); the others are encoded here.
+        features: a dict that receives the local features extracted for the inlier null (``{frame_id: Features}``),
+            for the run to reuse.
 
     Raises:
         ConfigError: too few usable frames, or an exclusion window too short to hold null pairs.
@@ -263,7 +273,7 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
                           f"not to be loops); got {window}. Set calibration.enabled: false to use fixed thresholds")
     t0 = time.perf_counter()
     gate = EdgeGate(conf["gate"])
-    images, raw, reference = _encode_all(frames, gate, descriptor, progress)
+    images, raw, reference = _encode_all(frames, gate, descriptor, progress, codes)
     if len(raw) < max(MIN_FIT_CODES, window):
         raise TooFewFrames(f"calibration needs at least {max(MIN_FIT_CODES, window)} frames that pass the gate; "
                            f"got {len(raw)} of {len(images)}")
@@ -287,7 +297,7 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
     cal.tests = {"score": max(n_keyframes, (n_keyframes - window) ** 2 / 2),  # every query against every keyframe
                  "inliers": n_keyframes * conf["search"]["k"]}
     _score_path(cal, null)
-    _inlier_path(cal, conf, images, null, K, progress)
+    _inlier_path(cal, conf, images, null, K, progress, features)
     for key, value in cal.thresholds().items():
         if value is not None:
             cal.notes.append(f"accept: {key} >= {value:.4g} (expected false loops over the run "
@@ -328,28 +338,41 @@ def _score_path(cal: Calibration, null: np.ndarray) -> None:
                      "in the run")
 
 
+def _extract_side_by_side(fconf: dict[str, Any], images: dict[int, np.ndarray], fids: list[int]) -> dict[int, Any]:
+    """Local features of ``images[fid]`` for ``fids``, on every core: one single-threaded extractor per worker
+    (``core.threads``), the same features as one after another."""
+    n = min(cpu_count(), max(1, len(fids)))
+
+    def part(chunk: list[int]) -> list[tuple[int, Any]]:
+        extractor = create_extractor(fconf)
+        return [(fid, extractor.extract(images[fid])) for fid in chunk]
+
+    with ThreadPoolExecutor(n, thread_name_prefix="calibrate-features") as pool:
+        return dict(pair for done in pool.map(part, [fids[i::n] for i in range(n)]) for pair in done)
+
+
 def _inlier_path(cal: Calibration, conf: dict[str, Any], images: dict[int, np.ndarray], null: np.ndarray,
-                 K: np.ndarray | None, progress: bool) -> None:
+                 K: np.ndarray | None, progress: bool, feats: dict[int, Any] | None = None) -> None:
     """Verifies the hardest far-side pair of sampled queries; fits the inlier null or switches verification off."""
     cc = conf["calibration"]
     if cc["verification"] == "off":
         cal.notes.append("verification: off (calibration.verification)")
         return
-    extractor = create_extractor(conf["features"])
     verifier = create_verifier(conf["matcher"], conf["geometry"])
     queries = np.unique(null[:, 0]).astype(np.int64)
     picks = queries[np.unique(np.linspace(0, len(queries) - 1, min(len(queries), cc["null_pairs"])).astype(int))]
-    feats: dict[int, Any] = {}
-    inliers, keypoints = [], []
+    feats = {} if feats is None else feats
     rng = np.random.default_rng(0)  # the same pairs every time: a resumed or repeated calibration agrees
-    for q in tqdm(picks, desc="calibrate: verify", unit="pair", disable=not progress, leave=False):
+    pairs = []
+    for q in picks:
         refs = null[null[:, 0] == q, 1]
-        r = int(refs[rng.integers(len(refs))])
-        for fid in (int(q), r):
-            if fid not in feats:
-                feats[fid] = extractor.extract(images[fid])
-                keypoints.append(len(feats[fid]))
-        check = verifier.verify(feats[int(q)], [feats[r]], K, 0, 0, True)[0]
+        pairs.append((int(q), int(refs[rng.integers(len(refs))])))
+    todo = sorted({fid for pair in pairs for fid in pair} - set(feats))
+    feats.update(_extract_side_by_side(conf["features"], images, todo))
+    keypoints = [len(feats[fid]) for fid in todo]
+    inliers = []
+    for q, r in tqdm(pairs, desc="calibrate: verify", unit="pair", disable=not progress, leave=False):
+        check = verifier.verify(feats[q], [feats[r]], K, 0, 0, True)[0]
         inliers.append(max(check.inliers, 0))
     median_kp = float(np.median(keypoints))
     if cc["verification"] == "auto" and median_kp < cc["min_features"]:

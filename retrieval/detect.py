@@ -12,7 +12,9 @@ keeps its frame id and is counted. A killed run resumes from its database; a dat
 
 from __future__ import annotations
 
+import functools
 import logging
+import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Iterator
@@ -48,15 +50,50 @@ def stage_stats(timings: list[dict[str, float]]) -> dict[str, dict[str, float]]:
             for s in STAGES if full and all(s in t for t in full)}
 
 
-def _prefetch(seq: Sequence, ids: list[int]) -> Iterator[tuple[np.ndarray | ImageError, str]]:
-    """Reads and decodes frame ``ids`` of ``seq`` in a worker thread, one frame ahead of the one processed:
-    ``(image or the reason it cannot be read, fingerprint)`` each."""
-    with ThreadPoolExecutor(1, thread_name_prefix="read") as pool:
-        pending = pool.submit(seq.read_frame, ids[0]) if ids else None
-        for nxt in [*ids[1:], None]:
+Ahead = tuple[np.ndarray | ImageError, str, np.ndarray | None]  #: (image or why not, fingerprint, raw code or None)
+
+
+def _read_and_encode(seq: Sequence, ids: list[int], descriptor: GlobalDescriptor | None) -> list[Ahead]:
+    """Reads and decodes frames ``ids`` of ``seq``, then encodes the readable ones in one batch (codes None without
+    a descriptor that encodes images alone, or when the batch fails: ``LoopDetector.process`` then encodes and
+    reports)."""
+    frames = [seq.read_frame(i) for i in ids]
+    codes: list[np.ndarray | None] = [None] * len(frames)
+    ok = [i for i, (image, _) in enumerate(frames) if not isinstance(image, ImageError)]
+    if descriptor is not None and ok:
+        try:
+            batch = descriptor.encode_batch([frames[i][0] for i in ok])
+        except ImageError:
+            batch = [None] * len(ok)
+        for i, code in zip(ok, batch):
+            codes[i] = code
+    return [(image, print_, code) for (image, print_), code in zip(frames, codes)]
+
+
+def _ahead(seq: Sequence, ids: list[int], descriptor: GlobalDescriptor | None = None,
+           batch: int = 8) -> Iterator[Ahead]:
+    """Reads, decodes and encodes frames ``ids`` of ``seq`` (batches of ``batch``) in a worker thread, one batch
+    ahead of the frame being processed: with single-threaded libraries (``core.threads``) the worker and the caller
+    each hold a core.
+
+    Yields:
+        ``(image or the reason it cannot be read, fingerprint, raw code or None)`` per id, in order.
+    """
+    chunks = [ids[i:i + batch] for i in range(0, len(ids), batch)]
+    with ThreadPoolExecutor(1, thread_name_prefix="read-encode") as pool:
+        pending = pool.submit(_read_and_encode, seq, chunks[0], descriptor) if chunks else None
+        for nxt in [*chunks[1:], None]:
             current = pending.result()
-            pending = pool.submit(seq.read_frame, nxt) if nxt is not None else None
-            yield current
+            pending = pool.submit(_read_and_encode, seq, nxt, descriptor) if nxt is not None else None
+            yield from current
+
+
+def _frame_again(seq: Sequence, frame_id: int) -> np.ndarray:
+    """Frame ``frame_id`` of ``seq`` read again (``LoopDetector``'s ``frame_source``: features needed late)."""
+    image, _ = seq.read_frame(frame_id)
+    if isinstance(image, ImageError):  # it was read when processed: changed or removed since
+        raise ImageError(f"{seq.frame_name(frame_id)} can no longer be read ({image}); it was read when processed")
+    return image
 
 
 def check_same_frames(db: KeyframeDatabase, seq: Sequence) -> None:
@@ -87,20 +124,42 @@ def check_same_frames(db: KeyframeDatabase, seq: Sequence) -> None:
 
 
 def calibrate_sequence(seq: Sequence, conf: dict[str, Any], descriptor: GlobalDescriptor | None = None,
-                       progress: bool = True) -> Calibration:
-    """Calibrates on ``seq`` (unreadable frames are left out; ``detect`` warns about them)."""
+                       progress: bool = True, codes: dict[int, np.ndarray] | None = None,
+                       features: dict[int, Any] | None = None) -> Calibration:
+    """Calibrates on ``seq`` (unreadable frames are left out; ``detect`` warns about them).
+
+    Args:
+        codes: a dict that receives the raw codes of the frames read (encoded ahead, in batches, in a worker
+            thread), for the run to reuse.
+        features: a dict that receives the local features the calibration extracted, for the run to reuse.
+    """
     conf = resolve_conf(conf)
     descriptor = descriptor if descriptor is not None else create_descriptor(conf["descriptor"])
     picks = calibration_frames(len(seq), conf["search"]["exclude_recent"], conf["temporal"].get("length", 1),
                                conf["calibration"]["max_frames"])
-    images = ((int(i), image) for i, (image, _) in zip(picks, _prefetch(seq, [int(i) for i in picks]))
-              if not isinstance(image, ImageError))
-    return calibrate(images, len(seq), conf, descriptor, create_filter(conf["temporal"]), seq.K, progress)
+    codes = {} if codes is None else codes
+
+    def frames() -> Iterator[tuple[int, np.ndarray]]:
+        ids = [int(i) for i in picks]
+        for i, (image, _, code) in zip(ids, _ahead(seq, ids, _batch_encoder(descriptor))):
+            if not isinstance(image, ImageError):
+                if code is not None:
+                    codes[i] = code
+                yield i, image
+
+    return calibrate(frames(), len(seq), conf, descriptor, create_filter(conf["temporal"]), seq.K, progress,
+                     codes, features)
+
+
+def _batch_encoder(descriptor: GlobalDescriptor) -> GlobalDescriptor | None:
+    """The descriptor when it can encode ahead in batches (same codes as one at a time), else None."""
+    return descriptor if descriptor.encodes_in_batches and not descriptor.needs_features else None
 
 
 def _calibration(run: RunFolder, seq: Sequence, conf: dict[str, Any], descriptor: GlobalDescriptor,
-                 progress: bool) -> Calibration | None:
-    """The run's calibration: the one saved in the run folder, else a new one (saved); None when disabled."""
+                 progress: bool, codes: dict[int, np.ndarray], features: dict[int, Any]) -> Calibration | None:
+    """The run's calibration: the one saved in the run folder, else a new one (saved; its codes and features go
+    into ``codes`` and ``features``); None when disabled."""
     if not conf["calibration"]["enabled"]:
         return None
     if run.calibration.is_file():
@@ -111,7 +170,7 @@ def _calibration(run: RunFolder, seq: Sequence, conf: dict[str, Any], descriptor
         log.info("using the calibration in %s", run.calibration)
         return cal
     try:
-        cal = calibrate_sequence(seq, conf, descriptor, progress)
+        cal = calibrate_sequence(seq, conf, descriptor, progress, codes, features)
     except TooFewFrames as err:
         log.warning("not calibrated (%s): using the fixed policy (policy.min_inliers %d) and raw codes",
                     err, conf["policy"]["min_inliers"])
@@ -120,23 +179,40 @@ def _calibration(run: RunFolder, seq: Sequence, conf: dict[str, Any], descriptor
     return cal
 
 
+def _calibrated_detector(run: RunFolder, seq: Sequence, conf: dict[str, Any], progress: bool,
+                         codes: dict[int, np.ndarray]) -> tuple[Calibration | None, LoopDetector]:
+    """The run's calibration (``_calibration``; its codes go into ``codes``) and the detector that uses it, its
+    local features and the sequence's files (to read a frame again when its features are needed late)."""
+    descriptor = create_descriptor(conf["descriptor"])
+    features: dict[int, Any] = {}
+    cal = _calibration(run, seq, conf, descriptor, progress, codes, features)
+    return cal, LoopDetector(conf, K=seq.K, database=run.database, calibration=cal, descriptor=descriptor,
+                             frame_source=functools.partial(_frame_again, seq), features=features)
+
+
 def default_out(seq: Sequence) -> Path:
     """The run folder when none is given: ``runs/<sequence name>`` (``runs/sample`` for the bundled sample)."""
     return Path("runs") / ("sample" if seq.root.resolve() == SAMPLE_DIR.resolve() else seq.name)
 
 
-def _run_frames(det: LoopDetector, seq: Sequence, start: int, progress: bool) -> list[dict[str, float]]:
-    """Processes frames ``start..`` of ``seq``; returns the stage timings of the frames that ran."""
+def _run_frames(det: LoopDetector, seq: Sequence, start: int, progress: bool,
+                codes: dict[int, np.ndarray] | None = None) -> list[dict[str, float]]:
+    """Processes frames ``start..`` of ``seq`` (``codes``: raw codes already computed, popped as they are used;
+    the others are encoded ahead in a worker thread); returns the stage timings of the frames that ran."""
+    codes = {} if codes is None else codes
     timings: list[dict[str, float]] = []
     bar = progress_bar(range(start, len(seq)), desc=f"detect {seq.name}", unit="frame", disable=not progress,
                        initial=start, total=len(seq))
     n_loops = 0
-    for i, (image, print_) in zip(bar, _prefetch(seq, list(range(start, len(seq))))):
+    todo = list(range(start, len(seq)))
+    encoder = _batch_encoder(det.descriptor) if len(codes) < len(todo) else None
+    for i, (image, print_, code) in zip(bar, _ahead(seq, todo, encoder)):
         name = seq.frame_name(i)
+        code = codes.pop(i, code)
         if not isinstance(image, ImageError):
             try:
                 res = det.process(image, i, None if seq.timestamps is None else float(seq.timestamps[i]),
-                                  None if seq.poses is None else seq.poses[i], name, print_)
+                                  None if seq.poses is None else seq.poses[i], name, print_, code)
             except ImageError as err:
                 image = err
             else:
@@ -178,10 +254,11 @@ def main(path: str | Path | None = None, out: str | Path | None = None, conf: di
     out = Path(out) if out is not None else default_out(seq)
     created = not out.exists()
     run = RunFolder(prepare_out_dir(out))
+    codes: dict[int, np.ndarray] = {}  # the calibration's codes, reused by the run
     try:
-        descriptor = create_descriptor(resolved["descriptor"])
-        cal = _calibration(run, seq, resolved, descriptor, progress)
-        det = LoopDetector(resolved, K=seq.K, database=run.database, calibration=cal, descriptor=descriptor)
+        t0 = time.perf_counter()
+        cal, det = _calibrated_detector(run, seq, resolved, progress, codes)
+        seconds = {"calibration": time.perf_counter() - t0}
     except BaseException:
         if created:  # e.g. weights that cannot be loaded: leave no trace
             run.calibration.unlink(missing_ok=True)
@@ -196,7 +273,9 @@ def main(path: str | Path | None = None, out: str | Path | None = None, conf: di
             log.info("%s already holds all %d frames; rewriting the tables", run.database, len(seq))
         elif start:
             log.info("resuming at frame %d of %d", start, len(seq))
-        timings = _run_frames(det, seq, start, progress)
+        t0 = time.perf_counter()
+        timings = _run_frames(det, seq, start, progress, codes)
+        seconds["frames"] = time.perf_counter() - t0
         loops = run.write_tables(det.db.results())
         verified = bool(cal.inlier_null) if cal is not None else bool(resolved["policy"]["verify"])
         edges = loop_edges(det.db, loops, seq.K, resolved) if verified else []  # a pose only where it was verified
@@ -211,7 +290,7 @@ def main(path: str | Path | None = None, out: str | Path | None = None, conf: di
         "sequence": str(seq.root.resolve()), "frames": len(seq), "processed_this_run": len(timings),
         "resumed_at": start, "keyframes": keyframes, "gated_out": sum(e.kind == "gated" for e in frames),
         "unreadable": len(unreadable), "unreadable_files": unreadable, "loops": len(loops), "loop_edges": len(edges),
-        "ms_per_frame": stage_stats(timings), "out": str(run.root),
+        "ms_per_frame": stage_stats(timings), "seconds": seconds, "out": str(run.root),
         "ground_truth_file": None if truth is None else str(truth),
         "calibration": None if cal is None else {"notes": cal.notes, "accept_at_confidence": cal.accept_at,
                                                  "thresholds": cal.thresholds(),

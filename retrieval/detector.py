@@ -20,13 +20,14 @@ default, searched by cosine; MILD's ORB descriptors, searched by multi-index has
 
 from __future__ import annotations
 
+import functools
 import logging
-import os
+import math
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import cv2
 import numpy as np
@@ -36,6 +37,7 @@ from cae.preprocess import to_network_u8
 from cae.whitening import DEFAULT_DIM, DEFAULT_SHRINK
 from core.conf import Bool, Choice, ConfigError, Float, Int, check_conf, merge_conf
 from core.images import check_image, to_gray_u8, to_uint8
+from core.threads import apply_thread_policy, cpu_count
 from verify.features import FEATURES, Features, create_extractor
 from verify.gate import EdgeGate
 from verify.geometry import GeometricVerifier
@@ -72,6 +74,9 @@ default_conf: dict[str, Any] = {
         "exclude_recent": 50,  # frames younger than this many frames are not searched (paper: 9)
         "exclude_recent_s": None,  # also exclude frames younger than this many seconds (needs timestamps)
         "min_score": 0.0,  # candidates below this cosine similarity are not verified
+        "verify_min_z": 3.0,  # calibrated: a candidate whose temporal and single-frame scores are both under the
+        #                       far-side null's median + this many sigmas (no evidence beyond chance) is not
+        #                       verified: a frame with no other candidate needs no local features; None: verify all
     },
     "features": {"name": "sift"},  # local features by registry name and their options
     "matcher": {"name": "ratio"},  # descriptor matcher by registry name and its options
@@ -94,18 +99,23 @@ default_conf: dict[str, Any] = {
         "check_all": False,  # True: geometric check on every candidate; False: skip those that cannot win (same loops)
     },
     "runtime": {
-        "threads": None,  # CPU threads for torch/OpenCV (halved for each side when parallel); None = all cores
+        "threads": 1,  # threads of each library's pool (torch, OpenCV, faiss: ``core.threads``); 1 = the cores go to
+        #                the pipeline's own workers (``detect`` reads and encodes ahead), which a busy neighbour
+        #                process slows but cannot stall; None = all cores (halved for each side when parallel)
         "parallel": False,  # features in a worker thread while the encoder runs (cores split); slower on 2 cores
+        "lazy_features": True,  # local features only for frames that verify a candidate (extracted when needed,
+        #                         then cached); False: on every frame as it arrives (the same results, slower)
         "flush_every": 1,  # flush the database every this many frames (1: a killed run loses nothing)
         "features": "memory",  # keyframe features for verification: "memory" (all), "database" (bounded memory)
-        "feature_cache": 512,  # with features "database": keyframes' features kept in memory (LRU)
+        "feature_cache": 512,  # keyframes' features kept in memory (LRU): with features "database", and those
+        #                        extracted late (lazy_features) in either mode
     },
 }
 
 #: type and range of the detector's own sections (the units' sections are checked with their own ``conf_rules``)
 conf_rules: dict[str, Any] = {
     "search": {"k": Int(1, 10_000), "exclude_recent": Int(0), "exclude_recent_s": Float(0, optional=True),
-               "min_score": Float(-1, 1)},
+               "min_score": Float(-1, 1), "verify_min_z": Float(-100, 100, optional=True)},
     "policy": {"verify": Bool(), "min_matches": Int(0), "min_inliers": Int(0),
                "min_seq_score": Float(-1e9, 1e9, optional=True), "check_all": Bool()},
     "whitening": {"enabled": Bool(), "source": Choice("auto", "sequence", "weights"), "dim": Int(1, 4096),
@@ -113,7 +123,8 @@ conf_rules: dict[str, Any] = {
     "calibration": {"enabled": Bool(), "expected_false_loops": Float(0, 100, lo_open=True),
                     "null_pairs": Int(10, 100_000), "min_features": Int(0), "min_inliers": Int(8),
                     "verification": Choice("auto", "on", "off"), "max_frames": Int(100)},
-    "runtime": {"threads": Int(1, 1024, optional=True), "parallel": Bool(), "flush_every": Int(1),
+    "runtime": {"threads": Int(1, 1024, optional=True), "parallel": Bool(), "lazy_features": Bool(),
+                "flush_every": Int(1),
                 "features": Choice("memory", "database"), "feature_cache": Int(1)},
 }
 
@@ -202,6 +213,11 @@ class LoopDetector:
             from ``conf["descriptor"]``; its name must be the conf's.
         calibration: what ``retrieval.calibrate`` chose for this camera (gate reference, whitening, thresholds).
             None: the fixed policy (``policy.min_inliers``), the weights' own whitening if they carry one.
+        frame_source: ``frame_source(frame_id) -> image`` gives a processed frame again (offline: read from its file)
+            when its local features are needed after it was processed (``runtime.lazy_features``); None: a lossless
+            PNG copy of the grey frame at the extractor's resolution is kept in memory instead.
+        features: local features already extracted for some frames (``{frame_id: Features}``, e.g. by the
+            calibration, from the same images): used instead of extracting them again.
 
     Raises:
         ConfigError: a bad conf value, a K that is not a finite 3x3 matrix, or a database made with another conf.
@@ -210,7 +226,9 @@ class LoopDetector:
 
     def __init__(self, conf: dict[str, Any] | None = None, K: np.ndarray | None = None,
                  database: str | Path | None = None, encoder: torch.nn.Module | None = None,
-                 calibration: Calibration | None = None, descriptor: GlobalDescriptor | None = None) -> None:
+                 calibration: Calibration | None = None, descriptor: GlobalDescriptor | None = None,
+                 frame_source: Callable[[int], np.ndarray] | None = None,
+                 features: dict[int, Features] | None = None) -> None:
         self.conf = resolve_conf(conf)
         c = self.conf
         self.K = None if K is None else _matrix(K, (3, 3), "K")
@@ -241,11 +259,11 @@ class LoopDetector:
         self._min_inliers = c["policy"]["min_inliers"]
         if self.calibration is not None:
             self._min_inliers = self.calibration.thresholds()["inliers"] or 0
-        threads = c["runtime"]["threads"] or os.cpu_count() or 1
+        threads = c["runtime"]["threads"]
         if c["runtime"]["parallel"]:  # the feature worker and the encoder run at once: split the cores between them
-            threads = max(1, threads // 2)
-        torch.set_num_threads(threads)
-        cv2.setNumThreads(threads)
+            threads = max(1, (threads or cpu_count()) // 2)
+        apply_thread_policy(threads)
+        self._init_lazy(database is not None, frame_source, features)
         self._next_id = 0
         self._closed = False
         self.db: KeyframeDatabase | None = None
@@ -264,6 +282,19 @@ class LoopDetector:
                 self.close()
                 raise
 
+    def _init_lazy(self, has_database: bool, frame_source: Callable[[int], np.ndarray] | None,
+                   features: dict[int, Features] | None) -> None:
+        """The state of late feature extraction (``runtime.lazy_features``)."""
+        c = self.conf
+        # lazy only where a frame can be had again after a restart: in memory, or with a frame_source
+        self._lazy = c["runtime"]["lazy_features"] and not c["runtime"]["parallel"] \
+            and not self.descriptor.needs_features and (not has_database or frame_source is not None)
+        self._frame_source = frame_source
+        self._given: dict[int, Features] = dict(features or {})  # frame -> features extracted before (calibration)
+        self._unextracted: set[int] = set()  # keyframes whose features were not extracted when they were processed
+        self._copies: dict[int, tuple[bytes, float]] = {}  # without frame_source: their prepared grey image (PNG)
+        self._late = functools.lru_cache(maxsize=c["runtime"]["feature_cache"])(self._extract_late)
+
     def _load(self, db: KeyframeDatabase) -> None:
         """Rebuilds the place memory and the filter's history from the database, as the uninterrupted run had them:
         each keyframe is searched again in frame order (the filter updated with what it saw then), then committed
@@ -281,7 +312,10 @@ class LoopDetector:
                 self.filter.update(fid, ids[scores >= self.conf["search"]["min_score"]], self.places.source)
             self.filter.commit(fid, results[fid][:, 0].astype(np.int64))
             self.places.insert(fid, entry, timestamp)
-            if self.features.db is None:  # memory mode: everything back in memory
+            if not len(feats) and self._frame_source is not None:  # not extracted then (or none found): again
+                #                                                     when needed
+                self._unextracted.add(fid)
+            elif self.features.db is None:  # memory mode: everything back in memory
                 self.features[fid] = feats
             n += 1
         self._next_id = db.last_frame_id() + 1
@@ -319,7 +353,8 @@ class LoopDetector:
         return fid
 
     def process(self, image: np.ndarray, frame_id: int | None = None, timestamp: float | None = None,
-                pose: np.ndarray | None = None, source: str = "", fingerprint: str = "") -> FrameResult:
+                pose: np.ndarray | None = None, source: str = "", fingerprint: str = "",
+                code: np.ndarray | None = None) -> FrameResult:
         """Runs one frame through the pipeline and inserts it as a keyframe if it passes the gate.
 
         Args:
@@ -329,21 +364,25 @@ class LoopDetector:
             pose: ``(3, 4)`` (or ``(4, 4)``) camera-to-world pose, finite, stored with the keyframe when given.
             source: free text stored with the keyframe (e.g. the file name).
             fingerprint: ``"size:hash"`` of the source file (``core.images.fingerprint``), stored to check resumes.
+            code: this frame's raw ``(dim,)`` global code when it was already computed from the same image (``detect``
+                encodes ahead, in batches, and reuses the calibration's codes); None: encoded here.
 
         Raises:
             ImageError: ``image`` is not an image array we can use (not an array, bad shape, too small, ...).
-            ConfigError: a bad ``frame_id``, ``timestamp`` or ``pose``, or the detector is closed.
+            ConfigError: a bad ``frame_id``, ``timestamp``, ``pose`` or ``code``, or the detector is closed.
             In every case the detector's state is left as it was.
         """
         fid = self._frame_id(frame_id)
         check_image(image, "image")
         ts = _timestamp(timestamp)
         pose34 = None if pose is None else _pose(pose)
+        if code is not None:
+            code = self._given_code(code)
         ms: dict[str, float] = {}
         t_start = t0 = time.perf_counter()
         image8 = to_uint8(image)  # once: 16-bit and float frames are scanned and scaled here only
         gray = to_gray_u8(image8)
-        net = to_network_u8(image8)  # one resize serves the gate and the encoder
+        net = to_network_u8(image8) if code is None else None  # the encoder's input
         gate = self.gate(gray)
         ms["gate"] = (time.perf_counter() - t0) * 1e3
         if not gate.passed:
@@ -353,10 +392,10 @@ class LoopDetector:
             ms["total"] = (time.perf_counter() - t_start) * 1e3
             return FrameResult(fid, True, gate.edge_ratio, ms=ms)
 
-        feats, code, entry, candidates = self._describe_and_search(image, gray, net, fid, ts, ms)
+        feats, code, entry, candidates = self._describe_and_search(image, gray, net, fid, ts, ms, code)
         try:
-            loop, best = self._verify_and_insert(fid, gate.edge_ratio, feats, code, entry, candidates, ts, pose34,
-                                                 source, fingerprint, ms)
+            loop, best = self._verify_and_insert(fid, gate.edge_ratio, feats, code, entry, gray, candidates, ts,
+                                                 pose34, source, fingerprint, ms)
         except BaseException:
             self.places.undo(fid)  # the frame is not in the map: the state is as it was
             raise
@@ -365,15 +404,15 @@ class LoopDetector:
         return FrameResult(fid, False, gate.edge_ratio, candidates, loop, getattr(geo, "R", None),
                            getattr(geo, "t", None), ms)
 
-    def _verify_and_insert(self, fid: int, edge_ratio: float, feats: Features, code: np.ndarray, entry: np.ndarray,
+    def _verify_and_insert(self, fid: int, edge_ratio: float, feats: Features | None, code: np.ndarray,
+                           entry: np.ndarray, gray: np.ndarray,
                            candidates: list[Candidate], ts: float | None, pose34: np.ndarray | None, source: str,
                            fingerprint: str, ms: dict[str, float]) -> tuple[Candidate | None, Verification | None]:
         """Verifies the hypotheses, decides, and stores the keyframe (database first, then memory)."""
-        t0 = time.perf_counter()
-        c = self.conf
-        checks = self.verifier.verify(feats, [self.features[cd.frame_id] for cd in candidates], self.K,
-                                      c["policy"]["min_matches"], self._min_inliers, c["policy"]["check_all"]) \
-            if self._verify else [None] * len(candidates)
+        t0, f0 = time.perf_counter(), ms["features"]
+        feats, checks = self._check(fid, feats, gray, candidates, ms)
+        if feats is None:
+            feats = self._given.pop(fid, None)  # extracted before (calibration): kept, as if extracted now
         for cand, check in zip(candidates, checks):
             if check is not None:
                 cand.matches, cand.inliers = check.matches, check.inliers
@@ -381,33 +420,44 @@ class LoopDetector:
                 cand.inliers = -1
             cand.confidence = self._confidence(cand)
         loop, best = self._decide(candidates, checks)
-        ms["verify"] = (time.perf_counter() - t0) * 1e3
+        ms["verify"] = (time.perf_counter() - t0) * 1e3 - (ms["features"] - f0)  # late extraction not counted
 
         t0 = time.perf_counter()
         if self.db is not None:  # first: if the disk refuses it, the in-memory state has not moved either
             rows = np.array([cd.as_row() for cd in candidates], np.float64).reshape(-1, len(CANDIDATE_ROW))
-            self.db.append(KeyframeRecord(fid, code, feats, ts, pose34, source, edge_ratio, rows,
-                                          -1 if loop is None else loop.frame_id, fingerprint))
+            self.db.append(KeyframeRecord(fid, code, feats if feats is not None else self._no_features(), ts, pose34,
+                                          source, edge_ratio, rows, -1 if loop is None else loop.frame_id,
+                                          fingerprint))
         self.places.insert(fid, entry, ts)
         self.filter.commit(fid, np.array([cd.frame_id for cd in candidates], np.int64))
-        self.features[fid] = feats  # after the database has it: database mode may read it back from there
+        if feats is not None:
+            self.features[fid] = feats  # after the database has it: database mode may read it back from there
+        else:  # not needed yet: extracted later if a query needs it (frame_source, or a lossless copy kept here)
+            self._unextracted.add(fid)
+            if self._frame_source is None:
+                small, scale = self.extractor.prepare(gray)
+                self._copies[fid] = (cv2.imencode(".png", small, [cv2.IMWRITE_PNG_COMPRESSION, 1])[1].tobytes(), scale)
         self._next_id = fid + 1
         ms["insert"] = (time.perf_counter() - t0) * 1e3
         return loop, best
 
-    def _describe_and_search(self, image: np.ndarray, gray: np.ndarray, net: np.ndarray, fid: int, ts: float | None,
-                             ms: dict[str, float]) -> tuple[Features, np.ndarray, np.ndarray, list[Candidate]]:
-        """Local features, the raw code and the searched entry, and the top-k hypotheses of one frame (stage times
-        into ``ms``). The search registered the frame in ``places.source`` (``places.undo`` forgets it)."""
+    def _describe_and_search(self, image: np.ndarray, gray: np.ndarray, net: np.ndarray | None, fid: int,
+                             ts: float | None, ms: dict[str, float], code: np.ndarray | None = None
+                             ) -> tuple[Features | None, np.ndarray, np.ndarray, list[Candidate]]:
+        """Local features (None: lazy, not extracted yet), the raw code and the searched entry, and the top-k
+        hypotheses of one frame (stage times into ``ms``). The search registered the frame in ``places.source``
+        (``places.undo`` forgets it)."""
         # local features: first when the descriptor needs them, else in the worker thread (parallel) or after search;
-        # none when nothing verifies with them
+        # none when nothing verifies with them; lazy: when a candidate needs them (``_check``)
         feats, pending = None, None
+        ms["features"] = 0.0
         if self.descriptor.needs_features:
             feats, ms["features"] = self._timed_extract(gray)
         elif self._pool is not None and self._verify:
             pending = self._pool.submit(self._timed_extract, gray)
         t0 = time.perf_counter()
-        code = self.descriptor(image, feats, network_image=net)
+        if code is None:
+            code = self.descriptor(image, feats, network_image=net)
         entry = self.places.entry(code)
         ms["encode"] = (time.perf_counter() - t0) * 1e3
         t0 = time.perf_counter()
@@ -421,15 +471,16 @@ class LoopDetector:
         single = self.places.source.pairs(np.full(len(hyp), fid), hyp)
         candidates = [Candidate(int(i), float(s), seq_score=float(q)) for i, s, q in zip(hyp, single, seq)]
         ms["filter"] = (time.perf_counter() - t0) * 1e3
-        if feats is None:
+        if feats is None and not self._lazy:
             t0 = time.perf_counter()
             if pending is not None:
                 feats, ms["features"] = pending.result()
+            elif self._verify and fid in self._given:
+                feats = self._given.pop(fid)
             elif self._verify:
                 feats, ms["features"] = self._timed_extract(gray)
             else:
-                feats, ms["features"] = Features.empty(self.extractor.descriptor_dim, self.extractor.descriptor_dtype,
-                                                       self.extractor.metric), 0.0
+                feats = self._no_features()
             ms["features_wait"] = (time.perf_counter() - t0) * 1e3  # what the frame waited for them
         return feats, code, entry, candidates
 
@@ -437,6 +488,69 @@ class LoopDetector:
         t0 = time.perf_counter()
         feats = self.extractor.extract(gray)
         return feats, (time.perf_counter() - t0) * 1e3
+
+    def _no_features(self) -> Features:
+        return Features.empty(self.extractor.descriptor_dim, self.extractor.descriptor_dtype, self.extractor.metric)
+
+    def _given_code(self, code: Any) -> np.ndarray:
+        """Checks a code given to ``process``: ``(dim,)``, finite; changes nothing."""
+        arr = np.asarray(code) if isinstance(code, np.ndarray) else None
+        if arr is None or arr.shape != (self.descriptor.dim,) or not np.issubdtype(arr.dtype, np.floating) \
+                or not np.isfinite(arr).all():
+            raise ConfigError(f"code must be a finite float array of shape ({self.descriptor.dim},) (this "
+                              f"descriptor's raw code); got {getattr(arr, 'shape', type(code).__name__)}")
+        return arr.astype(np.float32, copy=False)
+
+    def _could_pass(self, cand: Candidate) -> bool:
+        """Whether verifying ``cand`` could make it a loop: verification is on and, calibrated, its temporal score or
+        its single-frame score is above chance (``search.verify_min_z`` sigmas over the far-side null's median; the
+        single frame's sigma taken as ``sqrt(length)`` times the temporal one, as for an average of ``length``
+        independent terms: at the first frame of a revisit the temporal score holds one term only); uncalibrated,
+        it reaches ``policy.min_seq_score``."""
+        if not self._verify:
+            return False
+        cal, z, floor = self.calibration, self.conf["search"]["verify_min_z"], self.conf["policy"]["min_seq_score"]
+        if cal is not None and cal.score_null and z is not None:
+            median, sigma = cal.score_null["median"], cal.score_null["sigma"]
+            length = float(self.conf["temporal"].get("length", 1))
+            return cand.seq_score >= median + z * sigma or cand.score >= median + z * sigma * math.sqrt(length)
+        return cal is not None or floor is None or cand.seq_score >= floor
+
+    def _check(self, fid: int, feats: Features | None, gray: np.ndarray, candidates: list[Candidate],
+               ms: dict[str, float]) -> tuple[Features | None, list[Verification | None]]:
+        """Verifies the candidates that could pass (``_could_pass``); the query's features extracted here when
+        lazy and needed (time into ``ms["features"]``), the candidates' from memory, or extracted again."""
+        c = self.conf
+        todo = [i for i, cd in enumerate(candidates) if self._could_pass(cd)]
+        checks: list[Verification | None] = [None] * len(candidates)
+        if not todo:
+            return feats, checks
+        t0 = time.perf_counter()
+        if feats is None:
+            feats = self._given.pop(fid, None)
+            feats = feats if feats is not None else self.extractor.extract(gray)
+        refs = [self._features_of(candidates[i].frame_id) for i in todo]
+        ms["features"] += (time.perf_counter() - t0) * 1e3
+        done = self.verifier.verify(feats, refs, self.K, c["policy"]["min_matches"], self._min_inliers,
+                                    c["policy"]["check_all"])
+        for i, check in zip(todo, done):
+            checks[i] = check
+        return feats, checks
+
+    def _features_of(self, fid: int) -> Features:
+        """A keyframe's local features: kept, or extracted now (its image again) and cached (LRU)."""
+        if fid not in self._unextracted:
+            return self.features[fid]
+        given = self._given.get(fid)
+        return given.compact() if given is not None else self._late(fid)
+
+    def _extract_late(self, fid: int) -> Features:
+        """Extracts the features of a keyframe processed earlier without them (``_late`` caches this)."""
+        if self._frame_source is not None:
+            return self.extractor.extract(to_gray_u8(to_uint8(self._frame_source(fid)))).compact()
+        png, scale = self._copies[fid]
+        small = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_GRAYSCALE)
+        return self.extractor.extract_prepared(small, scale).compact()
 
     def _confidence(self, cand: Candidate) -> float:
         """Calibrated: ``-log10 NFA`` on the deciding path (``Calibration.path``); else the inlier count (the

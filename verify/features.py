@@ -67,12 +67,22 @@ class FeatureExtractor:
 
     def extract(self, image: np.ndarray) -> Features:
         """Any accepted image (grey/BGR, 8/16-bit, any size) -> ``Features`` (empty, right shapes, if none found)."""
+        return self.extract_prepared(*self.prepare(image))
+
+    def prepare(self, image: np.ndarray) -> tuple[np.ndarray, float]:
+        """The grey uint8 ``(h, w)`` image extraction runs on (downscaled to ``resize_max``) and its scale to the
+        original: ``extract_prepared(*prepare(image))`` is ``extract(image)``, so a kept copy of the prepared image
+        (lossless) gives the same features later."""
         gray = to_gray_u8(image)
         scale = 1.0
         resize_max = self.conf.get("resize_max")
         if resize_max and max(gray.shape) > resize_max:
             scale = resize_max / max(gray.shape)
             gray = cv2.resize(gray, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+        return gray, scale
+
+    def extract_prepared(self, gray: np.ndarray, scale: float = 1.0) -> Features:
+        """Features of a ``prepare``d grey uint8 image; keypoints and scales divided by ``scale``."""
         kps, desc = self._detect(gray)
         if not kps:
             return Features.empty(self.descriptor_dim, self.descriptor_dtype, self.metric)

@@ -144,3 +144,17 @@ class TestCalibrationBelongsToItsWeights:
         with pytest.raises(ConfigError, match="other weights"):
             detect(sample_dir, tmp_path / "run", progress=False)
         assert not (tmp_path / "run" / "keyframes.h5").exists()
+
+
+def test_features_side_by_side_equal_one_after_another(sample_image):
+    from retrieval.calibrate import _extract_side_by_side
+    from verify.features import SIFT
+
+    images = {i: sample_image(i) for i in (0, 3, 7, 11, 60)}
+    got = _extract_side_by_side({"name": "sift"}, images, [0, 3, 7, 11, 60])
+    sift = SIFT()
+    assert sorted(got) == [0, 3, 7, 11, 60]
+    for fid, image in images.items():
+        want = sift.extract(image)
+        assert np.array_equal(got[fid].keypoints, want.keypoints)
+        assert np.array_equal(got[fid].descriptors, want.descriptors)

@@ -373,3 +373,64 @@ class TestMildMethod:
             loops = np.array([(int(r["query"]), int(r["match"])) for r in csv.DictReader(f)]).reshape(-1, 2)
         pr = precision_recall(loops, read_loop_pairs(sample_seq.ground_truth))
         assert pr.precision == 1.0 and pr.recall >= 0.9  # measured: 1.000 / 1.000
+
+
+class TestLazyFeatures:
+    """Local features only where a candidate could pass (``runtime.lazy_features``), codes given ahead: the same
+    results as extracting and encoding every frame as it comes."""
+
+    FRAMES = range(0, 70)  # 50 frames without a candidate, then the start of the revisit
+
+    def run(self, conf, encoder, sample_seq, sample_image, **kwargs):
+        with LoopDetector(conf, K=sample_seq.K, encoder=encoder, **kwargs) as det:
+            return [det.process(sample_image(i), i) for i in self.FRAMES]
+
+    def test_lazy_equals_eager(self, encoder, sample_seq, sample_image):
+        eager = self.run({"runtime": {"lazy_features": False}}, encoder, sample_seq, sample_image)
+        copies = self.run({}, encoder, sample_seq, sample_image)  # lossless copies of the frames kept in memory
+        calls = []
+
+        def again(fid):
+            calls.append(fid)
+            return sample_image(fid)
+
+        source = self.run({}, encoder, sample_seq, sample_image, frame_source=again)
+        rows = [[c.as_row() for c in r.candidates] for r in eager]
+        assert sum(len(r) for r in rows) > 50 and len(loops_of(eager)) >= 15
+        for lazy in (copies, source):
+            assert [[c.as_row() for c in r.candidates] for r in lazy] == rows
+            assert loops_of(lazy).tolist() == loops_of(eager).tolist()
+        assert all(r.ms["features"] > 0 for r in eager)
+        assert all(r.ms["features"] == 0 for r in copies[:50])  # no candidate yet: nothing extracted
+        assert calls and len(set(calls)) == len(calls)  # frames read again when a candidate needed them, once
+
+    def test_given_codes_equal_encoded(self, encoder, sample_seq, sample_image):
+        from retrieval.descriptors import create_descriptor
+
+        d = create_descriptor({"name": "cae"}, encoder=encoder)
+        images = [sample_image(i) for i in range(0, 100, 9)]
+        batch = d.encode_batch(images)
+        assert all(np.array_equal(b, d(im)) for b, im in zip(batch, images))  # bit for bit
+        with LoopDetector(K=sample_seq.K, descriptor=d) as det:
+            det.process(images[0], 0, code=batch[0])
+            with pytest.raises(ConfigError, match="code must be"):
+                det.process(images[1], 1, code=batch[1][:10])
+            assert det.next_frame_id == 1  # refused: nothing changed
+
+    def test_calibrated_verify_gate_keeps_the_loops(self, tmp_path, cli_sample_run, sample_seq):
+        """The calibrated run (lazy, gate on, codes and features from the calibration) against every candidate
+        verified on every frame's features, with the same calibration: the same loops.csv."""
+        import shutil
+
+        from retrieval import detect
+
+        _, out = cli_sample_run
+        old = tmp_path / "old"
+        old.mkdir()
+        shutil.copyfile(out / "calibration.h5", old / "calibration.h5")
+        detect.main(sample_seq.root, old, {"search": {"verify_min_z": None}, "runtime": {"lazy_features": False}},
+                    progress=False)
+        assert (old / "loops.csv").read_text() == (out / "loops.csv").read_text()
+        with open(out / "candidates.csv") as f:
+            skipped = sum(int(r["inliers"]) == -1 and int(r["matches"]) == 0 for r in csv.DictReader(f))
+        assert skipped > 100  # the gate left most non-loop candidates unverified

@@ -1,0 +1,57 @@
+"""One thread policy for every numeric library in the process: torch, OpenCV and faiss together.
+
+Each library keeps its own pool (torch's OpenMP team, OpenCV's, faiss's OpenMP), and a pool of N threads that
+waits at a barrier after each operation stalls as soon as one of its threads is descheduled: beside a busy
+neighbour process (a SLAM system's tracking and mapping threads) a 2-thread encoder went from 7 to 44 ms, and two
+pools side by side oversubscribe the cores. The policy is therefore: **each library single-threaded by default**
+(``threads=1``), and the cores used by the pipeline's own workers instead (``retrieval.detect`` reads, decodes and
+encodes ahead in a worker thread while the main thread decides), which a busy neighbour slows in proportion but
+cannot stall.
+
+    >>> from core.threads import apply_thread_policy
+    >>> apply_thread_policy(1)
+    1
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+
+import cv2
+import torch
+
+__all__ = ["apply_thread_policy", "cpu_count"]
+
+log = logging.getLogger(__name__)
+
+
+def cpu_count() -> int:
+    """CPU cores this process may run on (its affinity mask where the OS has one), at least 1."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def apply_thread_policy(threads: int | None = 1) -> int:
+    """Sets the intra-op threads of torch, OpenCV and faiss to the same number (process-wide).
+
+    Args:
+        threads: threads each library may use; None = every core this process may run on.
+
+    Returns:
+        The number applied.
+    """
+    n = cpu_count() if threads is None else max(1, int(threads))
+    if torch.get_num_threads() != n:
+        torch.set_num_threads(n)
+    cv2.setNumThreads(n)
+    try:
+        import faiss  # optional here: the base layer does not need it
+    except ImportError:  # pragma: no cover - faiss is a dependency of retrieval
+        pass
+    else:
+        faiss.omp_set_num_threads(n)
+    log.debug("thread policy: %d thread(s) for torch, OpenCV and faiss", n)
+    return n

@@ -1,0 +1,40 @@
+"""The issue-18 speed benchmark's pieces (the measurement itself is ``python -m bench.frame_time``, not a test)."""
+
+from bench.frame_time import busy_neighbour, report, sift_yardstick, write_section
+
+
+def _summary(median, wall_s, cal_s=None):
+    s = {"ms_per_frame": {"total": {"median": median, "p90": median * 2}}, "wall_s": wall_s, "frames": 200,
+         "peak_rss_bytes": 700 * 2**20, "loops": 100}
+    if cal_s is not None:
+        s["seconds"] = {"calibration": cal_s, "frames": wall_s - cal_s}
+    return s
+
+
+def test_report_ratios():
+    res = {"sequence": "kitti/90", "before_rev": "abc", "same_loops": True,
+           "system": {"cores": 2, "cpu": "cpu", "load_avg": (1, 1, 1)},
+           "quiet": {"sift_ms": 20.0, "new": _summary(10.0, 4.0, 0.5), "before": _summary(40.0, 20.0),
+                     "api": {"median": 15.0, "p90": 30.0, "loops": 100},
+                     "new_calibration_given": _summary(9.0, 3.6, 0.0)},
+           "busy": {"sift_ms": 30.0, "new": _summary(15.0, 6.0, 1.0)}}
+    text = report(res)
+    assert "| this code, no neighbour added | 10.0 | 0.50x | 20.0 | 1.00x | 12 % | 700 | 100 |" in text
+    assert "1.50x the run without it" in text and "median ms/frame 4.0x, wall time 5.0x" in text
+    assert "identical: True" in text and "what it adds to the run: 10 %" in text
+
+
+def test_write_section_replaces_its_own_part(tmp_path):
+    path = tmp_path / "B.md"
+    path.write_text("# head\n")
+    write_section(path, "one")
+    write_section(path, "two")
+    text = path.read_text()
+    assert text.startswith("# head\n") and "two" in text and "one" not in text and text.count("frame_time:begin") == 1
+
+
+def test_yardstick_and_neighbour(sample_image):
+    assert sift_yardstick([sample_image(0), sample_image(1)]) > 0
+    with busy_neighbour() as proc:
+        assert proc.poll() is None  # running
+    assert proc.poll() is not None  # stopped
