@@ -12,7 +12,6 @@ import secrets
 import sys
 from typing import Any
 
-import uvicorn
 
 from core.conf import ConfigError, load_conf_file
 
@@ -48,7 +47,8 @@ def serve(state: str, host: str = "127.0.0.1", port: int = 8765, admin: str | No
     Raises:
         ConfigError: a bad config, port or state folder.
     """
-    from fleet.server import create_app  # here: the CLI's other commands do not load FastAPI
+    from fleet.runner import server_config  # here: the CLI's other commands do not load FastAPI
+    from fleet.server import create_app
 
     if not 0 < port < 65536:
         raise ConfigError(f"--port must be in 1..65535; got {port}")
@@ -61,7 +61,7 @@ def serve(state: str, host: str = "127.0.0.1", port: int = 8765, admin: str | No
     if generated:
         print(f"admin token (shown once; set {TOKEN_ENV} to choose one): {token}", file=sys.stderr, flush=True)
     log.info("fleet server on http://%s:%d, state in %s", host, port, state)
-    uvicorn.run(app, host=host, port=port, log_level="warning")
+    uvicorn.Server(server_config(app, host, port)).run()
 
 
 def add_parser(sub: Any) -> None:

@@ -154,6 +154,9 @@ class PoseGraph:
     def local_pose(self, node: Node) -> Sim3:
         return self._local[node]
 
+    def __contains__(self, node: object) -> bool:
+        return node in self._local
+
     def add_keyframe(self, robot: str, keyframe: int, pose: np.ndarray) -> Node:
         """Adds a keyframe and the odometry edge from the robot's previous one.
 

@@ -28,7 +28,9 @@ from typing import Any
 import numpy as np
 
 from core.conf import ConfigError, Float, Int, check_conf, merge_conf
+from core.errors import ConflictError
 from core.files import write_text_atomic
+from core.images import check_image, fingerprint
 from retrieval.descriptors import GlobalDescriptor, create_descriptor
 from retrieval.detector import LoopDetector, resolve_conf
 from verify.verifier import Verification
@@ -70,6 +72,11 @@ def remembering(descriptor: GlobalDescriptor) -> GlobalDescriptor:
             return self.last
 
     return Remembering()
+
+
+def _image_fingerprint(image: np.ndarray) -> str:
+    """``core.images.fingerprint`` of a decoded image's shape and pixels (what a retry is compared by)."""
+    return fingerprint(repr((image.shape, image.dtype.str)).encode() + np.ascontiguousarray(image).tobytes())
 
 
 class _Robot:
@@ -144,7 +151,8 @@ class FleetRecognizer:
             self._open(folder.parent.name, None)
 
     def _open(self, name: str, K: np.ndarray | None) -> _Robot:
-        """The robot's detector, resumed from its database; ``K`` is stored on first use and must match after."""
+        """The robot's detector, resumed from its database; ``K`` is the stored one when there is a ``camera.json``
+        (written by ``process`` once the robot's first keyframe is accepted)."""
         folder = self.root / name
         camera = folder / "camera.json"
         if camera.exists():
@@ -153,10 +161,7 @@ class FleetRecognizer:
                 raise ConfigError(f"{camera}: format_version {stored.get('format_version')} is not "
                                   f"{CAMERA_FORMAT_VERSION}")
             K = None if stored["K"] is None else np.asarray(stored["K"], np.float64)
-        else:
-            folder.mkdir(parents=True, exist_ok=True)
-            write_text_atomic(camera, json.dumps({"format_version": CAMERA_FORMAT_VERSION,
-                                                  "K": None if K is None else np.asarray(K).tolist()}))
+        folder.mkdir(parents=True, exist_ok=True)
         det = LoopDetector(self.detector_conf, K=K, database=folder / "keyframes.h5", descriptor=self.descriptor)
         robot = self.robots[name] = _Robot(det, K)
         for rec in det.db:
@@ -164,6 +169,23 @@ class FleetRecognizer:
                 robot.poses[rec.frame_id] = Sim3.from_pose(rec.pose).matrix()
             robot.add(rec.frame_id, det.places.entry(rec.code))
         return robot
+
+    def _save_camera(self, name: str) -> None:
+        """Writes the robot's ``camera.json`` (its intrinsics) if it has none yet."""
+        camera = self.root / name / "camera.json"
+        if not camera.exists():
+            K = self.robots[name].K
+            write_text_atomic(camera, json.dumps({"format_version": CAMERA_FORMAT_VERSION,
+                                                  "K": None if K is None else np.asarray(K).tolist()}))
+
+    def check_retry(self, robot: str, keyframe: int, image: np.ndarray) -> None:
+        """Refuses (``ConflictError``) a retry of a stored keyframe whose image differs from the stored one's."""
+        r = self.robots.get(robot)
+        if r is None or r.detector.db is None:
+            return
+        stored = next((e.fingerprint for e in r.detector.db.frames() if e.frame_id == keyframe), "")
+        if stored and stored != _image_fingerprint(image):
+            raise ConflictError(f"robot {robot!r} sent keyframe {keyframe} before, with another image")
 
     def has(self, robot: str, keyframe: int) -> bool:
         """True when the robot's database already holds ``keyframe`` (or a later one)."""
@@ -188,9 +210,12 @@ class FleetRecognizer:
             ConfigError, ImageError: a bad input; nothing was stored.
         """
         self.check(robot, K)
+        check_image(image, "image")  # before a new robot's folder is made: a refused keyframe leaves nothing
         r = self.robots.get(robot) or self._open(robot, K)
         self.descriptor.last = None
-        res = r.detector.process(image, frame_id=keyframe, timestamp=timestamp, pose=pose)
+        res = r.detector.process(image, frame_id=keyframe, timestamp=timestamp, pose=pose,
+                                 fingerprint=_image_fingerprint(image))
+        self._save_camera(robot)
         r.poses[keyframe] = np.asarray(pose, np.float64)
         if res.gated or self.descriptor.last is None:
             return Recognition(gated=True)

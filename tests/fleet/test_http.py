@@ -90,12 +90,14 @@ class TestTokens:
         r = httpx.get(f"{url}/robots/A/poses", headers={"Authorization": f"Bearer {forged}"})
         assert r.status_code == 401
 
-    def test_another_robots_id_is_403(self, live, sample_poses, jpeg):
+    def test_another_robots_id_is_the_same_404_as_no_robot(self, live, sample_poses, jpeg):
         url, state, tokens = live
         before = state_of(state, "A")
         r = httpx.post(f"{url}/robots/A/keyframes", json=body(40, sample_poses, jpeg),
                        headers={"Authorization": f"Bearer {tokens['B']}"})
-        assert r.status_code == 403 and "robot 'A'" in r.json()["detail"]
+        missing = httpx.post(f"{url}/robots/Z/keyframes", json=body(40, sample_poses, jpeg),
+                             headers={"Authorization": f"Bearer {tokens['B']}"})
+        assert r.status_code == missing.status_code == 404 and "robot 'A'" in r.json()["detail"]
         assert state_of(state, "A") == before
 
 
