@@ -86,7 +86,7 @@ def check_rigid_pose(value: Any, what: str = "pose", tol: float = ROTATION_TOL,
                      max_translation: float = MAX_TRANSLATION) -> np.ndarray:
     """A rigid camera-to-map pose (3x4 or 4x4) -> ``(4, 4)`` float64 whose rotation is projected onto the nearest one.
 
-    Rigid: ``|R^T R - I| <= tol`` (so no scale hides in it), ``det R > 0``, ``|t| <= max_translation``, and a 4x4's
+    Rigid: ``|R^T R - I| <= tol`` (so no scale hides in it), ``det R > 0``, ``|t_i| <= max_translation``, and a 4x4's
     last row is ``0 0 0 1``.
 
     Raises:
@@ -105,8 +105,8 @@ def check_rigid_pose(value: Any, what: str = "pose", tol: float = ROTATION_TOL,
     R = M[:3, :3]
     if np.abs(R.T @ R - np.eye(3)).max() > tol or np.linalg.det(R) <= 0:
         raise ConfigError(f"{what}: the 3x3 block must be a rotation (orthonormal within {tol:g}, det +1)")
-    if np.linalg.norm(M[:3, 3]) > max_translation:
-        raise ConfigError(f"{what}: translation {np.linalg.norm(M[:3, 3]):.3g} is beyond {max_translation:g}")
+    if np.abs(M[:3, 3]).max() > max_translation:
+        raise ConfigError(f"{what}: translation {np.abs(M[:3, 3]).max():.3g} is beyond {max_translation:g}")
     U, _, Vt = np.linalg.svd(R)
     out = np.eye(4)
     out[:3, :3], out[:3, 3] = U @ Vt, M[:3, 3]
