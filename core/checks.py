@@ -121,7 +121,7 @@ def check_intrinsics(value: Any, what: str = "intrinsics") -> np.ndarray:
     """
     K = check_matrix(value, (3, 3), what)
     if K[0, 0] <= 0 or K[1, 1] <= 0 or K[1, 0] != 0 or np.abs(K[2] - [0, 0, 1]).max() > 1e-9:
-        raise ConfigError(f"{what} is not a camera matrix [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
+        raise ConfigError(f"{what} must be a camera matrix [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
     return K
 
 
