@@ -31,14 +31,14 @@ import binascii
 import hmac
 import logging
 from pathlib import Path
-from typing import Any, Callable
+from typing import Annotated, Any, Callable
 
 import numpy as np
 from fastapi import Depends, FastAPI, Header, HTTPException, Request
 from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
 from core.checks import MAX_FRAME_ID, check_intrinsics, check_rigid_pose, decode_depth
 from core.conf import ConfigError
@@ -48,7 +48,7 @@ from retrieval.descriptors import GlobalDescriptor
 
 from .limits import AuthThrottle, BodyLimit
 from .recognition import FleetRecognizer
-from .service import FleetService
+from .service import ROBOT_NAME, FleetService
 from .store import SQLiteStore
 
 __all__ = ["create_app", "KeyframeIn", "RobotIn", "Problem", "SchemaProblem"]
@@ -60,16 +60,23 @@ MAX_B64 = 48 * 2**20  #: longest base64 string a field may hold (the body limit 
 MAX_TOKEN = 256  #: longest Authorization header value looked at
 
 
+def _a_number(value: Any) -> Any:
+    """Refuses text and booleans where a number is expected ("16" is not 16); 16.0 stays 16, as JSON Schema says."""
+    if isinstance(value, (str, bytes, bool)):
+        raise ValueError("must be a JSON number, not a string or a boolean")
+    return value
+
+
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", strict=True)  # unknown fields and "16" for an int are refused
 
 
 class RobotIn(_Strict):
-    name: str = Field(max_length=64)  #: letters, digits, _ and - (fleet.service.ROBOT_NAME)
+    name: str = Field(pattern=f"^{ROBOT_NAME}$")  #: 1 to 64 letters, digits, _ and -
 
 
 class KeyframeIn(_Strict):
-    keyframe: int = Field(ge=0, lt=MAX_FRAME_ID)  #: the robot's keyframe id, increasing
+    keyframe: Annotated[int, BeforeValidator(_a_number)] = Field(ge=0, lt=MAX_FRAME_ID, strict=False)  #: increasing
     timestamp: float  #: seconds, finite, never less than the robot's previous keyframe's
     pose: list[list[float]] = Field(min_length=3, max_length=4)  #: 3x4 or 4x4 rigid camera-to-map pose
     image: str = Field(max_length=MAX_B64)  #: base64 PNG, JPEG, TIFF, BMP or WebP bytes
