@@ -14,7 +14,7 @@ from fleet.runner import ServerThread  # noqa: E402
 from fleet.server import create_app  # noqa: E402
 
 ADMIN = "openapi-admin-secret"
-EXAMPLES = 60  #: examples per operation (bench.openapi runs many more)
+EXAMPLES = 120  #: examples per operation (bench.openapi runs many more)
 load_all_checks()
 ALL_CHECKS = CHECKS.get_all()  #: --checks all
 
