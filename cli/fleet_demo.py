@@ -49,6 +49,8 @@ def run(args: Any) -> None:
         log.warning("the server did not merge robot B")
     if "hostile" in s:
         h = s["hostile"]
-        log.info("hostile robot H (%d keyframes, %s refused): moved A by %.3f m, B by %.3f m; errors with H: %s",
-                 h["keyframes"], h["refused"].get("H", 0), h["moved_m"]["A"], h["moved_m"]["B"], h["errors_with_H"])
+        log.info("hostile robot H (%d keyframes, %s refused, merged: %s): moves A by %.3f m, B by %.3f m (against "
+                 "the run without H: %.3f m, %.3f m); errors with H: %s", h["keyframes"], h["refused"].get("H", 0),
+                 h["merged_H"], h["moved_m"]["A"], h["moved_m"]["B"], h["run_to_run_m"]["A"], h["run_to_run_m"]["B"],
+                 h["errors_with_H"])
     log.info("wrote %s/{fleet_demo.json,trajectories.png}", args.out)

@@ -8,7 +8,9 @@ client; the server must find where they overlap and recover the transform betwee
 - ``negative``: robot A on ``00``, robot B on ``07`` (they never meet): any overlap is a false one.
 - ``hostile`` (with ``overlap``): the same two robots, then again with a third robot H streaming garbage at the same
   time (``hostile_stream``: random rigid poses, images that are random noise or real ``00`` frames replayed out of
-  place). Scored as well: how far H moved A's and B's merged keyframes (``hostile.moved_m``, the bar is 0.1 m).
+  place). Scored as well: how far H moves A's and B's solved keyframes (``hostile.moved_m``: the final graph solved
+  with and without H's keyframes and edges; the bar is 0.1 m), and, for scale, how far they differ from the run
+  without H (``hostile.run_to_run_m``: arrival order alone changes which overlap edges form).
 
 ``run_demo`` returns the summary it writes to ``OUT/fleet_demo.json``; ``OUT/trajectories.png`` shows both
 trajectories before and after the merge.
@@ -35,6 +37,7 @@ from core.files import prepare_out_dir, write_text_atomic
 from retrieval.sequences import read_kitti_calib, read_kitti_poses, read_times
 
 from .client import FleetClient
+from .graph import PoseGraph
 from .plots import plot_merge
 from .runner import ServerThread
 from .server import create_app
@@ -189,7 +192,20 @@ def _session(state: Path, token: str, robots: list[RobotStream], truth: Sim3 | N
         summary = _score(admin, robots[:2], truth, world_b)
         summary["refused"] = refused
         merged = {r.name: admin.poses(r.name, wait=True) for r in robots}
+        if len(robots) > 2:
+            summary["moved_by_others_m"] = _moved_by(server.app.state.service.graph(), {r.name for r in robots[2:]})
     return summary, merged, wall
+
+
+def _moved_by(graph: PoseGraph, others: set[str]) -> dict[str, float]:
+    """How far ``others`` move each remaining robot's solved keyframes (m, largest): the graph solved with them
+    against the same graph without them."""
+    full, alone = graph.optimize(), graph.without(others).optimize()
+    out: dict[str, float] = {}
+    for n, T in alone.poses.items():
+        gap = float(np.linalg.norm(T.t - full.poses[n].t)) if n in full.poses else float("inf")
+        out[n.robot] = max(out.get(n.robot, 0.0), gap)
+    return out
 
 
 def _moved(before: dict[int, np.ndarray], after: dict[int, np.ndarray]) -> float:
@@ -240,8 +256,10 @@ def run_demo(out: str | Path, kitti_root: str | Path, negative: bool = False, fr
         attacked, moved_to, _ = _session(out / "state_hostile", token, [a, b, h], None if negative else truth,
                                          world_b)
         summary["hostile"] = {"keyframes": len(h.frames), "refused": attacked.get("refused", {}),
-                              "moved_m": {r: _moved(merged[r], moved_to[r]) for r in ("A", "B")},
-                              "errors_with_H": {k: v for k, v in attacked.items() if k.endswith(("_deg", "_pct", "_m"))},
+                              "moved_m": attacked["moved_by_others_m"],
+                              "run_to_run_m": {r: _moved(merged[r], moved_to[r]) for r in ("A", "B")},
+                              "errors_with_H": {k: v for k, v in attacked.items()
+                                                if k.endswith(("_deg", "_pct", "_m")) and isinstance(v, float)},
                               "merged_H": bool(moved_to.get("H"))}
     write_text_atomic(out / "fleet_demo.json", json.dumps(summary, indent=2))
     plot_merge(out / "trajectories.png", {r.name: r.poses[:, :3, 3] for r in (a, b)},

@@ -209,6 +209,14 @@ class PoseGraph:
         other._edges, other._guess = list(self._edges), dict(self._guess)
         return other
 
+    def without(self, robots: set[str]) -> "PoseGraph":
+        """A copy without ``robots``' keyframes and every edge touching them (what the others' maps would be)."""
+        other = self.copy()
+        other._local = {n: p for n, p in self._local.items() if n.robot not in robots}
+        other._last = {r: n for r, n in self._last.items() if r not in robots}
+        other._edges = [e for e in self._edges if e.a.robot not in robots and e.b.robot not in robots]
+        return other
+
     def set_transform(self, robot: str, transform: Sim3) -> None:
         """An initial guess of ``robot``'s map-to-global transform (otherwise derived from the overlap edges)."""
         self._guess[robot] = transform

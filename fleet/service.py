@@ -79,6 +79,10 @@ class FleetService:
         with self._lock:
             return self._graph.copy()
 
+    def graph(self) -> PoseGraph:
+        """A copy of the pose graph as it is now (later keyframes do not change it)."""
+        return self._snapshot()
+
     def _publish(self, result: GraphResult) -> None:
         self.store.set_transforms(result.transforms)
 
