@@ -12,9 +12,10 @@ inter-robot overlaps, each turned into a pose-graph edge (a similarity from 3D-3
 - An edge's similarity: 3D points of the matched features on both sides (the depth map when the keyframe came with
   one, else triangulated from the robot's own neighbouring keyframe with its local poses), then ``estimate_overlap``.
 
-Camera intrinsics are per robot (the first keyframe's), kept in ``STATE/robots/NAME/camera.json``. Memory per robot
-is bounded: features are read from its database (``detector.runtime.feature_cache`` kept), 3D points of at most
-``points_cache`` keyframes are kept. Points from depth maps are kept in memory only: after a restart, or once dropped
+Camera intrinsics are per robot (the first keyframe's), kept in ``STATE/robots/NAME/camera.json``. 3D points of at
+most ``points_cache`` keyframes per robot are kept in memory. (``detector.runtime.features: database`` would read
+features back from the robot's database instead of keeping them; measured, it makes RSS grow faster, ~5 MiB a
+keyframe, so it is not the default: see BENCHMARKS.md, issue 19.) Points from depth maps are kept in memory only: after a restart, or once dropped
 from the cache, keyframes that had one fall back to triangulation.
 """
 
@@ -124,8 +125,7 @@ class FleetRecognizer:
     """
 
     default_conf: dict[str, Any] = {
-        # LoopDetector conf of every robot: fixed policy; features read from its database, a bounded number cached
-        "detector": {"calibration": {"enabled": False}, "runtime": {"features": "database", "feature_cache": 64}},
+        "detector": {"calibration": {"enabled": False}},  # LoopDetector conf of every robot (fixed policy)
         "cross": {
             "k": 3,  # candidates of each other robot verified per query
             "min_score": 0.0,  # candidates under this cosine similarity are not verified
