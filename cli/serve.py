@@ -47,7 +47,9 @@ def serve(state: str, host: str = "127.0.0.1", port: int = 8765, admin: str | No
     Raises:
         ConfigError: a bad config, port or state folder.
     """
-    from fleet.runner import server_config  # here: the CLI's other commands do not load FastAPI
+    import uvicorn  # here: the CLI's other commands do not load FastAPI
+
+    from fleet.runner import server_config
     from fleet.server import create_app
 
     if not 0 < port < 65536:
