@@ -24,7 +24,7 @@ demo: install
 	$(VENV)/bin/cae-lcd detect --out runs/demo
 
 fleet-demo: install
-	$(VENV)/bin/cae-lcd fleet-demo --out runs/fleet-demo
+	$(VENV)/bin/cae-lcd fleet-demo --out runs/fleet-demo --hostile
 
 test: install
 	$(PY) -m pytest -q

@@ -9,7 +9,7 @@ import torch
 
 from core.errors import ConfigError, ImageError
 
-from .model import CODE_DIM, Encoder
+from .model import CODE_DIM, INPUT_SIZE, Encoder
 from .preprocess import network_tensor, preprocess
 
 __all__ = ["encode_images", "normalize_codes"]
@@ -20,6 +20,16 @@ def normalize_codes(codes: np.ndarray) -> np.ndarray:
     codes = np.asarray(codes, dtype=np.float32)
     norms = np.linalg.norm(codes, axis=1, keepdims=True)
     return codes / np.maximum(norms, 1e-12)
+
+
+def _prepared(chunk: Sequence[np.ndarray]) -> np.ndarray:
+    """``(B, 256, 256, 3)`` uint8 of images said to be ``to_network_u8`` output; ImageError when one is not."""
+    want = (INPUT_SIZE, INPUT_SIZE, 3)
+    for i, im in enumerate(chunk):
+        if not isinstance(im, np.ndarray) or im.shape != want or im.dtype != np.uint8:
+            got = f"{im.dtype} {im.shape}" if isinstance(im, np.ndarray) else type(im).__name__
+            raise ImageError(f"prepared image {i} must be uint8 {want} (cae.preprocess.to_network_u8); got {got}")
+    return np.stack(chunk)
 
 
 @torch.inference_mode()
@@ -52,7 +62,7 @@ def encode_images(encoder: Encoder, images: Sequence[np.ndarray] | np.ndarray, b
     out = [np.empty((0, CODE_DIM), np.float32)]
     for start in range(0, len(images), batch_size):
         chunk = images[start:start + batch_size]
-        x = (network_tensor(np.stack(chunk)) if prepared else preprocess(chunk)).to(device)
+        x = (network_tensor(_prepared(chunk)) if prepared else preprocess(chunk)).to(device)
         if use_half:
             with torch.autocast("cuda", dtype=torch.float16):
                 codes = encoder(x)

@@ -31,6 +31,8 @@ def add_parser(sub: Any) -> None:
                    help=f"first frames of 00 streamed (default: {defaults['frames']})")
     p.add_argument("--negative", action="store_true", default=defaults["negative"],
                    help="robots on 00 and 07, which never meet: any overlap is a false one")
+    p.add_argument("--hostile", action="store_true", default=defaults["hostile"],
+                   help="then again with a third robot streaming garbage: how far it moves the two good maps")
     p.set_defaults(func=run)
 
 
@@ -38,7 +40,7 @@ def run(args: Any) -> None:
     from fleet.demo import run_demo
 
     logging.getLogger("httpx").setLevel(logging.WARNING)  # one line a request otherwise
-    s = run_demo(args.out, args.kitti, negative=args.negative, frames=args.frames)
+    s = run_demo(args.out, args.kitti, negative=args.negative, frames=args.frames, hostile=args.hostile)
     log.info("%s demo: %d + %d keyframes in %.1f s (%.2f keyframes/s); overlaps %d, overlap edges %d", s["mode"],
              s["keyframes"]["A"], s["keyframes"]["B"], s["wall_s"], s["keyframes_per_s"], len(s["overlaps"]),
              s["overlap_edges"])
@@ -51,4 +53,10 @@ def run(args: Any) -> None:
                  s["merged_b_rmse_m"])
     else:
         log.warning("the server did not merge robot B")
+    if "hostile" in s:
+        h = s["hostile"]
+        log.info("hostile robot H (%d keyframes, %s refused, merged: %s): moves A by %.3f m, B by %.3f m (against "
+                 "the run without H: %.3f m, %.3f m); errors with H: %s", h["keyframes"], h["refused"].get("H", 0),
+                 h["merged_H"], h["moved_m"]["A"], h["moved_m"]["B"], h["run_to_run_m"]["A"], h["run_to_run_m"]["B"],
+                 h["errors_with_H"])
     log.info("wrote %s/{fleet_demo.json,trajectories.png,trajectories/*.tum,*.kitti}", args.out)

@@ -47,7 +47,7 @@ def serve(state: str, host: str = "127.0.0.1", port: int = 8765, admin: str | No
         ConfigError: a bad config, port or state folder.
     """
     import uvicorn  # here: the CLI's other commands do not load the fleet's dependencies (the [fleet] extra)
-
+    from fleet.runner import server_config
     from fleet.server import create_app
 
     if not 0 < port < 65536:
@@ -61,7 +61,7 @@ def serve(state: str, host: str = "127.0.0.1", port: int = 8765, admin: str | No
     if generated:
         print(f"admin token (shown once; set {TOKEN_ENV} to choose one): {token}", file=sys.stderr, flush=True)
     log.info("fleet server on http://%s:%d, state in %s", host, port, state)
-    uvicorn.run(app, host=host, port=port, log_level="warning")
+    uvicorn.Server(server_config(app, host, port)).run()
 
 
 def add_parser(sub: Any) -> None:

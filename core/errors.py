@@ -6,7 +6,7 @@ All derive from ``LCDError``; ``ConfigError`` and ``ImageError`` are also ``Valu
 
 from __future__ import annotations
 
-__all__ = ["LCDError", "ConfigError", "ImageError", "DatabaseError"]
+__all__ = ["LCDError", "ConfigError", "ConflictError", "ImageError", "DatabaseError"]
 
 
 class LCDError(Exception):
@@ -15,6 +15,10 @@ class LCDError(Exception):
 
 class ConfigError(LCDError, ValueError):
     """A configuration value, an argument, or an input file named by them is invalid."""
+
+
+class ConflictError(ConfigError):
+    """A value that contradicts one already accepted (e.g. a retry of an acknowledged id with other content)."""
 
 
 class ImageError(LCDError, ValueError):

@@ -24,7 +24,7 @@ import numpy as np
 from .errors import ImageError
 
 __all__ = ["IMAGE_EXTENSIONS", "MAX_IMAGE_PIXELS", "MIN_IMAGE_SIDE", "image_entries", "read_image", "read_file",
-           "decode_image", "fingerprint", "check_image", "to_uint8", "to_gray_u8", "to_rgb_u8", "resize_square"]
+           "decode_image", "image_header", "HEADER_FORMATS", "fingerprint", "check_image", "to_uint8", "to_gray_u8", "to_rgb_u8", "resize_square"]
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".webp")
 MAX_IMAGE_PIXELS = 1 << 27  #: larger images are refused before decoding (134 Mpixel: 11585x11585; 4K is 8.3)
@@ -82,38 +82,52 @@ def fingerprint(data: bytes) -> str:
     return f"{len(data)}:{hashlib.blake2b(data, digest_size=8).hexdigest()}"
 
 
-def _header_pixels(data: bytes) -> int | None:
-    """Pixel count from the file header without decoding (Pillow reads headers lazily); None when unknown."""
+HEADER_FORMATS = ("PNG", "JPEG", "TIFF", "BMP", "WEBP", "PPM")  #: formats whose size ``image_header`` reads
+
+
+def image_header(data: bytes) -> tuple[str, int, int] | None:
+    """``(format, width, height)`` from an image file's header without decoding it (Pillow reads headers lazily);
+    None when the header is not one of ``HEADER_FORMATS`` or cannot be parsed."""
     try:
         from PIL import Image
 
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            with Image.open(io.BytesIO(data)) as im:
+            with Image.open(io.BytesIO(data), formats=list(HEADER_FORMATS)) as im:
                 w, h = im.size
-                return int(w) * int(h)
-    except Exception as err:  # noqa: BLE001 - any header Pillow cannot parse: let OpenCV decide
+                return str(im.format), int(w), int(h)
+    except Exception as err:  # noqa: BLE001 - any header Pillow cannot parse: unknown
         if type(err).__name__ == "DecompressionBombError":  # Pillow's own limit: its message has the size
             found = re.search(r"\((\d+) pixels\)", str(err))
-            return int(found.group(1)) if found else MAX_IMAGE_PIXELS + 1
+            return "?", int(found.group(1)) if found else MAX_IMAGE_PIXELS + 1, 1
         return None
 
 
-def decode_image(data: bytes, name: str | Path = "<bytes>") -> np.ndarray:
-    """Decodes image file bytes unchanged (grey or colour, 8- or 16-bit), after checking its size.
+def decode_image(data: bytes, name: str | Path = "<bytes>", max_pixels: int = MAX_IMAGE_PIXELS,
+                 known_header: bool = False) -> np.ndarray:
+    """Decodes image file bytes unchanged (grey or colour, 8- or 16-bit), after checking its size in its header.
+
+    Args:
+        data: the file's bytes. name: what messages call it. max_pixels: larger images are refused (from the header
+            when it can be read, before any pixel is decoded). known_header: refuse files whose header is not one of
+            ``HEADER_FORMATS`` (a server's input: no decoder runs on a file whose size is unknown).
 
     Raises:
-        ImageError: corrupt, unsupported, larger than ``MAX_IMAGE_PIXELS`` or smaller than 8x8.
+        ImageError: corrupt, unsupported, larger than ``max_pixels`` or smaller than 8x8.
     """
-    pixels = _header_pixels(data)
-    if pixels is not None and pixels > MAX_IMAGE_PIXELS:
-        raise ImageError(f"image {name} too large: {pixels} pixels (limit {MAX_IMAGE_PIXELS})")
+    header = image_header(data)
+    if header is None and known_header:
+        raise ImageError(f"{name} is not a readable PNG or JPEG (or TIFF, BMP, WebP, PPM) file")
+    if header is not None and header[1] * header[2] > max_pixels:
+        raise ImageError(f"image {name} too large: {header[1] * header[2]} pixels (limit {max_pixels})")
     try:
         img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     except cv2.error as err:
         raise ImageError(f"cannot decode image {name}: {str(err).strip().splitlines()[-1][:160]}") from None
     if img is None or img.size == 0:
         raise ImageError(f"cannot decode image {name}: corrupt or unsupported format")
+    if img.shape[0] * img.shape[1] > max_pixels:
+        raise ImageError(f"image {name} too large: {img.shape[0] * img.shape[1]} pixels (limit {max_pixels})")
     check_image(img, name)
     return img
 

@@ -32,6 +32,7 @@ import numpy as np
 
 from core.conf import Choice, ConfigError, Float, Int, configure
 
+from .consistency import PairLink, PairwiseConsistency
 from .sim3 import Sim3
 
 __all__ = ["Node", "Edge", "PoseGraph", "GraphResult", "to_gtsam", "from_gtsam", "mean_sim3", "EDGE_KINDS"]
@@ -129,14 +130,16 @@ class PoseGraph:
         "prior_sigma": 1e-6,  # the anchor's prior on its first keyframe, every tangent component
         "max_iterations": 100,  # Levenberg-Marquardt iterations at most
         "relative_error_tol": 1e-6,  # stop once an iteration lowers the error by less than this fraction
+        "consistency": PairwiseConsistency.default_conf,  # which overlap edges of a robot pair are used (PCM)
     }
     conf_rules: dict[str, Any] = {
         "odometry": _sigma_rules(), "loop": _sigma_rules(), "robust": Choice("huber", "cauchy", "none"),
         "robust_k": Float(0, lo_open=True), "prior_sigma": Float(0, lo_open=True), "max_iterations": Int(1),
-        "relative_error_tol": Float(0, 1)}
+        "relative_error_tol": Float(0, 1), "consistency": PairwiseConsistency.conf_rules}
 
     def __init__(self, conf: dict[str, Any] | None = None) -> None:
         self.conf = configure(self, conf, "graph")
+        self._consistency = PairwiseConsistency(self.conf["consistency"], self.conf["odometry"])
         self.anchor: str | None = None  #: the first robot added; its map frame is the global frame
         self._local: dict[Node, Sim3] = {}
         self._last: dict[str, Node] = {}
@@ -153,6 +156,9 @@ class PoseGraph:
 
     def local_pose(self, node: Node) -> Sim3:
         return self._local[node]
+
+    def __contains__(self, node: object) -> bool:
+        return node in self._local
 
     def add_keyframe(self, robot: str, keyframe: int, pose: np.ndarray) -> Node:
         """Adds a keyframe and the odometry edge from the robot's previous one.
@@ -198,24 +204,71 @@ class PoseGraph:
         """A copy that later ``add_keyframe``/``add_edge`` calls on this graph do not change (nodes and edges are
         immutable, so they are shared)."""
         other = PoseGraph.__new__(PoseGraph)
-        other.conf, other.anchor = self.conf, self.anchor
+        other.conf, other.anchor, other._consistency = self.conf, self.anchor, self._consistency
         other._local, other._last = dict(self._local), dict(self._last)
         other._edges, other._guess = list(self._edges), dict(self._guess)
+        return other
+
+    def without(self, robots: set[str]) -> "PoseGraph":
+        """A copy without ``robots``' keyframes and every edge touching them (what the others' maps would be)."""
+        other = self.copy()
+        other._local = {n: p for n, p in self._local.items() if n.robot not in robots}
+        other._last = {r: n for r, n in self._last.items() if r not in robots}
+        other._edges = [e for e in self._edges if e.a.robot not in robots and e.b.robot not in robots]
         return other
 
     def set_transform(self, robot: str, transform: Sim3) -> None:
         """An initial guess of ``robot``'s map-to-global transform (otherwise derived from the overlap edges)."""
         self._guess[robot] = transform
 
-    def initial_transforms(self) -> dict[str, Sim3]:
-        """Map-to-global transforms of the robots connected to the anchor (breadth first over overlap edges)."""
+    def trusted_edges(self) -> list[Edge]:
+        """The edges the optimisation uses: odometry and loops, and of each robot pair's overlap edges the largest
+        pairwise-consistent set (``fleet.consistency``)."""
+        pairs: dict[tuple[str, str], list[Edge]] = {}
+        out = []
+        for e in self._edges:
+            if e.kind == "overlap":
+                pairs.setdefault(tuple(sorted((e.a.robot, e.b.robot))), []).append(e)
+            else:
+                out.append(e)
+        position = self._positions(pairs)
+        links, kept = [], {}
+        for (first, second), edges in pairs.items():
+            oriented = [(e.a, e.relative, e.b) if e.a.robot == first else (e.b, e.relative.inverse(), e.a)
+                        for e in edges]
+            transforms = [self._local[a].compose(rel).compose(self._local[b].inverse()) for a, rel, b in oriented]
+            keep = self._consistency.select(transforms, [self._local[b].t for _, _, b in oriented],
+                                            [(position[a], position[b]) for a, _, b in oriented])
+            if keep:
+                kept[(first, second)] = [edges[i] for i in keep]
+                links.append(PairLink(first, second, mean_sim3([transforms[i] for i in keep]),
+                                      self._local[oriented[keep[0]][2]].t, len(keep)))
+        for link in self._consistency.select_pairs(links):
+            out += kept[(link.a, link.b)]
+        return out
+
+    def _positions(self, pairs: dict[tuple[str, str], list[Edge]]) -> dict[Node, int]:
+        """Each keyframe's position along its robot (odometry steps from its first), for robots in ``pairs``."""
+        robots = {r for pair in pairs for r in pair}
+        count: dict[str, int] = {}
+        out = {}
+        for n in self._local:  # insertion order: each robot's keyframes in order
+            if n.robot in robots:
+                out[n] = count.get(n.robot, 0)
+                count[n.robot] = out[n] + 1
+        return out
+
+    def initial_transforms(self, edges: list[Edge] | None = None) -> dict[str, Sim3]:
+        """Map-to-global transforms of the robots connected to the anchor (breadth first over overlap edges among
+        ``edges``; None: the trusted ones)."""
         if self.anchor is None:
             return {}
+        edges = self.trusted_edges() if edges is None else edges
         found = {self.anchor: Sim3.identity()}
         todo = deque([self.anchor])
         while todo:
             robot = todo.popleft()
-            for e in self._edges:
+            for e in edges:
                 if e.kind != "overlap" or robot not in (e.a.robot, e.b.robot):
                     continue
                 near, far, rel = (e.a, e.b, e.relative) if e.a.robot == robot else (e.b, e.a, e.relative.inverse())
@@ -232,7 +285,8 @@ class PoseGraph:
         Returns:
             ``GraphResult`` (empty for an empty graph).
         """
-        transforms = self.initial_transforms()
+        edges = self.trusted_edges()
+        transforms = self.initial_transforms(edges)
         nodes = [n for n in self._local if n.robot in transforms]
         if not nodes:
             return GraphResult()
@@ -240,7 +294,7 @@ class PoseGraph:
         values = gtsam.Values()
         for n, k in keys.items():
             values.insert(k, to_gtsam(transforms[n.robot].compose(self._local[n])))
-        graph = self._factors(keys)
+        graph = self._factors(keys, edges)
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(self.conf["max_iterations"])
         params.setRelativeErrorTol(self.conf["relative_error_tol"])
@@ -255,15 +309,15 @@ class PoseGraph:
                  graph.size(), result.error_before, result.error_after, result.iterations)
         return result
 
-    def _factors(self, keys: dict[Node, int]) -> gtsam.NonlinearFactorGraph:
-        """The prior on the anchor's first keyframe and one between-factor per edge among ``keys``."""
+    def _factors(self, keys: dict[Node, int], edges: list[Edge]) -> gtsam.NonlinearFactorGraph:
+        """The prior on the anchor's first keyframe and one between-factor per edge of ``edges`` among ``keys``."""
         graph = gtsam.NonlinearFactorGraph()
         first = next(n for n in keys if n.robot == self.anchor)
         prior = gtsam.noiseModel.Isotropic.Sigma(7, self.conf["prior_sigma"])
         graph.add(gtsam.PriorFactorSimilarity3(keys[first], to_gtsam(self._local[first]), prior))
         noise = {"odometry": self._noise("odometry"), "loop": self._noise("loop")}
         noise["overlap"] = noise["loop"]
-        for e in self._edges:
+        for e in edges:
             if e.a in keys and e.b in keys:
                 graph.add(gtsam.BetweenFactorSimilarity3(keys[e.a], keys[e.b], to_gtsam(e.relative), noise[e.kind]))
         return graph

@@ -25,6 +25,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from core.checks import check_intrinsics
 from core.conf import ConfigError, Float, Int, configure
 from verify.features import Features
 from verify.verifier import create_verifier
@@ -109,13 +110,6 @@ class OverlapTracker:
         return any(r.accepted is not None for key in ((robot, other), (other, robot)) if (r := self.rules.get(key)))
 
 
-def _check_K(K: np.ndarray) -> np.ndarray:
-    K = np.asarray(K, np.float64)
-    if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise ConfigError(f"intrinsics must be a finite (3, 3) matrix with fx, fy > 0; got shape {K.shape}")
-    return K
-
-
 def points_from_depth(pixels: np.ndarray, depth: np.ndarray, K: np.ndarray) -> np.ndarray:
     """Back-projects pixels with the depth at their nearest pixel: ``z * K^-1 [x, y, 1]``.
 
@@ -130,7 +124,7 @@ def points_from_depth(pixels: np.ndarray, depth: np.ndarray, K: np.ndarray) -> n
     Raises:
         ConfigError: a depth map that is not 2D, pixels not ``(N, 2)``, or bad intrinsics.
     """
-    K = _check_K(K)
+    K = check_intrinsics(K)
     px = np.asarray(pixels, np.float64).reshape(-1, 2) if np.size(pixels) else np.zeros((0, 2))
     d = np.asarray(depth, np.float64)
     if d.ndim != 2:
@@ -179,7 +173,7 @@ class PointTriangulator:
         out = np.full((len(features), 3), np.nan)
         if not len(features) or not len(neighbour):
             return out
-        v = self.verifier.verify(features, [neighbour], _check_K(K))[0]
+        v = self.verifier.verify(features, [neighbour], check_intrinsics(K))[0]
         pairs = v.pairs[v.geometry.mask] if v.inliers > 0 else np.zeros((0, 2), np.int64)
         if len(pairs):
             out[pairs[:, 0]] = self.triangulate(features.keypoints[pairs[:, 0]], neighbour.keypoints[pairs[:, 1]],
@@ -189,7 +183,7 @@ class PointTriangulator:
     def triangulate(self, px_a: np.ndarray, px_b: np.ndarray, pose_a: np.ndarray, pose_b: np.ndarray,
                     K: np.ndarray) -> np.ndarray:
         """Triangulates matched pixels ``(m, 2)`` of two views -> ``(m, 3)`` in camera a's frame, NaN if rejected."""
-        K = _check_K(K)
+        K = check_intrinsics(K)
         b_from_a = Sim3.from_pose(pose_b).inverse().compose(Sim3.from_pose(pose_a))
         P_a = K @ np.c_[np.eye(3), np.zeros(3)]
         P_b = K @ b_from_a.matrix()[:3]

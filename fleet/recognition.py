@@ -12,8 +12,11 @@ inter-robot overlaps, each turned into a pose-graph edge (a similarity from 3D-3
 - An edge's similarity: 3D points of the matched features on both sides (the depth map when the keyframe came with
   one, else triangulated from the robot's own neighbouring keyframe with its local poses), then ``estimate_overlap``.
 
-Camera intrinsics are per robot (the first keyframe's), kept in ``STATE/robots/NAME/camera.json``. Depth maps are
-kept in memory only: after a restart, keyframes that had one fall back to triangulation.
+Camera intrinsics are per robot (the first keyframe's), kept in ``STATE/robots/NAME/camera.json``. 3D points of at
+most ``points_cache`` keyframes per robot are kept in memory. (``detector.runtime.features: database`` would read
+features back from the robot's database instead of keeping them; measured, it makes RSS grow faster, ~5 MiB a
+keyframe, so it is not the default: see BENCHMARKS.md, issue 19.) Points from depth maps are kept in memory only: after a restart, or once dropped
+from the cache, keyframes that had one fall back to triangulation.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -28,7 +32,9 @@ from typing import Any
 import numpy as np
 
 from core.conf import ConfigError, Float, Int, check_conf, merge_conf
+from core.errors import ConflictError
 from core.files import write_text_atomic
+from core.images import check_image, fingerprint
 from retrieval.descriptors import GlobalDescriptor, create_descriptor
 from retrieval.detector import LoopDetector, resolve_conf
 from verify.verifier import Verification
@@ -72,20 +78,33 @@ def remembering(descriptor: GlobalDescriptor) -> GlobalDescriptor:
     return Remembering()
 
 
+def _image_fingerprint(image: np.ndarray) -> str:
+    """``core.images.fingerprint`` of a decoded image's shape and pixels (what a retry is compared by)."""
+    return fingerprint(repr((image.shape, image.dtype.str)).encode() + np.ascontiguousarray(image).tobytes())
+
+
 class _Robot:
     """One robot's detector, intrinsics, local poses and searchable codes."""
 
-    def __init__(self, detector: LoopDetector, K: np.ndarray | None) -> None:
-        self.detector, self.K = detector, K
+    def __init__(self, detector: LoopDetector, K: np.ndarray | None, points_cache: int = 256) -> None:
+        self.detector, self.K, self.points_cache = detector, K, points_cache
         self.poses: dict[int, np.ndarray] = {}  # keyframe -> (4, 4) local pose
         self.ids: list[int] = []  # keyframes in the place memory (passed the gate), ascending
         self.codes = np.zeros((0, 0), np.float32)  # (len(ids), dim) searched entries
-        self.points: dict[int, np.ndarray] = {}  # keyframe -> (N, 3) feature points, when known
+        self.points: OrderedDict[int, np.ndarray] = OrderedDict()  # keyframe -> (N, 3) feature points (LRU)
 
     def add(self, keyframe: int, entry: np.ndarray) -> None:
         entry = np.asarray(entry, np.float32).reshape(1, -1)
         self.codes = entry if not self.ids else np.concatenate([self.codes, entry])
         self.ids.append(int(keyframe))
+
+    def remember_points(self, keyframe: int, points: np.ndarray) -> np.ndarray:
+        """Caches a keyframe's 3D points, dropping the least recently used past ``points_cache``."""
+        self.points[keyframe] = points
+        self.points.move_to_end(keyframe)
+        while len(self.points) > self.points_cache:
+            self.points.popitem(last=False)
+        return points
 
     def neighbour(self, keyframe: int) -> int | None:
         """The keyframe in the place memory nearest to ``keyframe`` (another one), None if there is none."""
@@ -118,11 +137,12 @@ class FleetRecognizer:
         "sim3": Sim3Ransac.default_conf,  # RANSAC of an edge's similarity from 3D-3D matches
         "min_points": 20,  # 3D-3D RANSAC inliers an edge needs
         "max_edges_per_pair": 30,  # overlap edges kept per robot pair (the accepting run's first)
+        "points_cache": 256,  # keyframes' 3D feature points kept in memory per robot (least recently used dropped)
     }
     conf_rules: dict[str, Any] = {
         "cross": {"k": Int(1, 1000), "min_score": Float(-1, 1), "min_matches": Int(0), "min_inliers": Int(0)},
         "overlap": OverlapTracker.conf_rules, "triangulation": PointTriangulator.conf_rules,
-        "sim3": Sim3Ransac.conf_rules, "min_points": Int(3), "max_edges_per_pair": Int(1)}
+        "sim3": Sim3Ransac.conf_rules, "min_points": Int(3), "max_edges_per_pair": Int(1), "points_cache": Int(1)}
 
     def __init__(self, state_dir: str | Path, conf: dict[str, Any] | None = None,
                  descriptor: GlobalDescriptor | None = None) -> None:
@@ -144,7 +164,8 @@ class FleetRecognizer:
             self._open(folder.parent.name, None)
 
     def _open(self, name: str, K: np.ndarray | None) -> _Robot:
-        """The robot's detector, resumed from its database; ``K`` is stored on first use and must match after."""
+        """The robot's detector, resumed from its database; ``K`` is the stored one when there is a ``camera.json``
+        (written by ``process`` once the robot's first keyframe is accepted)."""
         folder = self.root / name
         camera = folder / "camera.json"
         if camera.exists():
@@ -153,17 +174,31 @@ class FleetRecognizer:
                 raise ConfigError(f"{camera}: format_version {stored.get('format_version')} is not "
                                   f"{CAMERA_FORMAT_VERSION}")
             K = None if stored["K"] is None else np.asarray(stored["K"], np.float64)
-        else:
-            folder.mkdir(parents=True, exist_ok=True)
-            write_text_atomic(camera, json.dumps({"format_version": CAMERA_FORMAT_VERSION,
-                                                  "K": None if K is None else np.asarray(K).tolist()}))
+        folder.mkdir(parents=True, exist_ok=True)
         det = LoopDetector(self.detector_conf, K=K, database=folder / "keyframes.h5", descriptor=self.descriptor)
-        robot = self.robots[name] = _Robot(det, K)
+        robot = self.robots[name] = _Robot(det, K, self.conf["points_cache"])
         for rec in det.db:
             if rec.pose is not None:
                 robot.poses[rec.frame_id] = Sim3.from_pose(rec.pose).matrix()
             robot.add(rec.frame_id, det.places.entry(rec.code))
         return robot
+
+    def _save_camera(self, name: str) -> None:
+        """Writes the robot's ``camera.json`` (its intrinsics) if it has none yet."""
+        camera = self.root / name / "camera.json"
+        if not camera.exists():
+            K = self.robots[name].K
+            write_text_atomic(camera, json.dumps({"format_version": CAMERA_FORMAT_VERSION,
+                                                  "K": None if K is None else np.asarray(K).tolist()}))
+
+    def check_retry(self, robot: str, keyframe: int, image: np.ndarray) -> None:
+        """Refuses (``ConflictError``) a retry of a stored keyframe whose image differs from the stored one's."""
+        r = self.robots.get(robot)
+        if r is None or r.detector.db is None:
+            return
+        stored = next((e.fingerprint for e in r.detector.db.frames() if e.frame_id == keyframe), "")
+        if stored and stored != _image_fingerprint(image):
+            raise ConflictError(f"robot {robot!r} sent keyframe {keyframe} before, with another image")
 
     def has(self, robot: str, keyframe: int) -> bool:
         """True when the robot's database already holds ``keyframe`` (or a later one)."""
@@ -188,15 +223,18 @@ class FleetRecognizer:
             ConfigError, ImageError: a bad input; nothing was stored.
         """
         self.check(robot, K)
+        check_image(image, "image")  # before a new robot's folder is made: a refused keyframe leaves nothing
         r = self.robots.get(robot) or self._open(robot, K)
         self.descriptor.last = None
-        res = r.detector.process(image, frame_id=keyframe, timestamp=timestamp, pose=pose)
+        res = r.detector.process(image, frame_id=keyframe, timestamp=timestamp, pose=pose,
+                                 fingerprint=_image_fingerprint(image))
+        self._save_camera(robot)
         r.poses[keyframe] = np.asarray(pose, np.float64)
         if res.gated or self.descriptor.last is None:
             return Recognition(gated=True)
         r.add(keyframe, r.detector.places.entry(self.descriptor.last))
         if depth is not None and r.K is not None:
-            r.points[keyframe] = points_from_depth(r.detector.features[keyframe].keypoints, depth, r.K)
+            r.remember_points(keyframe, points_from_depth(r.detector.features[keyframe].keypoints, depth, r.K))
         out = Recognition()
         if res.loop is not None:
             self._add_edge(out, "loop", (robot, res.loop.frame_id), (robot, keyframe), None)
@@ -277,13 +315,14 @@ class FleetRecognizer:
         """``(N, 3)`` 3D points of the keyframe's features in its camera frame (cached), None without intrinsics."""
         r = self.robots[robot]
         if keyframe in r.points:
+            r.points.move_to_end(keyframe)
             return r.points[keyframe]
         near = r.neighbour(keyframe)
         if r.K is None or near is None or keyframe not in r.poses or near not in r.poses:
             return None
         feats = r.detector.features
-        r.points[keyframe] = self.triangulator(feats[keyframe], r.poses[keyframe], feats[near], r.poses[near], r.K)
-        return r.points[keyframe]
+        return r.remember_points(keyframe, self.triangulator(feats[keyframe], r.poses[keyframe], feats[near],
+                                                             r.poses[near], r.K))
 
     def _overlap_record(self, edge: EdgeRecord) -> OverlapRecord:
         """The accepted overlap: the similarity mapping robot b's map into robot a's, from ``edge``."""

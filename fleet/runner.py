@@ -13,9 +13,20 @@ from fastapi import FastAPI
 
 from core.errors import LCDError
 
-__all__ = ["ServerThread"]
+from .limits import TimedH11Protocol
+
+__all__ = ["ServerThread", "server_config"]
 
 log = logging.getLogger(__name__)
+
+
+def server_config(app: FastAPI, host: str = "127.0.0.1", port: int = 0, log_level: str = "warning") -> uvicorn.Config:
+    """The uvicorn configuration of the fleet server (``cae-lcd serve`` and ``ServerThread`` alike): the h11 protocol
+    with a header read deadline (``limits.header_timeout_s``), a short keep-alive and bounded request heads."""
+    limits = app.state.service.conf["limits"]
+    protocol = type("FleetH11", (TimedH11Protocol,), {"header_timeout_s": float(limits["header_timeout_s"])})
+    return uvicorn.Config(app, host=host, port=port, log_level=log_level, lifespan="on", access_log=False,
+                          http=protocol, timeout_keep_alive=5, h11_max_incomplete_event_size=64 * 1024)
 
 
 class ServerThread:
@@ -30,8 +41,7 @@ class ServerThread:
 
     def __init__(self, app: FastAPI, host: str = "127.0.0.1", port: int = 0, start_timeout: float = 30.0) -> None:
         self.app, self.host = app, host
-        self._server = uvicorn.Server(uvicorn.Config(app, host=host, port=port, log_level="warning",
-                                                     lifespan="on", access_log=False))
+        self._server = uvicorn.Server(server_config(app, host, port))
         self._thread = threading.Thread(target=self._server.run, name="fleet-server", daemon=True)
         self._timeout = start_timeout
         self.port = port

@@ -2,7 +2,9 @@
 
 Every request carries ``Authorization: Bearer TOKEN``. The admin token (given at start, never stored) registers
 robots; a robot's token (``NAME.SECRET``, returned once at registration, stored hashed) lets it write its own
-keyframes and read. Bodies are JSON; images travel base64-encoded (PNG or JPEG bytes), a depth map as a base64 ``.npy``.
+keyframes and read. Bodies are JSON (unknown fields and wrong types refused); images travel base64-encoded (PNG, JPEG,
+TIFF, BMP or WebP bytes, their size checked from the header before decoding), a depth map as a base64 ``.npy``
+(its declared shape and dtype checked before it is read).
 
     POST /robots                       admin        {"name"} -> 201 {"name", "token"}
     POST /robots/{name}/keyframes      robot name   {"keyframe", "timestamp", "pose" (3x4 or 4x4), "image",
@@ -17,9 +19,11 @@ keyframes and read. Bodies are JSON; images travel base64-encoded (PNG or JPEG b
 Each keyframe runs through place recognition (``fleet.recognition``) before it is acknowledged; the pose graph is
 re-solved in the background, and reads return the latest solution (``wait=true``: one that includes every keyframe
 acknowledged so far). State lives under ``state_dir``: ``fleet.sqlite`` (robots, keyframes, edges) and
-``robots/NAME/`` (each robot's HDF5 keyframe database and intrinsics). Errors: 400 a bad value (one line in
-``detail``), 401 no or a wrong token, 403 another robot's data, 404 an unknown robot, 409 a taken name, 413 a body
-or an image too large, 422 a body that does not fit the schema.
+``robots/NAME/`` (each robot's HDF5 keyframe database and intrinsics). Errors (``Problem``: one line in
+``detail``): 400 a bad value, 401 no or a wrong token, 403 a robot's token where the admin's is needed, 404 an
+unknown robot or another robot's (alike, so names cannot be probed), 408 a body sent too slowly, 409 a taken name or a
+retry of an acknowledged keyframe with other content, 413 a body or an image too large, 422 a body that does not fit
+the schema (``SchemaProblem``), 429 too many failed authentications from one address (refused before any hash).
 """
 
 from __future__ import annotations
@@ -27,46 +31,85 @@ from __future__ import annotations
 import base64
 import binascii
 import hmac
-import io
 import logging
 from pathlib import Path
-from typing import Any, Callable
+from typing import Annotated, Any, Callable
 
-import cv2
 import numpy as np
 from fastapi import Depends, FastAPI, Header, HTTPException, Request
 from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
+from core.checks import MAX_FRAME_ID, check_intrinsics, check_rigid_pose, decode_depth
 from core.conf import ConfigError
-from core.errors import LCDError
+from core.errors import ConflictError, ImageError, LCDError
+from core.images import decode_image, image_header
 from retrieval.descriptors import GlobalDescriptor
 
 from .map_page import map_router
+from .limits import AuthThrottle, BodyLimit
 from .recognition import FleetRecognizer
-from .service import FleetService
+from .service import ROBOT_NAME, FleetService
 from .store import SQLiteStore
 
-__all__ = ["create_app", "KeyframeIn", "RobotIn"]
+__all__ = ["create_app", "KeyframeIn", "RobotIn", "Problem", "SchemaProblem"]
 
 log = logging.getLogger(__name__)
 
 ADMIN = "\0admin"  #: the caller name of the admin token
+MAX_B64 = 48 * 2**20  #: longest base64 string a field may hold (the body limit is usually lower)
+MAX_TOKEN = 256  #: longest Authorization header value looked at
 
 
-class RobotIn(BaseModel):
-    name: str
+def _a_number(value: Any) -> Any:
+    """Refuses text and booleans where a number is expected ("16" is not 16); 16.0 stays 16, as JSON Schema says."""
+    if isinstance(value, (str, bytes, bool)):
+        raise ValueError("must be a JSON number, not a string or a boolean")
+    return value
 
 
-class KeyframeIn(BaseModel):
-    keyframe: int = Field(ge=0)
-    timestamp: float
-    pose: list[list[float]] = Field(max_length=4)  #: 3x4 or 4x4 camera-to-map pose in the robot's own map
-    image: str  #: base64 PNG or JPEG bytes
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", strict=True)  # unknown fields and "16" for an int are refused
+
+
+class RobotIn(_Strict):
+    name: str = Field(pattern=f"^{ROBOT_NAME}$")  #: 1 to 64 letters, digits, _ and -
+
+
+class KeyframeIn(_Strict):
+    keyframe: Annotated[int, BeforeValidator(_a_number)] = Field(ge=0, lt=MAX_FRAME_ID, strict=False)  #: increasing
+    timestamp: float  #: seconds, finite, never less than the robot's previous keyframe's
+    pose: list[list[float]] = Field(min_length=3, max_length=4)  #: 3x4 or 4x4 rigid camera-to-map pose
+    image: str = Field(max_length=MAX_B64)  #: base64 PNG, JPEG, TIFF, BMP or WebP bytes
     intrinsics: list[list[float]] | None = Field(default=None, max_length=3)  #: 3x3 camera matrix
-    depth: str | None = None  #: base64 .npy of a (H, W) depth map, the image's size
+    depth: str | None = Field(default=None, max_length=MAX_B64)  #: base64 .npy of a (H, W) depth map, the image's size
+
+
+class Problem(BaseModel):
+    """Every refusal: one line saying why."""
+
+    detail: str
+
+
+class SchemaProblem(Problem):
+    """A body, path or query that does not fit the schema (422): one line, and pydantic's errors."""
+
+    errors: list[dict[str, Any]]
+
+
+_PROBLEMS: dict[int | str, dict[str, Any]] = {
+    400: {"model": Problem, "description": "a bad value"},
+    401: {"model": Problem, "description": "no or a wrong token"},
+    403: {"model": Problem, "description": "the admin token is needed"},
+    404: {"model": Problem, "description": "no such robot (or not this token's)"},
+    408: {"model": Problem, "description": "the body came too slowly"},
+    409: {"model": Problem, "description": "a taken name, or a retry with other content"},
+    413: {"model": Problem, "description": "a body or an image too large"},
+    422: {"model": SchemaProblem, "description": "does not fit the schema"},
+    429: {"model": Problem, "description": "too many failed authentications from this address"},
+}
 
 
 def _decode_b64(text: str, what: str) -> bytes:
@@ -76,65 +119,25 @@ def _decode_b64(text: str, what: str) -> bytes:
         raise HTTPException(400, f"{what} is not valid base64") from None
 
 
-def _decode_keyframe(body: KeyframeIn, max_pixels: int) -> tuple[np.ndarray, np.ndarray | None,
+def _decode_keyframe(body: KeyframeIn, max_pixels: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None,
                                                                   np.ndarray | None]:
-    """The image, intrinsics and depth of a keyframe body, checked; raises HTTP 400 (413: too large) with one line."""
-    raw = np.frombuffer(_decode_b64(body.image, "image"), np.uint8)
-    if raw.size >= 24 and raw[:8].tobytes() == b"\x89PNG\r\n\x1a\n":  # refuse a huge PNG before decoding it
-        width, height = (int.from_bytes(raw[16:20].tobytes(), "big"), int.from_bytes(raw[20:24].tobytes(), "big"))
-        if width * height > max_pixels:
-            raise HTTPException(413, f"image has {width}x{height} pixels; at most {max_pixels} are accepted")
-    image = cv2.imdecode(raw, cv2.IMREAD_UNCHANGED) if raw.size else None
-    if image is None:
-        raise HTTPException(400, "image is not a readable PNG or JPEG")
-    if image.shape[0] * image.shape[1] > max_pixels:
-        raise HTTPException(413, f"image has {image.shape[1]}x{image.shape[0]} pixels; at most {max_pixels} are "
-                                 "accepted")
-    K = None
-    if body.intrinsics is not None:
-        K = _matrix(body.intrinsics, (3, 3), "intrinsics")
-    depth = None
-    if body.depth is not None:
-        try:
-            depth = np.load(io.BytesIO(_decode_b64(body.depth, "depth")), allow_pickle=False)
-        except (OSError, ValueError):
-            raise HTTPException(400, "depth is not a .npy array") from None
-        if depth.shape != image.shape[:2] or depth.dtype.kind not in "fiu":
-            raise HTTPException(400, f"depth must be a numeric {image.shape[:2]} array like the image; got "
-                                     f"{depth.dtype} {depth.shape}")
-    return image, K, depth
-
-
-def _matrix(value: Any, shape: tuple[int, ...], what: str) -> np.ndarray:
-    """A finite float matrix of ``shape``; HTTP 400 otherwise."""
+    """The pose, image, intrinsics and depth of a keyframe body, each checked before it is decoded or used; raises
+    HTTP 400 (413: too large) with one line."""
     try:
-        m = np.asarray(value, np.float64)
-    except (TypeError, ValueError):
-        raise HTTPException(400, f"{what} must be a {'x'.join(map(str, shape))} matrix of numbers") from None
-    if m.shape != shape or not np.isfinite(m).all():
-        raise HTTPException(400, f"{what} must be a finite {'x'.join(map(str, shape))} matrix; got shape {m.shape}")
-    return m
-
-
-def _pose(value: list[list[float]]) -> np.ndarray:
-    """A 3x4 or 4x4 pose; HTTP 400 otherwise."""
-    rows = len(value)
-    if rows not in (3, 4):
-        raise HTTPException(400, f"pose must be a 3x4 or 4x4 matrix; got {rows} rows")
-    return _matrix(value, (rows, 4), "pose")
-
-
-def _size_limit(app: FastAPI, max_bytes: int) -> None:
-    """Refuses request bodies over ``max_bytes`` (413) by their Content-Length, and bodies without one (411)."""
-
-    @app.middleware("http")
-    async def limit(request: Request, call_next: Any) -> Any:
-        length = request.headers.get("content-length")
-        if length is None and request.method in ("POST", "PUT", "PATCH"):
-            return JSONResponse({"detail": "a request body needs a Content-Length"}, status_code=411)
-        if length is not None and (not length.isdigit() or int(length) > max_bytes):
-            return JSONResponse({"detail": f"request body over {max_bytes} bytes"}, status_code=413)
-        return await call_next(request)
+        pose = check_rigid_pose(body.pose, "pose")
+        K = None if body.intrinsics is None else check_intrinsics(body.intrinsics)
+    except ConfigError as err:
+        raise HTTPException(400, str(err)) from None
+    raw = _decode_b64(body.image, "image")
+    header = image_header(raw)
+    if header is not None and header[1] * header[2] > max_pixels:
+        raise HTTPException(413, f"image has {header[1]}x{header[2]} pixels; at most {max_pixels} are accepted")
+    try:
+        image = decode_image(raw, "image", max_pixels, known_header=True)
+        depth = None if body.depth is None else decode_depth(_decode_b64(body.depth, "depth"), image.shape[:2])
+    except (ImageError, ConfigError) as err:
+        raise HTTPException(400, str(err)) from None
+    return pose, image, K, depth
 
 
 def create_app(state_dir: str | Path, admin_token: str, conf: dict[str, Any] | None = None,
@@ -164,9 +167,11 @@ def create_app(state_dir: str | Path, admin_token: str, conf: dict[str, Any] | N
         raise
     app = FastAPI(title="cae-lcd fleet server", on_shutdown=[service.close])
     app.state.service = service
-    _size_limit(app, int(service.conf["limits"]["max_request_mb"] * 2**20))
+    limits = service.conf["limits"]
+    app.add_middleware(BodyLimit, max_bytes=int(limits["max_request_mb"] * 2**20), timeout_s=limits["body_timeout_s"])
     app.add_exception_handler(RequestValidationError, _one_line_422)
-    caller, owner_or_admin = _auth(service, admin_token)
+    throttle = AuthThrottle(limits["auth_failures"], limits["auth_window_s"])
+    caller, owner_or_admin = _auth(service, admin_token, throttle)
     _write_routes(app, service, caller, owner_or_admin)
     _read_routes(app, service, caller, owner_or_admin)
     app.include_router(map_router(service, caller, owner_or_admin))  # GET /map, GET /robots/{name}/trajectory
@@ -175,30 +180,36 @@ def create_app(state_dir: str | Path, admin_token: str, conf: dict[str, Any] | N
 
 async def _one_line_422(request: Request, exc: RequestValidationError) -> JSONResponse:
     """Schema errors as one line (``"body.keyframe: Input should be greater than or equal to 0"``), like the others;
-    the details stay in ``errors``."""
+    the details stay in ``errors`` (``SchemaProblem``)."""
     lines = [".".join(str(p) for p in e.get("loc", ())) + ": " + str(e.get("msg", "invalid")) for e in exc.errors()]
-    return JSONResponse(status_code=422, content={"detail": "; ".join(lines) or "invalid request",
-                                                  "errors": jsonable_encoder(exc.errors())})
+    errors = [{k: v for k, v in e.items() if k in ("type", "loc", "msg")} for e in exc.errors()]
+    return JSONResponse(status_code=422, content={"detail": "; ".join(lines)[:2000] or "invalid request",
+                                                  "errors": jsonable_encoder(errors)})
 
 
-def _auth(service: FleetService, admin_token: str) -> tuple[Callable[..., str], Callable[[str, str], None]]:
-    """The ``caller`` dependency (token -> robot name or ``ADMIN``; 401) and the ``owner_or_admin`` check (404, 403).
-    """
+def _auth(service: FleetService, admin_token: str,
+          throttle: AuthThrottle) -> tuple[Callable[..., str], Callable[[str, str], None]]:
+    """The ``caller`` dependency (token -> robot name or ``ADMIN``; 401, 429 after too many failures from the address,
+    before any hash) and the ``owner_or_admin`` check (404 alike for a missing robot and another robot's)."""
 
-    def caller(authorization: str = Header(default="")) -> str:
+    def caller(request: Request, authorization: str = Header(default="", max_length=MAX_TOKEN)) -> str:
         token = authorization.removeprefix("Bearer ").strip()
         if token and hmac.compare_digest(token.encode(), admin_token.encode()):
             return ADMIN
         name = token.split(".", 1)[0]
+        if name and service.known_token(name, token):
+            return name
+        client = request.client.host if request.client else "?"
+        if throttle.blocked(client):
+            raise HTTPException(429, "too many failed authentications from this address; wait and retry")
         if not name or not service.authenticate(name, token):
+            throttle.failed(client)
             raise HTTPException(401, "missing or wrong token")
         return name
 
     def owner_or_admin(name: str, who: str) -> None:
-        if name not in service.store.robots():
+        if who not in (name, ADMIN) or not service.has_robot(name):
             raise HTTPException(404, f"no robot {name!r}")
-        if who not in (name, ADMIN):
-            raise HTTPException(403, f"this token cannot access robot {name!r}")
 
     return caller, owner_or_admin
 
@@ -208,27 +219,26 @@ def _write_routes(app: FastAPI, service: FleetService, caller: Callable[..., str
     """``POST /robots`` and ``POST /robots/{name}/keyframes``."""
     max_pixels = service.conf["limits"]["max_image_pixels"]
 
-    @app.post("/robots", status_code=201)
+    @app.post("/robots", status_code=201, responses=_PROBLEMS)
     def register(body: RobotIn, who: str = Depends(caller)) -> dict[str, str]:
         if who != ADMIN:
             raise HTTPException(403, "only the admin token registers robots")
-        if body.name in service.store.robots():
-            raise HTTPException(409, f"robot {body.name!r} is already registered")
         try:
             token = service.register(body.name)
         except ConfigError as err:
-            raise HTTPException(400, str(err)) from None
+            raise HTTPException(409 if "already registered" in str(err) else 400, str(err)) from None
         return {"name": body.name, "token": token}
 
-    @app.post("/robots/{name}/keyframes")
+    @app.post("/robots/{name}/keyframes", responses=_PROBLEMS)
     def submit(name: str, body: KeyframeIn, who: str = Depends(caller)) -> dict[str, Any]:
+        if who != name:  # the admin reads, but only the robot itself writes its keyframes
+            raise HTTPException(404, f"no robot {name!r}")
         owner_or_admin(name, who)
-        if who != name:
-            raise HTTPException(403, "only the robot itself submits its keyframes")
-        pose = _pose(body.pose)
-        image, K, depth = _decode_keyframe(body, max_pixels)
+        pose, image, K, depth = _decode_keyframe(body, max_pixels)
         try:
             stored = service.submit_keyframe(name, body.keyframe, body.timestamp, pose, image, K, depth)
+        except ConflictError as err:
+            raise HTTPException(409, str(err)) from None
         except LCDError as err:
             raise HTTPException(400, str(err)) from None
         return {"robot": name, "keyframe": body.keyframe, "stored": stored}
@@ -238,25 +248,24 @@ def _read_routes(app: FastAPI, service: FleetService, caller: Callable[..., str]
                  owner_or_admin: Callable[[str, str], None]) -> None:
     """Loops, poses, overlaps and transforms."""
 
-    @app.get("/robots/{name}/loops")
+    @app.get("/robots/{name}/loops", responses=_PROBLEMS)
     def loops(name: str, who: str = Depends(caller)) -> list[dict[str, Any]]:
         owner_or_admin(name, who)
         return [{"kind": e.kind, "a": [e.robot_a, e.keyframe_a], "b": [e.robot_b, e.keyframe_b],
                  "relative": e.relative.matrix().tolist(), "score": e.score}
                 for e in service.store.edges(robot=name) if e.kind != "odometry"]
 
-    @app.get("/robots/{name}/poses")
+    @app.get("/robots/{name}/poses", responses=_PROBLEMS)
     def poses(name: str, wait: bool = False, who: str = Depends(caller)) -> list[dict[str, Any]]:
         owner_or_admin(name, who)
         return service.poses(name, wait)
 
-    @app.get("/overlaps")
+    @app.get("/overlaps", responses=_PROBLEMS)
     def overlaps(who: str = Depends(caller)) -> list[dict[str, Any]]:
         return [{"robot_a": o.robot_a, "robot_b": o.robot_b, "transform": o.transform.matrix().tolist(),
                  "matches": o.matches, "accepted": o.accepted} for o in service.store.overlaps()]
 
-    @app.get("/transforms")
+    @app.get("/transforms", responses=_PROBLEMS)
     def transforms(wait: bool = False, who: str = Depends(caller)) -> dict[str, list[list[float]]]:
         service.optimize(wait)
         return {robot: T.matrix().tolist() for robot, T in service.store.transforms().items()}
-

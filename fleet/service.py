@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from core.checks import check_frame_id, check_intrinsics, check_rigid_pose, check_timestamp
 from core.conf import ConfigError, Float, Int, configure
 
 from .graph import GraphResult, Node, PoseGraph
@@ -46,12 +47,18 @@ class FleetService:
         "optimizer": BackgroundOptimizer.default_conf,  # when the graph is solved (fleet.optimizer)
         "limits": {
             "max_request_mb": 32.0,  # larger request bodies are refused (HTTP 413)
-            "max_image_pixels": 16_000_000,  # larger images are refused (HTTP 413)
+            "max_image_pixels": 16_000_000,  # larger images are refused (HTTP 413), from their header
+            "body_timeout_s": 60.0,  # a request body not received within this is refused (HTTP 408)
+            "header_timeout_s": 10.0,  # a connection whose request headers are not in within this is closed
+            "auth_failures": 20,  # failed authentications an address may make per window; then HTTP 429
+            "auth_window_s": 60.0,  # the window of auth_failures, seconds
         },
     }
     conf_rules: dict[str, Any] = {"graph": PoseGraph.conf_rules, "optimizer": BackgroundOptimizer.conf_rules,
                                   "limits": {"max_request_mb": Float(0, lo_open=True),
-                                             "max_image_pixels": Int(64)}}
+                                             "max_image_pixels": Int(64), "body_timeout_s": Float(0, lo_open=True),
+                                             "header_timeout_s": Float(0, lo_open=True), "auth_failures": Int(1),
+                                             "auth_window_s": Float(0, lo_open=True)}}
 
     def __init__(self, store: FleetStore, conf: dict[str, Any] | None = None,
                  recognizer: FleetRecognizer | None = None) -> None:
@@ -62,6 +69,7 @@ class FleetService:
         self._submit = threading.Lock()  # one keyframe at a time through recognition and the store
         self._verified: set[bytes] = set()  # sha256(name, token) of tokens already checked (PBKDF2 is slow)
         self._graph = PoseGraph(self.conf["graph"])
+        self._last: dict[str, KeyframeAck] = {}  # each robot's latest acknowledged keyframe
         self._rebuild()
         if recognizer is not None:
             recognizer.resume(self.store.overlaps(), self.store.edges(kind="overlap"))
@@ -71,19 +79,38 @@ class FleetService:
         with self._lock:
             return self._graph.copy()
 
+    def graph(self) -> PoseGraph:
+        """A copy of the pose graph as it is now (later keyframes do not change it)."""
+        return self._snapshot()
+
     def _publish(self, result: GraphResult) -> None:
         self.store.set_transforms(result.transforms)
 
     def _rebuild(self) -> None:
-        """The graph from the store: every robot's acknowledged keyframes, then the loop and overlap edges."""
+        """The graph from the store: every robot's acknowledged keyframes, then the loop and overlap edges. A stored
+        value that cannot be loaded (a pose or an edge no check would accept today) is reported and skipped: the
+        server always starts."""
+        skipped = 0
         for robot in self.store.robots():
             for ack in self.store.keyframes(robot):
-                self._graph.add_keyframe(robot, ack.keyframe, ack.pose)
+                try:
+                    self._graph.add_keyframe(robot, ack.keyframe, check_rigid_pose(ack.pose))
+                    self._last[robot] = ack
+                except ConfigError as err:
+                    skipped += 1
+                    log.warning("stored keyframe %d of robot %s skipped: %s", ack.keyframe, robot, err)
         for e in self.store.edges():
-            if e.kind != "odometry":
+            if e.kind == "odometry":
+                continue
+            try:
                 self._graph.add_edge(e.kind, Node(e.robot_a, e.keyframe_a), Node(e.robot_b, e.keyframe_b), e.relative)
+            except ConfigError as err:
+                skipped += 1
+                log.warning("stored %s edge %s %d -> %s %d skipped: %s", e.kind, e.robot_a, e.keyframe_a, e.robot_b,
+                            e.keyframe_b, err)
         self._set_anchor()
-        log.info("fleet state: %d robots, %d keyframes", len(self.store.robots()), len(self._graph.nodes))
+        log.info("fleet state: %d robots, %d keyframes (%d stored values skipped)", len(self.store.robots()),
+                 len(self._graph.nodes), skipped)
 
     def _set_anchor(self) -> None:
         """The global frame is the map of the first registered robot that has keyframes (whoever sent first)."""
@@ -103,6 +130,14 @@ class FleetService:
         token = f"{name}.{secrets.token_urlsafe(32)}"
         self.store.add_robot(name, token)
         return token
+
+    def has_robot(self, name: str) -> bool:
+        """True when robot ``name`` is registered."""
+        return name in self.store.robots()
+
+    def known_token(self, name: str, token: str) -> bool:
+        """True when ``token`` was already verified as robot ``name``'s (no hash computed)."""
+        return hashlib.sha256(f"{name}\0{token}".encode()).digest() in self._verified
 
     def authenticate(self, name: str, token: str) -> bool:
         """True when ``token`` is robot ``name``'s (checked against the stored hash once, then remembered)."""
@@ -129,24 +164,32 @@ class FleetService:
             True when new, False for a retry of a stored keyframe.
 
         Raises:
-            ConfigError, ImageError: a bad value, an id not after the robot's last, or a conflicting retry; nothing
-                was stored.
+            ConfigError, ImageError: a bad value (``core.checks``: id, timestamp, rigid pose, intrinsics), an id not
+                after the robot's last, a timestamp before its last; nothing was stored.
+            ConflictError: a retry of a stored keyframe with another timestamp, pose or image; nothing changed.
         """
-        local = Sim3.from_pose(pose)
-        if not np.isfinite(timestamp):
-            raise ConfigError(f"timestamp must be a finite number of seconds; got {timestamp!r}")
+        keyframe, timestamp = check_frame_id(keyframe, "keyframe"), check_timestamp(timestamp)
+        local = Sim3.from_pose(check_rigid_pose(pose))
+        K = None if K is None else check_intrinsics(K)
         with self._submit:
-            ack = KeyframeAck(robot, int(keyframe), float(timestamp), local.matrix())
-            acks = self.store.keyframes(robot)
-            if any(a.keyframe == ack.keyframe for a in acks):
-                return self.store.ack_keyframe(ack)  # a retry (False) or a conflict (ConfigError)
-            last = max(acks, key=lambda a: a.keyframe) if acks else None
-            if last is not None and ack.keyframe < last.keyframe:
+            ack = KeyframeAck(robot, keyframe, timestamp, local.matrix())
+            with self._lock:
+                known = Node(robot, keyframe) in self._graph
+            last = self._last.get(robot)
+            if known:  # a retry (False) or a conflict (ConflictError); nothing changes either way
+                if self.recognizer is not None and image is not None:
+                    self.recognizer.check_retry(robot, keyframe, image)
+                return self.store.ack_keyframe(ack)
+            if last is not None and keyframe < last.keyframe:
                 raise ConfigError(f"robot {robot}: keyframe {keyframe} is not after its last one ({last.keyframe})")
+            if last is not None and timestamp < last.timestamp:
+                raise ConfigError(f"robot {robot}: timestamp {timestamp!r} is before its last keyframe's "
+                                  f"({last.timestamp!r})")
             found = self._recognize(ack, image, K, depth)
             edges = [] if last is None else [EdgeRecord("odometry", robot, last.keyframe, robot, ack.keyframe,
                                                         Sim3.from_pose(last.pose).inverse().compose(local))]
             self.store.ack_keyframe(ack, edges + found.edges)
+            self._last[robot] = ack
             for overlap in found.overlaps:
                 self.store.add_overlap(overlap)
             with self._lock:

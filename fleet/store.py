@@ -34,12 +34,12 @@ from abc import ABC, abstractmethod
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
 from core.conf import ConfigError, Int, configure
-from core.errors import DatabaseError
+from core.errors import ConflictError, DatabaseError
 
 from .graph import EDGE_KINDS
 from .sim3 import Sim3
@@ -97,6 +97,18 @@ def _sim3_json(T: Sim3) -> str:
 
 def _sim3_from_json(text: str) -> Sim3:
     return Sim3.from_matrix(np.array(json.loads(text), np.float64).reshape(4, 4))
+
+
+def _loadable(rows: Sequence[tuple], load: Callable[[tuple], Any], what: str) -> list[Any]:
+    """``load(row)`` of every row that can be loaded; one that cannot (e.g. a similarity with an infinite scale
+    stored by an older version) is reported and skipped, so that a bad value never stops a server from starting."""
+    out = []
+    for row in rows:
+        try:
+            out.append(load(row))
+        except (ConfigError, ValueError, TypeError) as err:
+            log.warning("stored %s skipped (cannot be loaded): %s", what, str(err).splitlines()[0][:200])
+    return out
 
 
 class FleetStore(ABC):
@@ -282,7 +294,7 @@ class SQLiteStore(FleetStore):
                              (ack.robot, int(ack.keyframe))).fetchone()
             if old is not None:
                 if old != (float(ack.timestamp), pose):
-                    raise ConfigError(f"robot {ack.robot!r} sent keyframe {ack.keyframe} before, with other content")
+                    raise ConflictError(f"robot {ack.robot!r} sent keyframe {ack.keyframe} before, with other content")
                 return False
             db.execute("INSERT INTO keyframes VALUES (?, ?, ?, ?)",
                        (ack.robot, int(ack.keyframe), float(ack.timestamp), pose))
@@ -312,7 +324,7 @@ class SQLiteStore(FleetStore):
         rows = self._read("SELECT kind, robot_a, keyframe_a, robot_b, keyframe_b, sim3, score FROM edges "
                           "WHERE (?1 IS NULL OR kind = ?1) AND (?2 IS NULL OR robot_a = ?2 OR robot_b = ?2) "
                           "ORDER BY id", (kind, robot))
-        return [EdgeRecord(k, ra, ka, rb, kb, _sim3_from_json(m), sc) for k, ra, ka, rb, kb, m, sc in rows]
+        return _loadable(rows, lambda r: EdgeRecord(*r[:5], _sim3_from_json(r[5]), r[6]), "edge")
 
     # ------------------------------------------------------------------------------------- overlaps, transforms
     def add_overlap(self, overlap: OverlapRecord) -> None:
@@ -323,7 +335,7 @@ class SQLiteStore(FleetStore):
 
     def overlaps(self) -> list[OverlapRecord]:
         rows = self._read("SELECT robot_a, robot_b, sim3, matches, accepted FROM overlaps ORDER BY accepted, rowid")
-        return [OverlapRecord(a, b, _sim3_from_json(m), n, t) for a, b, m, n, t in rows]
+        return _loadable(rows, lambda r: OverlapRecord(r[0], r[1], _sim3_from_json(r[2]), r[3], r[4]), "overlap")
 
     def set_transforms(self, transforms: dict[str, Sim3]) -> None:
         now = time.time()
@@ -333,7 +345,8 @@ class SQLiteStore(FleetStore):
                            [(robot, _sim3_json(T), now) for robot, T in transforms.items()])
 
     def transforms(self) -> dict[str, Sim3]:
-        return {r: _sim3_from_json(m) for r, m in self._read("SELECT robot, sim3 FROM transforms ORDER BY rowid")}
+        rows = self._read("SELECT robot, sim3 FROM transforms ORDER BY rowid")
+        return dict(_loadable(rows, lambda r: (r[0], _sim3_from_json(r[1])), "transform"))
 
     def close(self) -> None:
         with self._lock:

@@ -312,7 +312,8 @@ class KeyframeDatabase:
         if reason not in SKIP_REASONS:
             raise ValueError(f"reason must be one of {SKIP_REASONS}; got {reason!r}")
         attrs = {"frame_id": int(frame_id), "reason": reason, "source": np.bytes_(_name_bytes(source)),
-                 "fingerprint": fingerprint, "edge_ratio": float(edge_ratio), "message": message[:300]}
+                 "fingerprint": fingerprint, "edge_ratio": float(edge_ratio),
+                 "message": message[:300].encode("utf-8", "backslashreplace").decode("utf-8")}  # names not UTF-8
         self._write_group("skipped", frame_id, lambda grp: grp.attrs.update(attrs))
 
     def add_gated(self, frame_id: int, source: str = "", fingerprint: str = "", edge_ratio: float = float("nan")

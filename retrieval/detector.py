@@ -35,6 +35,7 @@ import torch
 
 from cae.preprocess import to_network_u8
 from cae.whitening import DEFAULT_DIM, DEFAULT_SHRINK
+from core.checks import check_frame_id, check_intrinsics, check_pose, check_timestamp
 from core.conf import Bool, Choice, ConfigError, Float, Int, check_conf, merge_conf
 from core.images import check_image, to_gray_u8, to_uint8
 from core.threads import apply_thread_policy, cpu_count
@@ -231,7 +232,7 @@ class LoopDetector:
                  features: dict[int, Features] | None = None) -> None:
         self.conf = resolve_conf(conf)
         c = self.conf
-        self.K = None if K is None else _matrix(K, (3, 3), "K")
+        self.K = None if K is None else check_intrinsics(K, "K")
         if c["runtime"]["features"] == "database" and database is None:
             raise ConfigError("runtime.features 'database' needs a keyframe database (database=... / --out)")
         if calibration is not None and not isinstance(calibration, Calibration):
@@ -333,8 +334,7 @@ class LoopDetector:
             raise ConfigError("this LoopDetector is closed; create a new one")
         if frame_id is None:
             return self._next_id
-        if isinstance(frame_id, (bool, np.bool_)) or not isinstance(frame_id, (int, np.integer)):
-            raise ConfigError(f"frame_id must be an integer; got {frame_id!r} ({type(frame_id).__name__})")
+        frame_id = check_frame_id(frame_id, "frame_id")
         if frame_id < self._next_id:
             raise ConfigError(f"frame id {frame_id} is not after the last frame processed ({self._next_id - 1})")
         return int(frame_id)
@@ -374,8 +374,8 @@ class LoopDetector:
         """
         fid = self._frame_id(frame_id)
         check_image(image, "image")
-        ts = _timestamp(timestamp)
-        pose34 = None if pose is None else _pose(pose)
+        ts = None if timestamp is None else check_timestamp(timestamp)
+        pose34 = None if pose is None else check_pose(pose)
         if code is not None:
             code = self._given_code(code)
         ms: dict[str, float] = {}
@@ -603,33 +603,3 @@ class LoopDetector:
         self.close()
 
 
-def _matrix(value: Any, shape: tuple[int, int], name: str) -> np.ndarray:
-    try:
-        m = np.asarray(value, np.float64)
-    except (TypeError, ValueError):
-        raise ConfigError(f"{name} must be a {shape[0]}x{shape[1]} matrix of numbers; got {type(value).__name__}") \
-            from None
-    if m.shape != shape or not np.isfinite(m).all():
-        raise ConfigError(f"{name} must be a finite {shape[0]}x{shape[1]} matrix; got shape {m.shape}"
-                          + ("" if m.shape != shape else " with NaN or inf"))
-    return m
-
-
-def _pose(pose: Any) -> np.ndarray:
-    """A ``(3, 4)`` camera-to-world pose from a 3x4 or 4x4 matrix (or 12 numbers, row-major)."""
-    m = np.asarray(pose, np.float64) if isinstance(pose, np.ndarray) else pose
-    shape = np.shape(m)
-    if shape in ((4, 4), (16,)):
-        return _matrix(np.asarray(m, np.float64).reshape(4, 4)[:3], (3, 4), "pose")
-    if shape == (12,):
-        m = np.asarray(m, np.float64).reshape(3, 4)
-    return _matrix(m, (3, 4), "pose")
-
-
-def _timestamp(value: Any) -> float | None:
-    if value is None:
-        return None
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)) \
-            or not np.isfinite(value):
-        raise ConfigError(f"timestamp must be a finite number of seconds; got {value!r}")
-    return float(value)

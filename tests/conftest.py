@@ -71,6 +71,14 @@ def sample_K(sample_dir):
 
 
 @pytest.fixture(scope="session")
+def sample_poses(sample_dir):
+    """``(100, 3, 4)`` ground-truth poses of the bundled sample's frames."""
+    from retrieval.sequences import read_kitti_poses
+
+    return read_kitti_poses(sample_dir / "poses.txt")
+
+
+@pytest.fixture(scope="session")
 def sample_seq(sample_dir):
     from retrieval.sequences import open_sequence
 

@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 
 from cae.encode import encode_images, normalize_codes
+from core.errors import ImageError
 
 
 @pytest.fixture(scope="module")
@@ -35,6 +36,13 @@ class TestEncodeImages:
         g = sample_image(10)
         imgs = [cv2.cvtColor(g, cv2.COLOR_GRAY2BGR), g.astype(np.uint16) * 257, g.astype(np.float32) / 255.0]
         np.testing.assert_allclose(encode_images(encoder, imgs), np.repeat(codes[:1], 3, axis=0), atol=1e-5)
+
+    @pytest.mark.parametrize("bad", ["grey", "small", "float"])
+    def test_prepared_images_of_another_layout_are_refused_with_one_line(self, encoder, sample_image, bad):
+        image = {"grey": sample_image(0), "small": np.zeros((64, 64, 3), np.uint8),
+                 "float": np.zeros((256, 256, 3), np.float32)}[bad]
+        with pytest.raises(ImageError, match="prepared image 0 must be uint8"):
+            encode_images(encoder, [image], prepared=True)
 
     def test_empty(self, encoder):
         out = encode_images(encoder, [])

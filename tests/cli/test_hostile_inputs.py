@@ -113,6 +113,8 @@ BAD_FRAMES = [  # (name, writer, readable): appended after the good frames, so t
     ("000023.png", lambda p: p.symlink_to(p.parent / "does-not-exist.png"), False),  # broken link
     ("000024.png", lambda p: os.mkfifo(p), False),  # a FIFO: must not block
     ("000025.png", lambda p: p.mkdir(), False),  # a folder named like an image
+    (os.fsdecode(b"000026\xfe.png"), lambda p: p.write_bytes(b"\x89PNG\r\n\x1a\n" + b"x" * 40),
+     False),  # unreadable, and its name not UTF-8
 ]
 
 

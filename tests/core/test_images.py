@@ -113,6 +113,32 @@ class TestReadImageHostile:
         with pytest.raises(ImageError, match=f"too large: 1600000000 pixels \\(limit {MAX_IMAGE_PIXELS}\\)"):
             decode_image(bytes(data), "bomb.png")
 
+    @pytest.mark.parametrize("ext", [".png", ".jpg", ".tiff", ".bmp", ".webp"])
+    def test_every_format_is_sized_from_its_header_before_decoding(self, sample_image, ext, monkeypatch):
+        from core.images import image_header
+
+        image = sample_image(0)
+        data = cv2.imencode(ext, image)[1].tobytes()
+        assert image_header(data)[1:] == (image.shape[1], image.shape[0])
+
+        def no_decoding(*args):
+            raise AssertionError("decoded before its size was checked")
+
+        monkeypatch.setattr(cv2, "imdecode", no_decoding)
+        with pytest.raises(ImageError, match="too large"):
+            decode_image(data, f"frame{ext}", max_pixels=image.shape[0] * image.shape[1] - 1)
+
+    def test_a_huge_jpeg_header_is_refused_without_decoding(self, sample_dir):
+        data = bytearray((sample_dir / "image_0" / "000000.jpg").read_bytes())
+        sof = data.find(b"\xff\xc0")
+        data[sof + 5:sof + 9] = (65500).to_bytes(2, "big") * 2  # height, width
+        with pytest.raises(ImageError, match="too large"):
+            decode_image(bytes(data[:400]), "bomb.jpg")  # 400 bytes that claim 4.3 Gpixel
+
+    def test_an_unknown_header_is_refused_when_one_is_required(self):
+        with pytest.raises(ImageError, match="PNG or JPEG"):
+            decode_image(b"GIF89a" + bytes(40), "x.gif", known_header=True)
+
     def test_fingerprint(self, sample_dir):
         data = (sample_dir / "image_0" / "000000.jpg").read_bytes()
         fp = fingerprint(data)

@@ -77,14 +77,6 @@ def cae_descriptor():
 
 
 @pytest.fixture(scope="session")
-def sample_poses(sample_dir):
-    """``(100, 3, 4)`` ground-truth poses of the bundled sample's frames."""
-    from retrieval.sequences import read_kitti_poses
-
-    return read_kitti_poses(sample_dir / "poses.txt")
-
-
-@pytest.fixture(scope="session")
 def jpeg(sample_dir):
     """``jpeg(i)`` -> the bundled sample's frame ``i`` as JPEG bytes (what a robot sends)."""
     return lambda i: (sample_dir / "image_0" / f"{i:06d}.jpg").read_bytes()

@@ -102,9 +102,14 @@ class TestPoseGraph:
     @pytest.mark.parametrize("kernel, limit", [("huber", 2.0), ("cauchy", 0.5)])
     def test_robust_kernel_contains_a_wrong_overlap(self, two_robots, gt00, kernel, limit):
         edges = START + [(100, 101)] + END
-        _, plain = two_robots(edges, 0.002, {"robust": "none"}, wrong=[(50, 51)])
-        _, robust = two_robots(edges, 0.002, {"robust": kernel}, wrong=[(50, 51)])
+        off = {"enabled": False}  # the kernels alone, without the consistency test
+        _, plain = two_robots(edges, 0.002, {"robust": "none", "consistency": off}, wrong=[(50, 51)])
+        _, robust = two_robots(edges, 0.002, {"robust": kernel, "consistency": off}, wrong=[(50, 51)])
         assert b_on_a(plain, gt00).max() > 10.0 and b_on_a(robust, gt00).max() < limit
+
+    def test_the_consistency_test_leaves_a_wrong_overlap_out(self, two_robots, gt00):
+        _, res = two_robots(START + [(100, 101)] + END, 0.002, {"robust": "none"}, wrong=[(50, 51)])
+        assert b_on_a(res, gt00).max() < 0.5
 
     def test_a_loop_within_one_robot_reduces_drift(self, kitti_poses, kitti_sequences):
         """KITTI '90' passes twice over the same road; loop edges from its ground-truth loops.txt, true relatives."""

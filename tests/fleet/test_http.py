@@ -19,6 +19,7 @@ from fleet.server import create_app
 
 ADMIN = "http-admin-secret"
 LIMITS = {"limits": {"max_request_mb": 1.0, "max_image_pixels": 500_000}}
+NPY = b"\x93NUMPY\x01\x00"
 
 
 @pytest.fixture(scope="module")
@@ -90,18 +91,47 @@ class TestTokens:
         r = httpx.get(f"{url}/robots/A/poses", headers={"Authorization": f"Bearer {forged}"})
         assert r.status_code == 401
 
-    def test_another_robots_id_is_403(self, live, sample_poses, jpeg):
+    def test_another_robots_id_is_the_same_404_as_no_robot(self, live, sample_poses, jpeg):
         url, state, tokens = live
         before = state_of(state, "A")
         r = httpx.post(f"{url}/robots/A/keyframes", json=body(40, sample_poses, jpeg),
                        headers={"Authorization": f"Bearer {tokens['B']}"})
-        assert r.status_code == 403 and "robot 'A'" in r.json()["detail"]
+        missing = httpx.post(f"{url}/robots/Z/keyframes", json=body(40, sample_poses, jpeg),
+                             headers={"Authorization": f"Bearer {tokens['B']}"})
+        assert r.status_code == missing.status_code == 404 and "robot 'A'" in r.json()["detail"]
         assert state_of(state, "A") == before
 
 
 def _big_image(jpeg):
     image = cv2.imdecode(np.frombuffer(jpeg(0), np.uint8), cv2.IMREAD_UNCHANGED)
     return base64.b64encode(cv2.imencode(".png", cv2.resize(image, (1240, 564)))[1].tobytes()).decode()
+
+
+def _huge_jpeg(jpeg, side=65500):
+    """A few hundred bytes of a real JPEG whose header claims ``side`` x ``side`` pixels."""
+    data = bytearray(jpeg(0))
+    sof = data.find(b"\xff\xc0")
+    data[sof + 5:sof + 9] = side.to_bytes(2, "big") * 2
+    return base64.b64encode(bytes(data[:333])).decode()
+
+
+def _npy(array=None, shape=None, dtype="<f8"):
+    """A base64 .npy of ``array``, or a bare header declaring ``shape`` (no data)."""
+    if array is not None:
+        import io
+
+        buf = io.BytesIO()
+        np.save(buf, array, allow_pickle=False)
+        return base64.b64encode(buf.getvalue()).decode()
+    header = repr({"descr": dtype, "fortran_order": False, "shape": shape}).encode()
+    header += b" " * (63 - (len(header) + 10) % 64) + b"\n"
+    return base64.b64encode(NPY + len(header).to_bytes(2, "little") + header).decode()
+
+
+def _scaled_pose(scale):
+    p = np.eye(4)[:3]
+    p[:, :3] *= scale
+    return p.tolist()
 
 
 BAD = {  # name -> (change to a good body, expected status, words of the reason)
@@ -115,6 +145,24 @@ BAD = {  # name -> (change to a good body, expected status, words of the reason)
     "intrinsics-nan": (lambda j: {"intrinsics": [[float("nan")] * 3] * 3}, 400, "intrinsics"),
     "negative-id": (lambda j: {"keyframe": -1}, 422, "keyframe"),
     "image-too-large": (lambda j: {"image": _big_image(j)}, 413, "pixels"),
+    # the attacks of issue 19, each a 500, a silent acceptance or a blocked robot before
+    "jpeg-header-65500": (lambda j: {"image": _huge_jpeg(j)}, 413, "pixels"),
+    "jpeg-header-30000": (lambda j: {"image": _huge_jpeg(j, 30000)}, 413, "pixels"),
+    "depth-header-huge": (lambda j: {"depth": _npy(shape=(100000, 100000))}, 400, "(100000, 100000)"),
+    "depth-all-nan": (lambda j: {"depth": _npy(np.full((188, 620), np.nan, np.float32))}, 400, "finite"),
+    "depth-negative": (lambda j: {"depth": _npy(np.full((188, 620), -1e30, np.float32))}, 400, "finite"),
+    "id-2**63": (lambda j: {"keyframe": 2**63}, 422, "keyframe"),
+    "id-2**63-1": (lambda j: {"keyframe": 2**63 - 1}, 422, "keyframe"),
+    "id-1e30": (lambda j: {"keyframe": 1e30}, 422, "keyframe"),
+    "id-as-string": (lambda j: {"keyframe": "40"}, 422, "keyframe"),
+    "timestamp-as-string": (lambda j: {"timestamp": "4.0"}, 422, "timestamp"),
+    "timestamp-1e300": (lambda j: {"timestamp": 1e300}, 400, "timestamp"),
+    "timestamp-backwards": (lambda j: {"timestamp": 0.05}, 400, "before its last"),
+    "pose-scaled-down": (lambda j: {"pose": _scaled_pose(1e-100)}, 400, "rotation"),
+    "pose-scaled-up": (lambda j: {"pose": _scaled_pose(1e100)}, 400, "rotation"),
+    "pose-far": (lambda j: {"pose": (np.c_[np.eye(3), [1e300, 0, 0]]).tolist()}, 400, "translation"),
+    "intrinsics-zero": (lambda j: {"intrinsics": np.zeros((3, 3)).tolist()}, 400, "intrinsics"),
+    "unknown-field": (lambda j: {"padding": "x" * 1000}, 422, "padding"),
 }
 
 
@@ -139,6 +187,27 @@ class TestMalformedInput:
         r = httpx.post(f"{url}/robots/A/keyframes", json=padded, headers={"Authorization": f"Bearer {tokens['A']}"})
         assert r.status_code == 413 and "bytes" in r.json()["detail"]
         assert state_of(state, "A") == before
+
+    def test_a_retry_with_another_image_is_409_and_the_same_retry_200(self, live, sample_poses, jpeg):
+        url, state, tokens = live
+        before = state_of(state, "A")
+        auth = {"Authorization": f"Bearer {tokens['A']}"}
+        same = httpx.post(f"{url}/robots/A/keyframes", json=body(14, sample_poses, jpeg, timestamp=0.1 * 14), headers=auth)
+        assert same.status_code == 200 and same.json()["stored"] is False
+        other = body(14, sample_poses, jpeg, timestamp=1.4, image=base64.b64encode(jpeg(15)).decode())
+        r = httpx.post(f"{url}/robots/A/keyframes", json=other, headers=auth)
+        assert r.status_code == 409 and "another image" in r.json()["detail"]
+        assert state_of(state, "A") == before
+
+    def test_a_refused_first_keyframe_leaves_no_trace(self, live, sample_poses, jpeg, sample_K):
+        url, state, _ = live
+        token = FleetClient(url, ADMIN).register("D")
+        tiny = base64.b64encode(cv2.imencode(".png", np.zeros((1, 1), np.uint8))[1].tobytes()).decode()
+        r = httpx.post(f"{url}/robots/D/keyframes", json=body(0, sample_poses, jpeg, sample_K, image=tiny),
+                       headers={"Authorization": f"Bearer {token}"})
+        assert r.status_code == 400 and "too small" in r.json()["detail"]
+        assert not (state / "robots" / "D" / "camera.json").exists()
+        assert FleetClient(url, token).submit_keyframe("D", 0, 0.0, sample_poses[0], jpeg(0), sample_K)
 
     def test_an_unknown_robot_is_404(self, live, sample_poses, jpeg):
         url, state, _ = live

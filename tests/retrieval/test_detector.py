@@ -306,7 +306,8 @@ class TestProcessRefusesBadInput:
         ({"frame_id": 1.7}, "frame_id must be an integer"), ({"frame_id": "3"}, "frame_id must be an integer"),
         ({"frame_id": True}, "frame_id must be an integer"), ({"pose": np.eye(3)}, "pose must be a finite 3x4"),
         ({"pose": np.full((3, 4), np.nan)}, "NaN or inf"), ({"timestamp": float("nan")}, "timestamp"),
-        ({"timestamp": "noon"}, "timestamp"),
+        ({"timestamp": "noon"}, "timestamp"), ({"frame_id": 2**63}, "frame_id must be in"),
+        ({"frame_id": -1}, "frame_id must be in"), ({"timestamp": 1e300}, "timestamp"),
     ])
     def test_bad_arguments(self, encoder, sample_image, kwargs, error):
         with LoopDetector(encoder=encoder) as det:
@@ -321,7 +322,7 @@ class TestProcessRefusesBadInput:
             det.process(sample_image(0), 0, pose=pose)
             np.testing.assert_array_equal(next(iter(det.db)).pose, pose[:3])
 
-    @pytest.mark.parametrize("K", [np.eye(2), np.full((3, 3), np.inf), "K"])
+    @pytest.mark.parametrize("K", [np.eye(2), np.full((3, 3), np.inf), "K", np.zeros((3, 3)), -np.eye(3)])
     def test_bad_intrinsics(self, encoder, K):
         with pytest.raises(ConfigError, match="K must be"):
             LoopDetector(K=K, encoder=encoder)

@@ -1,0 +1,94 @@
+"""Memory of the fleet server as one robot streams keyframes: resident memory (RSS) after 100, 200, 500, 1000 and
+2000 keyframes, through ``FleetService`` with place recognition in this process (what the server runs behind HTTP).
+The robot drives the 200 real KITTI 00 frames of ``../shared`` lap after lap (ground-truth poses, times going on), so
+from the second lap on every keyframe revisits a place: loops, verification and graph edges as on a patrol route.
+
+``python -m bench.fleet_memory [--keyframes 2000] [--out runs/bench/fleet_memory]`` prints a Markdown table and
+writes ``fleet_memory.json``; the bar (issue 19): RSS after 2000 within 1.2x of RSS after 200.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import shutil
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+from core.files import prepare_out_dir, write_text_atomic
+from core.images import read_image
+from fleet.demo import kitti_stream
+from fleet.recognition import FleetRecognizer
+from fleet.service import FleetService
+from fleet.store import SQLiteStore
+
+from .common import REPO, md_table
+
+__all__ = ["stream_memory", "main", "MEMORY_FORMAT_VERSION"]
+
+log = logging.getLogger(__name__)
+
+MEMORY_FORMAT_VERSION = 1  #: format of ``fleet_memory.json``
+CHECKPOINTS = (100, 200, 500, 1000, 2000, 4000)  #: keyframe counts at which RSS is read
+
+
+def _rss_mb() -> float:
+    """This process's resident memory (Linux ``VmRSS``), MiB."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    raise RuntimeError("VmRSS unknown (not Linux)")
+
+
+def stream_memory(kitti_root: str | Path, state: str | Path, keyframes: int = 2000,
+                  recognition: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Streams ``keyframes`` keyframes of KITTI 00 (its 200 frames, lap after lap) as one robot; RSS at each
+    checkpoint.
+
+    Returns:
+        ``{"keyframes", "rss_mb": {count: MiB}, "seconds": {count: s}, "ratio_2000_200"}``.
+    """
+    lap = kitti_stream("A", kitti_root, "00", list(range(200)))
+    period = float(lap.times[-1] - lap.times[0]) + 1.0
+    service = FleetService(SQLiteStore(Path(state) / "fleet.sqlite"), None, FleetRecognizer(state, recognition))
+    rss: dict[int, float] = {}
+    seconds: dict[int, float] = {}
+    started = time.perf_counter()
+    try:
+        service.register("A")
+        for i in range(keyframes):
+            j = i % len(lap.frames)
+            service.submit_keyframe("A", i, float(lap.times[j]) + period * (i // len(lap.frames)), lap.poses[j],
+                                    read_image(lap.images[j]), lap.K)
+            if i + 1 in CHECKPOINTS:
+                service.optimize(wait=True, timeout=300)
+                rss[i + 1], seconds[i + 1] = _rss_mb(), time.perf_counter() - started
+                log.info("%d keyframes: RSS %.0f MiB, %.0f s", i + 1, rss[i + 1], seconds[i + 1])
+    finally:
+        service.close()
+    ratio = rss[2000] / rss[200] if 2000 in rss and 200 in rss else None
+    return {"format_version": MEMORY_FORMAT_VERSION, "keyframes": keyframes, "rss_mb": rss, "seconds": seconds,
+            "ratio_2000_200": ratio}
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--kitti", type=Path, default=REPO.parent / "shared" / "datasets" / "kitti")
+    ap.add_argument("--keyframes", type=int, default=2000, help="keyframes the robot sends")
+    ap.add_argument("--out", type=Path, default=REPO / "runs" / "bench" / "fleet_memory")
+    args = ap.parse_args(argv)
+    if not 1 <= args.keyframes <= 4000:
+        ap.error("--keyframes must be in 1..4000")
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    out = prepare_out_dir(args.out)
+    shutil.rmtree(out / "state", ignore_errors=True)
+    r = stream_memory(args.kitti, out / "state", args.keyframes)
+    write_text_atomic(out / "fleet_memory.json", json.dumps(r, indent=2))
+    print(md_table(["keyframes", "RSS MiB", "elapsed s"],
+                   [[n, f"{r['rss_mb'][n]:.0f}", f"{r['seconds'][n]:.0f}"] for n in r["rss_mb"]]))
+
+
+if __name__ == "__main__":
+    main()

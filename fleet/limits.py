@@ -1,0 +1,149 @@
+"""What bounds one client of the fleet server before its request reaches a route:
+
+- ``BodyLimit``: an ASGI middleware that counts a request body's bytes as they arrive (Content-Length or chunked,
+  whatever the headers claim) and its read time: over ``max_bytes`` -> 413, slower than ``timeout_s`` -> 408, before
+  the app sees any of it.
+- ``TimedH11Protocol`` (uvicorn's h11 protocol): a connection whose request headers are not complete within
+  ``header_timeout_s`` of its opening (or of its previous response) is closed: half-sent requests hold nothing.
+- ``AuthThrottle``: failed authentications per client address in a sliding window; past the limit, requests that
+  would need a token hash get 429 *before* the hash is computed.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import json
+import threading
+import time
+from typing import Any, Awaitable, Callable
+
+from uvicorn.protocols.http.h11_impl import H11Protocol
+
+__all__ = ["BodyLimit", "TimedH11Protocol", "AuthThrottle"]
+
+Scope = dict[str, Any]
+Message = dict[str, Any]
+Receive = Callable[[], Awaitable[Message]]
+Send = Callable[[Message], Awaitable[None]]
+
+
+async def _refuse(send: Send, status: int, detail: str) -> None:
+    body = json.dumps({"detail": detail}).encode()
+    await send({"type": "http.response.start", "status": status,
+                "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
+                            (b"connection", b"close")]})
+    await send({"type": "http.response.body", "body": body})
+
+
+class BodyLimit:
+    """ASGI middleware: reads the whole body first (at most ``max_bytes``, within ``timeout_s``), then replays it to
+    ``app``; a request over either limit is answered 413 or 408 and never reaches ``app``."""
+
+    def __init__(self, app: Callable[..., Awaitable[None]], max_bytes: int, timeout_s: float) -> None:
+        self.app, self.max_bytes, self.timeout_s = app, int(max_bytes), float(timeout_s)
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        declared = dict(scope.get("headers") or []).get(b"content-length", b"0")
+        if not declared.isdigit() or int(declared) > self.max_bytes:
+            await _refuse(send, 413, f"request body over {self.max_bytes} bytes")
+            return
+        chunks: list[bytes] = []
+        try:
+            status = await asyncio.wait_for(self._read(receive, chunks), self.timeout_s)
+        except asyncio.TimeoutError:
+            status = 408
+        if status == 413:
+            await _refuse(send, 413, f"request body over {self.max_bytes} bytes")
+            return
+        if status == 408:
+            await _refuse(send, 408, f"request body not received within {self.timeout_s:g} s")
+            return
+        if status == 499:  # the client went away
+            return
+        body, sent = b"".join(chunks), False
+
+        async def replay() -> Message:
+            nonlocal sent
+            if not sent:
+                sent = True
+                return {"type": "http.request", "body": body, "more_body": False}
+            return await receive()  # http.disconnect once the client goes
+
+        await self.app(scope, replay, send)
+
+    async def _read(self, receive: Receive, chunks: list[bytes]) -> int:
+        """Reads the body into ``chunks``: 200 read, 413 over the limit, 499 the client disconnected."""
+        size = 0
+        while True:
+            message = await receive()
+            if message["type"] == "http.disconnect":
+                return 499
+            size += len(message.get("body", b""))
+            if size > self.max_bytes:
+                return 413
+            chunks.append(message.get("body", b""))
+            if not message.get("more_body", False):
+                return 200
+
+
+class TimedH11Protocol(H11Protocol):
+    """uvicorn's h11 protocol, closing a connection whose request headers are not in within ``header_timeout_s``
+    (set as a class attribute by ``fleet.runner.server_config``)."""
+
+    header_timeout_s: float = 10.0
+
+    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
+        super().connection_made(transport)
+        self._arm_header_deadline()
+
+    def on_response_complete(self) -> None:
+        super().on_response_complete()
+        self._arm_header_deadline()
+
+    def _arm_header_deadline(self) -> None:
+        old = getattr(self, "_header_deadline", None)
+        if old is not None:
+            old.cancel()
+        self._header_deadline = self.loop.call_later(self.header_timeout_s, self._header_timeout)
+
+    def _header_timeout(self) -> None:
+        """Closes the connection unless a request's headers came in and it is being served."""
+        busy = self.cycle is not None and not self.cycle.response_complete
+        if not busy and not self.transport.is_closing():
+            self.transport.close()
+
+
+class AuthThrottle:
+    """Failed authentications per client address: at most ``limit`` in ``window_s`` seconds, for at most
+    ``max_clients`` addresses (the oldest forgotten first); thread-safe."""
+
+    def __init__(self, limit: int, window_s: float, max_clients: int = 10_000) -> None:
+        self.limit, self.window_s, self.max_clients = int(limit), float(window_s), int(max_clients)
+        self._failures: collections.OrderedDict[str, collections.deque[float]] = collections.OrderedDict()
+        self._lock = threading.Lock()
+
+    def _recent(self, client: str, now: float) -> collections.deque[float]:
+        times = self._failures.get(client)
+        if times is None:
+            times = self._failures[client] = collections.deque(maxlen=self.limit)
+            while len(self._failures) > self.max_clients:
+                self._failures.popitem(last=False)
+        while times and now - times[0] > self.window_s:
+            times.popleft()
+        return times
+
+    def blocked(self, client: str) -> bool:
+        """True when ``client`` failed ``limit`` times within the window (refuse it before hashing its token)."""
+        with self._lock:
+            return len(self._recent(client, time.monotonic())) >= self.limit
+
+    def failed(self, client: str) -> None:
+        """Counts a failed authentication of ``client``."""
+        with self._lock:
+            now = time.monotonic()
+            self._recent(client, now).append(now)
+            self._failures.move_to_end(client)

@@ -1,0 +1,114 @@
+"""fleet.limits over real HTTP on loopback: a chunked body that lies about its length, half-sent requests, and a
+flood of wrong tokens, against a live server with small limits (bounded counts and times, loopback only)."""
+
+from __future__ import annotations
+
+import select
+import socket
+import time
+
+import httpx
+import pytest
+
+from fleet.client import FleetClient
+from fleet.limits import AuthThrottle
+from fleet.runner import ServerThread
+from fleet.server import create_app
+
+ADMIN = "limits-admin-secret"
+LIMITS = {"limits": {"max_request_mb": 1.0, "header_timeout_s": 1.0, "body_timeout_s": 2.0, "auth_failures": 5,
+                     "auth_window_s": 60.0}}
+
+
+@pytest.fixture(scope="module")
+def live(tmp_path_factory, cae_descriptor):
+    """A server with small limits and robot A registered: ``(url, A's token)``."""
+    state = tmp_path_factory.mktemp("limits_state")
+    with ServerThread(create_app(state, ADMIN, LIMITS, descriptor=cae_descriptor)) as server:
+        yield server, FleetClient(server.url, ADMIN).register("A")
+
+
+def raw(server, parts: list[bytes], timeout: float = 10.0) -> bytes:
+    """Sends ``parts`` one by one on a new loopback connection, stopping once the server answers; returns the
+    answer's first bytes."""
+    with socket.create_connection((server.host, server.port), timeout=timeout) as s:
+        for part in parts:
+            if select.select([s], [], [], 0)[0]:
+                break
+            try:
+                s.sendall(part)
+            except (BrokenPipeError, ConnectionResetError):
+                break
+        return s.recv(65536)
+
+
+class TestBodyLimit:
+    def test_a_chunked_body_that_claims_two_bytes_is_counted(self, live, sample_poses, jpeg):
+        server, token = live
+        head = (f"POST /robots/A/keyframes HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {token}\r\n"
+                "Content-Type: application/json\r\nContent-Length: 2\r\nTransfer-Encoding: chunked\r\n\r\n").encode()
+        chunk = b"x" * 65536
+        answer = raw(server, [head] + [b"%x\r\n%s\r\n" % (len(chunk), chunk)] * 40 + [b"0\r\n\r\n"])  # 2.5 MB
+        status = int(answer.split(b" ", 2)[1])
+        assert status in (400, 413), answer[:200]  # h11 may refuse the two headers itself; never a 2xx or 5xx
+
+    def test_a_chunked_body_over_the_limit_is_413(self, live):
+        server, token = live
+        with httpx.Client() as http:
+            r = http.post(f"{server.url}/robots/A/keyframes", content=iter([b"x" * 65536] * 40),
+                          headers={"Authorization": f"Bearer {token}", "Content-Type": "application/json"})
+        assert r.status_code == 413 and "bytes" in r.json()["detail"]
+
+    def test_a_body_sent_too_slowly_is_408(self, live):
+        server, token = live
+        head = (f"POST /robots/A/keyframes HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {token}\r\n"
+                "Content-Type: application/json\r\nContent-Length: 1000\r\n\r\n{").encode()
+        with socket.create_connection((server.host, server.port), timeout=10) as s:
+            s.sendall(head)
+            started = time.monotonic()
+            answer = s.recv(65536)
+        assert answer.startswith(b"HTTP/1.1 408") and time.monotonic() - started < 6
+
+
+class TestHalfSentRequests:
+    def test_connections_with_incomplete_headers_are_closed(self, live):
+        server, _ = live
+        sockets = [socket.create_connection((server.host, server.port), timeout=10) for _ in range(30)]
+        try:
+            for s in sockets:
+                s.sendall(b"POST /robots/A/keyframes HTTP/1.1\r\nHost: x\r\n")  # and never the rest
+            started = time.monotonic()
+            closed = [s.recv(1024) == b"" for s in sockets]  # b"": the server closed it
+            assert all(closed) and time.monotonic() - started < 8
+        finally:
+            for s in sockets:
+                s.close()
+        assert httpx.get(f"{server.url}/overlaps", headers={"Authorization": f"Bearer {ADMIN}"}).status_code == 200
+
+
+class TestAuthThrottle:
+    def test_wrong_tokens_are_429_after_the_limit_and_good_tokens_still_work(self, live):
+        server, token = live
+        FleetClient(server.url, token).overlaps()  # A's token verified once (then remembered: no hash)
+        store = server.app.state.service.store
+        hashes = []
+        verify = store.verify_token
+        store.verify_token = lambda *a: hashes.append(a) or verify(*a)
+        codes = [httpx.get(f"{server.url}/overlaps", headers={"Authorization": f"Bearer A.wrong{i}"}).status_code
+                 for i in range(8)]
+        assert codes == [401] * 5 + [429] * 3
+        assert len(hashes) == 5  # the 429s were refused before the PBKDF2 hash (34 ms each)
+        assert FleetClient(server.url, token).overlaps() == []
+        assert FleetClient(server.url, ADMIN).overlaps() == []
+
+    def test_the_window_forgets_and_addresses_are_bounded(self, monkeypatch):
+        clock = [0.0]
+        monkeypatch.setattr(time, "monotonic", lambda: clock[0])
+        t = AuthThrottle(2, 10.0, max_clients=3)
+        t.failed("a"), t.failed("a")
+        assert t.blocked("a") and not t.blocked("b")
+        clock[0] = 11.0
+        assert not t.blocked("a")
+        for c in "bcde":
+            t.failed(c)
+        assert len(t._failures) <= 3
