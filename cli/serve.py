@@ -34,7 +34,7 @@ def admin_token(given: str | None) -> tuple[str, bool]:
 
 
 def serve(state: str, host: str = "127.0.0.1", port: int = 8765, admin: str | None = None,
-          config: str | None = None) -> None:
+          config: str | None = None, store: str | None = None) -> None:
     """Runs the fleet server until interrupted.
 
     Args:
@@ -44,6 +44,7 @@ def serve(state: str, host: str = "127.0.0.1", port: int = 8765, admin: str | No
         admin: the admin token (None: the environment's, else a generated one printed once).
         config: YAML with ``service`` (``FleetService.default_conf``) and ``recognition``
             (``FleetRecognizer.default_conf``) sections.
+        store: a ``postgresql://`` URL (shared by several servers) or a SQLite file (None: ``STATE/fleet.sqlite``).
 
     Raises:
         ConfigError: a bad config, port or state folder.
@@ -57,10 +58,11 @@ def serve(state: str, host: str = "127.0.0.1", port: int = 8765, admin: str | No
     if unknown:
         raise ConfigError(f"{config}: unknown sections {sorted(unknown)}; allowed: service, recognition")
     token, generated = admin_token(admin)
-    app = create_app(state, token, conf.get("service"), conf.get("recognition"))
+    app = create_app(state, token, conf.get("service"), conf.get("recognition"), store=store)
     if generated:
         print(f"admin token (shown once; set {TOKEN_ENV} to choose one): {token}", file=sys.stderr, flush=True)
-    log.info("fleet server on http://%s:%d, state in %s", host, port, state)
+    log.info("fleet server on http://%s:%d, state in %s%s", host, port, state,
+             f", store {store.split('@')[-1]}" if store else "")
     uvicorn.run(app, host=host, port=port, log_level="warning")
 
 
@@ -76,8 +78,11 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--admin-token", default=d["admin"],
                    help=f"admin token (default: ${TOKEN_ENV}, else generated and printed once)")
     p.add_argument("--config", default=d["config"], help="YAML with 'service' and 'recognition' sections")
+    p.add_argument("--store", default=d["store"],
+                   help="postgresql://USER@HOST:PORT/DB (shared by replicas) or a SQLite file "
+                        "(default: STATE/fleet.sqlite)")
     p.set_defaults(func=run)
 
 
 def run(args: Any) -> None:
-    serve(args.state, args.host, args.port, args.admin_token, args.config)
+    serve(args.state, args.host, args.port, args.admin_token, args.config, args.store)

@@ -44,7 +44,7 @@ from retrieval.descriptors import GlobalDescriptor
 
 from .recognition import FleetRecognizer
 from .service import FleetService
-from .store import SQLiteStore
+from .stores import open_store
 
 __all__ = ["create_app", "KeyframeIn", "RobotIn"]
 
@@ -136,7 +136,7 @@ def _size_limit(app: FastAPI, max_bytes: int) -> None:
 
 def create_app(state_dir: str | Path, admin_token: str, conf: dict[str, Any] | None = None,
                recognition: dict[str, Any] | None = None, recognize: bool = True,
-               descriptor: GlobalDescriptor | None = None) -> FastAPI:
+               descriptor: GlobalDescriptor | None = None, store: str | None = None) -> FastAPI:
     """The fleet server over the state in ``state_dir`` (created if missing, continued if present).
 
     Args:
@@ -146,6 +146,8 @@ def create_app(state_dir: str | Path, admin_token: str, conf: dict[str, Any] | N
         recognition: overrides of ``FleetRecognizer.default_conf``.
         recognize: False: no place recognition (keyframes are only acknowledged; edges come through the service).
         descriptor: an already built global descriptor to share (None: built once for this server).
+        store: where robots, keyframes and edges live: a ``postgresql://`` URL or a SQLite file (None:
+            ``state_dir/fleet.sqlite``; ``fleet.stores.open_store``).
 
     Raises:
         ConfigError: an empty admin token or a bad conf. DatabaseError: a damaged or foreign state file.
@@ -154,7 +156,7 @@ def create_app(state_dir: str | Path, admin_token: str, conf: dict[str, Any] | N
         raise ConfigError("the admin token must not be empty")
     recognizer = FleetRecognizer(state_dir, recognition, descriptor) if recognize else None
     try:
-        service = FleetService(SQLiteStore(Path(state_dir) / "fleet.sqlite"), conf, recognizer)
+        service = FleetService(open_store(state_dir, store), conf, recognizer)
     except BaseException:
         if recognizer is not None:
             recognizer.close()
