@@ -5,7 +5,8 @@ inter-robot overlaps, each turned into a pose-graph edge (a similarity from 3D-3
   all sharing one global descriptor (the CAE encoder is loaded once per server). It reports the robot's own loops,
   with its usual recent-frame exclusion and its fixed acceptance policy (``policy.min_inliers``).
 - Inter-robot: the query's code is searched against every OTHER robot's keyframes (cosine top-``cross.k``, no recency
-  exclusion: another robot's frame is never "recent") and verified by the same verifier (SIFT + geometry, fixed
+  exclusion: another robot's frame is never "recent"), at most ``cross.budget`` of them in all (the most similar:
+  ``fleet.budget``), and verified by the same verifier (SIFT + geometry, fixed
   inlier threshold ``cross.min_inliers``). Each robot pair's matches feed ``OverlapTracker``: an overlap is accepted
   after ``overlap.required`` consecutive matching keyframes; from then on every verified match becomes an edge (at
   most ``max_edges_per_pair``).
@@ -33,6 +34,7 @@ from retrieval.descriptors import GlobalDescriptor, create_descriptor
 from retrieval.detector import LoopDetector, resolve_conf
 from verify.verifier import Verification
 
+from .budget import shortlist
 from .overlap import OverlapTracker, PointTriangulator, estimate_overlap, points_from_depth
 from .sim3 import Sim3, Sim3Ransac
 from .store import EdgeRecord, OverlapRecord
@@ -109,6 +111,7 @@ class FleetRecognizer:
         "detector": {"calibration": {"enabled": False}},  # LoopDetector conf of every robot (fixed policy)
         "cross": {
             "k": 3,  # candidates of each other robot verified per query
+            "budget": 8,  # candidates verified per query over all other robots, the most similar (0: no bound)
             "min_score": 0.0,  # candidates under this cosine similarity are not verified
             "min_matches": 5,  # putative matches a candidate needs
             "min_inliers": 50,  # geometric inliers a cross-robot match needs (the detector's fixed policy)
@@ -120,7 +123,8 @@ class FleetRecognizer:
         "max_edges_per_pair": 30,  # overlap edges kept per robot pair (the accepting run's first)
     }
     conf_rules: dict[str, Any] = {
-        "cross": {"k": Int(1, 1000), "min_score": Float(-1, 1), "min_matches": Int(0), "min_inliers": Int(0)},
+        "cross": {"k": Int(1, 1000), "budget": Int(0, 100_000), "min_score": Float(-1, 1), "min_matches": Int(0),
+                  "min_inliers": Int(0)},
         "overlap": OverlapTracker.conf_rules, "triangulation": PointTriangulator.conf_rules,
         "sim3": Sim3Ransac.conf_rules, "min_points": Int(3), "max_edges_per_pair": Int(1)}
 
@@ -205,7 +209,10 @@ class FleetRecognizer:
 
     def _cross(self, out: Recognition, robot: str, keyframe: int) -> None:
         """Searches and verifies against every other robot, updates the overlap rules, adds edges."""
-        matches = {o: m for o in self.robots if o != robot and (m := self._best_match(robot, keyframe, o))}
+        c, q = self.conf["cross"], self.robots[robot].codes[-1]
+        scores = {o: r.codes @ q for o, r in self.robots.items() if o != robot and r.ids}
+        chosen = shortlist(scores, c["k"], c["min_score"], c["budget"])  # the keyframe's verification budget
+        matches = {o: m for o, top in chosen.items() if (m := self._best_match(robot, keyframe, o, top))}
         accepted = self.tracker.update(robot, keyframe, {o: m[0] for o, m in matches.items()})
         keep = self.conf["overlap"]["required"]
         for other, (match, check) in matches.items():
@@ -235,15 +242,11 @@ class FleetRecognizer:
             if e.kind == "overlap":
                 self._edges[(e.robot_a, e.robot_b)] = self._edges.get((e.robot_a, e.robot_b), 0) + 1
 
-    def _best_match(self, robot: str, keyframe: int, other: str) -> tuple[int, Verification] | None:
-        """The other robot's keyframe that verifies best against the query (None: none passes)."""
+    def _best_match(self, robot: str, keyframe: int, other: str,
+                    top: np.ndarray) -> tuple[int, Verification] | None:
+        """Of the other robot's keyframes at positions ``top`` (its shortlisted candidates), the one that verifies
+        best against the query (None: none passes)."""
         q, o, c = self.robots[robot], self.robots[other], self.conf["cross"]
-        if not o.ids:
-            return None
-        sims = o.codes @ q.codes[-1]
-        top = [i for i in np.argsort(-sims, kind="stable")[:c["k"]] if sims[i] >= c["min_score"]]
-        if not top:
-            return None
         det = q.detector
         K = q.K if q.K is not None and o.K is not None and np.allclose(q.K, o.K) else None
         checks = det.verifier.verify(det.features[keyframe], [o.detector.features[o.ids[i]] for i in top], K,
