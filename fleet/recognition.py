@@ -24,7 +24,7 @@ import logging
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -39,7 +39,7 @@ from .overlap import OverlapTracker, PointTriangulator, estimate_overlap, points
 from .sim3 import Sim3, Sim3Ransac
 from .store import EdgeRecord, OverlapRecord
 
-__all__ = ["FleetRecognizer", "Recognition", "CAMERA_FORMAT_VERSION"]
+__all__ = ["FleetRecognizer", "Recognition", "SharedKeyframe", "CAMERA_FORMAT_VERSION"]
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +53,26 @@ class Recognition:
     edges: list[EdgeRecord] = field(default_factory=list)
     overlaps: list[OverlapRecord] = field(default_factory=list)
     gated: bool = False  #: the quality gate refused the image (no place memory entry)
+
+
+@dataclass(frozen=True)
+class SharedKeyframe:
+    """What another recognizer needs of a keyframe to match it across robots (``export`` -> ``adopt``)."""
+
+    entry: np.ndarray  #: ``(d,)`` the searched code
+    features: Any  #: ``verify.features.Features`` of the keyframe
+    pose: np.ndarray  #: ``(4, 4)`` local pose
+    K: np.ndarray | None  #: ``(3, 3)`` the robot's intrinsics
+
+
+class _Adopted:
+    """Stands in for the detector of a robot another recognizer owns: its keyframes' features only."""
+
+    def __init__(self) -> None:
+        self.features: dict[int, Any] = {}
+
+    def close(self) -> None:
+        """Nothing to release."""
 
 
 def remembering(descriptor: GlobalDescriptor) -> GlobalDescriptor:
@@ -102,6 +122,8 @@ class FleetRecognizer:
         state_dir: the server's state folder (robots' databases go in ``robots/NAME/``).
         conf: overrides of ``default_conf``.
         descriptor: an already built global descriptor; None: built once from ``detector.descriptor``.
+        owns: which robots this recognizer opens from the state folder (None: all); the others' keyframes come
+            through ``adopt`` (``fleet.workers`` shards robots over several recognizers this way).
 
     Raises:
         ConfigError: a bad conf. DatabaseError: a damaged robot database.
@@ -129,13 +151,9 @@ class FleetRecognizer:
         "sim3": Sim3Ransac.conf_rules, "min_points": Int(3), "max_edges_per_pair": Int(1)}
 
     def __init__(self, state_dir: str | Path, conf: dict[str, Any] | None = None,
-                 descriptor: GlobalDescriptor | None = None) -> None:
-        conf = dict(conf or {})
-        user_detector = conf.pop("detector", None)  # checked by the detector's own rules (its units' sections)
-        self.conf = merge_conf({k: v for k, v in self.default_conf.items() if k != "detector"}, conf, "recognition")
-        check_conf(self.conf, self.conf_rules, "recognition")
-        self.detector_conf = resolve_conf(merge_conf(self.default_conf["detector"], user_detector, strict=False))
-        self.conf["detector"] = self.detector_conf
+                 descriptor: GlobalDescriptor | None = None, owns: Callable[[str], bool] | None = None) -> None:
+        self.conf = self.resolve(conf)
+        self.detector_conf = self.conf["detector"]
         self.root = Path(state_dir) / "robots"
         self.descriptor = remembering(descriptor or create_descriptor(self.detector_conf["descriptor"]))
         self.tracker = OverlapTracker(self.conf["overlap"])
@@ -145,7 +163,22 @@ class FleetRecognizer:
         self._edges: dict[tuple[str, str], int] = {}
         self._recorded: set[frozenset[str]] = set()  # robot pairs whose overlap was recorded (this run)
         for folder in sorted(self.root.glob("*/camera.json")):
-            self._open(folder.parent.name, None)
+            if owns is None or owns(folder.parent.name):
+                self._open(folder.parent.name, None)
+
+    @classmethod
+    def resolve(cls, conf: dict[str, Any] | None) -> dict[str, Any]:
+        """``conf`` merged onto ``default_conf`` and checked (``detector`` by the detector's own rules).
+
+        Raises:
+            ConfigError: an unknown key or a bad value.
+        """
+        conf = dict(conf or {})
+        user_detector = conf.pop("detector", None)  # checked by the detector's own rules (its units' sections)
+        out = merge_conf({k: v for k, v in cls.default_conf.items() if k != "detector"}, conf, "recognition")
+        check_conf(out, cls.conf_rules, "recognition")
+        out["detector"] = resolve_conf(merge_conf(cls.default_conf["detector"], user_detector, strict=False))
+        return out
 
     def _open(self, name: str, K: np.ndarray | None) -> _Robot:
         """The robot's detector, resumed from its database; ``K`` is stored on first use and must match after."""
@@ -169,9 +202,35 @@ class FleetRecognizer:
             robot.add(rec.frame_id, det.places.entry(rec.code))
         return robot
 
+    def export(self, robot: str, keyframes: list[int] | None = None) -> list[tuple[int, SharedKeyframe]]:
+        """The robot's keyframes (all, or those of ``keyframes`` in its place memory) as ``adopt`` takes them."""
+        r = self.robots[robot]
+        pos = {k: i for i, k in enumerate(r.ids)}
+        return [(k, SharedKeyframe(r.codes[pos[k]], r.detector.features[k], r.poses[k], r.K))
+                for k in (r.ids if keyframes is None else keyframes) if k in pos and k in r.poses]
+
+    def owned(self) -> list[str]:
+        """The robots this recognizer runs the detector of (not adopted from another)."""
+        return [name for name, r in self.robots.items() if not isinstance(r.detector, _Adopted)]
+
+    def adopt(self, robot: str, shared: list[tuple[int, SharedKeyframe]]) -> None:
+        """Adds another recognizer's keyframes of ``robot`` (``export``) to the robots matched across; a robot this
+        recognizer owns is left alone."""
+        r = self.robots.get(robot)
+        if r is None:
+            r = self.robots[robot] = _Robot(_Adopted(), shared[0][1].K if shared else None)  # type: ignore[arg-type]
+        if not isinstance(r.detector, _Adopted):
+            return
+        for keyframe, kf in shared:
+            if keyframe not in r.detector.features:
+                r.detector.features[keyframe] = kf.features
+                r.poses[keyframe] = kf.pose
+                r.add(keyframe, kf.entry)
+
     def has(self, robot: str, keyframe: int) -> bool:
         """True when the robot's database already holds ``keyframe`` (or a later one)."""
-        return robot in self.robots and keyframe < self.robots[robot].detector.next_frame_id
+        r = self.robots.get(robot)
+        return r is not None and not isinstance(r.detector, _Adopted) and keyframe < r.detector.next_frame_id
 
     def check(self, robot: str, K: np.ndarray | None) -> None:
         """Refuses intrinsics that differ from the robot's first ones; changes nothing."""
@@ -192,7 +251,9 @@ class FleetRecognizer:
             ConfigError, ImageError: a bad input; nothing was stored.
         """
         self.check(robot, K)
-        r = self.robots.get(robot) or self._open(robot, K)
+        r = self.robots.get(robot)
+        if r is None or isinstance(r.detector, _Adopted):  # first keyframe here (adopted keyframes: now owned)
+            r = self._open(robot, K)
         self.descriptor.last = None
         res = r.detector.process(image, frame_id=keyframe, timestamp=timestamp, pose=pose)
         r.poses[keyframe] = np.asarray(pose, np.float64)

@@ -42,9 +42,9 @@ from core.conf import ConfigError
 from core.errors import LCDError
 from retrieval.descriptors import GlobalDescriptor
 
-from .recognition import FleetRecognizer
 from .service import FleetService
 from .stores import open_store
+from .workers import create_recognizer
 
 __all__ = ["create_app", "KeyframeIn", "RobotIn"]
 
@@ -136,7 +136,8 @@ def _size_limit(app: FastAPI, max_bytes: int) -> None:
 
 def create_app(state_dir: str | Path, admin_token: str, conf: dict[str, Any] | None = None,
                recognition: dict[str, Any] | None = None, recognize: bool = True,
-               descriptor: GlobalDescriptor | None = None, store: str | None = None) -> FastAPI:
+               descriptor: GlobalDescriptor | None = None, store: str | None = None, workers: int = 1,
+               ray_address: str | None = None) -> FastAPI:
     """The fleet server over the state in ``state_dir`` (created if missing, continued if present).
 
     Args:
@@ -148,13 +149,15 @@ def create_app(state_dir: str | Path, admin_token: str, conf: dict[str, Any] | N
         descriptor: an already built global descriptor to share (None: built once for this server).
         store: where robots, keyframes and edges live: a ``postgresql://`` URL or a SQLite file (None:
             ``state_dir/fleet.sqlite``; ``fleet.stores.open_store``).
+        workers: > 1: robots sharded over that many Ray workers (``fleet.workers``); 1: in this process.
+        ray_address: a Ray cluster for the workers (None: a local Ray when ``workers`` > 1).
 
     Raises:
         ConfigError: an empty admin token or a bad conf. DatabaseError: a damaged or foreign state file.
     """
     if not admin_token:
         raise ConfigError("the admin token must not be empty")
-    recognizer = FleetRecognizer(state_dir, recognition, descriptor) if recognize else None
+    recognizer = create_recognizer(state_dir, recognition, descriptor, workers, ray_address) if recognize else None
     try:
         service = FleetService(open_store(state_dir, store), conf, recognizer)
     except BaseException:

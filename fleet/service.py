@@ -60,6 +60,7 @@ class FleetService:
         self.recognizer = recognizer
         self._lock = threading.Lock()  # the graph
         self._submit = threading.Lock()  # one keyframe at a time through recognition and the store
+        self._robot_locks: dict[str, threading.Lock] = {}  # per robot, when the recognizer runs robots in parallel
         self._verified: set[bytes] = set()  # sha256(name, token) of tokens already checked (PBKDF2 is slow)
         self._graph = PoseGraph(self.conf["graph"])
         self._rebuild()
@@ -135,7 +136,7 @@ class FleetService:
         local = Sim3.from_pose(pose)
         if not np.isfinite(timestamp):
             raise ConfigError(f"timestamp must be a finite number of seconds; got {timestamp!r}")
-        with self._submit:
+        with self._submit_lock(robot):
             ack = KeyframeAck(robot, int(keyframe), float(timestamp), local.matrix())
             acks = self.store.keyframes(robot)
             if any(a.keyframe == ack.keyframe for a in acks):
@@ -157,6 +158,14 @@ class FleetService:
                                          e.relative)
             self.optimizer.changed()
             return True
+
+    def _submit_lock(self, robot: str) -> threading.Lock:
+        """The lock a robot's keyframe is processed under: one for all robots, or one per robot when the recognizer
+        processes robots in parallel (``fleet.workers.RayRecognizer``)."""
+        if not getattr(self.recognizer, "parallel_robots", False):
+            return self._submit
+        with self._submit:
+            return self._robot_locks.setdefault(robot, threading.Lock())
 
     def _recognize(self, ack: KeyframeAck, image: np.ndarray | None, K: np.ndarray | None,
                    depth: np.ndarray | None) -> Recognition:
