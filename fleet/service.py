@@ -152,12 +152,27 @@ class FleetService:
                 self.store.add_overlap(overlap)
             with self._lock:
                 self._graph.add_keyframe(robot, ack.keyframe, ack.pose)
+                self._catch_up(found.edges)
                 self._set_anchor()
                 for e in found.edges:
                     self._graph.add_edge(e.kind, Node(e.robot_a, e.keyframe_a), Node(e.robot_b, e.keyframe_b),
                                          e.relative)
             self.optimizer.changed()
             return True
+
+    def _catch_up(self, edges: list[EdgeRecord]) -> None:
+        """Adds to the graph the keyframes that ``edges`` join and another front end on the same store acknowledged
+        (a replica: ``fleet.stores``), read from the store; call under the graph lock."""
+        known = self._graph.nodes
+        last: dict[str, int] = {}
+        for n in known:
+            last[n.robot] = max(last.get(n.robot, -1), n.keyframe)
+        for robot in {r for e in edges for r in (e.robot_a, e.robot_b)}:
+            if any(Node(r, k) not in known for e in edges for r, k in ((e.robot_a, e.keyframe_a),
+                                                                      (e.robot_b, e.keyframe_b)) if r == robot):
+                for ack in self.store.keyframes(robot):
+                    if ack.keyframe > last.get(robot, -1):
+                        self._graph.add_keyframe(robot, ack.keyframe, ack.pose)
 
     def _submit_lock(self, robot: str) -> threading.Lock:
         """The lock a robot's keyframe is processed under: one for all robots, or one per robot when the recognizer

@@ -9,7 +9,8 @@ features and pose are copied to the other actors (``FleetRecognizer.export`` -> 
 matched against every other one. Keyframes of robots on different shards are processed at the same time
 (``parallel_robots``): the service then serialises keyframes per robot only.
 
-A worker that dies is started again on its next request, and its robots continue there: the new actor reopens their
+Several front-end replicas on one Ray cluster share the workers (named after the state folder). A worker that dies
+is started again on its next request, and its robots continue there: the new actor reopens their
 keyframe databases from the state folder and the surviving actors copy their robots' keyframes to it.
 """
 
@@ -106,7 +107,11 @@ class RayRecognizer:
         self._share_all()
 
     def _start(self, index: int) -> Any:
-        return self._actor.remote(self.state_dir, self.conf, index, self.workers)
+        """Shard ``index``'s actor: named after the state folder, so that front-end replicas on one Ray cluster
+        share it (the first replica starts it, the others attach)."""
+        name = f"fleet-{zlib.crc32(self.state_dir.encode()):08x}-{index}-of-{self.workers}"
+        return self._actor.options(name=name, namespace="cae-lcd-fleet", get_if_exists=True).remote(
+            self.state_dir, self.conf, index, self.workers)
 
     def _share_all(self, to: list[int] | None = None) -> None:
         """Copies every owned robot's keyframes to the other shards (all, or the shards in ``to``)."""
@@ -161,12 +166,12 @@ class RayRecognizer:
         self._ray.get([s.resume.remote(overlaps, edges) for s in self._shards])
 
     def close(self) -> None:
-        """Closes every worker's databases and stops the workers."""
+        """Closes every worker's databases and stops the workers (those shared with other replicas too)."""
         for s in self._shards:
             try:
                 self._ray.get(s.close.remote())
             except self._ray.exceptions.RayActorError:
-                log.warning("a fleet worker was already gone at close")
+                log.debug("a fleet worker was already gone at close (stopped by another replica)")
             self._ray.kill(s)
 
 
