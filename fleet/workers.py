@@ -96,7 +96,8 @@ class RayRecognizer:
         FleetRecognizer.resolve(conf)  # a bad conf is refused here, before any worker starts
         self._ray = ray
         if not ray.is_initialized():
-            ray.init(address=ray_address, num_cpus=None if ray_address else workers, include_dashboard=False,
+            # "local": a new Ray of our own, never another program's cluster found on this machine
+            ray.init(address=ray_address or "local", num_cpus=None if ray_address else workers, include_dashboard=False,
                      log_to_driver=False, configure_logging=False)
         self.state_dir, self.conf, self.workers = str(Path(state_dir).resolve()), conf, workers
         self._actor = ray.remote(num_cpus=1, max_restarts=0)(_Shard)
