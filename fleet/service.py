@@ -148,6 +148,7 @@ class FleetService:
             edges = [] if last is None else [EdgeRecord("odometry", robot, last.keyframe, robot, ack.keyframe,
                                                         Sim3.from_pose(last.pose).inverse().compose(local))]
             self.store.ack_keyframe(ack, edges + found.edges)
+            getattr(self.recognizer, "committed", lambda robot: None)(robot)  # others may match it now (workers)
             for overlap in found.overlaps:
                 self.store.add_overlap(overlap)
             with self._lock:

@@ -1,13 +1,14 @@
 """Per-robot work on several processes: robots sharded by name over Ray workers, each a ``FleetRecognizer``.
 
-The service calls a recognizer through five methods (``has``, ``check``, ``process``, ``resume``, ``close``);
+The service calls a recognizer through five methods (``has``, ``check``, ``process``, ``resume``, ``close``, and
+``committed`` when the recognizer has it);
 ``FleetRecognizer`` is the in-process one, ``RayRecognizer`` the same interface over ``workers`` Ray actors (a local
 Ray started with that many CPUs, or a cluster at ``ray_address``). Robot ``NAME`` belongs to shard
 ``crc32(NAME) % workers``: that actor decodes, gates, encodes, extracts features, searches and verifies its
-keyframes, and keeps its keyframe database under the shared state folder. After each keyframe the owner's code,
-features and pose are copied to the other actors (``FleetRecognizer.export`` -> ``adopt``), so every robot is
-matched against every other one. Keyframes of robots on different shards are processed at the same time
-(``parallel_robots``): the service then serialises keyframes per robot only.
+keyframes, and keeps its keyframe database under the shared state folder. Each keyframe's code, features and pose
+are copied to the other actors (``FleetRecognizer.export`` -> ``adopt``) once the service has stored it
+(``committed``), so every robot is matched against every other one. Keyframes of robots on different shards
+are processed at the same time (``parallel_robots``): the service then serialises keyframes per robot only.
 
 Several front-end replicas on one Ray cluster share the workers (named after the state folder). A worker that dies
 is started again on its next request, and its robots continue there: the new actor reopens their
@@ -104,6 +105,7 @@ class RayRecognizer:
         self._shards = [self._start(i) for i in range(workers)]
         self._resumed: tuple[list[OverlapRecord], list[EdgeRecord]] | None = None
         self._recorded: set[frozenset[str]] = set()  # robot pairs whose overlap was reported (by either worker)
+        self._pending: dict[str, list] = {}  # robot -> its latest keyframe, copied to the others with its next one
         self._lock = threading.Lock()
         self._share_all()
 
@@ -149,16 +151,27 @@ class RayRecognizer:
 
     def process(self, robot: str, keyframe: int, timestamp: float, pose: np.ndarray, image: np.ndarray,
                 K: np.ndarray | None = None, depth: np.ndarray | None = None) -> Recognition:
-        """``FleetRecognizer.process`` on the robot's worker; the keyframe is then copied to the other workers."""
+        """``FleetRecognizer.process`` on the robot's worker. The keyframe is copied to the other workers by
+        ``committed`` (the service calls it once the keyframe is stored: an edge to it never precedes it in the store).
+        """
+        self.committed(robot)  # a keyframe the service did not report (refused by the store): shared all the same
         found, shared = self._on_shard(robot, "process", keyframe, timestamp, pose, image, K, depth)
-        if shared:
-            owner = shard_of(robot, self.workers)
-            self._ray.get([s.adopt.remote(robot, shared) for j, s in enumerate(self._shards) if j != owner])
         with self._lock:  # both robots' workers may accept the same overlap: it is reported once
+            if shared:
+                self._pending[robot] = shared
             fresh = [o for o in found.overlaps if frozenset((o.robot_a, o.robot_b)) not in self._recorded]
             self._recorded.update(frozenset((o.robot_a, o.robot_b)) for o in fresh)
         found.overlaps = fresh
         return found
+
+    def committed(self, robot: str) -> None:
+        """The service stored the robot's latest keyframe: it is copied to the other workers now (before, another
+        robot's edge to it could reach the store first)."""
+        with self._lock:
+            shared = self._pending.pop(robot, None)
+        if shared:
+            owner = shard_of(robot, self.workers)
+            self._ray.get([s.adopt.remote(robot, shared) for j, s in enumerate(self._shards) if j != owner])
 
     def resume(self, overlaps: list[OverlapRecord], edges: list[EdgeRecord]) -> None:
         """Every worker continues the accepted overlaps and the stored edges' counts."""

@@ -34,6 +34,13 @@ def frames(kitti_sequences, kitti_poses, ids):
         yield (A if i % 2 == 0 else B), i, Sim3.from_pose(poses[i]).matrix(), image, K
 
 
+def process(rec, robot, i, pose, image, K):
+    """What the service does: recognition, then (the keyframe stored) ``committed``."""
+    found = rec.process(robot, i, float(i), pose, image, K)
+    rec.committed(robot)
+    return found
+
+
 def test_robots_are_sharded_by_name():
     assert shard_of(A, 2) != shard_of(B, 2)
     assert [shard_of(f"r{i}", 4) for i in range(8)] == [shard_of(f"r{i}", 4) for i in range(8)]
@@ -43,7 +50,7 @@ def test_robots_are_sharded_by_name():
 def test_overlap_across_workers_and_a_killed_worker(local_ray, tmp_path, kitti_sequences, kitti_poses):
     rec = create_recognizer(tmp_path, workers=2)
     assert isinstance(rec, RayRecognizer) and rec.parallel_robots
-    found = [rec.process(robot, i, float(i), pose, image, K)
+    found = [process(rec, robot, i, pose, image, K)
              for robot, i, pose, image, K in frames(kitti_sequences, kitti_poses, range(100, 110))]
     overlaps = [o for r in found for o in r.overlaps]
     assert len(overlaps) == 1 and {overlaps[0].robot_a, overlaps[0].robot_b} == {A, B}
@@ -52,7 +59,7 @@ def test_overlap_across_workers_and_a_killed_worker(local_ray, tmp_path, kitti_s
 
     ray.kill(rec._shards[shard_of(B, 2)])  # B's worker dies
     assert rec.has(B, 109) and not rec.has(B, 111)  # restarted: B's database reopened from the state folder
-    later = [rec.process(robot, i, float(i), pose, image, K)
+    later = [process(rec, robot, i, pose, image, K)
              for robot, i, pose, image, K in frames(kitti_sequences, kitti_poses, range(110, 116))]
     assert any(e.kind == "overlap" and e.robot_b == B for r in later for e in r.edges)  # B still matched with A
     rec.close()
