@@ -88,16 +88,3 @@ def sample_poses(sample_dir):
 def jpeg(sample_dir):
     """``jpeg(i)`` -> the bundled sample's frame ``i`` as JPEG bytes (what a robot sends)."""
     return lambda i: (sample_dir / "image_0" / f"{i:06d}.jpg").read_bytes()
-
-
-@pytest.fixture(scope="session")
-def local_postgres():
-    """A PostgreSQL server of this session (``fleet.pg_local.LocalPostgres``), stopped at the end; skips with the
-    reason where PostgreSQL is not installed."""
-    from fleet.pg_local import LocalPostgres, postgres_available
-
-    why = postgres_available()
-    if why:
-        pytest.skip(why)
-    with LocalPostgres() as pg:
-        yield pg
