@@ -35,25 +35,34 @@ __all__ = ["load_test", "main", "LOAD_FORMAT_VERSION"]
 log = logging.getLogger(__name__)
 
 LOAD_FORMAT_VERSION = 1  #: format of ``fleet_load.json``
+_LOOPBACK_RAY = {"RAY_AUTH_MODE": "disabled"}  #: the bench's Ray cluster lives on loopback for one run
 
 
 def _serve(state: str, port: int) -> None:
-    """The server process's body (``--serve``): uvicorn on loopback, the admin token from the environment."""
+    """The server process's body (``--serve``): uvicorn on loopback, the admin token from the environment, and the
+    store, workers and Ray address of a scale-out run (``FLEET_BENCH_STORE``, ``_WORKERS``, ``_RAY``) when given."""
     import uvicorn
 
     from fleet.server import create_app
 
-    uvicorn.run(create_app(state, os.environ["FLEET_BENCH_TOKEN"]), host="127.0.0.1", port=port, log_level="warning")
+    app = create_app(state, os.environ["FLEET_BENCH_TOKEN"], store=os.environ.get("FLEET_BENCH_STORE") or None,
+                     workers=int(os.environ.get("FLEET_BENCH_WORKERS", "1")),
+                     ray_address=os.environ.get("FLEET_BENCH_RAY") or None)
+    uvicorn.run(app, host="127.0.0.1", port=port, log_level="warning")
 
 
-def _start_server(state: Path, token: str) -> tuple[subprocess.Popen, str]:
+def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+        return int(s.getsockname()[1])
+
+
+def _start_server(state: Path, token: str, env: dict[str, str] | None = None) -> tuple[subprocess.Popen, str]:
+    port = _free_port()
     proc = subprocess.Popen([sys.executable, "-m", "bench.fleet", "--serve", str(state), str(port)], cwd=REPO,
-                            env={**os.environ, "FLEET_BENCH_TOKEN": token})
+                            env={**os.environ, "FLEET_BENCH_TOKEN": token, **(env or {})})
     url = f"http://127.0.0.1:{port}"
-    for _ in range(600):
+    for _ in range(1800):
         try:
             FleetClient(url, token, timeout=2).overlaps()
             return proc, url
@@ -62,7 +71,7 @@ def _start_server(state: Path, token: str) -> tuple[subprocess.Popen, str]:
                 raise RuntimeError("the fleet server process exited at start") from None
             time.sleep(0.1)
     proc.kill()
-    raise RuntimeError("the fleet server did not start in 60 s")
+    raise RuntimeError("the fleet server did not start in 180 s")
 
 
 def _peak_rss(pid: int) -> int:
@@ -76,10 +85,15 @@ def _peak_rss(pid: int) -> int:
     return 0
 
 
-def _robot(url: str, token: str, stream: Any, latencies: list[float]) -> None:
+def _robot(url: str, token: str, stream: Any, latencies: list[float], interval: float = 0.0,
+           start: float = 0.0) -> None:
+    """Sends the stream's keyframes: back to back (``interval`` 0), or one every ``interval`` s from ``start`` (an
+    open loop: a late answer does not delay the next send's schedule beyond itself)."""
     client = FleetClient(url, token, timeout=600)
     for i, frame in enumerate(stream.frames):
         png = stream.images[i].read_bytes()
+        if interval > 0:
+            time.sleep(max(0.0, start + i * interval - time.perf_counter()))
         t0 = time.perf_counter()
         client.submit_keyframe(stream.name, frame, float(stream.times[i]), stream.poses[i], png, stream.K)
         latencies.append(time.perf_counter() - t0)
@@ -120,12 +134,128 @@ def load_test(kitti_root: str | Path, state: str | Path, robots: int = 8, keyfra
             "server_peak_rss_mb": peak / 2**20, "overlaps": overlaps, "cpus": os.cpu_count()}
 
 
+def _cpu_seconds(pid: int) -> float:
+    """User + system CPU time a live process has used so far (Linux ``/proc/PID/stat``), seconds."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _streams(kitti_root: str | Path, robots: int, keyframes: int) -> list[Any]:
+    """Robot ``r`` sends frames ``r, r + robots, ...`` of KITTI 00 (neighbours overlap)."""
+    return [kitti_stream(f"R{r:02d}", kitti_root, "00", list(range(r, r + robots * keyframes, robots)))
+            for r in range(robots)]
+
+
+def _drive(urls: list[str], token: str, streams: list[Any], interval: float) -> dict[str, Any]:
+    """Registers the robots and streams them at once, robot ``r`` through ``urls[r % len(urls)]``; the wall time and
+    the latency percentiles (``interval`` > 0: each robot sends one keyframe every ``interval`` s)."""
+    admin = FleetClient(urls[0], token)
+    tokens = [admin.register(s.name) for s in streams]
+    latencies: list[float] = []
+    start = time.perf_counter() + 0.5
+    threads = [threading.Thread(target=_robot, args=(urls[r % len(urls)], t, s, latencies, interval,
+                                                     start + r * interval / max(1, len(streams))))
+               for r, (t, s) in enumerate(zip(tokens, streams))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    wall = time.perf_counter() - start
+    ms = np.asarray(latencies) * 1e3
+    return {"keyframes": len(latencies), "wall_s": wall, "keyframes_per_s": len(latencies) / wall,
+            "latency_ms": {"p50": float(np.percentile(ms, 50)), "p99": float(np.percentile(ms, 99))},
+            "overlaps": len(admin.overlaps())}
+
+
+def _ray_head(cores: int) -> tuple[subprocess.Popen, str]:
+    """A local Ray cluster head with ``cores`` CPUs (``ray start --head --block``; stopped by terminating it)."""
+    port = _free_port()
+    proc = subprocess.Popen([str(Path(sys.executable).parent / "ray"), "start", "--head", "--block",
+                             f"--port={port}", f"--num-cpus={cores}", "--include-dashboard=false"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
+                            env={**os.environ, **_LOOPBACK_RAY})
+    time.sleep(15)  # the head's start-up; the replicas' ray.init waits for it too
+    return proc, f"127.0.0.1:{port}"
+
+
+def _run_mode(kitti_root: str | Path, state: Path, robots: int, keyframes: int, interval: float,
+              replicas: int, env: dict[str, str]) -> dict[str, Any]:
+    """One run on fresh state: ``replicas`` servers (their CPU time measured), the robots streaming."""
+    if state.exists():
+        shutil.rmtree(state)
+    token = secrets.token_urlsafe(24)
+    servers = [_start_server(state, token, env) for _ in range(replicas)]
+    try:
+        cpu0 = sum(_cpu_seconds(p.pid) for p, _ in servers)
+        r = _drive([u for _, u in servers], token, _streams(kitti_root, robots, keyframes), interval)
+        r["server_cpu_s"] = sum(_cpu_seconds(p.pid) for p, _ in servers) - cpu0
+    finally:
+        for p, _ in servers:
+            p.terminate()
+            p.wait(timeout=120)
+    return r
+
+
+def scale_test(kitti_root: str | Path, out: Path, robots: int = 32, keyframes: int = 6, cores: int = 2,
+               workers: int = 2, replicas: int = 2) -> dict[str, Any]:
+    """Sustained throughput against what the measured CPU cost per keyframe allows on ``cores``, and latency at
+    50 % of that load; the same with ``replicas`` front ends on PostgreSQL and ``workers`` Ray workers.
+
+    The CPU cost is the single server's CPU time over the saturated run / keyframes (decode, gate, encode, features,
+    search, verification, store, graph: everything a keyframe costs); the capacity ``cores / cost``.
+
+    Returns:
+        ``{"single": {"saturated", "half_load"}, "scale_out": {...}, "cpu_s_per_keyframe", "capacity_per_s", ...}``.
+    """
+    from fleet.pg_local import LocalPostgres
+
+    single = {"saturated": _run_mode(kitti_root, out / "state", robots, keyframes, 0.0, 1, {})}
+    cost = single["saturated"]["server_cpu_s"] / single["saturated"]["keyframes"]
+    capacity = cores / cost
+    interval = robots / (0.5 * capacity)  # each robot's period at half the capacity
+    single["half_load"] = _run_mode(kitti_root, out / "state", robots, keyframes, interval, 1, {})
+    result = {"format_version": LOAD_FORMAT_VERSION, "robots": robots, "keyframes_per_robot": keyframes,
+              "cores": cores, "cpu_s_per_keyframe": cost, "capacity_per_s": capacity, "single": single,
+              "ratio": single["saturated"]["keyframes_per_s"] / capacity}
+    head, address = _ray_head(cores)
+    try:
+        with LocalPostgres() as pg:
+            scale = {}
+            for run, period in (("saturated", 0.0), ("half_load", interval)):
+                env = {"FLEET_BENCH_STORE": pg.create_database(f"bench_{run}"), "FLEET_BENCH_WORKERS": str(workers),
+                       "FLEET_BENCH_RAY": address, **_LOOPBACK_RAY}
+                scale[run] = _run_mode(kitti_root, out / f"state_{run}", robots, keyframes, period, replicas, env)
+    finally:
+        head.terminate()
+        head.wait(timeout=120)
+    result["scale_out"] = {"replicas": replicas, "workers": workers, "store": "postgresql", **scale,
+                           "ratio": scale["saturated"]["keyframes_per_s"] / capacity}
+    return result
+
+
+def _scale_table(r: dict[str, Any]) -> str:
+    rows = []
+    for mode, label in (("single", "1 server, SQLite + faiss, in process"),
+                        ("scale_out", f"{r['scale_out']['replicas']} replicas, PostgreSQL, "
+                                      f"{r['scale_out']['workers']} Ray workers")):
+        m = r[mode]
+        rows.append([label, f"{m['saturated']['keyframes_per_s']:.2f}", f"{r['capacity_per_s']:.2f}",
+                     f"{m['saturated']['keyframes_per_s'] / r['capacity_per_s']:.0%}",
+                     f"{m['half_load']['latency_ms']['p50']:.0f}", f"{m['half_load']['latency_ms']['p99']:.0f}",
+                     m["saturated"]["overlaps"]])
+    return md_table(["front end", "sustained keyframes/s", f"CPU-cost capacity on {r['cores']} cores",
+                     "ratio", "p50 ms at 50 %", "p99 ms at 50 %", "overlaps"], rows)
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--kitti", type=Path, default=REPO.parent / "shared" / "datasets" / "kitti")
     ap.add_argument("--robots", type=int, default=8)
     ap.add_argument("--keyframes", type=int, default=20, help="keyframes each robot sends")
     ap.add_argument("--out", type=Path, default=REPO / "runs" / "bench" / "fleet")
+    ap.add_argument("--scale", action="store_true",
+                    help="throughput vs CPU-cost capacity, latency at 50 %% load, then replicas on PostgreSQL + Ray")
+    ap.add_argument("--cores", type=int, default=2, help="cores the capacity is computed for (--scale)")
     ap.add_argument("--serve", nargs=2, metavar=("STATE", "PORT"), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.serve:
@@ -138,6 +268,13 @@ def main(argv: Sequence[str] | None = None) -> None:
     state = out / "state"
     if state.exists():
         shutil.rmtree(state)
+    if args.scale:
+        r = scale_test(args.kitti, out, args.robots, args.keyframes, args.cores)
+        write_text_atomic(out / "fleet_scale.json", json.dumps(r, indent=2))
+        print(_scale_table(r))
+        print(f"CPU per keyframe {r['cpu_s_per_keyframe'] * 1e3:.0f} ms; {r['robots']} robots x "
+              f"{r['keyframes_per_robot']} keyframes")
+        return
     r = load_test(args.kitti, state, args.robots, args.keyframes)
     write_text_atomic(out / "fleet_load.json", json.dumps(r, indent=2))
     print(md_table(["robots", "keyframes", "wall s", "keyframes/s", "latency p50 ms", "latency p99 ms",

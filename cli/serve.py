@@ -32,7 +32,8 @@ def admin_token(given: str | None) -> tuple[str, bool]:
 
 
 def serve(state: str, host: str = "127.0.0.1", port: int = 8765, admin: str | None = None,
-          config: str | None = None) -> None:
+          config: str | None = None, store: str | None = None, workers: int = 1,
+          ray_address: str | None = None) -> None:
     """Runs the fleet server until interrupted.
 
     Args:
@@ -42,6 +43,9 @@ def serve(state: str, host: str = "127.0.0.1", port: int = 8765, admin: str | No
         admin: the admin token (None: the environment's, else a generated one printed once).
         config: YAML with ``service`` (``FleetService.default_conf``) and ``recognition``
             (``FleetRecognizer.default_conf``) sections.
+        store: a ``postgresql://`` URL (shared by several servers) or a SQLite file (None: ``STATE/fleet.sqlite``).
+        workers: > 1: robots sharded over that many Ray workers (a local Ray unless ``ray_address``).
+        ray_address: a Ray cluster to run the workers on.
 
     Raises:
         ConfigError: a bad config, port or state folder.
@@ -57,10 +61,12 @@ def serve(state: str, host: str = "127.0.0.1", port: int = 8765, admin: str | No
     if unknown:
         raise ConfigError(f"{config}: unknown sections {sorted(unknown)}; allowed: service, recognition")
     token, generated = admin_token(admin)
-    app = create_app(state, token, conf.get("service"), conf.get("recognition"))
+    app = create_app(state, token, conf.get("service"), conf.get("recognition"), store=store, workers=workers,
+                     ray_address=ray_address)
     if generated:
         print(f"admin token (shown once; set {TOKEN_ENV} to choose one): {token}", file=sys.stderr, flush=True)
-    log.info("fleet server on http://%s:%d, state in %s", host, port, state)
+    log.info("fleet server on http://%s:%d, state in %s%s", host, port, state,
+             f", store {store.split('@')[-1]}" if store else "")
     uvicorn.Server(server_config(app, host, port)).run()
 
 
@@ -81,8 +87,15 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--admin-token", default=d["admin"],
                    help=f"admin token (default: ${TOKEN_ENV}, else generated and printed once)")
     p.add_argument("--config", default=d["config"], help="YAML with 'service' and 'recognition' sections")
+    p.add_argument("--store", default=d["store"],
+                   help="postgresql://USER@HOST:PORT/DB (shared by replicas) or a SQLite file "
+                        "(default: STATE/fleet.sqlite)")
+    p.add_argument("--workers", type=int, default=d["workers"],
+                   help=f"> 1: robots sharded over that many Ray workers (default: {d['workers']}, in this process)")
+    p.add_argument("--ray-address", default=d["ray_address"], help="a Ray cluster for the workers (default: local)")
     p.set_defaults(func=run)
 
 
 def run(args: Any) -> None:
-    serve(args.state, args.host, args.port, args.admin_token, args.config)
+    serve(args.state, args.host, args.port, args.admin_token, args.config, args.store, args.workers,
+          args.ray_address)

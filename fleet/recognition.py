@@ -5,7 +5,8 @@ inter-robot overlaps, each turned into a pose-graph edge (a similarity from 3D-3
   all sharing one global descriptor (the CAE encoder is loaded once per server). It reports the robot's own loops,
   with its usual recent-frame exclusion and its fixed acceptance policy (``policy.min_inliers``).
 - Inter-robot: the query's code is searched against every OTHER robot's keyframes (cosine top-``cross.k``, no recency
-  exclusion: another robot's frame is never "recent") and verified by the same verifier (SIFT + geometry, fixed
+  exclusion: another robot's frame is never "recent"), at most ``cross.budget`` of them in all (the most similar:
+  ``fleet.budget``), and verified by the same verifier (SIFT + geometry, fixed
   inlier threshold ``cross.min_inliers``). Each robot pair's matches feed ``OverlapTracker``: an overlap is accepted
   after ``overlap.required`` consecutive matching keyframes; from then on every verified match becomes an edge (at
   most ``max_edges_per_pair``).
@@ -27,7 +28,7 @@ import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -39,11 +40,12 @@ from retrieval.descriptors import GlobalDescriptor, create_descriptor
 from retrieval.detector import LoopDetector, resolve_conf
 from verify.verifier import Verification
 
+from .budget import shortlist
 from .overlap import OverlapTracker, PointTriangulator, estimate_overlap, points_from_depth
 from .sim3 import Sim3, Sim3Ransac
 from .store import EdgeRecord, OverlapRecord
 
-__all__ = ["FleetRecognizer", "Recognition", "CAMERA_FORMAT_VERSION"]
+__all__ = ["FleetRecognizer", "Recognition", "SharedKeyframe", "CAMERA_FORMAT_VERSION"]
 
 log = logging.getLogger(__name__)
 
@@ -57,6 +59,26 @@ class Recognition:
     edges: list[EdgeRecord] = field(default_factory=list)
     overlaps: list[OverlapRecord] = field(default_factory=list)
     gated: bool = False  #: the quality gate refused the image (no place memory entry)
+
+
+@dataclass(frozen=True)
+class SharedKeyframe:
+    """What another recognizer needs of a keyframe to match it across robots (``export`` -> ``adopt``)."""
+
+    entry: np.ndarray  #: ``(d,)`` the searched code
+    features: Any  #: ``verify.features.Features`` of the keyframe
+    pose: np.ndarray  #: ``(4, 4)`` local pose
+    K: np.ndarray | None  #: ``(3, 3)`` the robot's intrinsics
+
+
+class _Adopted:
+    """Stands in for the detector of a robot another recognizer owns: its keyframes' features only."""
+
+    def __init__(self) -> None:
+        self.features: dict[int, Any] = {}
+
+    def close(self) -> None:
+        """Nothing to release."""
 
 
 def remembering(descriptor: GlobalDescriptor) -> GlobalDescriptor:
@@ -119,6 +141,8 @@ class FleetRecognizer:
         state_dir: the server's state folder (robots' databases go in ``robots/NAME/``).
         conf: overrides of ``default_conf``.
         descriptor: an already built global descriptor; None: built once from ``detector.descriptor``.
+        owns: which robots this recognizer opens from the state folder (None: all); the others' keyframes come
+            through ``adopt`` (``fleet.workers`` shards robots over several recognizers this way).
 
     Raises:
         ConfigError: a bad conf. DatabaseError: a damaged robot database.
@@ -128,6 +152,7 @@ class FleetRecognizer:
         "detector": {"calibration": {"enabled": False}},  # LoopDetector conf of every robot (fixed policy)
         "cross": {
             "k": 3,  # candidates of each other robot verified per query
+            "budget": 8,  # candidates verified per query over all other robots, the most similar (0: no bound)
             "min_score": 0.0,  # candidates under this cosine similarity are not verified
             "min_matches": 5,  # putative matches a candidate needs
             "min_inliers": 50,  # geometric inliers a cross-robot match needs (the detector's fixed policy)
@@ -140,18 +165,15 @@ class FleetRecognizer:
         "points_cache": 256,  # keyframes' 3D feature points kept in memory per robot (least recently used dropped)
     }
     conf_rules: dict[str, Any] = {
-        "cross": {"k": Int(1, 1000), "min_score": Float(-1, 1), "min_matches": Int(0), "min_inliers": Int(0)},
+        "cross": {"k": Int(1, 1000), "budget": Int(0, 100_000), "min_score": Float(-1, 1), "min_matches": Int(0),
+                  "min_inliers": Int(0)},
         "overlap": OverlapTracker.conf_rules, "triangulation": PointTriangulator.conf_rules,
         "sim3": Sim3Ransac.conf_rules, "min_points": Int(3), "max_edges_per_pair": Int(1), "points_cache": Int(1)}
 
     def __init__(self, state_dir: str | Path, conf: dict[str, Any] | None = None,
-                 descriptor: GlobalDescriptor | None = None) -> None:
-        conf = dict(conf or {})
-        user_detector = conf.pop("detector", None)  # checked by the detector's own rules (its units' sections)
-        self.conf = merge_conf({k: v for k, v in self.default_conf.items() if k != "detector"}, conf, "recognition")
-        check_conf(self.conf, self.conf_rules, "recognition")
-        self.detector_conf = resolve_conf(merge_conf(self.default_conf["detector"], user_detector, strict=False))
-        self.conf["detector"] = self.detector_conf
+                 descriptor: GlobalDescriptor | None = None, owns: Callable[[str], bool] | None = None) -> None:
+        self.conf = self.resolve(conf)
+        self.detector_conf = self.conf["detector"]
         self.root = Path(state_dir) / "robots"
         self.descriptor = remembering(descriptor or create_descriptor(self.detector_conf["descriptor"]))
         self.tracker = OverlapTracker(self.conf["overlap"])
@@ -161,7 +183,22 @@ class FleetRecognizer:
         self._edges: dict[tuple[str, str], int] = {}
         self._recorded: set[frozenset[str]] = set()  # robot pairs whose overlap was recorded (this run)
         for folder in sorted(self.root.glob("*/camera.json")):
-            self._open(folder.parent.name, None)
+            if owns is None or owns(folder.parent.name):
+                self._open(folder.parent.name, None)
+
+    @classmethod
+    def resolve(cls, conf: dict[str, Any] | None) -> dict[str, Any]:
+        """``conf`` merged onto ``default_conf`` and checked (``detector`` by the detector's own rules).
+
+        Raises:
+            ConfigError: an unknown key or a bad value.
+        """
+        conf = dict(conf or {})
+        user_detector = conf.pop("detector", None)  # checked by the detector's own rules (its units' sections)
+        out = merge_conf({k: v for k, v in cls.default_conf.items() if k != "detector"}, conf, "recognition")
+        check_conf(out, cls.conf_rules, "recognition")
+        out["detector"] = resolve_conf(merge_conf(cls.default_conf["detector"], user_detector, strict=False))
+        return out
 
     def _open(self, name: str, K: np.ndarray | None) -> _Robot:
         """The robot's detector, resumed from its database; ``K`` is the stored one when there is a ``camera.json``
@@ -194,15 +231,41 @@ class FleetRecognizer:
     def check_retry(self, robot: str, keyframe: int, image: np.ndarray) -> None:
         """Refuses (``ConflictError``) a retry of a stored keyframe whose image differs from the stored one's."""
         r = self.robots.get(robot)
-        if r is None or r.detector.db is None:
+        if r is None or isinstance(r.detector, _Adopted) or r.detector.db is None:
             return
         stored = next((e.fingerprint for e in r.detector.db.frames() if e.frame_id == keyframe), "")
         if stored and stored != _image_fingerprint(image):
             raise ConflictError(f"robot {robot!r} sent keyframe {keyframe} before, with another image")
 
+    def export(self, robot: str, keyframes: list[int] | None = None) -> list[tuple[int, SharedKeyframe]]:
+        """The robot's keyframes (all, or those of ``keyframes`` in its place memory) as ``adopt`` takes them."""
+        r = self.robots[robot]
+        pos = {k: i for i, k in enumerate(r.ids)}
+        return [(k, SharedKeyframe(r.codes[pos[k]], r.detector.features[k], r.poses[k], r.K))
+                for k in (r.ids if keyframes is None else keyframes) if k in pos and k in r.poses]
+
+    def owned(self) -> list[str]:
+        """The robots this recognizer runs the detector of (not adopted from another)."""
+        return [name for name, r in self.robots.items() if not isinstance(r.detector, _Adopted)]
+
+    def adopt(self, robot: str, shared: list[tuple[int, SharedKeyframe]]) -> None:
+        """Adds another recognizer's keyframes of ``robot`` (``export``) to the robots matched across; a robot this
+        recognizer owns is left alone."""
+        r = self.robots.get(robot)
+        if r is None:
+            r = self.robots[robot] = _Robot(_Adopted(), shared[0][1].K if shared else None)  # type: ignore[arg-type]
+        if not isinstance(r.detector, _Adopted):
+            return
+        for keyframe, kf in shared:
+            if keyframe not in r.detector.features:
+                r.detector.features[keyframe] = kf.features
+                r.poses[keyframe] = kf.pose
+                r.add(keyframe, kf.entry)
+
     def has(self, robot: str, keyframe: int) -> bool:
         """True when the robot's database already holds ``keyframe`` (or a later one)."""
-        return robot in self.robots and keyframe < self.robots[robot].detector.next_frame_id
+        r = self.robots.get(robot)
+        return r is not None and not isinstance(r.detector, _Adopted) and keyframe < r.detector.next_frame_id
 
     def check(self, robot: str, K: np.ndarray | None) -> None:
         """Refuses intrinsics that differ from the robot's first ones; changes nothing."""
@@ -224,7 +287,9 @@ class FleetRecognizer:
         """
         self.check(robot, K)
         check_image(image, "image")  # before a new robot's folder is made: a refused keyframe leaves nothing
-        r = self.robots.get(robot) or self._open(robot, K)
+        r = self.robots.get(robot)
+        if r is None or isinstance(r.detector, _Adopted):  # first keyframe here (adopted keyframes: now owned)
+            r = self._open(robot, K)
         self.descriptor.last = None
         res = r.detector.process(image, frame_id=keyframe, timestamp=timestamp, pose=pose,
                                  fingerprint=_image_fingerprint(image))
@@ -243,7 +308,10 @@ class FleetRecognizer:
 
     def _cross(self, out: Recognition, robot: str, keyframe: int) -> None:
         """Searches and verifies against every other robot, updates the overlap rules, adds edges."""
-        matches = {o: m for o in self.robots if o != robot and (m := self._best_match(robot, keyframe, o))}
+        c, q = self.conf["cross"], self.robots[robot].codes[-1]
+        scores = {o: r.codes @ q for o, r in self.robots.items() if o != robot and r.ids}
+        chosen = shortlist(scores, c["k"], c["min_score"], c["budget"])  # the keyframe's verification budget
+        matches = {o: m for o, top in chosen.items() if (m := self._best_match(robot, keyframe, o, top))}
         accepted = self.tracker.update(robot, keyframe, {o: m[0] for o, m in matches.items()})
         keep = self.conf["overlap"]["required"]
         for other, (match, check) in matches.items():
@@ -273,15 +341,11 @@ class FleetRecognizer:
             if e.kind == "overlap":
                 self._edges[(e.robot_a, e.robot_b)] = self._edges.get((e.robot_a, e.robot_b), 0) + 1
 
-    def _best_match(self, robot: str, keyframe: int, other: str) -> tuple[int, Verification] | None:
-        """The other robot's keyframe that verifies best against the query (None: none passes)."""
+    def _best_match(self, robot: str, keyframe: int, other: str,
+                    top: np.ndarray) -> tuple[int, Verification] | None:
+        """Of the other robot's keyframes at positions ``top`` (its shortlisted candidates), the one that verifies
+        best against the query (None: none passes)."""
         q, o, c = self.robots[robot], self.robots[other], self.conf["cross"]
-        if not o.ids:
-            return None
-        sims = o.codes @ q.codes[-1]
-        top = [i for i in np.argsort(-sims, kind="stable")[:c["k"]] if sims[i] >= c["min_score"]]
-        if not top:
-            return None
         det = q.detector
         K = q.K if q.K is not None and o.K is not None and np.allclose(q.K, o.K) else None
         checks = det.verifier.verify(det.features[keyframe], [o.detector.features[o.ids[i]] for i in top], K,

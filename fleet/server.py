@@ -50,9 +50,9 @@ from retrieval.descriptors import GlobalDescriptor
 
 from .map_page import map_router
 from .limits import AuthThrottle, BodyLimit
-from .recognition import FleetRecognizer
 from .service import ROBOT_NAME, FleetService
-from .store import SQLiteStore
+from .stores import open_store
+from .workers import create_recognizer
 
 __all__ = ["create_app", "KeyframeIn", "RobotIn", "Problem", "SchemaProblem"]
 
@@ -142,7 +142,8 @@ def _decode_keyframe(body: KeyframeIn, max_pixels: int) -> tuple[np.ndarray, np.
 
 def create_app(state_dir: str | Path, admin_token: str, conf: dict[str, Any] | None = None,
                recognition: dict[str, Any] | None = None, recognize: bool = True,
-               descriptor: GlobalDescriptor | None = None) -> FastAPI:
+               descriptor: GlobalDescriptor | None = None, store: str | None = None, workers: int = 1,
+               ray_address: str | None = None) -> FastAPI:
     """The fleet server over the state in ``state_dir`` (created if missing, continued if present).
 
     Args:
@@ -152,15 +153,19 @@ def create_app(state_dir: str | Path, admin_token: str, conf: dict[str, Any] | N
         recognition: overrides of ``FleetRecognizer.default_conf``.
         recognize: False: no place recognition (keyframes are only acknowledged; edges come through the service).
         descriptor: an already built global descriptor to share (None: built once for this server).
+        store: where robots, keyframes and edges live: a ``postgresql://`` URL or a SQLite file (None:
+            ``state_dir/fleet.sqlite``; ``fleet.stores.open_store``).
+        workers: > 1: robots sharded over that many Ray workers (``fleet.workers``); 1: in this process.
+        ray_address: a Ray cluster for the workers (None: a local Ray when ``workers`` > 1).
 
     Raises:
         ConfigError: an empty admin token or a bad conf. DatabaseError: a damaged or foreign state file.
     """
     if not admin_token:
         raise ConfigError("the admin token must not be empty")
-    recognizer = FleetRecognizer(state_dir, recognition, descriptor) if recognize else None
+    recognizer = create_recognizer(state_dir, recognition, descriptor, workers, ray_address) if recognize else None
     try:
-        service = FleetService(SQLiteStore(Path(state_dir) / "fleet.sqlite"), conf, recognizer)
+        service = FleetService(open_store(state_dir, store), conf, recognizer)
     except BaseException:
         if recognizer is not None:
             recognizer.close()

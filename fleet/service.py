@@ -67,9 +67,9 @@ class FleetService:
         self.recognizer = recognizer
         self._lock = threading.Lock()  # the graph
         self._submit = threading.Lock()  # one keyframe at a time through recognition and the store
+        self._robot_locks: dict[str, threading.Lock] = {}  # per robot, when the recognizer runs robots in parallel
         self._verified: set[bytes] = set()  # sha256(name, token) of tokens already checked (PBKDF2 is slow)
         self._graph = PoseGraph(self.conf["graph"])
-        self._last: dict[str, KeyframeAck] = {}  # each robot's latest acknowledged keyframe
         self._rebuild()
         if recognizer is not None:
             recognizer.resume(self.store.overlaps(), self.store.edges(kind="overlap"))
@@ -95,7 +95,6 @@ class FleetService:
             for ack in self.store.keyframes(robot):
                 try:
                     self._graph.add_keyframe(robot, ack.keyframe, check_rigid_pose(ack.pose))
-                    self._last[robot] = ack
                 except ConfigError as err:
                     skipped += 1
                     log.warning("stored keyframe %d of robot %s skipped: %s", ack.keyframe, robot, err)
@@ -171,15 +170,14 @@ class FleetService:
         keyframe, timestamp = check_frame_id(keyframe, "keyframe"), check_timestamp(timestamp)
         local = Sim3.from_pose(check_rigid_pose(pose))
         K = None if K is None else check_intrinsics(K)
-        with self._submit:
+        with self._submit_lock(robot):
             ack = KeyframeAck(robot, keyframe, timestamp, local.matrix())
-            with self._lock:
-                known = Node(robot, keyframe) in self._graph
-            last = self._last.get(robot)
-            if known:  # a retry (False) or a conflict (ConflictError); nothing changes either way
+            acks = self.store.keyframes(robot)  # the store, not this process: replicas share it
+            if any(a.keyframe == keyframe for a in acks):  # a retry (False) or a conflict (ConflictError)
                 if self.recognizer is not None and image is not None:
                     self.recognizer.check_retry(robot, keyframe, image)
                 return self.store.ack_keyframe(ack)
+            last = max(acks, key=lambda a: a.keyframe) if acks else None
             if last is not None and keyframe < last.keyframe:
                 raise ConfigError(f"robot {robot}: keyframe {keyframe} is not after its last one ({last.keyframe})")
             if last is not None and timestamp < last.timestamp:
@@ -189,17 +187,40 @@ class FleetService:
             edges = [] if last is None else [EdgeRecord("odometry", robot, last.keyframe, robot, ack.keyframe,
                                                         Sim3.from_pose(last.pose).inverse().compose(local))]
             self.store.ack_keyframe(ack, edges + found.edges)
-            self._last[robot] = ack
+            getattr(self.recognizer, "committed", lambda robot: None)(robot)  # others may match it now (workers)
             for overlap in found.overlaps:
                 self.store.add_overlap(overlap)
             with self._lock:
                 self._graph.add_keyframe(robot, ack.keyframe, ack.pose)
+                self._catch_up(found.edges)
                 self._set_anchor()
                 for e in found.edges:
                     self._graph.add_edge(e.kind, Node(e.robot_a, e.keyframe_a), Node(e.robot_b, e.keyframe_b),
                                          e.relative)
             self.optimizer.changed()
             return True
+
+    def _catch_up(self, edges: list[EdgeRecord]) -> None:
+        """Adds to the graph the keyframes that ``edges`` join and another front end on the same store acknowledged
+        (a replica: ``fleet.stores``), read from the store; call under the graph lock."""
+        known = self._graph.nodes
+        last: dict[str, int] = {}
+        for n in known:
+            last[n.robot] = max(last.get(n.robot, -1), n.keyframe)
+        for robot in {r for e in edges for r in (e.robot_a, e.robot_b)}:
+            if any(Node(r, k) not in known for e in edges for r, k in ((e.robot_a, e.keyframe_a),
+                                                                      (e.robot_b, e.keyframe_b)) if r == robot):
+                for ack in self.store.keyframes(robot):
+                    if ack.keyframe > last.get(robot, -1):
+                        self._graph.add_keyframe(robot, ack.keyframe, ack.pose)
+
+    def _submit_lock(self, robot: str) -> threading.Lock:
+        """The lock a robot's keyframe is processed under: one for all robots, or one per robot when the recognizer
+        processes robots in parallel (``fleet.workers.RayRecognizer``)."""
+        if not getattr(self.recognizer, "parallel_robots", False):
+            return self._submit
+        with self._submit:
+            return self._robot_locks.setdefault(robot, threading.Lock())
 
     def _recognize(self, ack: KeyframeAck, image: np.ndarray | None, K: np.ndarray | None,
                    depth: np.ndarray | None) -> Recognition:

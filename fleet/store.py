@@ -5,7 +5,7 @@ between robots and each robot's map-to-global transform.
 ``FleetStore`` is the interface the server uses; ``SQLiteStore`` implements it on an embedded SQLite file (stdlib
 ``sqlite3``: WAL journal, ``synchronous=FULL``, every write one transaction, foreign keys on), so a server killed
 with ``kill -9`` and restarted has every keyframe it acknowledged. A server database could implement the same
-interface later.
+interface: ``fleet.postgres.PostgresStore`` does (``fleet.stores.open_store`` picks one by location).
 
 Tokens are never stored: a salted PBKDF2-HMAC-SHA256 hash is (salt and iteration count kept per robot), and a token
 is checked with ``hmac.compare_digest``. Similarities are stored as their 4x4 matrices (``Sim3.matrix``) in JSON.
@@ -45,7 +45,7 @@ from .graph import EDGE_KINDS
 from .sim3 import Sim3
 
 __all__ = ["FORMAT_VERSION", "KeyframeAck", "EdgeRecord", "OverlapRecord", "FleetStore", "SQLiteStore",
-           "hash_token"]
+           "hash_token", "pose_json", "sim3_json", "sim3_from_json"]
 
 log = logging.getLogger(__name__)
 
@@ -109,6 +109,14 @@ def _loadable(rows: Sequence[tuple], load: Callable[[tuple], Any], what: str) ->
         except (ConfigError, ValueError, TypeError) as err:
             log.warning("stored %s skipped (cannot be loaded): %s", what, str(err).splitlines()[0][:200])
     return out
+
+
+sim3_json, sim3_from_json, loadable = _sim3_json, _sim3_from_json, _loadable  # shared with the other backends (fleet.postgres)
+
+
+def pose_json(pose: np.ndarray) -> str:
+    """A ``(4, 4)`` pose as the stored JSON text (16 numbers, row-major): a retry compares this text exactly."""
+    return json.dumps(np.asarray(pose, np.float64).reshape(4, 4).ravel().tolist())
 
 
 class FleetStore(ABC):
@@ -286,7 +294,7 @@ class SQLiteStore(FleetStore):
 
     # -------------------------------------------------------------------------------------------------- keyframes
     def ack_keyframe(self, ack: KeyframeAck, edges: Sequence[EdgeRecord] = ()) -> bool:
-        pose = json.dumps(np.asarray(ack.pose, np.float64).reshape(4, 4).ravel().tolist())
+        pose = pose_json(ack.pose)
         with self._transaction() as db:
             if not db.execute("SELECT 1 FROM robots WHERE name = ?", (ack.robot,)).fetchone():
                 raise ConfigError(f"unknown robot {ack.robot!r}")

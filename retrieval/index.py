@@ -242,3 +242,4 @@ class SQ8Index(CodeIndex):
 
     def bytes_per_code(self) -> float:
         return super().bytes_per_code() if self.index.is_trained else 4.0 * self.dim
+from . import milvus_index  # noqa: F401,E402  (registers the Milvus code index: milvus; pymilvus loads on first use)

@@ -191,3 +191,16 @@ def cli_sample_run(tmp_path_factory, detect_config_args):
     out = tmp_path_factory.mktemp("cli_sample") / "run"
     code = main(["detect", "--out", str(out), *detect_config_args, "--no-progress"])
     return code, out
+
+
+@pytest.fixture(scope="session")
+def local_postgres():
+    """A PostgreSQL server of this session (``fleet.pg_local.LocalPostgres``), stopped at the end; skips with the
+    reason where PostgreSQL is not installed."""
+    from fleet.pg_local import LocalPostgres, postgres_available
+
+    why = postgres_available()
+    if why:
+        pytest.skip(why)
+    with LocalPostgres() as pg:
+        yield pg

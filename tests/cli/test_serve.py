@@ -51,10 +51,12 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def start_server(state: Path, port: int) -> subprocess.Popen:
-    """``cae-lcd serve`` in its own process (admin token from the environment); returns once it answers."""
+def start_server(state: Path, port: int, store: str | None = None) -> subprocess.Popen:
+    """``cae-lcd serve`` in its own process (admin token from the environment, ``--store`` when given); returns once
+    it answers."""
     env = {**os.environ, TOKEN_ENV: ADMIN}
-    proc = subprocess.Popen([sys.executable, "-m", "cli.main", "serve", "--state", str(state), "--port", str(port)],
+    proc = subprocess.Popen([sys.executable, "-m", "cli.main", "serve", "--state", str(state), "--port", str(port)]
+                            + (["--store", store] if store else []),
                             cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     admin = FleetClient(f"http://127.0.0.1:{port}", ADMIN, timeout=5)
     deadline = time.monotonic() + 60
@@ -98,11 +100,13 @@ def stream(url, token, robot, frames, K, acked, stop_after=None):
 
 
 class TestKillAndRestart:
-    def test_no_acknowledged_keyframe_is_lost_and_detection_continues(self, tmp_path, frames):
+    @pytest.mark.parametrize("backend", ["sqlite", "postgres"])
+    def test_no_acknowledged_keyframe_is_lost_and_detection_continues(self, tmp_path, frames, backend, request):
         frames, K = frames
         port, state = free_port(), tmp_path / "state"
         url = f"http://127.0.0.1:{port}"
-        proc = start_server(state, port)
+        store = request.getfixturevalue("local_postgres").create_database("serve") if backend == "postgres" else None
+        proc = start_server(state, port, store)
         try:
             admin = FleetClient(url, ADMIN)
             tokens = {r: admin.register(r) for r in ("A", "B")}
@@ -117,7 +121,7 @@ class TestKillAndRestart:
             for t in threads:
                 t.join()
             before = {(r, i) for r, i, _ in acked}
-            proc = start_server(state, port)
+            proc = start_server(state, port, store)
             again: list = []
             for r in "AB":
                 stream(url, tokens[r], r, frames[r], K, again)

@@ -86,6 +86,20 @@ class TestFleetRecognizer:
             angle, scale, _ = e.relative.errors(truth)
             assert angle < 3.0 and scale < 0.05
 
+    def test_the_budget_bounds_the_candidates_verified(self, tmp_path, kitti, cae_descriptor):
+        """Four robots on KITTI 00 and 07: a keyframe verifies at most ``cross.budget`` other robots' candidates."""
+        rec = FleetRecognizer(tmp_path, {"cross": {"budget": 2, "k": 3}}, descriptor=cae_descriptor)
+        verified = []
+        frames = [(r, s, i) for i in (0, 2) for r, s in (("A", "00"), ("B", "07"), ("C", "00"), ("D", "07"))]
+        stream(rec, kitti, frames[:4])
+        for r in rec.robots.values():
+            real = r.detector.verifier.verify
+            r.detector.verifier.verify = lambda q, cands, *a, _real=real, **kw: verified.append(len(cands)) or \
+                _real(q, cands, *a, **kw)
+        stream(rec, kitti, [("A", "00", 4)])
+        rec.close()
+        assert sum(verified) == 2  # 3 other robots x 1 keyframe each would be 3 without the budget
+
     def test_robots_that_never_meet_have_no_overlap(self, tmp_path, kitti, cae_descriptor):
         rec = FleetRecognizer(tmp_path, descriptor=cae_descriptor)
         found = stream(rec, kitti, [(r, s, i) for i in range(0, 40, 2) for r, s in (("A", "00"), ("B", "07"))])

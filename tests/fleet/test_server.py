@@ -4,6 +4,7 @@ JPEG frames and ground-truth poses."""
 from __future__ import annotations
 
 import numpy as np
+import psycopg
 import pytest
 
 from fleet.client import FleetClient, FleetError
@@ -21,10 +22,10 @@ def server(tmp_path, cae_descriptor):
 
     apps = []
 
-    def start():
+    def start(store=None):
         if apps:
             apps[-1].state.service.close()  # as a stopped server does: the robots' databases are released
-        apps.append(create_app(tmp_path / "state", ADMIN, descriptor=cae_descriptor))
+        apps.append(create_app(tmp_path / "state", ADMIN, descriptor=cae_descriptor, store=store))
         http = TestClient(apps[-1])
         return http, FleetClient("", ADMIN, client=http)
 
@@ -94,11 +95,15 @@ class TestKeyframes:
         robot = FleetClient("", admin.register("A"), client=http)
         assert robot.submit_keyframe("A", 0, 0.0, sample_poses[0], jpeg(0), sample_K, np.full((188, 620), 7.5))
 
-    def test_a_restarted_server_continues(self, server, sample_poses, jpeg):
-        http, admin = server()
+    @pytest.mark.parametrize("backend", ["sqlite", "postgres"])
+    def test_a_restarted_server_continues(self, server, sample_poses, jpeg, backend, request):
+        url = request.getfixturevalue("local_postgres").create_database("restart") if backend == "postgres" else None
+        http, admin = server(url)
         token = admin.register("A")
         submit(FleetClient("", token, client=http), "A", range(3), sample_poses, jpeg)
-        http, _ = server()  # a new app over the same state folder
+        if url:
+            assert [r[0] for r in psycopg.connect(url).execute("SELECT keyframe FROM keyframes")] == [0, 1, 2]
+        http, _ = server(url)  # a new app over the same state folder (and store)
         robot = FleetClient("", token, client=http)
         assert sorted(robot.poses("A", wait=True)) == [0, 1, 2]
         assert submit(robot, "A", [3], sample_poses, jpeg) == [True]

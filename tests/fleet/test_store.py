@@ -1,5 +1,7 @@
-"""fleet.store: SQLiteStore round trips (real KITTI poses), hashed tokens, atomic writes, refusal of other files, and a
-writer process killed with kill -9 at random moments: every acknowledged keyframe is there and the file is consistent."""
+"""fleet.store and fleet.postgres: the same suite against SQLiteStore and PostgresStore (a real PostgreSQL server of
+the session, ``local_postgres``): round trips (real KITTI poses), hashed tokens, atomic writes, refusal of other
+databases, and a writer process killed with kill -9 at random moments: every acknowledged keyframe is there and the
+store is consistent."""
 
 from __future__ import annotations
 
@@ -15,16 +17,48 @@ import numpy as np
 import pytest
 
 from core.errors import ConfigError, DatabaseError
+from fleet.postgres import PostgresStore
 from fleet.sim3 import Sim3
 from fleet.store import FORMAT_VERSION, EdgeRecord, KeyframeAck, OverlapRecord, SQLiteStore
+from fleet.stores import open_store
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 FAST = {"token_iterations": 1000}  #: fewer PBKDF2 rounds where hashing is not what is tested
 
 
+class Backend:
+    """One empty store location of a backend: ``open`` it (again), run raw ``sql`` on it."""
+
+    def __init__(self, kind: str, location: str) -> None:
+        self.kind, self.location = kind, location
+
+    def open(self, conf=FAST):
+        return open_store("unused", self.location, conf)
+
+    def sql(self, statement: str) -> list[tuple]:
+        if self.kind == "sqlite":
+            with sqlite3.connect(self.location) as db:
+                return db.execute(statement).fetchall()
+        import psycopg
+
+        with psycopg.connect(self.location, autocommit=True) as db:
+            cur = db.execute(statement)
+            return cur.fetchall() if cur.description else []
+
+
+_databases = iter(range(10**6))
+
+
+@pytest.fixture(params=["sqlite", "postgres"])
+def backend(request, tmp_path):
+    if request.param == "sqlite":
+        return Backend("sqlite", str(tmp_path / "state" / "fleet.sqlite"))
+    return Backend("postgres", request.getfixturevalue("local_postgres").create_database(f"t{next(_databases)}"))
+
+
 @pytest.fixture
-def store(tmp_path):
-    with SQLiteStore(tmp_path / "state" / "fleet.sqlite", FAST) as s:
+def store(backend):
+    with backend.open() as s:
         yield s
 
 
@@ -32,7 +66,7 @@ def poses4(kitti_poses, n: int) -> list[np.ndarray]:
     return [np.vstack([p, [0, 0, 0, 1]]) for p in kitti_poses("00")[:n]]
 
 
-class TestSQLiteStore:
+class TestStore:
     def test_robots_and_tokens(self, store):
         store.add_robot("A", "secret-a")
         store.add_robot("B", "secret-b")
@@ -42,14 +76,15 @@ class TestSQLiteStore:
         with pytest.raises(ConfigError, match="already registered"):
             store.add_robot("A", "other")
 
-    def test_tokens_are_stored_salted_and_hashed(self, tmp_path):
-        path = tmp_path / "fleet.sqlite"
-        with SQLiteStore(path) as s:  # the default iteration count
+    def test_tokens_are_stored_salted_and_hashed(self, backend, tmp_path):
+        with backend.open(None) as s:  # the default iteration count
             s.add_robot("A", "same-token-xyz")
             s.add_robot("B", "same-token-xyz")
-        raw = b"".join(p.read_bytes() for p in tmp_path.iterdir())
-        assert b"same-token-xyz" not in raw
-        rows = sqlite3.connect(path).execute("SELECT salt, token_hash, iterations FROM robots").fetchall()
+        if backend.kind == "sqlite":
+            raw = b"".join(p.read_bytes() for p in tmp_path.joinpath("state").iterdir())
+            assert b"same-token-xyz" not in raw
+        rows = backend.sql("SELECT salt, token_hash, iterations FROM robots")
+        assert not any(b"same-token-xyz" in bytes(v) for r in rows for v in r[:2])
         assert rows[0][1] != rows[1][1] and rows[0][0] != rows[1][0] and rows[0][2] == 100_000
 
     def test_keyframes_round_trip(self, store, kitti_poses):
@@ -113,16 +148,30 @@ class TestSQLiteStore:
         with pytest.raises(ConfigError):
             store.set_transforms({"nobody": known_sim3})
 
-    def test_reopening_continues(self, tmp_path, kitti_poses):
-        path = tmp_path / "fleet.sqlite"
-        with SQLiteStore(path, FAST) as s:
+    def test_reopening_continues(self, backend, kitti_poses):
+        with backend.open() as s:
             s.add_robot("A", "t")
             s.ack_keyframe(KeyframeAck("A", 0, 0.0, poses4(kitti_poses, 1)[0]))
-        with SQLiteStore(path, FAST) as s:
+        with backend.open() as s:
             assert s.verify_token("A", "t") and len(s.keyframes("A")) == 1
             s.ack_keyframe(KeyframeAck("A", 1, 1.0, poses4(kitti_poses, 2)[1]))
-        meta = dict(sqlite3.connect(path).execute("SELECT key, value FROM meta").fetchall())
+        meta = dict(backend.sql("SELECT key, value FROM meta"))
         assert meta["format_version"] == str(FORMAT_VERSION)
+
+    def test_other_databases_are_refused(self, backend):
+        with backend.open() as s:
+            s.add_robot("A", "t")
+        backend.sql("UPDATE meta SET value = '99' WHERE key = 'format_version'")
+        with pytest.raises(DatabaseError, match="format_version 99"):
+            backend.open()
+        backend.sql("DROP TABLE meta")
+        with pytest.raises(DatabaseError, match="no format_version"):
+            backend.open()
+
+    def test_an_unreachable_postgres_is_one_line(self, tmp_path):
+        with pytest.raises(DatabaseError, match="not a usable fleet database") as err:
+            open_store(tmp_path, f"postgresql:///x?host={tmp_path}&user=nobody", {"connect_timeout_s": 2})
+        assert "\n" not in str(err.value)
 
     def test_other_files_are_refused(self, tmp_path):
         text = tmp_path / "notes.sqlite"
@@ -142,6 +191,7 @@ class TestSQLiteStore:
 
     def test_every_conf_key_has_a_rule(self):
         assert set(SQLiteStore.default_conf) == set(SQLiteStore.conf_rules)
+        assert set(PostgresStore.default_conf) == set(PostgresStore.conf_rules)
 
 
 WRITER = textwrap.dedent("""
@@ -149,8 +199,9 @@ WRITER = textwrap.dedent("""
     import numpy as np
     sys.path.insert(0, {repo!r})
     from fleet.sim3 import Sim3
-    from fleet.store import EdgeRecord, KeyframeAck, SQLiteStore
-    store = SQLiteStore({path!r}, {{"token_iterations": 1000}})
+    from fleet.store import EdgeRecord, KeyframeAck
+    from fleet.stores import open_store
+    store = open_store("unused", {path!r}, {{"token_iterations": 1000}})
     if "A" not in store.robots():
         store.add_robot("A", "t")
     start = len(store.keyframes("A"))
@@ -165,11 +216,10 @@ WRITER = textwrap.dedent("""
 
 
 class TestKillNine:
-    def test_every_acknowledged_keyframe_survives(self, tmp_path):
+    def test_every_acknowledged_keyframe_survives(self, backend):
         """Five writer processes in turn, each killed with SIGKILL at a random moment while writing: what they
         acknowledged (printed after the commit) is all there, ids are contiguous, every keyframe has its edge."""
-        path = tmp_path / "fleet.sqlite"
-        script = WRITER.format(repo=REPO, path=str(path))
+        script = WRITER.format(repo=REPO, path=backend.location)
         rng = np.random.default_rng(0)
         acked: list[int] = []
         for _ in range(5):
@@ -179,9 +229,10 @@ class TestKillNine:
             os.kill(proc.pid, signal.SIGKILL)
             acked += [int(first)] + [int(line) for line in proc.stdout.read().split()]
             proc.wait()
-        with SQLiteStore(path, FAST) as s:
+        with backend.open() as s:
             ids = [a.keyframe for a in s.keyframes("A")]
             edges = s.edges(kind="odometry")
         assert set(acked) <= set(ids) and ids == list(range(len(ids))) and len(ids) > len(set(acked)) - 1
         assert [e.keyframe_b for e in edges] == ids[1:]
-        assert sqlite3.connect(path).execute("PRAGMA integrity_check").fetchone()[0] == "ok"
+        if backend.kind == "sqlite":
+            assert backend.sql("PRAGMA integrity_check")[0][0] == "ok"

@@ -1,4 +1,5 @@
-"""faiss indexes against the numpy brute-force reference, and the keyframe index's recent-frame exclusion."""
+"""faiss and Milvus (milvus-lite, embedded) indexes against the numpy brute-force reference, and the keyframe index's
+recent-frame exclusion."""
 
 import numpy as np
 import pytest
@@ -21,6 +22,27 @@ def data():
     return unit(rng, 2000), unit(rng, 50)
 
 
+@pytest.fixture(scope="module")
+def milvus_uri(tmp_path_factory):
+    """One milvus-lite file for the module (its server starts once); every index a collection of its own."""
+    return str(tmp_path_factory.mktemp("milvus") / "codes.db")
+
+
+@pytest.fixture(params=["flat", "milvus"])
+def exact_index(request, milvus_uri):
+    """``exact_index()`` -> a new exact index: faiss ``flat`` or ``milvus``; Milvus ones closed at the end."""
+    made = []
+
+    def make():
+        conf = {"name": "milvus", "uri": milvus_uri} if request.param == "milvus" else {"name": "flat"}
+        made.append(create_index(D, conf))
+        return made[-1]
+
+    yield make
+    for index in made:
+        getattr(index, "close", lambda: None)()
+
+
 def recall_at_k(I, I_ref):
     return np.mean([len(set(a) & set(b)) / len(b) for a, b in zip(I, I_ref)])
 
@@ -41,10 +63,10 @@ class TestBruteForceSearch:
         assert (I == -1).all() and I.shape == (2, 4)
 
 
-class TestFlatIndex:
-    def test_equals_brute_force(self, data):
+class TestExactIndexes:
+    def test_equals_brute_force(self, data, exact_index):
         xb, xq = data
-        index = FlatIndex(D)
+        index = exact_index()
         index.add(xb[:1000])
         index.add(xb[1000:])  # positions continue
         assert index.ntotal == 2000
@@ -54,18 +76,18 @@ class TestFlatIndex:
         np.testing.assert_array_equal(If, Ib)
         np.testing.assert_allclose(Df, Db, rtol=1e-5, atol=1e-6)
 
-    def test_fewer_codes_than_k(self, data):
+    def test_fewer_codes_than_k(self, data, exact_index):
         xb, xq = data
-        index = FlatIndex(D)
+        index = exact_index()
         index.add(xb[:3])
         Df, If = index.search(xq[:4], 6)
         Db, Ib = brute_force_search(xq[:4], xb[:3], 6)
         np.testing.assert_array_equal(If, Ib)
         assert (If[:, 3:] == -1).all() and np.isneginf(Df[:, 3:]).all()
 
-    def test_empty_index_and_empty_query(self, data):
+    def test_empty_index_and_empty_query(self, data, exact_index):
         xb, xq = data
-        index = FlatIndex(D)
+        index = exact_index()
         Df, If = index.search(xq[:2], 5)
         assert If.shape == (2, 5) and (If == -1).all()
         index.add(xb[:0])
@@ -142,11 +164,26 @@ class TestCreateIndex:
         assert isinstance(create_index(D), FlatIndex)
         assert isinstance(create_index(D, {"name": "fp16"}), FP16Index)
         assert isinstance(create_index(D, {"name": "hnsw", "ef_search": 64}), HNSWIndex)
-        assert {"flat", "fp16", "hnsw"} <= set(INDEXES.names())
+        assert {"flat", "fp16", "hnsw", "milvus"} <= set(INDEXES.names())
         with pytest.raises(ConfigError, match="unknown index 'ivf'"):
             create_index(D, {"name": "ivf"})
         with pytest.raises(ConfigError, match="index.m"):
             create_index(D, {"name": "flat", "m": 16})
+        with pytest.raises(ConfigError, match="index.collection"):  # checked before Milvus is touched
+            create_index(D, {"name": "milvus", "collection": "no spaces; drop"})
+
+    def test_a_milvus_collection_continues_and_refuses_another_size(self, data, milvus_uri):
+        xb, xq = data
+        first = create_index(D, {"name": "milvus", "uri": milvus_uri, "collection": "shared"})
+        first.add(xb[:300])
+        first.close()
+        again = create_index(D, {"name": "milvus", "uri": milvus_uri, "collection": "shared"})
+        assert again.ntotal == 300
+        again.add(xb[300:400])  # positions continue
+        np.testing.assert_array_equal(again.search(xq, 5)[1], brute_force_search(xq, xb[:400], 5)[1])
+        again.close()
+        with pytest.raises(ConfigError, match="holds 64-d codes"):
+            create_index(D + 1, {"name": "milvus", "uri": milvus_uri, "collection": "shared"})
 
 
 def query(kf, code, frame_id, k, timestamp=None):
@@ -160,9 +197,10 @@ class TestKeyframeIndex:
     def codes(self):
         return unit(np.random.default_rng(5), 40)
 
-    @pytest.mark.parametrize("conf", [{"name": "flat"}, {"name": "fp16"}, {"name": "hnsw", "m": 8}])
-    def test_exclude_recent_frames(self, codes, conf):
-        kf = KeyframeIndex(D, conf, exclude_recent=5)
+    @pytest.mark.parametrize("conf", [{"name": "flat"}, {"name": "fp16"}, {"name": "hnsw", "m": 8},
+                                      {"name": "milvus"}])
+    def test_exclude_recent_frames(self, codes, conf, milvus_uri):
+        kf = KeyframeIndex(D, dict(conf, uri=milvus_uri) if conf["name"] == "milvus" else conf, exclude_recent=5)
         for i in range(10):
             kf.add(i, codes[i])
         assert len(kf) == 10

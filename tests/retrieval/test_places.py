@@ -79,6 +79,26 @@ class TestCodePlaces:
             places.check(np.zeros((3, 32), np.uint8))
 
 
+    def test_a_milvus_memory_answers_like_faiss(self, encoder, sample_image, tmp_path):
+        """The place memory on a Milvus index (milvus-lite file): the same candidates and scores as on faiss."""
+        from retrieval.descriptors import CAEDescriptor
+
+        descriptor = CAEDescriptor(encoder=encoder)
+        codes = [descriptor(sample_image(i)) for i in range(0, 100, 4)]
+        found = {}
+        for name, index in (("flat", {"name": "flat"}), ("milvus", {"name": "milvus", "uri": str(tmp_path / "p.db")})):
+            places = create_places(descriptor, None, resolve_conf({"search": {"exclude_recent": 3}, "index": index}))
+            found[name] = []
+            for n, code in enumerate(codes):
+                found[name].append(places.search(n, code, None, k=3))
+                places.insert(n, code, None)
+            getattr(places.index.index, "close", lambda: None)()
+        for (s_flat, i_flat), (s_milvus, i_milvus) in zip(found["flat"], found["milvus"]):
+            np.testing.assert_array_equal(i_flat, i_milvus)
+            np.testing.assert_allclose(s_flat, s_milvus, atol=1e-5)
+        assert sum(len(i) for _, i in found["milvus"]) > 40
+
+
 class TestRowTable:
     def test_pairs_searchable_and_keep(self):
         table = RowTable(keep=2)

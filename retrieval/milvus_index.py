@@ -1,0 +1,124 @@
+"""A code index on Milvus (``index.name: milvus``): the place index shared by the fleet's workers and replicas.
+
+The same ``CodeIndex`` interface as the faiss indexes (``retrieval.index``): ``add`` appends codes whose positions
+continue from ``ntotal``, ``search`` returns ``D (nq, k)`` inner products and ``I (nq, k)`` positions with ``-1``
+padding. Exact search (a ``FLAT`` index, inner-product metric, strong consistency: a code is searchable as soon as
+``add`` returns). The client is pymilvus: ``uri`` a local file runs milvus-lite embedded, ``http://HOST:19530`` a
+Milvus server; with ``uri`` empty, a private milvus-lite file in a temporary folder (deleted on ``close``). Reopening
+an existing collection continues it (``ntotal`` = the rows stored); one process writes a collection at a time.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import tempfile
+import uuid
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from core.conf import ConfigError, Int, Text, configure
+
+from .index import INDEXES, CodeIndex
+
+__all__ = ["MilvusIndex"]
+
+log = logging.getLogger(__name__)
+
+_NAME = r"([A-Za-z_][A-Za-z0-9_]{0,254})?"  #: what Milvus accepts as a collection name (or "": a new one)
+
+
+@INDEXES.register("milvus")
+class MilvusIndex(CodeIndex):
+    """Exact inner-product search in a Milvus collection (see the module doc)."""
+
+    default_conf: dict[str, Any] = {
+        "name": "milvus",
+        "uri": "",  # a milvus-lite file (e.g. state/places.db), http://host:19530 for a server; "": a private file
+        "collection": "",  # collection name (letters, digits, _); "": a new unique one
+        "batch": 1000,  # codes per insert request
+    }
+    conf_rules: dict[str, Any] = {"uri": Text(), "collection": Text(_NAME), "batch": Int(1, 100_000)}
+
+    def __init__(self, dim: int, conf: dict[str, Any] | None = None) -> None:
+        from pymilvus import MilvusClient  # here: only this index needs it
+
+        self.conf = configure(self, conf, "index")
+        self.dim = int(dim)
+        self.collection = self.conf["collection"] or f"codes_{uuid.uuid4().hex}"
+        self._tmp = None if self.conf["uri"] else Path(tempfile.mkdtemp(prefix="milvus-"))
+        uri = self.conf["uri"] or str(self._tmp / "codes.db")
+        if "://" not in uri:
+            Path(uri).parent.mkdir(parents=True, exist_ok=True)
+        self.client = MilvusClient(uri)
+        try:
+            self._open()
+        except BaseException:
+            self.close()
+            raise
+
+    def _open(self) -> None:
+        """Creates the collection (id, vector; FLAT, IP) or continues an existing one of the same dimension."""
+        c = self.client
+        if c.has_collection(self.collection):
+            field = next(f for f in c.describe_collection(self.collection)["fields"] if f["name"] == "vector")
+            if int(field["params"]["dim"]) != self.dim:
+                raise ConfigError(f"Milvus collection {self.collection!r} holds {field['params']['dim']}-d codes; "
+                                  f"this index has {self.dim}")
+            c.load_collection(self.collection)
+            self._ntotal = int(c.query(self.collection, filter="", output_fields=["count(*)"])[0]["count(*)"])
+            return
+        schema = c.create_schema(auto_id=False, enable_dynamic_field=False)
+        schema.add_field("id", _datatype().INT64, is_primary=True)
+        schema.add_field("vector", _datatype().FLOAT_VECTOR, dim=self.dim)
+        index = c.prepare_index_params()
+        index.add_index(field_name="vector", index_type="FLAT", metric_type="IP")
+        c.create_collection(self.collection, schema=schema, index_params=index, consistency_level="Strong")
+        self._ntotal = 0
+
+    @property
+    def ntotal(self) -> int:
+        return self._ntotal
+
+    def add(self, xb: np.ndarray) -> None:
+        """Appends ``(n, d)`` codes; their positions continue from ``ntotal``."""
+        xb = np.ascontiguousarray(xb, np.float32).reshape(-1, self.dim)
+        for start in range(0, len(xb), self.conf["batch"]):
+            chunk = xb[start:start + self.conf["batch"]]
+            first = self._ntotal + start
+            self.client.insert(self.collection, [{"id": first + i, "vector": v} for i, v in enumerate(chunk.tolist())])
+        self._ntotal += len(xb)
+
+    def search(self, xq: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Top-``k`` by inner product: ``D (nq, k)`` float32, ``I (nq, k)`` int64 (``-1`` and ``-inf`` padding)."""
+        xq = np.ascontiguousarray(xq, np.float32).reshape(-1, self.dim)
+        k = max(int(k), 0)
+        D = np.full((len(xq), k), -np.inf, np.float32)
+        I = np.full((len(xq), k), -1, np.int64)
+        if len(xq) == 0 or k == 0 or self._ntotal == 0:
+            return D, I
+        hits = self.client.search(self.collection, data=xq.tolist(), limit=min(k, self._ntotal),
+                                  output_fields=["id"], search_params={"metric_type": "IP"})
+        for q, row in enumerate(hits):
+            row = sorted(row, key=lambda h: (-h["distance"], h["id"]))  # ties: lower position first, like faiss
+            D[q, :len(row)] = [h["distance"] for h in row]
+            I[q, :len(row)] = [h["id"] for h in row]
+        return D, I
+
+    def bytes_per_code(self) -> float:
+        """Float32 codes: 4 bytes per dimension (stored by Milvus, not in this process)."""
+        return 4.0 * self.dim
+
+    def close(self) -> None:
+        """Closes the client; a private temporary file is deleted."""
+        self.client.close()
+        if self._tmp is not None:
+            shutil.rmtree(self._tmp, ignore_errors=True)
+
+
+def _datatype() -> Any:
+    from pymilvus import DataType
+
+    return DataType

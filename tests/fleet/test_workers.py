@@ -1,0 +1,65 @@
+"""fleet.workers: robots sharded over two Ray workers (one module-scoped local Ray, 2 CPUs) on real KITTI frames: the
+overlap of two robots on different workers is found as in one process, and a killed worker's robots continue."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fleet.workers import RayRecognizer, create_recognizer, shard_of
+
+ray = pytest.importorskip("ray")
+
+# A (KITTI 00 even frames) and B (odd frames) on different shards of 2 (checked below)
+A, B = "C", "D"
+
+
+@pytest.fixture(scope="module")
+def local_ray():
+    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False)
+    yield
+    ray.shutdown()
+
+
+def frames(kitti_sequences, kitti_poses, ids):
+    import cv2
+
+    from fleet.sim3 import Sim3
+    from retrieval.sequences import read_kitti_calib
+
+    K = read_kitti_calib(kitti_sequences / "00" / "calib.txt")
+    poses = kitti_poses("00")
+    for i in ids:
+        image = cv2.imread(str(kitti_sequences / "00" / "image_0" / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED)
+        yield (A if i % 2 == 0 else B), i, Sim3.from_pose(poses[i]).matrix(), image, K
+
+
+def process(rec, robot, i, pose, image, K):
+    """What the service does: recognition, then (the keyframe stored) ``committed``."""
+    found = rec.process(robot, i, float(i), pose, image, K)
+    rec.committed(robot)
+    return found
+
+
+def test_robots_are_sharded_by_name():
+    assert shard_of(A, 2) != shard_of(B, 2)
+    assert [shard_of(f"r{i}", 4) for i in range(8)] == [shard_of(f"r{i}", 4) for i in range(8)]
+    assert {shard_of(f"robot{i:02d}", 4) for i in range(32)} == {0, 1, 2, 3}
+
+
+def test_overlap_across_workers_and_a_killed_worker(local_ray, tmp_path, kitti_sequences, kitti_poses):
+    rec = create_recognizer(tmp_path, workers=2)
+    assert isinstance(rec, RayRecognizer) and rec.parallel_robots
+    found = [process(rec, robot, i, pose, image, K)
+             for robot, i, pose, image, K in frames(kitti_sequences, kitti_poses, range(100, 110))]
+    overlaps = [o for r in found for o in r.overlaps]
+    assert len(overlaps) == 1 and {overlaps[0].robot_a, overlaps[0].robot_b} == {A, B}
+    edges = [e for r in found for e in r.edges if e.kind == "overlap"]
+    assert edges and all({e.robot_a, e.robot_b} == {A, B} for e in edges)
+
+    ray.kill(rec._shards[shard_of(B, 2)])  # B's worker dies
+    assert rec.has(B, 109) and not rec.has(B, 111)  # restarted: B's database reopened from the state folder
+    later = [process(rec, robot, i, pose, image, K)
+             for robot, i, pose, image, K in frames(kitti_sequences, kitti_poses, range(110, 116))]
+    assert any(e.kind == "overlap" and e.robot_b == B for r in later for e in r.edges)  # B still matched with A
+    rec.close()
