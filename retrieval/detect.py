@@ -278,7 +278,7 @@ def main(path: str | Path | None = None, out: str | Path | None = None, conf: di
         seconds["frames"] = time.perf_counter() - t0
         loops = run.write_tables(det.db.results())
         verified = bool(cal.inlier_null) if cal is not None else bool(resolved["policy"]["verify"])
-        edges = loop_edges(det.db, loops, seq.K, resolved) if verified else []  # a pose only where it was verified
+        edges = loop_edges(det.keyframe_features, loops, seq.K, resolved) if verified else []  # a pose only where it was verified
         run.write_edges(edges, seq.poses)
         frames = det.db.frames()
         keyframes = len(det.db)

@@ -537,6 +537,15 @@ class LoopDetector:
             checks[i] = check
         return feats, checks
 
+    def keyframe_features(self, frame_id: int) -> Features:
+        """A processed keyframe's local features: kept, or extracted now from its image again and cached (the run
+        extracts them lazily: only for frames whose candidates could pass).
+
+        Raises:
+            KeyError: ``frame_id`` is no keyframe of this detector.
+        """
+        return self._features_of(int(frame_id))
+
     def _features_of(self, fid: int) -> Features:
         """A keyframe's local features: kept, or extracted now (its image again) and cached (LRU)."""
         if fid not in self._unextracted:

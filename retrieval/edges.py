@@ -2,9 +2,10 @@
 
 The verification (``verify.verifier``) matches the query's local features against the match's, then RANSAC on the
 essential matrix gives ``R, t`` with ``x_match = R x_query + t`` for a point ``x`` in each camera's frame, i.e. the
-pose of the query camera in the match camera's frame. Here it is computed again from the features stored in the
-keyframe database with the run's own matcher and geometry settings (same features, same deterministic RANSAC: the
-same inliers as ``loops.csv``, so a resumed run gets its edges too). ``t`` is a unit direction: from two images
+pose of the query camera in the match camera's frame. Here it is computed again from the keyframes' features
+(``LoopDetector.keyframe_features``: stored, cached, or extracted again where the run extracted them lazily) with the
+run's own matcher and geometry settings (same features, same deterministic RANSAC: the same inliers as
+``loops.csv``, so a resumed run gets its edges too). ``t`` is a unit direction: from two images
 without depth the length of the baseline cannot be known, so **the translation is up to scale**.
 
 Information matrix (the rule, in g2o's order ``x y z`` then the three rotation components): each of the ``n``
@@ -22,10 +23,11 @@ stays weak on purpose (a back end should fit its scale or down-weight it).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Iterable
+from typing import Any, Callable, Iterable
 
 import numpy as np
 
+from verify.features import Features
 from verify.verifier import create_verifier
 
 __all__ = ["LoopEdge", "loop_edges", "edge_errors", "rotation_to_quaternion", "ROTATION_SIGMA_1",
@@ -72,12 +74,12 @@ def rotation_to_quaternion(R: np.ndarray) -> np.ndarray:
     return q if q[3] >= 0 else -q
 
 
-def loop_edges(db: Any, loops: Iterable[tuple[int, int]], K: np.ndarray | None,
+def loop_edges(features: Callable[[int], Features], loops: Iterable[tuple[int, int]], K: np.ndarray | None,
                conf: dict[str, Any]) -> list[LoopEdge]:
-    """The relative pose of each loop, from the features in the keyframe database.
+    """The relative pose of each loop, from the keyframes' local features.
 
     Args:
-        db: the run's ``KeyframeDatabase`` (``features(frame_id)``).
+        features: a keyframe's local features by frame id (``LoopDetector.keyframe_features``).
         loops: ``(query, match)`` frame id pairs (``(L, 2)``), as ``RunFolder.write_tables`` returns them.
         K: ``(3, 3)`` intrinsics; None: no edges (without intrinsics the geometry is a fundamental matrix, no pose).
         conf: the run's resolved conf (its ``matcher`` and ``geometry`` sections are used).
@@ -90,7 +92,7 @@ def loop_edges(db: Any, loops: Iterable[tuple[int, int]], K: np.ndarray | None,
     verifier = create_verifier(conf.get("matcher"), conf.get("geometry"))
     out = []
     for q, m in loops:
-        check = verifier.verify(db.features(int(q)), [db.features(int(m))], K)[0]
+        check = verifier.verify(features(int(q)), [features(int(m))], K)[0]
         geo = check.geometry
         if geo.R is not None and geo.t is not None:
             out.append(LoopEdge(int(q), int(m), int(geo.inliers), np.asarray(geo.R, np.float64),

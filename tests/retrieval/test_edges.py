@@ -14,13 +14,6 @@ from retrieval.run_folder import EDGE_COLUMNS, RunFolder
 PAIRS = [(55, 5), (60, 10), (75, 25), (99, 49)]  #: real revisits of the bundled sample (loops.txt)
 
 
-class FeatureStore:
-    """What ``loop_edges`` reads from a keyframe database: ``features(frame_id)``."""
-
-    def __init__(self, extract):
-        self.features = extract
-
-
 def test_quaternion_matches_gtsam():
     gtsam = pytest.importorskip("gtsam")
     rng = np.random.default_rng(0)
@@ -32,7 +25,7 @@ def test_quaternion_matches_gtsam():
 
 
 def test_real_revisits_give_the_ground_truth_rotation(sift_features, sample_K, sample_seq):
-    edges = loop_edges(FeatureStore(sift_features), PAIRS, sample_K, {})
+    edges = loop_edges(sift_features, PAIRS, sample_K, {})
     assert [(e.query, e.match) for e in edges] == PAIRS
     errors = edge_errors(edges, sample_seq.poses)
     assert (errors[:, 0] < 2.0).all() and (errors[:, 1] < 20.0).all()
@@ -43,7 +36,7 @@ def test_real_revisits_give_the_ground_truth_rotation(sift_features, sample_K, s
 
 
 def test_without_intrinsics_there_is_no_pose(sift_features):
-    assert loop_edges(FeatureStore(sift_features), PAIRS, None, {}) == []
+    assert loop_edges(sift_features, PAIRS, None, {}) == []
 
 
 def test_empty_edges_still_write_the_files(tmp_path):
