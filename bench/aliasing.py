@@ -11,8 +11,8 @@ One run of the default config (nothing tuned per data set) on:
   that looks alike, frame after frame, in order).
 
 Columns: frames, loops, precision / recall (ground truth where the set has revisits), median ms/frame, the share of
-the run's wall time spent calibrating, and the path the calibration chose. ``stress_sets`` builds the folders
-(``cae-lcd bench`` reuses it for its ``aliasing`` rows).
+the run's wall time spent calibrating, and the path the calibration chose. ``stress_folders`` builds the stress
+sets (``cae-lcd bench`` adds them to its false-loop columns, beside KITTI 00 and 07).
 """
 
 from __future__ import annotations
@@ -34,9 +34,8 @@ from retrieval.run_folder import RunFolder
 from retrieval.sequences import open_sequence
 
 from .common import REPO, detect_run, md_table
-from .run import write_section
 
-__all__ = ["plain_folder", "stress_sets", "evaluate", "aliasing_table", "main"]
+__all__ = ["plain_folder", "stress_folders", "stress_sets", "evaluate", "aliasing_table", "main"]
 
 log = logging.getLogger(__name__)
 
@@ -58,32 +57,39 @@ def plain_folder(dst: Path, sources: list[Path], size: tuple[int, int] | None = 
     return dst
 
 
-def stress_sets(data: Path, run_dir: Path) -> dict[str, tuple[Path, np.ndarray | None]]:
-    """Every sequence of the table: name -> (folder, ground-truth pairs or None for a set without revisits)."""
-    kitti = data / "kitti" / "sequences"
-    frames = {n: list(open_sequence(kitti / n).frames) for n in ("00", "07", "90")}
-    truth90 = read_loop_pairs(kitti / "90" / "loops.txt")
-    sets: dict[str, tuple[Path, np.ndarray | None]] = {
-        "KITTI 90 (1241x376, intrinsics)": (kitti / "90", truth90),
-        "KITTI 90 at 160x120 (plain folder)": (plain_folder(run_dir / "k90_160", frames["90"], (160, 120)), truth90),
-        "KITTI 90 at 64x32 (plain folder)": (plain_folder(run_dir / "k90_64", frames["90"], (64, 32)), truth90),
-        "KITTI 00 (no revisit)": (kitti / "00", None),
-        "KITTI 07 (no revisit)": (kitti / "07", None),
-        "Nordland summer -> winter (64x32)": (data / "nordland", read_loop_pairs(data / "nordland" / "loops.txt")),
-        "stress: 00 then 07 (full size)": (plain_folder(run_dir / "s0007", frames["00"] + frames["07"]), None),
-        "stress: 00 then 07 at 160x120": (plain_folder(run_dir / "s0007_160", frames["00"] + frames["07"],
-                                                       (160, 120)), None),
-        "stress: 00 then 00 mirrored at 160x120": (
-            plain_folder(run_dir / "s00m_160", frames["00"] + frames["00"], (160, 120)), None),
-    }
-    mirrored = run_dir / "s00m_160"
+def stress_folders(kitti: Path, run_dir: Path) -> dict[str, Path]:
+    """The aliasing stress sets (no revisit: every loop is false), built under ``run_dir`` from KITTI 00 and 07
+    (``kitti``: the ``sequences`` folder): name -> plain folder."""
+    frames = {n: list(open_sequence(kitti / n).frames) for n in ("00", "07")}
+    out = {"00+07": plain_folder(run_dir / "s0007", frames["00"] + frames["07"]),
+           "00+07 @160x120": plain_folder(run_dir / "s0007_160", frames["00"] + frames["07"], (160, 120)),
+           "00+00 mirrored @160x120": plain_folder(run_dir / "s00m_160", frames["00"] * 2, (160, 120))}
+    mirrored = out["00+00 mirrored @160x120"]
     for i in range(len(frames["00"]), 2 * len(frames["00"])):  # the second half: mirrored left-right, once
-        path = mirrored / f"{i:06d}.png"
-        flag = mirrored / f".mirrored_{i}"
+        path, flag = mirrored / f"{i:06d}.png", mirrored / f".mirrored_{i}"
         if not flag.exists():
             cv2.imwrite(str(path), cv2.flip(read_image(path), 1))
             flag.touch()
-    return sets
+    return out
+
+
+def stress_sets(data: Path, run_dir: Path) -> dict[str, tuple[Path, np.ndarray | None]]:
+    """Every sequence of the table: name -> (folder, ground-truth pairs or None for a set without revisits)."""
+    kitti = data / "kitti" / "sequences"
+    frames90 = list(open_sequence(kitti / "90").frames)
+    truth90 = read_loop_pairs(kitti / "90" / "loops.txt")
+    stress = stress_folders(kitti, run_dir)
+    return {
+        "KITTI 90 (1241x376, intrinsics)": (kitti / "90", truth90),
+        "KITTI 90 at 160x120 (plain folder)": (plain_folder(run_dir / "k90_160", frames90, (160, 120)), truth90),
+        "KITTI 90 at 64x32 (plain folder)": (plain_folder(run_dir / "k90_64", frames90, (64, 32)), truth90),
+        "KITTI 00 (no revisit)": (kitti / "00", None),
+        "KITTI 07 (no revisit)": (kitti / "07", None),
+        "Nordland summer -> winter (64x32)": (data / "nordland", read_loop_pairs(data / "nordland" / "loops.txt")),
+        "stress: 00 then 07 (full size)": (stress["00+07"], None),
+        "stress: 00 then 07 at 160x120": (stress["00+07 @160x120"], None),
+        "stress: 00 then 00 mirrored at 160x120": (stress["00+00 mirrored @160x120"], None),
+    }
 
 
 def evaluate(folder: Path, truth: np.ndarray | None, out: Path, conf: dict[str, Any] | None = None) -> dict[str, Any]:
@@ -130,6 +136,8 @@ def main(data: Path, run_dir: Path, out: Path | None, only: str = "") -> dict[st
     body = ("### Precision where places look alike (`python -m bench.aliasing`, issue 17)\n\n" + aliasing_table(res)
             + f"\n\nDefault config, one run, nothing tuned per set. Total {time.perf_counter() - t0:.0f} s.")
     if out is not None and not only:
+        from .run import write_section  # bench.run imports this module (its false-loop stress rows)
+
         write_section(out, body, "aliasing")
     print(body)  # noqa: T201 (a study's command-line output)
     return res

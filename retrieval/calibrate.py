@@ -8,20 +8,28 @@ Before a run, the calibration looks at the sequence itself (``cae-lcd calibrate 
    ``whitening.source: weights``, the one ``cae-lcd train`` fitted on the training images and saved with the weights.
 3. **The null distributions**: frames on the far side of the exclusion window (from half of
    ``search.exclude_recent`` frames back to just inside it) are close in time, so they share the camera, the light
-   and the season, but the camera has moved on, so they are not loops. Their temporal-filter scores and, for random
-   far-side pairs of sampled queries, their geometric inliers are the null samples. A robust fit anchored on the
-   median and a high percentile (a few contaminating revisits, e.g. a vehicle waiting at a station, do not move
-   it) gives the probability that a non-loop reaches a given value: a Gaussian for the temporal score of a pair (an
-   average of whitened cosines), an exponential tail for the inlier count.
+   and the season, but the camera has moved on, so they are not loops. Their temporal-filter scores are the score
+   path's null (a Gaussian through the median and the 90th percentile). For the inlier path the null is what the
+   detector really tests: the **hard negatives**, the far-side keyframes retrieval would return for a sampled query
+   (keeping ``exclude_recent // 10`` frames off the boundary), verified as in the run, each followed back two frames
+   (look-alike streets look alike for several frames). A random far-side pair per query is verified too, to show
+   the difference; the **positives** are a frame and its neighbour ``exclude_recent // 25`` frames back, followed
+   back likewise. ``retrieval.decision`` turns them into the pair tail (an exponential above the hard null's median,
+   fitted by maximum likelihood, never lighter than its own largest sample), the fused-evidence tail, and whether
+   one pair may decide alone (only where the median positive would pass and no hard negative does).
 4. **Which path decides**: where local features can verify (the median frame has at least ``min_features``
-   keypoints), geometry decides: the *inlier path*. Where they are too few (a 64x32 camera), verification is
-   switched off and the summary says so: loops then rest on the normalised code plus temporal consistency, the
-   *score path*. (Geometry is the arbiter where it exists because look-alike streets form look-alike sequences:
-   on KITTI 00, a street 60 m on scores like a revisit along 10 frames, and only geometry tells them apart.)
+   keypoints), geometry decides, fused over consecutive frames: the *inlier path*. Where they are too few (a 64x32
+   camera), verification is switched off and the summary says so: loops then rest on the normalised code plus
+   temporal consistency, the *score path*.
 5. **The threshold**, a-contrario: a candidate is accepted when the expected number of false loops at its strength
    over the whole run, ``NFA = tests * P_null(>= value)``, is at most ``expected_false_loops / 2`` (the score path
    tests every query against every keyframe; the inlier path tests ``k`` candidates per query). The
    ``confidence`` of a candidate is ``-log10 NFA`` (the larger the surer); it is what ``loops.csv`` ranks by.
+6. **Too recent**: the cosine under which a frame no longer looks like the query (the adjacent frames' 10th
+   percentile); the run refuses keyframes of the stretch the query is still in (``retrieval.decision.Horizon``).
+
+``calibration.h5`` keeps every measured distribution under ``samples/`` (random, hard and positive inliers, hard and
+positive fused evidence, adjacent cosines); the notes (printed, and in ``summary.json``) summarise them.
 """
 
 from __future__ import annotations
@@ -388,20 +396,25 @@ class _Verify:
         return max(check.inliers, 0) if check.matches >= self.min_matches else 0
 
 
-def _samples(null: np.ndarray, table: CodeTable, verify: _Verify, picks: np.ndarray, gap: int,
+def _samples(null: np.ndarray, table: CodeTable, verify: _Verify, picks: np.ndarray, gap: int, window: int,
              progress: bool) -> dict[str, list[list[int]]]:
     """Inlier counts of sampled queries: a random far-side pair, the two far-side keyframes retrieval would return
     (hard negatives, each followed back ``SPAN - 1`` frames: a look-alike sequence), and a positive sequence (the
-    query and the frame ``gap`` before it, followed back likewise). Sequences are lists, the query's pair first."""
+    query and the frame ``gap`` before it, followed back likewise). Sequences are lists, the query's pair first.
+    Hard negatives keep ``window // 10`` frames away from the exclusion boundary: a revisit just past it (a place
+    longer than the window) is not a look-alike, and the run refuses it as too recent anyway."""
     rng = np.random.default_rng(0)  # the same pairs every time: a resumed or repeated calibration agrees
     out: dict[str, list[list[int]]] = {"random": [], "hard": [], "hard2": [], "positive": []}
     for q in tqdm(picks.tolist(), desc="calibrate: verify", unit="query", disable=not progress, leave=False):
         refs = null[null[:, 0] == q, 1].astype(np.int64)
-        hard = refs[np.argsort(-np.nan_to_num(table.pairs(np.full(len(refs), q), refs), nan=-2.0), kind="stable")]
-        for name, ref in (("random", int(refs[rng.integers(len(refs))])), ("hard", int(hard[0])),
-                          ("hard2", int(hard[min(1, len(hard) - 1)])), ("positive", q - gap)):
+        inner = refs[q - refs < window - max(1, window // 10)]
+        hard = inner if len(inner) else refs
+        hard = hard[np.argsort(-np.nan_to_num(table.pairs(np.full(len(hard), q), hard), nan=-2.0), kind="stable")]
+        rand = int(inner[rng.integers(len(inner))]) if len(inner) else -1
+        for name, ref in (("random", rand), ("hard", int(hard[0])), ("hard2", int(hard[min(1, len(hard) - 1)])),
+                          ("positive", q - gap)):
             steps = 1 if name in ("random", "hard2") else SPAN
-            seq = [verify(q - j, ref - j) for j in range(steps)]
+            seq = [verify(q - j, ref - j) for j in range(steps)] if ref >= 0 else [None]
             if seq[0] is not None:
                 out[name].append([x for x in seq if x is not None])
     return out
@@ -429,8 +442,9 @@ def _inlier_path(cal: Calibration, conf: dict[str, Any], images: dict[int, np.nd
     queries = np.unique(null[:, 0]).astype(np.int64)
     n_q = min(len(queries), max(10, cc["null_pairs"] // (2 + 2 * SPAN)))
     picks = queries[np.unique(np.linspace(0, len(queries) - 1, n_q).astype(int))]
-    gap = max(1, conf["search"]["exclude_recent"] // 10)
-    got = _samples(null, table, verify, picks, gap, progress)
+    window = conf["search"]["exclude_recent"]
+    gap = max(1, window // 25)  # a near neighbour: the same place under the sequence's own motion
+    got = _samples(null, table, verify, picks, gap, window, progress)
     median_kp = float(np.median(verify.keypoints()))
     if cc["verification"] == "auto" and median_kp < cc["min_features"]:
         cal.notes.append(f"verification: off, local features too few to verify (median {median_kp:.0f} keypoints "
