@@ -9,7 +9,9 @@ Sections (``--sections``; all but ``training`` by default):
   verification), on the same frames: precision, recall, max recall at 100 % precision, Recall@k, ms/frame;
 - ``index``: search latency, recall@10 against exact search and bytes per code at 10k / 100k / 1M stored codes for
   each index (flat, fp16, sq8, hnsw), over synthetic codes built around real CAE codes;
-- ``false-loops``: loops each method reports on KITTI 00 and 07 (no revisit: all false), while time allows;
+- ``false-loops``: loops each method reports on KITTI 00 and 07 and on the aliasing stress sets of
+  ``bench.aliasing`` (00 then 07, full size and 160x120; 00 then 00 mirrored at 160x120): no revisit, every loop is
+  false; while time allows;
 - ``training``: "does training help?": shipped vs random weights vs weights trained (reconstruction only, and with
   photometric augmentation) on Nordland's summer half, scored on the whole summer -> winter sequence (own section
   of BENCHMARKS.md; trains for a while, so it is not in the default run).
@@ -40,6 +42,7 @@ from retrieval.baselines import build_vocabulary
 from retrieval.detect import SAMPLE_DIR
 from retrieval.sequences import open_sequence
 
+from .aliasing import stress_folders
 from .common import REPO, Budget
 from .index_scaling import index_scaling, index_table
 from .methods import false_loops, method_confs, methods_table, run_methods, training_study, training_table
@@ -152,7 +155,8 @@ def _full_data(data: str | Path | None, index_sizes: Sequence[int] | None) -> _D
     if not (root / "90").is_dir():
         raise ConfigError(f"KITTI sequences not found under {root} (need 00, 07, 90); pass --data")
     h, w = read_image(open_sequence(root / "90").frames[0]).shape[:2]
-    return _Data(loop_name="KITTI 90", loop=root / "90", noloop={"00": root / "00", "07": root / "07"},
+    noloop = {"00": root / "00", "07": root / "07", **stress_folders(root, REPO / "runs" / "bench" / "stress")}
+    return _Data(loop_name="KITTI 90", loop=root / "90", noloop=noloop,
                  vocab_src=root / "07", vocab_k=1000, vocab_images=80, vocab_label="KITTI 07",
                  train_src=root / "07" / "image_0", base_dirs=[root / "00", root / "07"], base_label="KITTI 00 + 07",
                  sizes=tuple(index_sizes or (10_000, 100_000, 1_000_000)), index_kw={}, size_note=f"{w}x{h}",

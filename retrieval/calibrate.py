@@ -8,20 +8,28 @@ Before a run, the calibration looks at the sequence itself (``cae-lcd calibrate 
    ``whitening.source: weights``, the one ``cae-lcd train`` fitted on the training images and saved with the weights.
 3. **The null distributions**: frames on the far side of the exclusion window (from half of
    ``search.exclude_recent`` frames back to just inside it) are close in time, so they share the camera, the light
-   and the season, but the camera has moved on, so they are not loops. Their temporal-filter scores and, for random
-   far-side pairs of sampled queries, their geometric inliers are the null samples. A robust fit anchored on the
-   median and a high percentile (a few contaminating revisits, e.g. a vehicle waiting at a station, do not move
-   it) gives the probability that a non-loop reaches a given value: a Gaussian for the temporal score of a pair (an
-   average of whitened cosines), an exponential tail for the inlier count.
+   and the season, but the camera has moved on, so they are not loops. Their temporal-filter scores are the score
+   path's null (a Gaussian through the median and the 90th percentile). For the inlier path the null is what the
+   detector really tests: the **hard negatives**, the far-side keyframes retrieval would return for a sampled query
+   (keeping ``exclude_recent // 10`` frames off the boundary), verified as in the run, each followed back two frames
+   (look-alike streets look alike for several frames). A random far-side pair per query is verified too, to show
+   the difference; the **positives** are a frame and its neighbour ``exclude_recent // 25`` frames back, followed
+   back likewise. ``retrieval.decision`` turns them into the pair tail (an exponential above the hard null's median,
+   fitted by maximum likelihood, never lighter than its own largest sample), the fused-evidence tail, and whether
+   one pair may decide alone (only where the median positive would pass and no hard negative does).
 4. **Which path decides**: where local features can verify (the median frame has at least ``min_features``
-   keypoints), geometry decides: the *inlier path*. Where they are too few (a 64x32 camera), verification is
-   switched off and the summary says so: loops then rest on the normalised code plus temporal consistency, the
-   *score path*. (Geometry is the arbiter where it exists because look-alike streets form look-alike sequences:
-   on KITTI 00, a street 60 m on scores like a revisit along 10 frames, and only geometry tells them apart.)
+   keypoints), geometry decides, fused over consecutive frames: the *inlier path*. Where they are too few (a 64x32
+   camera), verification is switched off and the summary says so: loops then rest on the normalised code plus
+   temporal consistency, the *score path*.
 5. **The threshold**, a-contrario: a candidate is accepted when the expected number of false loops at its strength
    over the whole run, ``NFA = tests * P_null(>= value)``, is at most ``expected_false_loops / 2`` (the score path
    tests every query against every keyframe; the inlier path tests ``k`` candidates per query). The
    ``confidence`` of a candidate is ``-log10 NFA`` (the larger the surer); it is what ``loops.csv`` ranks by.
+6. **Too recent**: the cosine under which a frame no longer looks like the query (the adjacent frames' 10th
+   percentile); the run refuses keyframes of the stretch the query is still in (``retrieval.decision.Horizon``).
+
+``calibration.h5`` keeps every measured distribution under ``samples/`` (random, hard and positive inliers, hard and
+positive fused evidence, adjacent cosines); the notes (printed, and in ``summary.json``) summarise them.
 """
 
 from __future__ import annotations
@@ -49,6 +57,7 @@ from verify.features import create_extractor
 from verify.gate import EdgeGate
 from verify.verifier import create_verifier
 
+from .decision import SPAN, TOL, Decision, Horizon, TailModel
 from .descriptors import GlobalDescriptor
 from .temporal import CodeTable, TemporalFilter
 
@@ -56,7 +65,7 @@ __all__ = ["Calibration", "TooFewFrames", "CALIBRATION_FORMAT", "calibrate", "ca
 
 log = logging.getLogger(__name__)
 
-CALIBRATION_FORMAT = 1  #: ``format_version`` of calibration.h5
+CALIBRATION_FORMAT = 2  #: ``format_version`` of calibration.h5
 _LN10 = math.log(10.0)
 
 
@@ -69,12 +78,18 @@ class Calibration:
         whitening: the code normalisation, or None (raw cosine).
         score_null: ``{"median", "sigma", "samples"}`` of the null temporal scores (a Gaussian through their median
             and 90th percentile); empty = the score path is off.
-        inlier_null: ``{"q50", "q75", "beta", "floor", "samples"}`` of the null inlier counts (``floor``: the
-            fewest inliers ever accepted); empty = no verification, the score path decides.
+        inlier_null: ``{"u", "beta", "floor", "samples"}``: the hard-negative inlier tail
+            (``retrieval.decision.TailModel``; ``floor``: the fewest inliers that count as evidence); empty = no
+            verification, the score path decides.
         tests: ``{"score": pairs, "inliers": pairs}`` the run will test (the NFA's multiplier).
         expected_false_loops: the a-contrario target over the whole run.
         notes: one line per choice, saying why (printed, and kept in the summary).
         descriptor: identity of the global descriptor (weights) it was made with; a run with other weights refuses it.
+        fused: ``{"u", "beta", "single", "span", "tol", "stretch_cos", "samples"}``: the tail of the fused evidence
+            on hard-negative sequences (decades), whether one pair may decide alone (1.0) or not (0.0), and the
+            cosine under which a frame no longer looks like the query (``retrieval.decision``).
+        samples: the measured distributions, by name (``random_inliers``, ``hard_inliers``, ``positive_inliers``,
+            ``hard_fused``, ``positive_fused``, ``adjacent_cos``): saved in ``calibration.h5`` under ``samples/``.
     """
 
     edge_reference: float | None = None
@@ -85,6 +100,8 @@ class Calibration:
     expected_false_loops: float = 0.1
     notes: list[str] = field(default_factory=list)
     descriptor: str = ""
+    fused: dict[str, float] = field(default_factory=dict)
+    samples: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def path(self) -> str:
@@ -117,8 +134,17 @@ class Calibration:
             return -math.inf
         if inliers < n["floor"]:
             return -math.inf
-        log10_p = min(0.0, math.log10(0.25) - (inliers - n["q75"]) / n["beta"] / _LN10)
-        return -(math.log10(self.tests["inliers"]) + log10_p)
+        return -(math.log10(self.tests["inliers"]) + TailModel(n["u"], n["beta"]).log10_sf(inliers))
+
+    def decision(self, exclude_recent: int) -> Decision:
+        """The run's fused decision (``retrieval.decision``) on the inlier path, with the trajectory's "too recent"
+        rule (``exclude_recent`` frames as its floor)."""
+        n, f = self.inlier_null, self.fused
+        horizon = Horizon(f["stretch_cos"], exclude_recent) if "stretch_cos" in f else None
+        return Decision(TailModel(n["u"], n["beta"]) if n else None,
+                        TailModel(f.get("u", 0.0), f.get("beta", 1 / _LN10)), self.tests.get("inliers", 1.0),
+                        self.accept_at, bool(f.get("single", 0.0)), horizon, n.get("floor", 0.0),
+                        int(f.get("span", SPAN)), int(f.get("tol", TOL)))
 
     def thresholds(self) -> dict[str, float | None]:
         """The smallest temporal score or inlier count that is accepted (None for the path that does not decide)."""
@@ -140,7 +166,7 @@ class Calibration:
     def identity(self) -> str:
         """A short text that changes when any choice changes (stored in the keyframe database)."""
         body = json.dumps([self.edge_reference, self.score_null, self.inlier_null, self.tests,
-                           self.expected_false_loops], sort_keys=True)
+                           self.expected_false_loops, self.fused], sort_keys=True)
         h = hashlib.sha256(body.encode() + (self.whitening.identity().encode() if self.whitening else b""))
         return h.hexdigest()[:16]
 
@@ -148,7 +174,8 @@ class Calibration:
         """Writes ``calibration.h5`` (temporary file, then rename)."""
         meta = {"edge_reference": self.edge_reference, "score_null": self.score_null,
                 "inlier_null": self.inlier_null, "tests": self.tests,
-                "expected_false_loops": self.expected_false_loops, "notes": self.notes, "descriptor": self.descriptor}
+                "expected_false_loops": self.expected_false_loops, "notes": self.notes, "descriptor": self.descriptor,
+                "fused": self.fused}
         with atomic_write(path, "wb") as f:
             with h5py.File(f, "w") as h5:
                 h5.attrs["format_version"] = CALIBRATION_FORMAT
@@ -157,6 +184,9 @@ class Calibration:
                     grp = h5.create_group("whitening")
                     for key, value in self.whitening.state().items():
                         grp.create_dataset(key, data=value)
+                grp = h5.create_group("samples")
+                for key, value in self.samples.items():
+                    grp.create_dataset(key, data=np.asarray(value, np.float64))
 
     @classmethod
     def load(cls, path: str | Path) -> "Calibration":
@@ -175,13 +205,15 @@ class Calibration:
                 white = None
                 if "whitening" in h5:
                     white = Whitening.from_state({k: h5["whitening"][k][()] for k in h5["whitening"]}, str(path))
+                samples = {k: h5["samples"][k][()] for k in h5["samples"]} if "samples" in h5 else {}
         except ConfigError:
             raise
         except (OSError, KeyError, ValueError, TypeError) as err:
             raise DatabaseError(f"cannot read the calibration {path} ({type(err).__name__}); it is damaged: "
                                 "move it away to calibrate again") from None
         return cls(meta["edge_reference"], white, meta["score_null"], meta["inlier_null"], meta["tests"],
-                   meta["expected_false_loops"], list(meta["notes"]), str(meta.get("descriptor", "")))
+                   meta["expected_false_loops"], list(meta["notes"]), str(meta.get("descriptor", "")),
+                   dict(meta.get("fused", {})), samples)
 
 
 class TooFewFrames(ConfigError):
@@ -297,7 +329,8 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
     cal.tests = {"score": max(n_keyframes, (n_keyframes - window) ** 2 / 2),  # every query against every keyframe
                  "inliers": n_keyframes * conf["search"]["k"]}
     _score_path(cal, null)
-    _inlier_path(cal, conf, images, null, K, progress, features)
+    _inlier_path(cal, conf, images, null, table, K, progress, features)
+    _stretch(cal, ids, table)
     for key, value in cal.thresholds().items():
         if value is not None:
             cal.notes.append(f"accept: {key} >= {value:.4g} (expected false loops over the run "
@@ -306,6 +339,17 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
     for line in cal.notes:
         log.info("calibration: %s", line)
     return cal
+
+
+def _stretch(cal: Calibration, ids: np.ndarray, table: CodeTable) -> None:
+    """The cosine under which a frame no longer looks like the query: the 10th percentile of adjacent frames'."""
+    ids = ids[1:][np.diff(ids) == 1]
+    adjacent = table.pairs(ids, ids - 1).astype(np.float64)
+    cal.samples["adjacent_cos"] = adjacent
+    cal.fused["stretch_cos"] = float(np.quantile(adjacent, 0.1)) if len(adjacent) else 1.0
+    cal.notes.append(f"too recent: frames within search.exclude_recent, and every frame back to where the code "
+                     f"stops looking like the query (cosine < {cal.fused['stretch_cos']:.3f}, the adjacent frames' "
+                     "10th percentile)")
 
 
 def _whitening(wconf: dict[str, Any], descriptor: GlobalDescriptor, codes: np.ndarray,
@@ -351,39 +395,123 @@ def _extract_side_by_side(fconf: dict[str, Any], images: dict[int, np.ndarray], 
         return dict(pair for done in pool.map(part, [fids[i::n] for i in range(n)]) for pair in done)
 
 
+class _Verify:
+    """Verifies pairs of calibration frames as the run does (features extracted once per frame, into ``feats``: the
+    run reuses them)."""
+
+    def __init__(self, conf: dict[str, Any], images: dict[int, np.ndarray], K: np.ndarray | None,
+                 feats: dict[int, Any]) -> None:
+        self.fconf = conf["features"]
+        self.verifier = create_verifier(conf["matcher"], conf["geometry"])
+        self.min_matches = conf["policy"]["min_matches"]
+        self.images, self.K, self.feats = images, K, feats
+
+    def keypoints(self) -> list[int]:
+        return [len(f) for f in self.feats.values()]
+
+    def prefetch(self, fids: Iterable[int]) -> None:
+        """Extracts the features of ``fids`` (those in the calibration and not extracted yet) on every core."""
+        todo = sorted({int(f) for f in fids if f in self.images and f not in self.feats})
+        self.feats.update(_extract_side_by_side(self.fconf, self.images, todo))
+
+    def __call__(self, q: int, r: int) -> int | None:
+        """Inliers of ``(q, r)`` (0 with too few matches), None where a frame is not in the calibration."""
+        if q not in self.images or r not in self.images:
+            return None
+        self.prefetch((q, r))
+        check = self.verifier.verify(self.feats[q], [self.feats[r]], self.K, 0, 0, True)[0]
+        return max(check.inliers, 0) if check.matches >= self.min_matches else 0
+
+
+def _plan(null: np.ndarray, table: CodeTable, picks: np.ndarray, gap: int,
+          window: int) -> list[tuple[str, list[tuple[int, int]]]]:
+    """The pairs to verify for sampled queries: a random far-side pair, the two far-side keyframes retrieval would
+    return (hard negatives, each followed back ``SPAN - 1`` frames: a look-alike sequence), and a positive sequence
+    (the query and the frame ``gap`` before it, followed back likewise); ``(kind, [(query, ref), ...])``, the query's
+    pair first. Hard negatives keep ``window // 10`` frames away from the exclusion boundary: a revisit just past it
+    (a place longer than the window) is not a look-alike, and the run refuses it as too recent anyway."""
+    rng = np.random.default_rng(0)  # the same pairs every time: a resumed or repeated calibration agrees
+    plan = []
+    for q in picks.tolist():
+        refs = null[null[:, 0] == q, 1].astype(np.int64)
+        inner = refs[q - refs < window - max(1, window // 10)]
+        hard = inner if len(inner) else refs
+        hard = hard[np.argsort(-np.nan_to_num(table.pairs(np.full(len(hard), q), hard), nan=-2.0), kind="stable")]
+        rand = int(inner[rng.integers(len(inner))]) if len(inner) else -1
+        for name, ref in (("random", rand), ("hard", int(hard[0])), ("hard2", int(hard[min(1, len(hard) - 1)])),
+                          ("positive", q - gap)):
+            if ref >= 0:
+                plan.append((name, [(q - j, ref - j) for j in range(1 if name in ("random", "hard2") else SPAN)]))
+    return plan
+
+
+def _samples(plan: list[tuple[str, list[tuple[int, int]]]], verify: _Verify,
+             progress: bool) -> dict[str, list[list[int]]]:
+    """Inlier counts of the planned sequences (``_plan``) by kind; features of every frame extracted first, on every
+    core. A sequence whose first pair is not in the calibration is left out."""
+    verify.prefetch(f for _, pairs in plan for pair in pairs for f in pair)
+    out: dict[str, list[list[int]]] = {"random": [], "hard": [], "hard2": [], "positive": []}
+    for name, pairs in tqdm(plan, desc="calibrate: verify", unit="sequence", disable=not progress, leave=False):
+        seq = [verify(q, r) for q, r in pairs]
+        if seq[0] is not None:
+            out[name].append([x for x in seq if x is not None])
+    return out
+
+
+def _fused_samples(seqs: list[list[int]], decision: Decision) -> np.ndarray:
+    """The fused evidence ``E`` each sampled sequence would have in the run (exact offsets, no choice)."""
+    choice = math.log10(2 * TOL + 1)
+    out = []
+    for seq in seqs:
+        ev = [decision.evidence(x) for x in seq]
+        out.append(ev[0] + sum(e - choice for e in ev[1:] if e > choice) if ev[0] > 0 else 0.0)
+    return np.asarray(out, np.float64)
+
+
 def _inlier_path(cal: Calibration, conf: dict[str, Any], images: dict[int, np.ndarray], null: np.ndarray,
-                 K: np.ndarray | None, progress: bool, feats: dict[int, Any] | None = None) -> None:
-    """Verifies the hardest far-side pair of sampled queries; fits the inlier null or switches verification off."""
+                 table: CodeTable, K: np.ndarray | None, progress: bool, feats: dict[int, Any] | None = None) -> None:
+    """Hard negatives, random pairs and positives verified; the pair tail, the fused tail, whether one pair may
+    decide alone; or verification switched off where local features are too few. The local features extracted go
+    into ``feats`` (for the run to reuse)."""
     cc = conf["calibration"]
     if cc["verification"] == "off":
         cal.notes.append("verification: off (calibration.verification)")
         return
-    verifier = create_verifier(conf["matcher"], conf["geometry"])
+    verify = _Verify(conf, images, K, {} if feats is None else feats)
     queries = np.unique(null[:, 0]).astype(np.int64)
-    picks = queries[np.unique(np.linspace(0, len(queries) - 1, min(len(queries), cc["null_pairs"])).astype(int))]
-    feats = {} if feats is None else feats
-    rng = np.random.default_rng(0)  # the same pairs every time: a resumed or repeated calibration agrees
-    pairs = []
-    for q in picks:
-        refs = null[null[:, 0] == q, 1]
-        pairs.append((int(q), int(refs[rng.integers(len(refs))])))
-    todo = sorted({fid for pair in pairs for fid in pair} - set(feats))
-    feats.update(_extract_side_by_side(conf["features"], images, todo))
-    keypoints = [len(feats[fid]) for fid in todo]
-    inliers = []
-    for q, r in tqdm(pairs, desc="calibrate: verify", unit="pair", disable=not progress, leave=False):
-        check = verifier.verify(feats[q], [feats[r]], K, 0, 0, True)[0]
-        inliers.append(max(check.inliers, 0))
-    median_kp = float(np.median(keypoints))
+    n_q = min(len(queries), max(10, cc["null_pairs"] // (2 + 2 * SPAN)))
+    picks = queries[np.unique(np.linspace(0, len(queries) - 1, n_q).astype(int))]
+    window = conf["search"]["exclude_recent"]
+    gap = max(1, window // 25)  # a near neighbour: the same place under the sequence's own motion
+    got = _samples(_plan(null, table, picks, gap, window), verify, progress)
+    median_kp = float(np.median(verify.keypoints()))
     if cc["verification"] == "auto" and median_kp < cc["min_features"]:
         cal.notes.append(f"verification: off, local features too few to verify (median {median_kp:.0f} keypoints "
                          f"per frame < calibration.min_features {cc['min_features']}); loops rest on the normalised "
                          "code and temporal consistency")
         return
-    x = np.asarray(inliers, np.float64)
-    q50, q75 = (float(v) for v in np.quantile(x, [0.5, 0.75]))
-    beta = max((q75 - q50) / math.log(2.0), 1.0)  # exponential tail through the median and the 75th percentile
-    cal.inlier_null = {"q50": q50, "q75": q75, "beta": beta, "floor": float(cc["min_inliers"]),
-                       "samples": float(len(x))}
-    cal.notes.append(f"inlier null: {len(x)} random far-side pairs verified, median {q50:.0f}, 75th percentile "
-                     f"{q75:.0f} inliers (median {median_kp:.0f} keypoints per frame)")
+    hard = np.array([x for seq in got["hard"] for x in seq] + [s[0] for s in got["hard2"]], np.float64)
+    tail = TailModel.fit(hard)
+    cal.inlier_null = {**tail.as_dict(), "floor": float(cc["min_inliers"]), "samples": float(len(hard))}
+    dec = Decision(tail, TailModel(0.0, 1 / _LN10), cal.tests["inliers"], cal.accept_at, False,
+                   floor=cc["min_inliers"])
+    hard_e, pos_e = _fused_samples(got["hard"], dec), _fused_samples(got["positive"], dec)
+    fused = TailModel.fit(hard_e, 1 / _LN10)
+    rand = np.array([s[0] for s in got["random"]], np.float64)
+    pos = np.array([s[0] for s in got["positive"]], np.float64)
+    single = [cal.inlier_confidence(int(x)) for x in pos]
+    separates = bool(len(pos)) and float(np.median(single)) >= cal.accept_at and \
+        max(cal.inlier_confidence(int(x)) for x in hard) < cal.accept_at
+    cal.fused = {**fused.as_dict(), "single": float(separates), "span": float(SPAN), "tol": float(TOL),
+                 "samples": float(len(hard_e))}
+    cal.samples.update({"random_inliers": rand, "hard_inliers": hard, "positive_inliers": pos,
+                        "hard_fused": hard_e, "positive_fused": pos_e})
+    q = (lambda x: "none" if not len(x) else f"median {np.median(x):.0f}, 90th percentile "
+         f"{np.quantile(x, 0.9):.0f}, max {np.max(x):.0f}")
+    cal.notes.append(f"inliers (median {median_kp:.0f} keypoints per frame): random far-side pairs ({len(rand)}): "
+                     f"{q(rand)}; hard negatives ({len(hard)}): {q(hard)}; positives (frames {gap} apart, "
+                     f"{len(pos)}): {q(pos)}")
+    cal.notes.append(f"fused evidence of {SPAN} frames (decades): hard-negative sequences median "
+                     f"{np.median(hard_e):.1f}, max {hard_e.max():.1f}; positive sequences median "
+                     f"{np.median(pos_e):.1f}; geometry " + ("separates: one pair may decide alone" if separates else
+                                                            "does not separate: a loop needs 2 frames of evidence"))

@@ -258,8 +258,10 @@ class LoopDetector:
         self.filter = create_filter(c["temporal"])
         self._verify = bool(self.calibration.inlier_null) if self.calibration is not None else c["policy"]["verify"]
         self._min_inliers = c["policy"]["min_inliers"]
+        self.decision = None  # calibrated: the fused decision and the "too recent" rule (retrieval.decision)
         if self.calibration is not None:
-            self._min_inliers = self.calibration.thresholds()["inliers"] or 0
+            self.decision = self.calibration.decision(c["search"]["exclude_recent"])
+            self._min_inliers = int(self.decision.floor)  # weaker pairs still add fused evidence
         threads = c["runtime"]["threads"]
         if c["runtime"]["parallel"]:  # the feature worker and the encoder run at once: split the cores between them
             threads = max(1, (threads or cpu_count()) // 2)
@@ -312,6 +314,10 @@ class LoopDetector:
             if self.filter.replays_history:  # its state depends on every update, not only on the kept hypotheses
                 self.filter.update(fid, ids[scores >= self.conf["search"]["min_score"]], self.places.source)
             self.filter.commit(fid, results[fid][:, 0].astype(np.int64))
+            if self.decision is not None:  # stored rows: frame_id, score, matches, inliers, ... (CANDIDATE_ROW)
+                rows = results[fid]
+                self.decision.commit(fid, rows[:, 0].astype(np.int64),
+                                     np.where(rows[:, 2] >= self.conf["policy"]["min_matches"], rows[:, 3], -1))
             self.places.insert(fid, entry, timestamp)
             if not len(feats) and self._frame_source is not None:  # not extracted then (or none found): again
                 #                                                     when needed
@@ -419,6 +425,12 @@ class LoopDetector:
             else:
                 cand.inliers = -1
             cand.confidence = self._confidence(cand)
+        if self.decision is not None:
+            fused = self.decision.confidences(fid, np.array([cd.frame_id for cd in candidates], np.int64),
+                                              np.array([self._counted(cd) for cd in candidates], np.int64),
+                                              self.places.source, np.array([cd.confidence for cd in candidates]))
+            for cand, value in zip(candidates, fused):
+                cand.confidence = float(max(value, -1e9))
         loop, best = self._decide(candidates, checks)
         ms["verify"] = (time.perf_counter() - t0) * 1e3 - (ms["features"] - f0)  # late extraction not counted
 
@@ -430,6 +442,9 @@ class LoopDetector:
                                           fingerprint))
         self.places.insert(fid, entry, ts)
         self.filter.commit(fid, np.array([cd.frame_id for cd in candidates], np.int64))
+        if self.decision is not None:
+            self.decision.commit(fid, np.array([cd.frame_id for cd in candidates], np.int64),
+                                 np.array([self._counted(cd) for cd in candidates], np.int64))
         if feats is not None:
             self.features[fid] = feats  # after the database has it: database mode may read it back from there
         else:  # not needed yet: extracted later if a query needs it (frame_source, or a lossless copy kept here)
@@ -560,6 +575,10 @@ class LoopDetector:
         png, scale = self._copies[fid]
         small = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_GRAYSCALE)
         return self.extractor.extract_prepared(small, scale).compact()
+
+    def _counted(self, cand: Candidate) -> int:
+        """The inliers that count as evidence (-1 where the check did not run or the matches are too few)."""
+        return cand.inliers if cand.matches >= self.conf["policy"]["min_matches"] else -1
 
     def _confidence(self, cand: Candidate) -> float:
         """Calibrated: ``-log10 NFA`` on the deciding path (``Calibration.path``); else the inlier count (the

@@ -73,7 +73,7 @@ def test_the_trajectory_route_serves_the_corrected_poses(served):
     assert np.allclose(kitti.reshape(-1, 3, 4), np.array([p["pose"] for p in poses])[:, :3], atol=1e-6)
     assert format_trajectory(np.zeros(0), np.zeros((0, 4, 4)), "tum") == ""
     assert get(url, "/robots/B/trajectory", token, format="g2o").status_code == 422
-    assert get(url, "/robots/B/trajectory", robots["C"]).status_code == 403
+    assert get(url, "/robots/B/trajectory", robots["C"]).status_code == 404  # not yours: the same 404 as no such robot
     assert get(url, "/robots/B/trajectory", "wrong").status_code == 401
     assert get(url, "/robots/Z/trajectory", token).status_code == 404
 

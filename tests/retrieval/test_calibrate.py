@@ -53,7 +53,7 @@ class TestCalibrateOnKitti:
 
 class TestCalibrationMath:
     def cal(self, verification: bool = True) -> Calibration:
-        inl = {"q50": 8.0, "q75": 10.0, "beta": 2.0, "floor": 12.0, "samples": 100.0} if verification else {}
+        inl = {"u": 10.0, "beta": 2.0, "floor": 12.0, "samples": 100.0} if verification else {}
         return Calibration(score_null={"median": 0.0, "sigma": 0.01, "samples": 100.0}, inlier_null=inl,
                            tests={"score": 1e4, "inliers": 1e3}, expected_false_loops=0.1)
 
@@ -70,8 +70,8 @@ class TestCalibrationMath:
         t = cal.thresholds()
         assert cal.path == "inliers" and t["score"] is None and t["inliers"] >= 12
         assert cal.confidence(0.0, t["inliers"]) >= cal.accept_at > cal.confidence(0.99, t["inliers"] - 1)
-        # NFA = tests * 0.25 * exp(-(x - q75) / beta) <= 0.05
-        assert 1e3 * 0.25 * math.exp(-(t["inliers"] - 10.0) / 2.0) <= 0.05
+        # NFA = tests * 0.5 * exp(-(x - u) / beta) <= 0.05 (the hard-negative tail above its median u)
+        assert 1e3 * 0.5 * math.exp(-(t["inliers"] - 10.0) / 2.0) <= 0.05
 
     def test_more_tests_need_more(self):
         for verification, key in ((False, "score"), (True, "inliers")):

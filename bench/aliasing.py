@@ -1,0 +1,158 @@
+"""Precision where places look alike (issue 17): ``python -m bench.aliasing [--data ../shared/datasets] [--out ...]``.
+
+One run of the default config (nothing tuned per data set) on:
+
+- KITTI 90 (1241x376, with intrinsics), and shrunk to 160x120 and 64x32 as plain folders (no ``calib.txt``);
+- KITTI 00 and 07 (no revisit: every loop is false);
+- Nordland summer -> winter (64x32);
+- **aliasing stress sets** (no revisit, so every loop reported is false): KITTI 00 followed by 07 as one sequence
+  (full size and 160x120), and the hardest look-alike we can make from the shared data: KITTI 00 followed by its own
+  frames mirrored left-right at 160x120 (the same textures, kerbs and cars on the other side: a different place
+  that looks alike, frame after frame, in order).
+
+Columns: frames, loops, precision / recall (ground truth where the set has revisits), median ms/frame, the share of
+the run's wall time spent calibrating, and the path the calibration chose. ``stress_folders`` builds the stress
+sets (``cae-lcd bench`` adds them to its false-loop columns, beside KITTI 00 and 07).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import re
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import cv2
+import numpy as np
+
+from core.images import read_image
+from evaluation.ground_truth import read_loop_pairs
+from evaluation.metrics import precision_recall
+from retrieval.run_folder import RunFolder
+from retrieval.sequences import open_sequence
+
+from .common import REPO, detect_run, md_table
+
+__all__ = ["plain_folder", "stress_folders", "stress_sets", "evaluate", "aliasing_table", "main"]
+
+log = logging.getLogger(__name__)
+
+
+def plain_folder(dst: Path, sources: list[Path], size: tuple[int, int] | None = None,
+                 transform: Callable[[np.ndarray], np.ndarray] | None = None) -> Path:
+    """Frames of ``sources`` (in order) as ``dst/000000.png``...: resized to ``size`` (w, h) and transformed
+    when asked; no calibration, times or poses (as a user's plain folder). Reused when already built."""
+    if dst.is_dir() and len(list(dst.glob("*.png"))) == len(sources):
+        return dst
+    dst.mkdir(parents=True, exist_ok=True)
+    for i, src in enumerate(sources):
+        image = read_image(src)
+        if size is not None:
+            image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+        if transform is not None:
+            image = transform(image)
+        cv2.imwrite(str(dst / f"{i:06d}.png"), image)
+    return dst
+
+
+def stress_folders(kitti: Path, run_dir: Path) -> dict[str, Path]:
+    """The aliasing stress sets (no revisit: every loop is false), built under ``run_dir`` from KITTI 00 and 07
+    (``kitti``: the ``sequences`` folder): name -> plain folder."""
+    frames = {n: list(open_sequence(kitti / n).frames) for n in ("00", "07")}
+    out = {"00+07": plain_folder(run_dir / "s0007", frames["00"] + frames["07"]),
+           "00+07 @160x120": plain_folder(run_dir / "s0007_160", frames["00"] + frames["07"], (160, 120)),
+           "00+00 mirrored @160x120": plain_folder(run_dir / "s00m_160", frames["00"] * 2, (160, 120))}
+    mirrored = out["00+00 mirrored @160x120"]
+    for i in range(len(frames["00"]), 2 * len(frames["00"])):  # the second half: mirrored left-right, once
+        path, flag = mirrored / f"{i:06d}.png", mirrored / f".mirrored_{i}"
+        if not flag.exists():
+            cv2.imwrite(str(path), cv2.flip(read_image(path), 1))
+            flag.touch()
+    return out
+
+
+def stress_sets(data: Path, run_dir: Path) -> dict[str, tuple[Path, np.ndarray | None]]:
+    """Every sequence of the table: name -> (folder, ground-truth pairs or None for a set without revisits)."""
+    kitti = data / "kitti" / "sequences"
+    frames90 = list(open_sequence(kitti / "90").frames)
+    truth90 = read_loop_pairs(kitti / "90" / "loops.txt")
+    stress = stress_folders(kitti, run_dir)
+    return {
+        "KITTI 90 (1241x376, intrinsics)": (kitti / "90", truth90),
+        "KITTI 90 at 160x120 (plain folder)": (plain_folder(run_dir / "k90_160", frames90, (160, 120)), truth90),
+        "KITTI 90 at 64x32 (plain folder)": (plain_folder(run_dir / "k90_64", frames90, (64, 32)), truth90),
+        "KITTI 00 (no revisit)": (kitti / "00", None),
+        "KITTI 07 (no revisit)": (kitti / "07", None),
+        "Nordland summer -> winter (64x32)": (data / "nordland", read_loop_pairs(data / "nordland" / "loops.txt")),
+        "stress: 00 then 07 (full size)": (stress["00+07"], None),
+        "stress: 00 then 07 at 160x120": (stress["00+07 @160x120"], None),
+        "stress: 00 then 00 mirrored at 160x120": (stress["00+00 mirrored @160x120"], None),
+    }
+
+
+def evaluate(folder: Path, truth: np.ndarray | None, out: Path, conf: dict[str, Any] | None = None) -> dict[str, Any]:
+    """A default ``detect`` run scored: loops, precision / recall, ms/frame, calibration share of the wall time."""
+    summary = detect_run(folder, out, conf)
+    run = RunFolder(out)
+    loops = run.read_loops()[:, :2].astype(np.int64)
+    res: dict[str, Any] = {"frames": summary.get("frames"), "loops": len(loops), "wall_s": summary["wall_s"],
+                           "ms": run.read_summary().get("ms_per_frame", {}).get("total", {}).get("median")}
+    cal = summary.get("calibration") or {}
+    took = [re.search(r"calibrated on \d+ frames in ([0-9.]+) s", n) for n in cal.get("notes", [])]
+    res["calibration_s"] = next((float(m.group(1)) for m in took if m), None)
+    res["path"] = "inliers" if cal.get("verification") else "score" if cal else "none"
+    if truth is not None:
+        pr = precision_recall(loops, truth)
+        res.update(precision=pr.precision, recall=pr.recall)
+    else:
+        res.update(precision=1.0 if len(loops) == 0 else 0.0, recall=None)
+    return res
+
+
+def aliasing_table(res: dict[str, dict[str, Any]]) -> str:
+    """The issue's table (Markdown)."""
+    rows = []
+    for name, m in res.items():
+        share = "n/a" if not m.get("calibration_s") else f"{100 * m['calibration_s'] / m['wall_s']:.0f} %"
+        rec = "n/a (no revisit)" if m["recall"] is None else f"{m['recall']:.3f}"
+        rows.append([name, str(m["frames"]), str(m["loops"]), f"{m['precision']:.3f}", rec,
+                     "n/a" if m["ms"] is None else f"{m['ms']:.1f}", share, m["path"]])
+    return md_table(["sequence", "frames", "loops", "precision", "recall", "ms/frame", "calibration share",
+                     "deciding path"], rows)
+
+
+def main(data: Path, run_dir: Path, out: Path | None, only: str = "") -> dict[str, dict[str, Any]]:
+    """Runs every set (or those whose name contains ``only``); writes the table into ``out``."""
+    t0 = time.perf_counter()
+    res = {}
+    for i, (name, (folder, truth)) in enumerate(stress_sets(data, run_dir).items()):
+        if only and only not in name:
+            continue
+        log.info("%s", name)
+        res[name] = evaluate(folder, truth, run_dir / f"run_{i}")
+        log.info("%s: %s", name, res[name])
+    body = ("### Precision where places look alike (`python -m bench.aliasing`, issue 17)\n\n" + aliasing_table(res)
+            + f"\n\nDefault config, one run, nothing tuned per set. Total {time.perf_counter() - t0:.0f} s.")
+    if out is not None and not only:
+        from .run import write_section  # bench.run imports this module (its false-loop stress rows)
+
+        write_section(out, body, "aliasing")
+    print(body)  # noqa: T201 (a study's command-line output)
+    return res
+
+
+def _cli() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "datasets")
+    ap.add_argument("--run-dir", type=Path, default=Path("runs/bench/aliasing"))
+    ap.add_argument("--out", default=str(REPO / "BENCHMARKS.md"), help="Markdown file to update ('' = none)")
+    ap.add_argument("--only", default="", help="run only the sets whose name contains this text (table not written)")
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    main(args.data, args.run_dir, Path(args.out) if args.out else None, args.only)
+
+
+if __name__ == "__main__":
+    _cli()

@@ -1,0 +1,191 @@
+"""One calibrated decision from fused evidence (issue 17): a loop is a sequence of agreeing matches, not one pair.
+
+The calibration (``retrieval.calibrate``) measures, on the sequence itself, what a non-loop looks like *where the
+detector actually looks*: the **hard negatives** (the far-side keyframes retrieval would return for a sampled query,
+verified as in the run), and what a loop looks like: the **positives** (a frame and a near neighbour). From them:
+
+- **Pair evidence** ``e(x) = -log10 P_hard(inliers >= x)``: the hard-negative null's upper tail (``TailModel``: the
+  measured median, an exponential tail above it fitted by maximum likelihood on the exceedances and widened until
+  the largest sample is no surprise). ``e`` is 0 at or below the null's median.
+- **Fused evidence** of a hypothesis ``(q, r)``: ``E = e(q, r) + sum`` over the ``span - 1`` frames processed before
+  ``q`` of the best ``e(q', r') - log10(2 tol + 1)`` among their verified candidates whose offset ``q' - r'`` is
+  within ``tol`` frames of ``q - r`` (the ``log10`` pays for choosing among the consistent ones).
+- **Its null** ``P_E``: the heavier of the Gamma(span) tail (independent pair evidence) and the tail measured on
+  hard-negative *sequences* (the pairs ``(q - j, r - j)`` behind each hard negative: look-alike streets look alike
+  for several frames, and this sees it).
+- **One threshold**: ``confidence = -log10(tests * P_E(E))``; a loop needs ``confidence >= accept_at``
+  (``NFA <= expected_false_loops / 2``) and positive evidence of its own pair (geometry can always veto).
+- **Whether one pair may decide alone**: only where geometry separates on this sequence (the median positive pair
+  would be accepted alone and no hard negative is); elsewhere a loop needs evidence from ``min_support`` frames.
+- **Too recent** (``Horizon``): a keyframe is not a loop while every stored frame between it and the query still
+  looks like the query (cosine at least ``stretch_cos``, the adjacent frames' 10th percentile, with at most
+  ``gap - 1`` dissimilar frames in a row): a slow robot stays in a place longer, a fast one leaves it sooner; the
+  frame count ``search.exclude_recent`` stays the floor.
+
+Shapes: ``Decision.confidences(query_id, refs (m,) int64, inliers (m,) int64, source) -> (m,) float64``;
+``Decision.commit(query_id, refs (m,), inliers (m,))``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+__all__ = ["TailModel", "gamma_log10_sf", "Horizon", "Decision", "SPAN", "TOL", "GAP"]
+
+LN10 = math.log(10.0)
+SPAN = 3  #: frames whose evidence one decision fuses (the query and the ones before it)
+TOL = 2  #: frames the offset ``q - r`` may drift between fused frames
+GAP = 3  #: dissimilar frames in a row that end the stretch the query is still in
+MAX_BACK = 2000  #: frames the horizon looks back at most
+
+
+@dataclass(frozen=True)
+class TailModel:
+    """``P(X >= x)`` of a null sample: 1 up to its median ``u``, ``0.5 exp(-(x - u) / beta)`` above."""
+
+    u: float
+    beta: float
+
+    @classmethod
+    def fit(cls, samples: np.ndarray, min_beta: float = 1.0) -> "TailModel":
+        """Median, then the exponential tail's maximum-likelihood scale (mean excess over the median), widened so
+        that the largest of the ``n`` samples has a tail probability of at least ``1 / (2 n)`` (checked against the
+        samples themselves: a tail lighter than the data would promise false loops it cannot keep)."""
+        x = np.sort(np.asarray(samples, np.float64).ravel())
+        if len(x) == 0:
+            return cls(0.0, min_beta)
+        u = float(np.median(x))
+        excess = x[x > u] - u
+        beta = float(excess.mean()) if len(excess) else min_beta
+        if len(x) > 1:
+            beta = max(beta, (float(x[-1]) - u) / math.log(len(x)))
+        return cls(u, max(beta, min_beta))
+
+    def log10_sf(self, x: float) -> float:
+        """``log10 P(X >= x)`` (0 at or below the median)."""
+        if x <= self.u:
+            return 0.0
+        return math.log10(0.5) - (x - self.u) / self.beta / LN10
+
+    def evidence(self, x: float) -> float:
+        """``-log10 P(X >= x)``, >= 0."""
+        return -self.log10_sf(x)
+
+    def as_dict(self) -> dict[str, float]:
+        return {"u": self.u, "beta": self.beta}
+
+
+def gamma_log10_sf(k: int, decades: float) -> float:
+    """``log10 P(sum of k independent -log10 p-values >= decades)`` (a Gamma(k, 1) tail in natural units)."""
+    if decades <= 0:
+        return 0.0
+    s = decades * LN10
+    terms = [i * math.log(s) - math.lgamma(i + 1) for i in range(k)]
+    top = max(terms)
+    return min(0.0, (-s + top + math.log(sum(math.exp(t - top) for t in terms))) / LN10)
+
+
+class Horizon:
+    """The oldest keyframe still in the query's own stretch: frames back from the query stay in it while they look
+    like the query (cosine >= ``cos``), until ``gap`` frames in a row do not (frames not stored are skipped)."""
+
+    def __init__(self, cos: float, floor: int, gap: int = GAP, max_back: int = MAX_BACK) -> None:
+        self.cos, self.floor, self.gap, self.max_back = float(cos), int(floor), int(gap), int(max_back)
+
+    def __call__(self, query_id: int, source: Any) -> int:
+        """Keyframes with an id >= the returned one are too recent for ``query_id``."""
+        oldest = query_id - self.floor + 1  # the floor: younger frames are excluded anyway
+        start, misses, chunk, stop = query_id - 1, 0, 64, max(0, query_id - self.max_back)
+        while start >= stop and misses < self.gap:
+            refs = np.arange(start, max(stop, start - chunk + 1) - 1, -1, dtype=np.int64)
+            sims = source.pairs(np.full(len(refs), query_id, np.int64), refs)
+            for ref, sim in zip(refs.tolist(), sims.tolist()):
+                if math.isnan(sim):
+                    continue
+                if sim >= self.cos:
+                    misses, oldest = 0, min(oldest, ref)
+                elif (misses := misses + 1) >= self.gap:
+                    break
+            start = int(refs[-1]) - 1
+        return oldest
+
+
+class Decision:
+    """The streaming decision of one run (see the module doc).
+
+    Args:
+        pair_tail: the hard-negative inlier tail (``TailModel``); None where verification is off (the score path:
+            the calibrated temporal-score confidence decides, and only the "too recent" rule is added here).
+        fused_tail: the tail measured on hard-negative sequences of ``E`` (``TailModel``, in decades).
+        tests: hypotheses the run tests (the NFA's multiplier).
+        accept_at: the confidence a loop needs.
+        single: True where one pair may decide alone (geometry separates on this sequence).
+        horizon: the "too recent" rule, or None (the frame floor only).
+        floor: the fewest inliers that count as evidence (a 7-point model always fits 7).
+        span, tol, min_support: frames fused, offset tolerance, frames with evidence a loop needs when not single.
+    """
+
+    def __init__(self, pair_tail: TailModel | None, fused_tail: TailModel, tests: float, accept_at: float, single: bool,
+                 horizon: Horizon | None = None, floor: float = 0.0, span: int = SPAN, tol: int = TOL,
+                 min_support: int = 2) -> None:
+        self.pair_tail, self.fused_tail, self.tests, self.floor = pair_tail, fused_tail, float(tests), float(floor)
+        self.accept_at, self.single, self.horizon = accept_at, single, horizon
+        self.span, self.tol, self.min_support = span, tol, min_support
+        self._recent: deque[tuple[int, np.ndarray, np.ndarray]] = deque(maxlen=max(span - 1, 1))
+
+    def evidence(self, inliers: float) -> float:
+        """Pair evidence ``e`` of an inlier count (0 under the floor or when the check did not run)."""
+        if self.pair_tail is None or inliers < max(self.floor, 0):
+            return 0.0
+        return self.pair_tail.evidence(inliers)
+
+    def fused_log10_sf(self, decades: float) -> float:
+        """``log10 P_E(E >= decades)``: the heavier of the Gamma(span) and the measured sequence tails."""
+        return max(gamma_log10_sf(self.span, decades), self.fused_tail.log10_sf(decades))
+
+    def support(self, query_id: int, ref: int) -> list[float]:
+        """Evidence of the earlier fused frames for the hypothesis ``(query_id, ref)`` (one value per frame)."""
+        out, choice = [], math.log10(2 * self.tol + 1)
+        for q, refs, ev in self._recent:
+            if query_id - q >= self.span or not len(refs):
+                continue
+            ok = np.abs((q - refs) - (query_id - ref)) <= self.tol
+            if ok.any() and ev[ok].max() > choice:
+                out.append(float(ev[ok].max()) - choice)
+        return out
+
+    def confidences(self, query_id: int, refs: np.ndarray, inliers: np.ndarray, source: Any,
+                    fallback: np.ndarray | None = None) -> np.ndarray:
+        """``-log10 NFA`` of each candidate ``(query_id, refs[i])`` with ``inliers[i]`` (-1: not verified);
+        ``-inf`` where it has no evidence of its own or is too recent. Score path (no ``pair_tail``): ``fallback``
+        (the calibrated temporal-score confidences, ``(m,)``) where the keyframe is not too recent."""
+        out = np.full(len(refs), -math.inf)
+        oldest = self.horizon(query_id, source) if self.horizon is not None and len(refs) else None
+        base = -math.log10(self.tests)
+        for i, (ref, inl) in enumerate(zip(np.asarray(refs).tolist(), np.asarray(inliers).tolist())):
+            if oldest is not None and ref >= oldest:
+                continue
+            if self.pair_tail is None:
+                out[i] = -math.inf if fallback is None else float(fallback[i])
+                continue
+            e0 = self.evidence(inl)
+            if e0 <= 0:
+                continue
+            more = self.support(query_id, ref)
+            best = base - self.fused_log10_sf(e0 + sum(more)) if 1 + len(more) >= self.min_support else -math.inf
+            if self.single:
+                best = max(best, base - self.pair_tail.log10_sf(inl))
+            out[i] = best
+        return out
+
+    def commit(self, query_id: int, refs: np.ndarray, inliers: np.ndarray) -> None:
+        """Records a processed frame's verified candidates (a resumed run replays its stored ones here)."""
+        refs = np.asarray(refs, np.int64)
+        inl = np.asarray(inliers, np.float64)
+        ev = np.array([self.evidence(x) for x in inl.tolist()], np.float64)
+        self._recent.append((int(query_id), refs, ev))

@@ -1,0 +1,142 @@
+"""retrieval.decision: the hard-negative null, when a score may decide alone, fused evidence and the trajectory's
+"too recent" rule, on real frames (the bundled sample shrunk to 160x120 as a plain folder: no intrinsics)."""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import numpy as np
+import pytest
+
+from retrieval.decision import Decision, Horizon, TailModel, gamma_log10_sf
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory):
+    """``(folder, calibration)`` of the bundled sample at 160x120, default conf."""
+    from bench.camera import shrunk_sample
+    from retrieval.detect import calibrate_sequence
+    from retrieval.sequences import open_sequence
+
+    root = tmp_path_factory.mktemp("s160")
+    seq = shrunk_sample(root / "seq", (160, 120))
+    return seq, calibrate_sequence(open_sequence(seq), {}, progress=False)
+
+
+def _decision(cal, single: bool | None = None) -> Decision:
+    dec = cal.decision(50)
+    if single is not None:
+        dec.single = single
+    return dec
+
+
+class _NoSource:
+    """No stored codes (the horizon then rests on the frame floor)."""
+
+    def pairs(self, queries: np.ndarray, refs: np.ndarray) -> np.ndarray:
+        return np.full(len(refs), np.nan, np.float32)
+
+
+class TestHardNegatives:
+    def test_hard_null_above_random_null(self, small):
+        _, cal = small
+        hard, rand = cal.samples["hard_inliers"], cal.samples["random_inliers"]
+        assert len(hard) > len(rand) >= 10
+        # what retrieval returns among pairs known not to be loops is harder than a random far-side pair
+        assert hard.mean() > rand.mean() and hard.max() > rand.max()
+
+    def test_both_distributions_saved_and_printed(self, small, tmp_path):
+        from retrieval.calibrate import Calibration
+
+        _, cal = small
+        cal.save(tmp_path / "c.h5")
+        back = Calibration.load(tmp_path / "c.h5")
+        for name in ("random_inliers", "hard_inliers", "positive_inliers", "hard_fused", "positive_fused"):
+            assert np.array_equal(back.samples[name], cal.samples[name])
+        assert any("random far-side pairs" in n and "hard negatives" in n for n in cal.notes)
+
+    def test_tail_never_lighter_than_its_samples(self):
+        x = np.r_[np.zeros(60), np.arange(1, 11)]
+        tail = TailModel.fit(x)
+        assert 10 ** tail.log10_sf(x.max()) >= 1 / (2 * len(x)) - 1e-12
+        assert tail.log10_sf(0) == 0.0 and tail.evidence(5) > 0
+
+
+class TestSeparation:
+    def test_geometry_does_not_separate_at_160x120(self, small):
+        _, cal = small
+        assert cal.fused["single"] == 0.0
+
+    def test_non_separating_pair_cannot_accept_alone(self, small):
+        _, cal = small
+        dec = _decision(cal)
+        huge = np.array([10_000])
+        assert dec.confidences(100, np.array([10]), huge, _NoSource())[0] == -math.inf
+        dec.single = True  # where it separates, the same pair decides alone
+        assert dec.confidences(100, np.array([10]), huge, _NoSource())[0] >= dec.accept_at
+
+
+class TestFusedEvidence:
+    def _inliers(self, seq, pairs):
+        from core.images import read_image
+        from verify.features import create_extractor
+        from verify.verifier import create_verifier
+
+        ex, ver = create_extractor({"name": "sift"}), create_verifier({"name": "ratio"}, None)
+        img = (lambda i: read_image(seq / "image_0" / f"{i:06d}.png"))
+        return [ver.verify(ex.extract(img(q)), [ex.extract(img(r))], None, 0, 0, True)[0].inliers for q, r in pairs]
+
+    def test_weak_consistent_sequence_accepted(self, small):
+        seq, cal = small
+        dec = _decision(cal)
+        pairs = [(80 + j, 29 + j) for j in range(3)]  # a true revisit of the sample (loops.txt), frame after frame
+        inl = self._inliers(seq, pairs)
+        alone = [cal.inlier_confidence(x) for x in inl]
+        assert max(alone) < cal.accept_at  # weak: no single pair would pass on its own
+        for (q, r), x in zip(pairs[:-1], inl[:-1]):
+            dec.commit(q, np.array([r]), np.array([x]))
+        q, r = pairs[-1]
+        assert dec.confidences(q, np.array([r]), np.array([inl[-1]]), _NoSource())[0] >= cal.accept_at
+
+    def test_one_strong_pair_among_look_alikes_refused(self, small):
+        _, cal = small
+        dec = _decision(cal)
+        hard = cal.samples["hard_inliers"]
+        for j, q in enumerate(range(95, 99)):  # look-alikes: the hardest negatives, offsets that do not agree
+            dec.commit(q, np.array([10 + 7 * j]), np.array([int(hard.max())]))
+        strong = int(cal.thresholds()["inliers"]) + 20
+        assert dec.confidences(99, np.array([40]), np.array([strong]), _NoSource())[0] < cal.accept_at
+
+    def test_gamma_tail(self):
+        assert gamma_log10_sf(1, 3.0) == pytest.approx(-3.0)
+        assert gamma_log10_sf(3, 3.0) > -3.0  # three chances to reach a sum are more likely than one
+
+
+class TestTooRecent:
+    def test_floor_without_codes(self):
+        assert Horizon(0.5, 50)(100, _NoSource()) == 51
+
+    def test_revisit_of_a_long_look_alike_stretch_gives_no_loop(self, small, tmp_path):
+        """A robot that stands still for 60 frames (the same real view, sensor noise only), so frames 50 back
+        look exactly like the current one: the stretch it is in is one place, not a loop."""
+        from core.images import read_image
+        from retrieval.detector import LoopDetector
+
+        seq, cal = small
+        frames = [read_image(seq / "image_0" / f"{i:06d}.png") for i in range(10)]
+        rng = np.random.default_rng(0)
+        hold = frames[-1].astype(np.int16)
+        frames += [np.clip(hold + rng.integers(-2, 3, hold.shape), 0, 255).astype(np.uint8) for _ in range(60)]
+        loops = {}
+        floor_only = copy.deepcopy(cal)
+        floor_only.fused.pop("stretch_cos")
+        for rule, calib in (("trajectory", cal), ("frame count only", floor_only)):
+            loops[rule] = []
+            with LoopDetector(calibration=calib) as det:
+                for i, image in enumerate(frames):
+                    if (res := det.process(image, i)).loop is not None:
+                        loops[rule].append((i, res.loop.frame_id))
+                        break
+        assert loops["trajectory"] == []
+        assert loops["frame count only"]  # the frame floor alone calls the stretch a loop: the test can fail
