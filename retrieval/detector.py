@@ -288,12 +288,11 @@ class LoopDetector:
         with its stored hypotheses and inserted."""
         n = 0
         results = {q: cands for q, cands, _ in db.results()}
-        for fid, code, timestamp, feats in db.search_entries():
+        for fid, entry, timestamp, feats in db.search_entries(features=self.features.db is None):
             try:
-                self.places.check(code)
+                self.places.check(entry)  # the store keeps the searched entry itself
             except ConfigError as err:
                 raise ConfigError(f"{db.path}: keyframe {fid}: {err}; the database is damaged") from None
-            entry = self.places.entry(code)
             scores, ids = self.places.search(fid, entry, timestamp, self.conf["search"]["k"])
             if self.filter.replays_history:  # its state depends on every update, not only on the kept hypotheses
                 self.filter.update(fid, ids[scores >= self.conf["search"]["min_score"]], self.places.source)
@@ -404,7 +403,7 @@ class LoopDetector:
         t0 = time.perf_counter()
         if self.db is not None:  # first: if the disk refuses it, the in-memory state has not moved either
             rows = np.array([cd.as_row() for cd in candidates], np.float64).reshape(-1, len(CANDIDATE_ROW))
-            self.db.append(KeyframeRecord(fid, code, feats, ts, pose34, source, edge_ratio, rows,
+            self.db.append(KeyframeRecord(fid, entry, feats, ts, pose34, source, edge_ratio, rows,
                                           -1 if loop is None else loop.frame_id, fingerprint))
         self.places.insert(fid, entry, ts)
         self.filter.commit(fid, np.array([cd.frame_id for cd in candidates], np.int64))
