@@ -494,7 +494,7 @@ class KeyframeDatabase:
             cand = cands[ks.start - cand_base:ks.stop - cand_base].reshape(-1, len(CANDIDATE_ROW))
             if r not in self._verified:
                 if _checksum(_row_values(cols, j) + [code, cand]) != bytes(cols["checksum"][j]):
-                    raise DatabaseError(f"{self.path} is damaged: frame {int(cols['frame_id'][j])} fails its "
+                    raise DatabaseError(f"{self.path} is damaged: keyframe {int(cols['frame_id'][j])} fails its "
                                         "checksum; the files written from it are left as they were; move it away "
                                         "to start again")
                 self._verified.add(r)
@@ -535,7 +535,7 @@ class KeyframeDatabase:
         except _READ_ERRORS as err:
             raise self._damaged(err, f"features of frame {int(self._cols['frame_id'][row])}") from None
         if not ok:
-            raise DatabaseError(f"{self.path} is damaged: the features of frame {int(self._cols['frame_id'][row])} "
+            raise DatabaseError(f"{self.path} is damaged: the features of keyframe {int(self._cols['frame_id'][row])} "
                                 "fail their checksum; the files written from it are left as they were; move it "
                                 "away to start again")
         if not len(packed["keypoints"]):

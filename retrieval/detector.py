@@ -66,7 +66,7 @@ default_conf: dict[str, Any] = {
         "dim": DEFAULT_DIM,  # length of the whitened code (at most a quarter of the fitting codes)
         "shrink": DEFAULT_SHRINK,  # added to each component's variance, times their mean (regularises small sets)
     },
-    "index": {"name": "flat"},  # code index by registry name (flat, fp16, sq8, hnsw) and its options
+    "index": {"name": "auto"},  # code index by registry name (auto, flat, fp16, sq8, hnsw, ivfpq) and its options
     "temporal": {"name": "sequence"},  # temporal-consistency filter by registry name (sequence, none, bayes)
     "search": {
         "k": 10,  # candidates retrieved per query (paper: top-10)
