@@ -25,8 +25,9 @@ per keyframe). Layout (``format_version`` 5)::
     /candidates       (C, 6)   float64 rows (CANDIDATE_ROW) of every hypothesis judged
 
 A frame is written in order: its ragged arrays past their committed ends, then its row, then ``committed`` is
-raised and the file flushed. Reopening for writing cuts every array back to the committed ends, so a half-written
-frame from a killed run is dropped and the run resumes after the last complete one. Checksums are per frame row
+raised and the file flushed. Nothing past the committed ends is ever read, so a half-written frame from a killed run
+is invisible and overwritten when the run resumes after the last complete one (arrays grow a quarter at a time;
+HDF5 allocates no disk for chunks never written). Checksums are per frame row
 (the chunk a reader fetches), verified when read, so bit flips are reported as damage instead of being used.
 Free disk space is checked before each write (HDF5 cannot recover from a write that fails half-way).
 """
@@ -144,29 +145,40 @@ class FrameEntry:
     fingerprint: str
 
 
-def _checksum(arrays: list[np.ndarray]) -> bytes:
-    """BLAKE2b-128 (hex, 32 bytes) of arrays' dtypes, shapes and bytes; strings as their UTF-8/bytes."""
-    h = hashlib.blake2b(digest_size=16)
+#: the fixed-width part of a frame row, as its checksum reads it
+_FIXED = np.dtype([("frame_id", "<i8"), ("kind", "u1"), ("timestamp", "<f8"), ("pose", "<f8", (12,)),
+                   ("edge_ratio", "<f8"), ("loop", "<i8"), ("code_end", "<i8"), ("feat_end", "<i8"),
+                   ("cand_end", "<i8")])
+_TEXT = ("source", "fingerprint", "message")
+
+
+def _fixed_rows(cols: dict[str, Any]) -> np.ndarray:
+    """``(n, itemsize)`` uint8: the fixed-width fields of ``n`` rows, packed (one checksum input a row)."""
+    n = len(cols["frame_id"])
+    rec = np.zeros(n, _FIXED)
+    for key in _FIXED.names:
+        rec[key] = np.asarray(cols[key]).reshape(rec[key].shape)
+    return rec.view(np.uint8).reshape(n, -1)
+
+
+def _checksum(fixed: bytes, texts: list[Any], arrays: list[np.ndarray]) -> bytes:
+    """BLAKE2b-128 (hex, 32 bytes) of a row's fixed fields, its texts (bytes or str) and arrays' bytes (an empty
+    array counts as nothing: it reads back in the dataset's dtype, or as none before the dataset exists)."""
+    h = hashlib.blake2b(fixed, digest_size=16)
+    for t in texts:
+        b = t if isinstance(t, bytes) else str(t).encode("utf-8", "surrogateescape")
+        h.update(len(b).to_bytes(4, "little") + b)
     for a in arrays:
-        if isinstance(a, (bytes, str)):
-            h.update(b"s" + (a if isinstance(a, bytes) else a.encode("utf-8", "surrogateescape")))
-            continue
-        a = np.ascontiguousarray(a)
-        if a.size == 0:  # an empty array reads back in the dataset's dtype (or as none, before the dataset exists)
-            h.update(b"empty")
-            continue
-        h.update(str((a.dtype.str, a.shape)).encode())
-        h.update(a.tobytes())
+        if a.size:
+            h.update(str(a.shape[1:]).encode() + np.ascontiguousarray(a).tobytes())
     return h.hexdigest().encode()
 
 
-def _row_values(cols: dict[str, Any], i: int) -> list[Any]:
-    """Row ``i``'s checked values from column arrays, as written and as read (strings decoded the same way)."""
-    out = []
-    for key in _ROW_CHECKED:
-        v = cols[key][i]
-        out.append(v if isinstance(v, (bytes, str)) else np.asarray(v, _COLUMNS[key][0]))
-    return out
+def _grow(ds: h5py.Dataset, size: int) -> None:
+    """Makes ``ds`` hold at least ``size`` rows, growing by a quarter (at least a chunk) at a time so that appends
+    rarely resize (rows past the committed ends are unused: HDF5 allocates no disk for chunks never written)."""
+    if len(ds) < size:
+        ds.resize(max(size, len(ds) + max(ds.chunks[0], len(ds) // 4)), axis=0)
 
 
 def _file_size_limit() -> float:
@@ -204,6 +216,7 @@ class KeyframeDatabase:
         self._since_flush = 0
         self._broken = False
         self._verified: set[int] = set()
+        self._handles: dict[str, h5py.Dataset] = {}
         exists = self.path.exists()
         if exists and not self.path.is_file():
             raise ConfigError(f"{self.path} exists and is not a file; choose another --out")
@@ -280,8 +293,9 @@ class KeyframeDatabase:
         self.file.flush()
 
     def _load_columns(self, mode: str) -> None:
-        """Reads the small per-frame columns into memory (``committed`` rows) and, when writing, cuts every array
-        back to the committed ends (a frame half-written by a killed run is dropped)."""
+        """Reads the small per-frame columns into memory (``committed`` rows). Whatever lies past the committed
+        ends (a frame half-written by a killed run, or room reserved for growth) is never read, and overwritten by
+        the next append."""
         n = int(self.file.attrs["committed"])
         frames = self.file["frames"]
         self._cols = {k: frames[k][:n] for k in ("frame_id", "kind", "code_end", "feat_end", "cand_end")}
@@ -289,17 +303,8 @@ class KeyframeDatabase:
             raise DatabaseError(f"{self.path} is damaged: {len(self._cols['frame_id'])} frame rows, {n} committed; "
                                 "move it away to start again")
         self._kf_rows = np.flatnonzero(self._cols["kind"] == 0)
-        if mode == "r":
-            return
-        ends = {"codes": self._end("code_end"), "candidates": self._end("cand_end")}
-        ends.update({f"features/{k}": self._end("feat_end") for k in _FEATURES})
-        ends.update({f"frames/{k}": n for k in _COLUMNS})
-        cut = [(name, size) for name, size in ends.items() if name in self.file and len(self.file[name]) > size]
-        if cut:
-            log.warning("%s: dropping a half-written frame from an interrupted run", self.path)
-            for name, size in cut:
-                self.file[name].resize(size, axis=0)
-            self.file.flush()
+        if mode != "r" and len(frames["frame_id"]) > n and frames["frame_id"][n] > self.last_frame_id():
+            log.warning("%s: a half-written frame from an interrupted run is dropped (overwritten)", self.path)
 
     def _end(self, column: str) -> int:
         return int(self._cols[column][-1]) if len(self._cols[column]) else 0
@@ -319,10 +324,17 @@ class KeyframeDatabase:
                                 f"{MIN_FREE_BYTES >> 20} MiB); everything written so far is kept: free space and run "
                                 "again to resume")
 
+    def _ds(self, name: str) -> h5py.Dataset:
+        """A dataset handle, looked up once (HDF5 path lookups cost more than the small writes of an append)."""
+        ds = self._handles.get(name)
+        if ds is None:
+            ds = self._handles[name] = self.file[name]
+        return ds
+
     def _ragged(self, name: str, rows: np.ndarray) -> h5py.Dataset:
         """The ragged dataset ``name``, created for ``rows``' dtype and width on first use."""
-        if name in self.file:
-            ds = self.file[name]
+        if name in self._handles or name in self.file:
+            ds = self._ds(name)
             if ds.shape[1:] != rows.shape[1:]:
                 raise ConfigError(f"{self.path}: {name} rows have shape {ds.shape[1:]}; got {rows.shape[1:]}")
             return ds
@@ -338,8 +350,8 @@ class KeyframeDatabase:
         if len(rows) == 0:
             return start
         ds = self._ragged(name, rows)
-        ds.resize(start + len(rows), axis=0)
-        ds[start:] = rows.astype(ds.dtype, copy=False)
+        _grow(ds, start + len(rows))
+        ds[start:start + len(rows)] = rows.astype(ds.dtype, copy=False)
         return start + len(rows)
 
     def _append_row(self, row: dict[str, Any], ragged: dict[str, np.ndarray], features: dict[str, np.ndarray]
@@ -356,13 +368,13 @@ class KeyframeDatabase:
             for key in _FEATURES:
                 end = self._extend(f"features/{key}", features[key], feat_end)
             row["feat_end"] = end if len(features["keypoints"]) else feat_end
-            cols = {k: [row[k]] for k in _ROW_CHECKED}
-            row["checksum"] = _checksum(_row_values(cols, 0) + [ragged["codes"], ragged["candidates"]])
-            row["feat_checksum"] = _checksum([features[k] for k in _FEATURES])
-            frames = self.file["frames"]
+            fixed = _fixed_rows({k: [row[k]] for k in _FIXED.names})[0].tobytes()
+            row["checksum"] = _checksum(fixed, [row[k] for k in _TEXT], [ragged["codes"], ragged["candidates"]])
+            row["feat_checksum"] = _checksum(b"", [], [features[k] for k in _FEATURES])
             for key, value in row.items():
-                frames[key].resize(n + 1, axis=0)
-                frames[key][n] = value
+                ds = self._ds(f"frames/{key}")
+                _grow(ds, n + 1)
+                ds[n] = value
             self.file.attrs["committed"] = n + 1
             self._maybe_flush()
         except (OSError, RuntimeError, ValueError) as err:
@@ -479,6 +491,7 @@ class KeyframeDatabase:
     def _rows_block(self, rows: np.ndarray) -> dict[str, Any]:
         """The checked columns, codes and candidates of ``rows`` (sorted row positions), checksums verified."""
         cols = {k: self._column(k, rows) for k in _ROW_CHECKED + ("checksum",)}
+        fixed = _fixed_rows(cols)
         lo, hi = int(rows[0]), int(rows[-1])
         code_base = int(self._cols["code_end"][lo - 1]) if lo else 0
         cand_base = int(self._cols["cand_end"][lo - 1]) if lo else 0
@@ -493,7 +506,8 @@ class KeyframeDatabase:
             code = codes[cs.start - code_base:cs.stop - code_base]
             cand = cands[ks.start - cand_base:ks.stop - cand_base].reshape(-1, len(CANDIDATE_ROW))
             if r not in self._verified:
-                if _checksum(_row_values(cols, j) + [code, cand]) != bytes(cols["checksum"][j]):
+                if _checksum(fixed[j].tobytes(), [cols[k][j] for k in _TEXT], [code, cand]) \
+                        != bytes(cols["checksum"][j]):
                     raise DatabaseError(f"{self.path} is damaged: keyframe {int(cols['frame_id'][j])} fails its "
                                         "checksum; the files written from it are left as they were; move it away "
                                         "to start again")
@@ -531,7 +545,7 @@ class KeyframeDatabase:
             packed = {"keypoints": self._read("features/keypoints", span, 2).astype(np.uint16).reshape(-1, 2),
                       "descriptors": self._read("features/descriptors", span, 1),
                       "scales": self._read("features/scales", span).astype(np.float16)}
-            ok = _checksum([packed[k] for k in _FEATURES]) == bytes(self.file["frames/feat_checksum"][row])
+            ok = _checksum(b"", [], [packed[k] for k in _FEATURES]) == bytes(self.file["frames/feat_checksum"][row])
         except _READ_ERRORS as err:
             raise self._damaged(err, f"features of frame {int(self._cols['frame_id'][row])}") from None
         if not ok:

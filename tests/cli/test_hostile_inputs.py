@@ -188,7 +188,8 @@ class TestResumeIntoOtherData:
 # ----------------------------------------------------------------------------------------- damaged database
 def _flip_code_bytes(db_path: Path, frame_id: int) -> None:
     with h5py.File(db_path, "r") as f:  # the keyframe's row of the code matrix, in its (uncompressed) chunk
-        row = int(np.flatnonzero(f["frames/frame_id"][f["frames/kind"][:] == 0] == frame_id)[0])
+        n = int(f.attrs["committed"])
+        row = int(np.flatnonzero(f["frames/frame_id"][:n][f["frames/kind"][:n] == 0] == frame_id)[0])
         codes = f["codes"]
         per_chunk = codes.chunks[0]
         chunk = codes.id.get_chunk_info_by_coord((row // per_chunk * per_chunk, 0))
