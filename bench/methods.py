@@ -176,15 +176,12 @@ def single_frame_recall(run: str | Path, truth: np.ndarray) -> float:
     from core.conf import load_conf_file
     from evaluation.metrics import recall_at_k
     from retrieval.database import KeyframeDatabase
-    from retrieval.calibrate import Calibration
     from retrieval.run_folder import RunFolder
 
     folder = RunFolder(Path(run))
-    cal = Calibration.load(folder.calibration) if folder.calibration.is_file() else Calibration()
     window = int(load_conf_file(folder.conf)["search"]["exclude_recent"])
     with KeyframeDatabase(folder.database, mode="r") as db:
-        codes, ids = db.codes()
-    x = cal.whitening.transform(codes) if cal.whitening is not None else codes
+        x, ids = db.codes()  # the searched codes: already whitened as the run searched them
     sims = x @ x.T
     rows = []
     for i, q in enumerate(ids):

@@ -7,8 +7,9 @@ Sections (``--sections``; all but ``training`` by default):
 - ``encoder``: encoder images/s at batch 1 and 32, channels-last vs contiguous memory, torch threads = all cores;
 - ``methods``: the paper config, the default config, a thumbnail-cosine and a tf-idf bag-of-words baseline (same
   verification), on the same frames: precision, recall, max recall at 100 % precision, Recall@k, ms/frame;
-- ``index``: search latency, recall@10 against exact search and bytes per code at 10k / 100k / 1M stored codes for
-  each index (flat, fp16, sq8, hnsw), over synthetic codes built around real CAE codes;
+- ``index``: search latency, recall@10 against exact search and bytes per code at 10k / 100k stored codes (1M with
+  ``--index-sizes`` or ``python -m bench.index_scaling --million``) for each index (flat, fp16, sq8, hnsw, ivfpq),
+  over realistic codes (augmented real frames, CAE, whitened; ``bench.index_scaling``);
 - ``false-loops``: loops each method reports on KITTI 00 and 07 and on the aliasing stress sets of
   ``bench.aliasing`` (00 then 07, full size and 160x120; 00 then 00 mirrored at 160x120): no revisit, every loop is
   false; while time allows;
@@ -44,7 +45,7 @@ from retrieval.sequences import open_sequence
 
 from .aliasing import stress_folders
 from .common import REPO, Budget
-from .index_scaling import index_scaling, index_table
+from .index_scaling import index_scaling, index_table, realistic_codes
 from .methods import false_loops, method_confs, methods_table, run_methods, training_study, training_table
 from .speed import encoder_throughput, stage_benchmark, stage_table, system_info, throughput_table
 
@@ -135,6 +136,7 @@ class _Data:
     base_dirs: list[Path]  #: sequences whose real codes centre the synthetic index codes
     base_label: str
     sizes: tuple[int, ...]  #: stored-code counts of the index section
+    index_real: int  #: augmented real frames encoded for the index section's codes (full run)
     index_kw: dict[str, Any]
     size_note: str  #: the frames' size, "WxH"
     override: dict[str, Any] | None  #: detector conf overrides of every run
@@ -145,7 +147,7 @@ def _quick_data(run_dir: Path, index_sizes: Sequence[int] | None) -> _Data:
     return _Data(loop_name="quick (16 sample frames)", loop=q["loop"], noloop={"quick-noloop": q["noloop"]},
                  vocab_src=q["vocab"], vocab_k=64, vocab_images=None, vocab_label="other sample frames",
                  train_src=q["vocab"][0].parent, base_dirs=[q["loop"]], base_label="the quick frames",
-                 sizes=tuple(index_sizes or (500, 2000)),
+                 sizes=tuple(index_sizes or (500, 2000)), index_real=0,
                  index_kw={"n_queries": 10, "chunk": 500, "cell_time_s": 20.0}, size_note="620x188",
                  override=QUICK_OVERRIDE)
 
@@ -158,8 +160,10 @@ def _full_data(data: str | Path | None, index_sizes: Sequence[int] | None) -> _D
     noloop = {"00": root / "00", "07": root / "07", **stress_folders(root, REPO / "runs" / "bench" / "stress")}
     return _Data(loop_name="KITTI 90", loop=root / "90", noloop=noloop,
                  vocab_src=root / "07", vocab_k=1000, vocab_images=80, vocab_label="KITTI 07",
-                 train_src=root / "07" / "image_0", base_dirs=[root / "00", root / "07"], base_label="KITTI 00 + 07",
-                 sizes=tuple(index_sizes or (10_000, 100_000, 1_000_000)), index_kw={}, size_note=f"{w}x{h}",
+                 train_src=root / "07" / "image_0", base_dirs=[root / "00", root / "07"],
+                 base_label="augmented real frames of ../shared, CAE, whitened 256-d",
+                 sizes=tuple(index_sizes or (10_000, 100_000)), index_real=5000, index_kw={},
+                 size_note=f"{w}x{h}",
                  override=None)
 
 
@@ -223,7 +227,7 @@ def _methods(b: _Bench) -> None:
 def _index(b: _Bench) -> None:
     d = b.data
     log.info("index scaling over %s codes", "/".join(map(str, d.sizes)))
-    base = _real_codes(b.encoder(), d.base_dirs)
+    base = _real_codes(b.encoder(), d.base_dirs) if b.quick else realistic_codes(d.index_real)
     r = index_scaling(base, d.sizes, memory_gib=b.index_memory_gib, budget=b.budget, base_label=d.base_label,
                       **d.index_kw)
     b.results["index"] = r
@@ -345,7 +349,7 @@ def main(out: str | Path = "BENCHMARKS.md", run_dir: str | Path = "runs/bench", 
         data: KITTI ``sequences`` folder holding 00, 07 and 90; None = ``../shared/datasets/kitti/sequences``.
         budget_s: wall-clock budget; optional parts (1M codes, false-loop runs) are skipped when they would not fit.
         index_memory_gib: an index larger than this is not built (e.g. 1M float32 codes = 15.3 GiB).
-        index_sizes: stored-code counts; None = 10k, 100k, 1M (quick: 500, 2000).
+        index_sizes: stored-code counts; None = 10k, 100k (quick: 500, 2000).
         training_epochs: epochs of the "trained on other data" weights in the training study.
 
     Returns:

@@ -217,7 +217,7 @@ class FleetRecognizer:
         for rec in det.db:
             if rec.pose is not None:
                 robot.poses[rec.frame_id] = Sim3.from_pose(rec.pose).matrix()
-            robot.add(rec.frame_id, det.places.entry(rec.code))
+            robot.add(rec.frame_id, rec.code)  # the store keeps the searched entry
         return robot
 
     def _save_camera(self, name: str) -> None:

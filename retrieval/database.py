@@ -1,26 +1,35 @@
-"""The keyframe database, persisted in HDF5: what a detector has seen, so a run can resume or be inspected.
+"""The keyframe store, persisted in one HDF5 file: what a detector has seen, so a run can resume or be inspected.
 
-Layout (``format_version`` 4)::
+Built for millions of keyframes: append-only and columnar, every column one chunked, resizable dataset (no group
+per keyframe). Layout (``format_version`` 5)::
 
-    /                       attrs: format_version, conf (JSON), descriptor (weights identity), software, created
-    /keyframes/<id:08d>/    one group per keyframe, visible only once fully written
-        code         (D,)       float32, unit norm (cosine descriptors: CAE, baselines), or
-                     (n, 32)    uint8 binary descriptors (hashed descriptors: MILD's ORB)
-        keypoints    (N, 2)     float32, original-image pixels
-        descriptors  (N, F)     uint8 when lossless (SIFT), else the extractor's dtype
-        scales       (N,)       float32
-        candidates   (k, 6)     float64 rows (CANDIDATE_ROW: frame id, cosine score, matches, inliers, temporal score,
-                                confidence) of every hypothesis judged
-        attrs: frame_id, timestamp, source (file name, bytes), fingerprint ("size:hash" of the file, or ""),
-               pose (12 floats, 3x4 row-major, when known), edge_ratio, loop (accepted match frame id, -1 if
-               none), descriptor_dtype, metric, checksum (BLAKE2b of everything above)
-    /skipped/<id:08d>/      one empty group per frame that is not a keyframe
-        attrs: frame_id, reason ("gated" or "unreadable"), source, fingerprint, edge_ratio, message
+    /                 attrs: format_version, conf (JSON), descriptor (weights identity), software, created,
+                      committed (frames visible: the commit point, written last)
+    /frames/          one row per frame, keyframe or not, in frame-id order
+        frame_id      (n,)     int64
+        kind          (n,)     uint8: 0 keyframe, 1 gated, 2 unreadable (KINDS)
+        timestamp     (n,)     float64, NaN when unknown
+        pose          (n, 12)  float64, 3x4 camera-to-world row-major, NaN when unknown
+        edge_ratio    (n,)     float64
+        loop          (n,)     int64 accepted match frame id, -1 if none
+        source, fingerprint, message   (n,) variable-length strings (source as bytes: any file name survives)
+        code_end, feat_end, cand_end   (n,) int64: end offsets into the ragged arrays below (start = the previous
+                                        row's end; a skipped frame adds nothing)
+        checksum      (n,)     BLAKE2b-128 of the row, its code rows and its candidates (verified on read)
+        feat_checksum (n,)     BLAKE2b-128 of the row's local features (verified when they are read)
+    /codes            (R, D)   the searched code, float16 (whitened and unit-norm: what the index holds), one row a
+                               keyframe; or (R, 32) uint8 binary descriptors, several rows a keyframe (MILD)
+    /features/keypoints   (M, 2) uint16, x and y in 1/8 pixel (``verify.features.KEYPOINT_STEP``)
+    /features/descriptors (M, F) uint8 when lossless (SIFT), else the extractor's dtype; gzip-compressed
+    /features/scales      (M,)   float16
+    /candidates       (C, 6)   float64 rows (CANDIDATE_ROW) of every hypothesis judged
 
-Append-only. A record is written under a temporary name and renamed when complete, then the file is flushed;
-reopening drops a half-written record and resumes after the last complete frame. Every keyframe carries a checksum
-that is verified when it is read, so bit flips are reported as damage instead of being used. Free disk space is
-checked before each write (HDF5 cannot recover from a write that fails half-way).
+A frame is written in order: its ragged arrays past their committed ends, then its row, then ``committed`` is
+raised and the file flushed. Nothing past the committed ends is ever read, so a half-written frame from a killed run
+is invisible and overwritten when the run resumes after the last complete one (arrays grow a quarter at a time;
+HDF5 allocates no disk for chunks never written). Checksums are per frame row
+(the chunk a reader fetches), verified when read, so bit flips are reported as damage instead of being used.
+Free disk space is checked before each write (HDF5 cannot recover from a write that fails half-way).
 """
 
 from __future__ import annotations
@@ -41,19 +50,31 @@ import numpy as np
 
 from core.conf import conf_diff, conf_get
 from core.errors import ConfigError, DatabaseError
-from verify.features import Features
+from verify.features import KEYPOINT_STEP, Features
 
-__all__ = ["FORMAT_VERSION", "CANDIDATE_ROW", "SKIP_REASONS", "MIN_FREE_BYTES", "FeatureStore", "KeyframeRecord", "FrameEntry",
-           "KeyframeDatabase"]
+__all__ = ["FORMAT_VERSION", "CANDIDATE_ROW", "SKIP_REASONS", "KINDS", "MIN_FREE_BYTES", "CHUNK_ROWS",
+           "FeatureStore", "KeyframeRecord", "FrameEntry", "KeyframeDatabase"]
 
 log = logging.getLogger(__name__)
 
-FORMAT_VERSION = 4  #: 4: codes may be binary descriptors (MILD)
+FORMAT_VERSION = 5  #: 5: columnar (one dataset a column), float16 searched codes, compact features
 CANDIDATE_ROW = ("frame_id", "score", "matches", "inliers", "seq_score", "confidence")  #: a stored candidate row
 SKIP_REASONS = ("gated", "unreadable")  #: why a frame is not a keyframe
+KINDS = ("keyframe",) + SKIP_REASONS  #: ``frames/kind`` values, by position
 MIN_FREE_BYTES = 64 << 20  #: no record is written with less free space than this on the database's disk
-_TMP = ".incomplete"
+CHUNK_ROWS = 1024  #: HDF5 chunk length of the per-frame columns (rows); ragged arrays use chunks of similar bytes
 _READ_ERRORS = (OSError, KeyError, ValueError, RuntimeError, TypeError, IndexError, AttributeError)
+_STR = h5py.string_dtype("utf-8")
+_BYTES = h5py.string_dtype("ascii")  # bytes in, bytes out: file names that are not UTF-8 survive
+#: the per-frame columns: dtype and trailing shape
+_COLUMNS: dict[str, tuple[Any, tuple[int, ...]]] = {
+    "frame_id": (np.int64, ()), "kind": (np.uint8, ()), "timestamp": (np.float64, ()), "pose": (np.float64, (12,)),
+    "edge_ratio": (np.float64, ()), "loop": (np.int64, ()), "source": (_BYTES, ()), "fingerprint": (_STR, ()),
+    "message": (_STR, ()), "code_end": (np.int64, ()), "feat_end": (np.int64, ()), "cand_end": (np.int64, ()),
+    "checksum": ("S32", ()), "feat_checksum": ("S32", ())}
+_ROW_CHECKED = ("frame_id", "kind", "timestamp", "pose", "edge_ratio", "loop", "source", "fingerprint", "message",
+                "code_end", "feat_end", "cand_end")
+_FEATURES = ("keypoints", "descriptors", "scales")
 
 
 def _name_bytes(name: str) -> bytes:
@@ -103,7 +124,7 @@ class FeatureStore:
 @dataclass
 class KeyframeRecord:
     frame_id: int
-    code: np.ndarray  #: (D,) float32 code, or (n, 32) uint8 binary descriptors
+    code: np.ndarray  #: (D,) the searched code (stored as float16), or (n, 32) uint8 binary descriptors
     features: Features
     timestamp: float | None = None
     pose: np.ndarray | None = None  #: (3, 4) camera-to-world, when known
@@ -124,32 +145,40 @@ class FrameEntry:
     fingerprint: str
 
 
-def _checksum(arrays: list[np.ndarray], attrs: dict[str, Any]) -> str:
-    h = hashlib.blake2b(digest_size=16)
+#: the fixed-width part of a frame row, as its checksum reads it
+_FIXED = np.dtype([("frame_id", "<i8"), ("kind", "u1"), ("timestamp", "<f8"), ("pose", "<f8", (12,)),
+                   ("edge_ratio", "<f8"), ("loop", "<i8"), ("code_end", "<i8"), ("feat_end", "<i8"),
+                   ("cand_end", "<i8")])
+_TEXT = ("source", "fingerprint", "message")
+
+
+def _fixed_rows(cols: dict[str, Any]) -> np.ndarray:
+    """``(n, itemsize)`` uint8: the fixed-width fields of ``n`` rows, packed (one checksum input a row)."""
+    n = len(cols["frame_id"])
+    rec = np.zeros(n, _FIXED)
+    for key in _FIXED.names:
+        rec[key] = np.asarray(cols[key]).reshape(rec[key].shape)
+    return rec.view(np.uint8).reshape(n, -1)
+
+
+def _checksum(fixed: bytes, texts: list[Any], arrays: list[np.ndarray]) -> bytes:
+    """BLAKE2b-128 (hex, 32 bytes) of a row's fixed fields, its texts (bytes or str) and arrays' bytes (an empty
+    array counts as nothing: it reads back in the dataset's dtype, or as none before the dataset exists)."""
+    h = hashlib.blake2b(fixed, digest_size=16)
+    for t in texts:
+        b = t if isinstance(t, bytes) else str(t).encode("utf-8", "surrogateescape")
+        h.update(len(b).to_bytes(4, "little") + b)
     for a in arrays:
-        a = np.ascontiguousarray(a)
-        h.update(str((a.dtype.str, a.shape)).encode())
-        h.update(a.tobytes())
-    for key in sorted(attrs):
-        h.update(key.encode())
-        h.update(_canonical(attrs[key]))
-    return h.hexdigest()
+        if a.size:
+            h.update(str(a.shape[1:]).encode() + np.ascontiguousarray(a).tobytes())
+    return h.hexdigest().encode()
 
 
-def _canonical(value: Any) -> bytes:
-    """The same bytes for an attribute as written and as HDF5 gives it back (numpy scalars, bytes vs str)."""
-    if isinstance(value, (bytes, np.bytes_)):
-        return b"b:" + bytes(value)
-    if isinstance(value, str):
-        return b"s:" + value.encode("utf-8", "surrogateescape")
-    if isinstance(value, np.ndarray) and value.dtype.kind not in "biuf":
-        return b"a:" + repr(value.tolist()).encode()
-    return b"n:" + np.ascontiguousarray(value, np.float64).tobytes()
-
-
-_CHECKED_ATTRS = ("frame_id", "timestamp", "pose", "edge_ratio", "loop", "descriptor_dtype", "metric", "source",
-                  "fingerprint")
-_ARRAYS = ("code", "keypoints", "descriptors", "scales", "candidates")
+def _grow(ds: h5py.Dataset, size: int) -> None:
+    """Makes ``ds`` hold at least ``size`` rows, growing by a quarter (at least a chunk) at a time so that appends
+    rarely resize (rows past the committed ends are unused: HDF5 allocates no disk for chunks never written)."""
+    if len(ds) < size:
+        ds.resize(max(size, len(ds) + max(ds.chunks[0], len(ds) // 4)), axis=0)
 
 
 def _file_size_limit() -> float:
@@ -157,8 +186,15 @@ def _file_size_limit() -> float:
     return float("inf") if soft == resource.RLIM_INFINITY else float(soft)
 
 
+def _pack_features(feats: Features) -> dict[str, np.ndarray]:
+    """Features (compacted) as stored: keypoints in 1/KEYPOINT_STEP pixel (uint16), float16 scales."""
+    kp = np.clip(np.round(np.asarray(feats.keypoints, np.float64) * KEYPOINT_STEP), 0, 65535).astype(np.uint16)
+    return {"keypoints": kp.reshape(-1, 2), "descriptors": feats.descriptors,
+            "scales": np.asarray(feats.scales, np.float16).reshape(-1)}
+
+
 class KeyframeDatabase:
-    """Append-only HDF5 store of keyframes (and of the frames that are not).
+    """Append-only, columnar HDF5 store of keyframes (and of the frames that are not); see the module doc.
 
     Args:
         path: the ``.h5`` file; created when missing, resumed when present.
@@ -179,6 +215,8 @@ class KeyframeDatabase:
         self.flush_every = max(1, int(flush_every))
         self._since_flush = 0
         self._broken = False
+        self._verified: set[int] = set()
+        self._handles: dict[str, h5py.Dataset] = {}
         exists = self.path.exists()
         if exists and not self.path.is_file():
             raise ConfigError(f"{self.path} exists and is not a file; choose another --out")
@@ -191,18 +229,8 @@ class KeyframeDatabase:
             elif exists and len(self.file.keys()) > 0:
                 raise ConfigError(f"{self.path} is an HDF5 file but not a keyframe database; choose another --out")
             else:
-                self._ensure_space()
-                self.file.attrs.update({"format_version": FORMAT_VERSION, "conf": json.dumps(conf or {}),
-                                        "descriptor": encoder, "software": "cae-loop-closure",
-                                        "created": time.strftime("%Y-%m-%dT%H:%M:%S")})
-                self.file.require_group("keyframes")
-                self.file.require_group("skipped")
-                self.file.flush()
-            if mode != "r":
-                for group in ("keyframes", "skipped"):
-                    if f"{group}/{_TMP}" in self.file:
-                        log.warning("%s: dropping a half-written record from an interrupted run", self.path)
-                        del self.file[f"{group}/{_TMP}"]
+                self._create(conf, encoder)
+            self._load_columns(mode)
         except _READ_ERRORS as err:
             self.file.close()
             if isinstance(err, (ConfigError, DatabaseError)):
@@ -239,8 +267,8 @@ class KeyframeDatabase:
     def _check(self, conf: dict[str, Any] | None, encoder: str) -> None:
         version = int(self.file.attrs["format_version"])
         if version != FORMAT_VERSION:
-            raise ConfigError(f"{self.path} has format_version {version}; this software reads {FORMAT_VERSION}; "
-                              "choose another --out")
+            raise ConfigError(f"{self.path} has format_version {version}; this software reads {FORMAT_VERSION} "
+                              "(older keyframe stores are not converted): choose another --out")
         stored = json.loads(self.file.attrs["conf"])
         given = json.loads(json.dumps(conf))
         if conf is not None and stored != given:
@@ -251,6 +279,35 @@ class KeyframeDatabase:
         if encoder and self.encoder and self.encoder != encoder:
             raise ConfigError(f"{self.path} was written with another global descriptor or other weights "
                               f"({self.encoder}); resume with the same --weights, or choose another --out")
+
+    def _create(self, conf: dict[str, Any] | None, encoder: str) -> None:
+        """Writes the header and the empty per-frame columns (the ragged arrays come with the first keyframe)."""
+        self._ensure_space()
+        frames = self.file.require_group("frames")
+        for key, (dtype, tail) in _COLUMNS.items():
+            frames.create_dataset(key, shape=(0, *tail), maxshape=(None, *tail), dtype=dtype,
+                                  chunks=(CHUNK_ROWS, *tail))
+        self.file.attrs.update({"format_version": FORMAT_VERSION, "conf": json.dumps(conf or {}),
+                                "descriptor": encoder, "software": "cae-loop-closure", "committed": 0,
+                                "created": time.strftime("%Y-%m-%dT%H:%M:%S")})
+        self.file.flush()
+
+    def _load_columns(self, mode: str) -> None:
+        """Reads the small per-frame columns into memory (``committed`` rows). Whatever lies past the committed
+        ends (a frame half-written by a killed run, or room reserved for growth) is never read, and overwritten by
+        the next append."""
+        n = int(self.file.attrs["committed"])
+        frames = self.file["frames"]
+        self._cols = {k: frames[k][:n] for k in ("frame_id", "kind", "code_end", "feat_end", "cand_end")}
+        if len(self._cols["frame_id"]) != n:
+            raise DatabaseError(f"{self.path} is damaged: {len(self._cols['frame_id'])} frame rows, {n} committed; "
+                                "move it away to start again")
+        self._kf_rows = np.flatnonzero(self._cols["kind"] == 0)
+        if mode != "r" and len(frames["frame_id"]) > n and frames["frame_id"][n] > self.last_frame_id():
+            log.warning("%s: a half-written frame from an interrupted run is dropped (overwritten)", self.path)
+
+    def _end(self, column: str) -> int:
+        return int(self._cols[column][-1]) if len(self._cols[column]) else 0
 
     # ----------------------------------------------------------------------------------------------- writing
     def _ensure_space(self) -> None:
@@ -267,54 +324,101 @@ class KeyframeDatabase:
                                 f"{MIN_FREE_BYTES >> 20} MiB); everything written so far is kept: free space and run "
                                 "again to resume")
 
-    def _write_group(self, parent: str, frame_id: int, fill: Any) -> None:
-        """Creates ``parent/.incomplete``, lets ``fill(group)`` write it, then renames it to its frame id."""
+    def _ds(self, name: str) -> h5py.Dataset:
+        """A dataset handle, looked up once (HDF5 path lookups cost more than the small writes of an append)."""
+        ds = self._handles.get(name)
+        if ds is None:
+            ds = self._handles[name] = self.file[name]
+        return ds
+
+    def _ragged(self, name: str, rows: np.ndarray) -> h5py.Dataset:
+        """The ragged dataset ``name``, created for ``rows``' dtype and width on first use."""
+        if name in self._handles or name in self.file:
+            ds = self._ds(name)
+            if ds.shape[1:] != rows.shape[1:]:
+                raise ConfigError(f"{self.path}: {name} rows have shape {ds.shape[1:]}; got {rows.shape[1:]}")
+            return ds
+        tail = rows.shape[1:]
+        chunk = max(64, (1 << 16) // max(1, rows.dtype.itemsize * int(np.prod(tail))))
+        compress = {"compression": "gzip", "compression_opts": 4, "shuffle": True} \
+            if name == "features/descriptors" else {}
+        return self.file.create_dataset(name, shape=(0, *tail), maxshape=(None, *tail), dtype=rows.dtype,
+                                        chunks=(chunk, *tail), **compress)
+
+    def _extend(self, name: str, rows: np.ndarray, start: int) -> int:
+        """Writes ``rows`` at ``start`` of the ragged dataset ``name``; returns the new end."""
+        if len(rows) == 0:
+            return start
+        ds = self._ragged(name, rows)
+        _grow(ds, start + len(rows))
+        ds[start:start + len(rows)] = rows.astype(ds.dtype, copy=False)
+        return start + len(rows)
+
+    def _append_row(self, row: dict[str, Any], ragged: dict[str, np.ndarray], features: dict[str, np.ndarray]
+                    ) -> None:
+        """Writes one frame: ragged arrays, then its row, then raises ``committed`` (the commit point)."""
         if self._broken:
             raise DatabaseError(f"{self.path}: an earlier write failed; nothing more is written")
         self._ensure_space()
+        n = len(self._cols["frame_id"])
         try:
-            grp = self.file.create_group(f"{parent}/{_TMP}")
-            fill(grp)
-            self.file.move(f"{parent}/{_TMP}", f"{parent}/{int(frame_id):08d}")
+            row["code_end"] = self._extend("codes", ragged["codes"], self._end("code_end"))
+            row["cand_end"] = self._extend("candidates", ragged["candidates"], self._end("cand_end"))
+            feat_end = self._end("feat_end")
+            for key in _FEATURES:
+                end = self._extend(f"features/{key}", features[key], feat_end)
+            row["feat_end"] = end if len(features["keypoints"]) else feat_end
+            fixed = _fixed_rows({k: [row[k]] for k in _FIXED.names})[0].tobytes()
+            row["checksum"] = _checksum(fixed, [row[k] for k in _TEXT], [ragged["codes"], ragged["candidates"]])
+            row["feat_checksum"] = _checksum(b"", [], [features[k] for k in _FEATURES])
+            for key, value in row.items():
+                ds = self._ds(f"frames/{key}")
+                _grow(ds, n + 1)
+                ds[n] = value
+            self.file.attrs["committed"] = n + 1
             self._maybe_flush()
         except (OSError, RuntimeError, ValueError) as err:
             self._broken = True
             raise DatabaseError(f"cannot write {self.path}: {str(err)[:160]}") from None
+        for key in ("frame_id", "kind", "code_end", "feat_end", "cand_end"):
+            self._cols[key] = np.append(self._cols[key], np.asarray(row[key], self._cols[key].dtype))
+        if row["kind"] == 0:
+            self._kf_rows = np.append(self._kf_rows, n)
+        self._verified.add(n)
+
+    def _row(self, frame_id: int, kind: int, source: str, fingerprint: str, edge_ratio: float) -> dict[str, Any]:
+        if len(self._cols["frame_id"]) and frame_id <= self._cols["frame_id"][-1]:
+            raise ConfigError(f"frame id {frame_id} is not after the last frame stored ({self._cols['frame_id'][-1]})")
+        return {"frame_id": int(frame_id), "kind": kind, "timestamp": np.nan, "pose": np.full(12, np.nan),
+                "edge_ratio": float(edge_ratio), "loop": -1, "source": _name_bytes(source),
+                "fingerprint": str(fingerprint), "message": ""}
 
     def append(self, rec: KeyframeRecord) -> None:
-        """Writes one keyframe atomically (temporary group, then rename)."""
+        """Writes one keyframe atomically (visible once ``committed`` counts it)."""
         feats = rec.features.compact()
         code = np.asarray(rec.code)
-        arrays = {"code": code if code.dtype == np.uint8 and code.ndim == 2 else code.astype(np.float32), "keypoints": feats.keypoints.astype(np.float32),
-                  "descriptors": feats.descriptors, "scales": feats.scales.astype(np.float32),
-                  "candidates": (np.zeros((0, len(CANDIDATE_ROW))) if rec.candidates is None
-                                 else np.asarray(rec.candidates, np.float64)).reshape(-1, len(CANDIDATE_ROW))}
-        attrs: dict[str, Any] = {"frame_id": int(rec.frame_id), "source": np.bytes_(_name_bytes(rec.source)),
-                                 "fingerprint": rec.fingerprint, "edge_ratio": float(rec.edge_ratio),
-                                 "loop": int(rec.loop), "metric": feats.metric,
-                                 "descriptor_dtype": np.dtype(rec.features.descriptors.dtype).name}
-        if rec.timestamp is not None:
-            attrs["timestamp"] = float(rec.timestamp)
+        binary = code.dtype == np.uint8 and code.ndim == 2
+        row = self._row(rec.frame_id, 0, rec.source, rec.fingerprint, rec.edge_ratio)
+        row.update({"loop": int(rec.loop), "timestamp": np.nan if rec.timestamp is None else float(rec.timestamp)})
         if rec.pose is not None:
-            attrs["pose"] = np.asarray(rec.pose, np.float64).reshape(12)
-        attrs["checksum"] = _checksum([arrays[k] for k in _ARRAYS], attrs)
-
-        def fill(grp: h5py.Group) -> None:
-            for key in _ARRAYS:
-                grp.create_dataset(key, data=arrays[key])
-            grp.attrs.update(attrs)
-
-        self._write_group("keyframes", rec.frame_id, fill)
+            row["pose"] = np.asarray(rec.pose, np.float64).reshape(12)
+        cands = (np.zeros((0, len(CANDIDATE_ROW))) if rec.candidates is None
+                 else np.asarray(rec.candidates, np.float64)).reshape(-1, len(CANDIDATE_ROW))
+        ragged = {"codes": code if binary else code.astype(np.float16).reshape(1, -1), "candidates": cands}
+        if len(feats) and "metric" not in self.file.attrs:
+            self.file.attrs.update({"metric": feats.metric,
+                                    "descriptor_dtype": np.dtype(rec.features.descriptors.dtype).name})
+        self._append_row(row, ragged, _pack_features(feats))
 
     def add_skipped(self, frame_id: int, reason: str, source: str = "", fingerprint: str = "",
                     edge_ratio: float = float("nan"), message: str = "") -> None:
         """Records a frame that is not a keyframe: ``reason`` "gated" (the quality gate) or "unreadable"."""
         if reason not in SKIP_REASONS:
             raise ValueError(f"reason must be one of {SKIP_REASONS}; got {reason!r}")
-        attrs = {"frame_id": int(frame_id), "reason": reason, "source": np.bytes_(_name_bytes(source)),
-                 "fingerprint": fingerprint, "edge_ratio": float(edge_ratio),
-                 "message": message[:300].encode("utf-8", "backslashreplace").decode("utf-8")}  # names not UTF-8
-        self._write_group("skipped", frame_id, lambda grp: grp.attrs.update(attrs))
+        row = self._row(frame_id, KINDS.index(reason), source, fingerprint, edge_ratio)
+        row["message"] = message[:300].encode("utf-8", "backslashreplace").decode("utf-8")  # names not UTF-8
+        empty = {"codes": np.zeros((0, 0)), "candidates": np.zeros((0, len(CANDIDATE_ROW)))}
+        self._append_row(row, empty, _pack_features(Features.empty()))
 
     def add_gated(self, frame_id: int, source: str = "", fingerprint: str = "", edge_ratio: float = float("nan")
                   ) -> None:
@@ -337,27 +441,29 @@ class KeyframeDatabase:
         """Identity of the global descriptor the codes were made with."""
         return str(self.file.attrs.get("descriptor", ""))
 
-    def _names(self, group: str = "keyframes") -> list[str]:
-        """Complete records in frame-id order (a half-written one from a killed run is never listed)."""
-        try:
-            return [n for n in self.file[group] if not n.startswith(".")]
-        except _READ_ERRORS as err:
-            raise self._damaged(err, group) from None
-
     def __len__(self) -> int:
-        return len(self._names())
+        return len(self._kf_rows)
 
-    def _skipped(self) -> Iterator[h5py.Group]:
-        for name in self._names("skipped"):
-            yield self.file["skipped"][name]
+    def _column(self, key: str, rows: np.ndarray | None = None) -> np.ndarray:
+        """Column ``key`` of the committed rows (or of ``rows``, sorted positions); strings as ``bytes`` (source) or
+        ``str``."""
+        n = len(self._cols["frame_id"])
+        try:
+            ds = self.file["frames"][key]
+            if _COLUMNS[key][0] is _STR:
+                ds = ds.asstr()
+            if rows is None:
+                return np.asarray(ds[:n])
+            lo = int(rows[0])
+            return np.asarray(ds[lo:int(rows[-1]) + 1])[np.asarray(rows) - lo]
+        except _READ_ERRORS as err:
+            raise self._damaged(err, f"frames/{key}") from None
 
     def skipped(self, reason: str | None = None) -> np.ndarray:
         """Frame ids of the frames that are not keyframes (of one ``reason`` when given), ``(n,)`` int64."""
-        try:
-            ids = [int(g.attrs["frame_id"]) for g in self._skipped() if reason is None or g.attrs["reason"] == reason]
-        except _READ_ERRORS as err:
-            raise self._damaged(err, "skipped frames") from None
-        return np.array(ids, np.int64)
+        kind = self._cols["kind"]
+        sel = kind != 0 if reason is None else kind == KINDS.index(reason)
+        return self._cols["frame_id"][sel].astype(np.int64)
 
     def gated(self) -> np.ndarray:
         """Frame ids the gate rejected, ``(n,)`` int64."""
@@ -365,90 +471,139 @@ class KeyframeDatabase:
 
     def last_frame_id(self) -> int:
         """The largest frame id stored (keyframe or not), -1 when empty."""
-        last = [int(names[-1]) for names in (self._names(), self._names("skipped")) if names]
-        return max(last, default=-1)  # groups are listed in name order: zero-padded ids
+        return int(self._cols["frame_id"][-1]) if len(self._cols["frame_id"]) else -1
 
     def frames(self) -> list[FrameEntry]:
         """Every frame held (keyframes and skipped ones) in frame-id order, with what it was made from."""
-        try:
-            out = [FrameEntry(int(g.attrs["frame_id"]), "keyframe", _name_str(g.attrs["source"]),
-                              str(g.attrs.get("fingerprint", "")))
-                   for g in (self.file["keyframes"][n] for n in self._names())]
-            out += [FrameEntry(int(g.attrs["frame_id"]), str(g.attrs["reason"]), _name_str(g.attrs["source"]),
-                               str(g.attrs.get("fingerprint", ""))) for g in self._skipped()]
-        except _READ_ERRORS as err:
-            raise self._damaged(err, "frame list") from None
-        return sorted(out, key=lambda e: e.frame_id)
+        sources, prints = self._column("source"), self._column("fingerprint")
+        return [FrameEntry(int(f), KINDS[int(k)], _name_str(s), str(p))
+                for f, k, s, p in zip(self._cols["frame_id"], self._cols["kind"], sources, prints)]
 
-    def _group(self, name: str) -> tuple[h5py.Group, dict[str, np.ndarray]]:
-        """A keyframe group and its arrays, checksum verified."""
-        try:
-            grp = self.file["keyframes"][name]
-            arrays = {k: grp[k][()] for k in _ARRAYS}
-            attrs = {k: grp.attrs[k] for k in _CHECKED_ATTRS if k in grp.attrs}
-            ok = _checksum([arrays[k] for k in _ARRAYS], attrs) == grp.attrs["checksum"]
-        except _READ_ERRORS as err:
-            raise self._damaged(err, f"keyframe {name}") from None
-        if not ok:
-            raise DatabaseError(f"{self.path} is damaged: keyframe {int(name)} fails its checksum; the files written "
-                                "from it are left as they were; move it away to start again")
-        return grp, arrays
+    def _span(self, column: str, row: int) -> slice:
+        ends = self._cols[column]
+        return slice(int(ends[row - 1]) if row else 0, int(ends[row]))
 
-    def _features(self, grp: h5py.Group, arrays: dict[str, np.ndarray]) -> Features:
-        desc = arrays["descriptors"].astype(grp.attrs["descriptor_dtype"], copy=False)
-        return Features(arrays["keypoints"], desc, arrays["scales"], str(grp.attrs["metric"]))
+    def _read(self, name: str, span: slice, width: int = 0) -> np.ndarray:
+        if name not in self.file:
+            return np.zeros((0, width) if width else (0,))
+        return self.file[name][span]
+
+    def _rows_block(self, rows: np.ndarray) -> dict[str, Any]:
+        """The checked columns, codes and candidates of ``rows`` (sorted row positions), checksums verified."""
+        cols = {k: self._column(k, rows) for k in _ROW_CHECKED + ("checksum",)}
+        fixed = _fixed_rows(cols)
+        lo, hi = int(rows[0]), int(rows[-1])
+        code_base = int(self._cols["code_end"][lo - 1]) if lo else 0
+        cand_base = int(self._cols["cand_end"][lo - 1]) if lo else 0
+        try:
+            codes = self._read("codes", slice(code_base, int(self._cols["code_end"][hi])), 1)
+            cands = self._read("candidates", slice(cand_base, int(self._cols["cand_end"][hi])), len(CANDIDATE_ROW))
+        except _READ_ERRORS as err:
+            raise self._damaged(err, "codes") from None
+        out: dict[str, Any] = {"cols": cols, "codes": [], "cands": []}
+        for j, r in enumerate(rows.tolist()):
+            cs, ks = self._span("code_end", r), self._span("cand_end", r)
+            code = codes[cs.start - code_base:cs.stop - code_base]
+            cand = cands[ks.start - cand_base:ks.stop - cand_base].reshape(-1, len(CANDIDATE_ROW))
+            if r not in self._verified:
+                if _checksum(fixed[j].tobytes(), [cols[k][j] for k in _TEXT], [code, cand]) \
+                        != bytes(cols["checksum"][j]):
+                    raise DatabaseError(f"{self.path} is damaged: keyframe {int(cols['frame_id'][j])} fails its "
+                                        "checksum; the files written from it are left as they were; move it away "
+                                        "to start again")
+                self._verified.add(r)
+            out["codes"].append(code)
+            out["cands"].append(cand)
+        return out
+
+    def _blocks(self) -> Iterator[tuple[np.ndarray, dict[str, Any]]]:
+        """Keyframe rows in blocks of ``CHUNK_ROWS``, each with its verified columns, codes and candidates."""
+        for start in range(0, len(self._kf_rows), CHUNK_ROWS):
+            rows = self._kf_rows[start:start + CHUNK_ROWS]
+            yield rows, self._rows_block(rows)
+
+    def _code(self, raw: np.ndarray) -> np.ndarray:
+        """A stored code as given back: ``(D,)`` float32, or ``(n, 32)`` uint8 binary descriptors."""
+        return raw.astype(np.float32)[0] if raw.dtype == np.float16 else raw
 
     def features(self, frame_id: int) -> Features:
-        """One keyframe's local features (descriptors in the extractor's dtype).
+        """One keyframe's local features (descriptors in the extractor's dtype), checksum verified.
 
         Raises:
             KeyError: no complete keyframe with that id.
             DatabaseError: it is damaged.
         """
-        name = f"{int(frame_id):08d}"
-        if name not in self.file["keyframes"]:
+        pos = int(np.searchsorted(self._cols["frame_id"], int(frame_id)))
+        if pos >= len(self._cols["frame_id"]) or self._cols["frame_id"][pos] != frame_id \
+                or self._cols["kind"][pos] != 0:
             raise KeyError(frame_id)
-        return self._features(*self._group(name))
+        return self._features_at(pos)
+
+    def _features_at(self, row: int) -> Features:
+        span = self._span("feat_end", row)
+        try:
+            packed = {"keypoints": self._read("features/keypoints", span, 2).astype(np.uint16).reshape(-1, 2),
+                      "descriptors": self._read("features/descriptors", span, 1),
+                      "scales": self._read("features/scales", span).astype(np.float16)}
+            ok = _checksum(b"", [], [packed[k] for k in _FEATURES]) == bytes(self.file["frames/feat_checksum"][row])
+        except _READ_ERRORS as err:
+            raise self._damaged(err, f"features of frame {int(self._cols['frame_id'][row])}") from None
+        if not ok:
+            raise DatabaseError(f"{self.path} is damaged: the features of keyframe {int(self._cols['frame_id'][row])} "
+                                "fail their checksum; the files written from it are left as they were; move it "
+                                "away to start again")
+        if not len(packed["keypoints"]):
+            width = self.file["features/descriptors"].shape[1] if "features/descriptors" in self.file else 128
+            return Features.empty(width, np.dtype(self.file.attrs.get("descriptor_dtype", "float32")),
+                                  str(self.file.attrs.get("metric", "l2")))
+        desc = packed["descriptors"].astype(self.file.attrs["descriptor_dtype"], copy=False)
+        return Features(packed["keypoints"].astype(np.float32) / KEYPOINT_STEP, desc,
+                        packed["scales"].astype(np.float32), str(self.file.attrs["metric"]))
 
     def __iter__(self) -> Iterator[KeyframeRecord]:
         """Keyframes in frame-id order."""
-        for name in self._names():
-            grp, arrays = self._group(name)
-            a = grp.attrs
-            yield KeyframeRecord(frame_id=int(a["frame_id"]), code=arrays["code"],
-                                 features=self._features(grp, arrays),
-                                 timestamp=float(a["timestamp"]) if "timestamp" in a else None,
-                                 pose=np.asarray(a["pose"]).reshape(3, 4) if "pose" in a else None,
-                                 source=_name_str(a["source"]), edge_ratio=float(a["edge_ratio"]),
-                                 candidates=arrays["candidates"], loop=int(a["loop"]),
-                                 fingerprint=str(a.get("fingerprint", "")))
+        for rows, block in self._blocks():
+            c = block["cols"]
+            for j, r in enumerate(rows.tolist()):
+                ts, pose = float(c["timestamp"][j]), np.asarray(c["pose"][j], np.float64)
+                yield KeyframeRecord(frame_id=int(c["frame_id"][j]), code=self._code(block["codes"][j]),
+                                     features=self._features_at(r), timestamp=None if np.isnan(ts) else ts,
+                                     pose=None if np.isnan(pose).all() else pose.reshape(3, 4),
+                                     source=_name_str(c["source"][j]), edge_ratio=float(c["edge_ratio"][j]),
+                                     candidates=block["cands"][j], loop=int(c["loop"][j]),
+                                     fingerprint=str(c["fingerprint"][j]))
 
-    def search_entries(self) -> Iterator[tuple[int, np.ndarray, float | None, Features]]:
-        """``(frame_id, code, timestamp, features)`` per keyframe in frame-id order, checksums verified."""
-        for name in self._names():
-            grp, arrays = self._group(name)
-            ts = grp.attrs.get("timestamp")
-            yield (int(grp.attrs["frame_id"]), arrays["code"], None if ts is None else float(ts),
-                   self._features(grp, arrays))
+    def search_entries(self, features: bool = True) -> Iterator[tuple[int, np.ndarray, float | None,
+                                                                     Features | None]]:
+        """``(frame_id, code, timestamp, features)`` per keyframe in frame-id order, checksums verified;
+        ``features=False`` reads no local features (None in their place: resuming in database mode)."""
+        for rows, block in self._blocks():
+            c = block["cols"]
+            for j, r in enumerate(rows.tolist()):
+                ts = float(c["timestamp"][j])
+                yield (int(c["frame_id"][j]), self._code(block["codes"][j]), None if np.isnan(ts) else ts,
+                       self._features_at(r) if features else None)
 
     def results(self) -> Iterator[tuple[int, np.ndarray, int]]:
-        """``(frame_id, candidates (k, len(CANDIDATE_ROW)), loop)`` per keyframe in frame-id order, checksums verified."""
-        for name in self._names():
-            grp, arrays = self._group(name)
-            yield int(grp.attrs["frame_id"]), arrays["candidates"], int(grp.attrs["loop"])
+        """``(frame_id, candidates (k, len(CANDIDATE_ROW)), loop)`` per keyframe in frame-id order, checksums
+        verified."""
+        for rows, block in self._blocks():
+            c = block["cols"]
+            for j in range(len(rows)):
+                yield int(c["frame_id"][j]), block["cands"][j], int(c["loop"][j])
 
     def poses(self) -> np.ndarray:
         """``(n, 3, 4)`` camera-to-world pose per keyframe in frame-id order, NaN where none was given."""
-        out = [np.full((3, 4), np.nan) if rec.pose is None else rec.pose for rec in self]
-        return np.stack(out).astype(np.float64) if out else np.zeros((0, 3, 4))
+        out = [block["cols"]["pose"] for _, block in self._blocks()]
+        return np.concatenate(out).reshape(-1, 3, 4).astype(np.float64) if out else np.zeros((0, 3, 4))
 
     def codes(self) -> tuple[np.ndarray, np.ndarray]:
         """All codes, ``(n, D)`` float32, with their frame ids ``(n,)``; ``(0, 0)`` and ``(0,)`` when the keyframes
         hold binary descriptors (MILD) instead of codes."""
-        entries = [(fid, code) for fid, code, _, _ in self.search_entries() if code.ndim == 1]
-        if not entries:
+        if "codes" not in self.file or self.file["codes"].dtype != np.float16:
             return np.zeros((0, 0), np.float32), np.zeros(0, np.int64)
-        return np.stack([c for _, c in entries]), np.array([f for f, _ in entries], np.int64)
+        out = [np.concatenate(block["codes"]) for _, block in self._blocks()]
+        return np.concatenate(out).astype(np.float32), self._cols["frame_id"][self._kf_rows].astype(np.int64)
 
     def close(self) -> None:
         """Flushes and closes the file (after a failed write only closes: HDF5 cannot flush a broken file)."""

@@ -68,7 +68,7 @@ default_conf: dict[str, Any] = {
         "dim": DEFAULT_DIM,  # length of the whitened code (at most a quarter of the fitting codes)
         "shrink": DEFAULT_SHRINK,  # added to each component's variance, times their mean (regularises small sets)
     },
-    "index": {"name": "flat"},  # code index by registry name (flat, fp16, sq8, hnsw) and its options
+    "index": {"name": "auto"},  # code index by registry name (auto, flat, fp16, sq8, hnsw, ivfpq) and its options
     "temporal": {"name": "sequence"},  # temporal-consistency filter by registry name (sequence, none, bayes)
     "search": {
         "k": 10,  # candidates retrieved per query (paper: top-10)
@@ -304,12 +304,11 @@ class LoopDetector:
         with its stored hypotheses and inserted."""
         n = 0
         results = {q: cands for q, cands, _ in db.results()}
-        for fid, code, timestamp, feats in db.search_entries():
+        for fid, entry, timestamp, feats in db.search_entries(features=self.features.db is None):
             try:
-                self.places.check(code)
+                self.places.check(entry)  # the store keeps the searched entry itself
             except ConfigError as err:
                 raise ConfigError(f"{db.path}: keyframe {fid}: {err}; the database is damaged") from None
-            entry = self.places.entry(code)
             scores, ids = self.places.search(fid, entry, timestamp, self.conf["search"]["k"])
             if self.filter.replays_history:  # its state depends on every update, not only on the kept hypotheses
                 self.filter.update(fid, ids[scores >= self.conf["search"]["min_score"]], self.places.source)
@@ -319,10 +318,12 @@ class LoopDetector:
                 self.decision.commit(fid, rows[:, 0].astype(np.int64),
                                      np.where(rows[:, 2] >= self.conf["policy"]["min_matches"], rows[:, 3], -1))
             self.places.insert(fid, entry, timestamp)
-            if not len(feats) and self._frame_source is not None:  # not extracted then (or none found): again
-                #                                                     when needed
+            if feats is None:  # database mode: read back from the database when needed
+                pass
+            elif not len(feats) and self._frame_source is not None:  # not extracted then (or none found): again
+                #                                                       when needed
                 self._unextracted.add(fid)
-            elif self.features.db is None:  # memory mode: everything back in memory
+            else:  # memory mode: everything back in memory
                 self.features[fid] = feats
             n += 1
         self._next_id = db.last_frame_id() + 1
@@ -437,8 +438,8 @@ class LoopDetector:
         t0 = time.perf_counter()
         if self.db is not None:  # first: if the disk refuses it, the in-memory state has not moved either
             rows = np.array([cd.as_row() for cd in candidates], np.float64).reshape(-1, len(CANDIDATE_ROW))
-            self.db.append(KeyframeRecord(fid, code, feats if feats is not None else self._no_features(), ts, pose34,
-                                          source, edge_ratio, rows, -1 if loop is None else loop.frame_id,
+            self.db.append(KeyframeRecord(fid, entry, feats if feats is not None else self._no_features(), ts,
+                                          pose34, source, edge_ratio, rows, -1 if loop is None else loop.frame_id,
                                           fingerprint))
         self.places.insert(fid, entry, ts)
         self.filter.commit(fid, np.array([cd.frame_id for cd in candidates], np.int64))

@@ -11,8 +11,8 @@ What a descriptor gives decides how it is stored and compared (``GlobalDescripto
 Both exclude keyframes too recent for the query with the same rule (``retrieval.index.AdmissionQueue``). The
 interface, shapes included::
 
-    places.check(code)                        # a stored code this memory cannot use -> ConfigError
-    entry = places.entry(code)                # what is searched: the normalised code / the descriptors
+    entry = places.entry(code)                # what is searched (and stored): the normalised code / the descriptors
+    places.check(entry)                       # a stored entry this memory cannot use -> ConfigError
     scores, ids = places.search(frame_id, entry, timestamp, k)   # (m,) float32 best first, (m,) int64
     places.insert(frame_id, entry, timestamp) # the frame becomes a keyframe (searchable once old enough)
     places.undo(frame_id)                     # the frame was not inserted after all (search registered it)
@@ -71,17 +71,20 @@ class CodePlaces(Places):
 
     def __init__(self, descriptor: GlobalDescriptor, whitening: Whitening | None, conf: dict[str, Any]) -> None:
         self.descriptor, self.whitening = descriptor, whitening
-        dim = descriptor.dim if whitening is None else whitening.dim
+        self.dim = dim = descriptor.dim if whitening is None else whitening.dim
         s = conf["search"]
         self.index = KeyframeIndex(dim, conf["index"], s["exclude_recent"], s["exclude_recent_s"])
         self.source = CodeTable(dim, self._searchable)
 
-    def check(self, code: np.ndarray) -> None:
-        if code.shape != (self.descriptor.dim,) or not np.isfinite(code).all():
-            raise ConfigError(f"a stored code has shape {code.shape} (expected ({self.descriptor.dim},), finite)")
+    def check(self, entry: np.ndarray) -> None:
+        if entry.shape != (self.dim,) or not np.isfinite(entry).all():
+            raise ConfigError(f"a stored code has shape {entry.shape} (expected ({self.dim},), finite)")
 
     def entry(self, code: np.ndarray) -> np.ndarray:
-        return code if self.whitening is None else self.whitening.transform(code)
+        """The searched code: whitened (when a whitening is given), unit norm, rounded to float16 precision, as the
+        keyframe store keeps it (a resumed run searches exactly what the uninterrupted one did)."""
+        x = code if self.whitening is None else self.whitening.transform(code)
+        return np.asarray(x, np.float16).astype(np.float32)
 
     def _searchable(self, refs: np.ndarray) -> np.ndarray:
         """True for keyframes the current query may match (admitted to the index: old enough)."""

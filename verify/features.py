@@ -20,9 +20,10 @@ import numpy as np
 from core.conf import Bool, ConfigError, Float, Int, Registry, configure
 from core.images import to_gray_u8
 
-__all__ = ["Features", "FeatureExtractor", "SIFT", "ORB", "FEATURES", "METRICS", "create_extractor"]
+__all__ = ["KEYPOINT_STEP", "Features", "FeatureExtractor", "SIFT", "ORB", "FEATURES", "METRICS", "create_extractor"]
 
 METRICS = ("l2", "hamming")  #: descriptor distances the matchers know
+KEYPOINT_STEP = 8  #: keypoints are kept in 1/8 pixel (``Features.compact``): uint16 on disk, images up to 8191 px
 
 
 @dataclass
@@ -40,12 +41,16 @@ class Features:
         return len(self.keypoints)
 
     def compact(self) -> "Features":
-        """The same features with float descriptors stored as uint8 when that is exact (SIFT's are integers in
-        0..255): 4x less memory and disk, same matches. Other descriptors are returned unchanged."""
+        """The features as the keyframe store keeps them: float descriptors as uint8 when that is exact (SIFT's are
+        integers in 0..255: 4x less memory and disk, same matches; others unchanged), keypoints rounded to
+        1/``KEYPOINT_STEP`` pixel and scales to float16 precision (what a resumed run reads back, so a resumed and
+        an uninterrupted run verify with the same numbers). Idempotent."""
         d = self.descriptors
         if d.dtype != np.uint8 and d.size and d.min() >= 0 and d.max() <= 255 and np.array_equal(d, np.round(d)):
-            return Features(self.keypoints, d.astype(np.uint8), self.scales, self.metric)
-        return self
+            d = d.astype(np.uint8)
+        kp = np.clip(np.round(np.asarray(self.keypoints, np.float32) * KEYPOINT_STEP), 0, 65535) / KEYPOINT_STEP
+        scales = np.asarray(self.scales, np.float16).astype(np.float32)
+        return Features(kp.astype(np.float32), d, scales, self.metric)
 
     @classmethod
     def empty(cls, dim: int = 128, dtype: type = np.float32, metric: str = "l2") -> "Features":

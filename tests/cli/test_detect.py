@@ -84,10 +84,9 @@ class TestDetectSample:
         _, out = cli_sample_run
         run = tmp_path / "run"
         shutil.copytree(out, run)
-        with h5py.File(run / "keyframes.h5", "a") as f:
-            for name in list(f["keyframes"]):
-                if int(name) >= 90:
-                    del f["keyframes"][name]
+        with h5py.File(run / "keyframes.h5", "a") as f:  # frames 90-99 written, never committed (a kill -9)
+            assert f["frames/frame_id"][90] == 90
+            f.attrs["committed"] = 90
         code, err = run_detect(["--out", run, *detect_config_args], capsys)
         assert code == 0, err
         summary = json.loads((run / "summary.json").read_text())

@@ -189,8 +189,13 @@ class TestResumeIntoOtherData:
 
 # ----------------------------------------------------------------------------------------- damaged database
 def _flip_code_bytes(db_path: Path, frame_id: int) -> None:
-    with h5py.File(db_path, "r") as f:
-        offset = f[f"keyframes/{frame_id:08d}/code"].id.get_offset()
+    with h5py.File(db_path, "r") as f:  # the keyframe's row of the code matrix, in its (uncompressed) chunk
+        n = int(f.attrs["committed"])
+        row = int(np.flatnonzero(f["frames/frame_id"][:n][f["frames/kind"][:n] == 0] == frame_id)[0])
+        codes = f["codes"]
+        per_chunk = codes.chunks[0]
+        chunk = codes.id.get_chunk_info_by_coord((row // per_chunk * per_chunk, 0))
+        offset = chunk.byte_offset + (row % per_chunk) * codes.shape[1] * codes.dtype.itemsize - 100 + 2
     with open(db_path, "r+b") as fh:
         fh.seek(offset + 100)
         byte = fh.read(1)

@@ -53,11 +53,14 @@ class TestKeyframeDatabase:
         assert [r.frame_id for r in back] == [3, 7, 12]
         np.testing.assert_array_equal(ids, [3, 7, 12])
         for rec, got, code in zip(records, back, codes):
-            np.testing.assert_array_equal(got.code, rec.code)
-            np.testing.assert_array_equal(code, rec.code)
+            stored = rec.code.astype(np.float16).astype(np.float32)  # codes are kept at float16 precision
+            np.testing.assert_array_equal(got.code, stored)
+            np.testing.assert_array_equal(code, stored)
             assert got.code.dtype == np.float32
-            np.testing.assert_array_equal(got.features.keypoints, rec.features.keypoints)
-            np.testing.assert_array_equal(got.features.scales, rec.features.scales)
+            kept = rec.features.compact()  # keypoints in 1/8 px, scales float16: what the detector keeps too
+            np.testing.assert_array_equal(got.features.keypoints, kept.keypoints)
+            np.testing.assert_allclose(got.features.keypoints, rec.features.keypoints, atol=1 / 16)
+            np.testing.assert_array_equal(got.features.scales, kept.scales)
             # SIFT descriptors are stored as uint8 (lossless) and come back as equal float32 values
             assert got.features.descriptors.dtype == np.float32
             np.testing.assert_array_equal(got.features.descriptors, rec.features.descriptors)
@@ -83,16 +86,17 @@ class TestKeyframeDatabase:
 
     def test_storage_layout(self, db_path, records):
         with h5py.File(db_path, "r") as f:
-            assert int(f.attrs["format_version"]) == FORMAT_VERSION == 4
-            assert f.attrs["descriptor"] == ENCODER_ID
-            assert sorted(f["keyframes"]) == ["00000003", "00000007", "00000012"]
-            grp = f["keyframes/00000003"]
-            assert grp["descriptors"].dtype == np.uint8  # 4x smaller than float32
-            assert grp["descriptors"].shape == (len(records[0].features), 128)
-            assert grp["keypoints"].shape == (len(records[0].features), 2)
-            assert grp["code"].shape == (4096,)
-            assert grp.attrs["metric"] == "l2" and len(grp.attrs["checksum"]) == 32
-            assert sorted(f["skipped"]) == ["00000013", "00000014"] and f["skipped/00000014"].attrs["reason"] == "gated"
+            assert int(f.attrs["format_version"]) == FORMAT_VERSION == 5
+            assert f.attrs["descriptor"] == ENCODER_ID and int(f.attrs["committed"]) == 5
+            assert f["frames/frame_id"][:5].tolist() == [3, 7, 12, 13, 14]  # (room for growth past the commit)
+            assert f["frames/kind"][:5].tolist() == [0, 0, 0, 1, 1]  # keyframes, then two gated frames
+            assert f["codes"].shape[1:] == (4096,) and f["codes"].dtype == np.float16  # one matrix, compact
+            n0, n1 = len(records[0].features), len(records[1].features)
+            assert f["frames/feat_end"][:5].tolist() == [n0, n0 + n1, n0 + n1, n0 + n1, n0 + n1]  # ragged offsets
+            assert f["features/descriptors"].dtype == np.uint8 and f["features/descriptors"].shape[1] == 128
+            assert f["features/keypoints"].dtype == np.uint16 and f["features/scales"].dtype == np.float16
+            assert f["candidates"].shape[1] == 6 and f.attrs["metric"] == "l2"
+            assert len(f["frames/checksum"][0]) == 32 and "keyframes" not in f  # no group per keyframe
 
     def test_float_descriptors_kept_when_not_integral(self, tmp_path, sift_features):
         f = sift_features(3)
@@ -154,26 +158,68 @@ class TestKeyframeDatabase:
 
     def test_other_format_version_refused(self, db_path):
         with h5py.File(db_path, "a") as f:
-            f.attrs["format_version"] = 1
-        with pytest.raises(ConfigError, match="format_version 1"):
+            f.attrs["format_version"] = 4  # the group-per-keyframe layout before this one
+        with pytest.raises(ConfigError, match="format_version 4; this software reads 5"):
             KeyframeDatabase(db_path, CONF, ENCODER_ID)
 
-    def test_half_written_keyframe_dropped_on_resume(self, db_path):
-        with h5py.File(db_path, "a") as f:
-            f.create_group("keyframes/.incomplete").create_dataset("code", data=np.zeros(4096, np.float32))
+    @staticmethod
+    def _half_write(path, code):
+        """What a kill between writing a frame's arrays and its commit leaves: longer arrays, same ``committed``."""
+        with h5py.File(path, "a") as f:
+            n, k = int(f.attrs["committed"]), int(f["frames/code_end"][int(f.attrs["committed"]) - 1])
+            for name, pos, row in (("codes", k, code.astype(np.float16)), ("frames/frame_id", n, 20)):
+                f[name].resize(max(len(f[name]), pos + 1), axis=0)
+                f[name][pos] = row
+
+    def test_half_written_keyframe_dropped_on_resume(self, db_path, records):
+        self._half_write(db_path, records[0].code)
         with KeyframeDatabase(db_path, CONF, ENCODER_ID) as db:
             assert len(db) == 3 and db.last_frame_id() == 14
             assert [r.frame_id for r in db] == [3, 7, 12]
+            db.append(KeyframeRecord(21, records[1].code, records[1].features))
         with h5py.File(db_path, "r") as f:
-            assert ".incomplete" not in f["keyframes"]
+            assert f["frames/frame_id"][:6].tolist() == [3, 7, 12, 13, 14, 21] and int(f.attrs["committed"]) == 6
+        with KeyframeDatabase(db_path, mode="r") as db:
+            assert db.codes()[1].tolist() == [3, 7, 12, 21]
+            np.testing.assert_array_equal(db.features(21).descriptors, records[1].features.descriptors)
 
-    def test_half_written_keyframe_invisible_read_only(self, db_path):
-        with h5py.File(db_path, "a") as f:
-            f.create_group("keyframes/.incomplete").create_dataset("code", data=np.zeros(4096, np.float32))
+    def test_half_written_keyframe_invisible_read_only(self, db_path, records):
+        self._half_write(db_path, records[0].code)
         with KeyframeDatabase(db_path, mode="r") as db:
             assert len(db) == 3
             assert [r.frame_id for r in db] == [3, 7, 12]
             assert db.codes()[1].tolist() == [3, 7, 12]
+
+    @pytest.mark.parametrize("dataset, read", [
+        ("codes", lambda db: db.codes()),
+        ("candidates", lambda db: list(db.results())),
+        ("frames/loop", lambda db: list(db)),
+        ("features/descriptors", lambda db: db.features(3)),
+        ("features/keypoints", lambda db: db.features(3)),
+    ])
+    def test_damage_caught_by_checksum(self, db_path, dataset, read):
+        with h5py.File(db_path, "a") as f:  # one value changed in place, as a bit flip on disk would
+            ds = f[dataset]
+            row = ds[0] if ds.ndim == 1 else ds[0].copy()
+            if ds.ndim == 1:
+                ds[0] = row + 1
+            else:
+                row.flat[0] = row.flat[0] + 1
+                ds[0] = row
+        with KeyframeDatabase(db_path, mode="r") as db:
+            with pytest.raises(DatabaseError, match="damaged.*checksum"):
+                read(db)
+
+    def test_other_rows_readable_after_damage(self, db_path, records):
+        with h5py.File(db_path, "a") as f:
+            last = int(f["frames/feat_end"][1]) - 1  # the last descriptor of keyframe 7
+            f["features/descriptors"][last, 0] += 1
+        with KeyframeDatabase(db_path, mode="r") as db:
+            np.testing.assert_array_equal(db.features(3).descriptors, records[0].features.descriptors)
+            with pytest.raises(DatabaseError, match="frame 7 fail"):
+                db.features(7)
+            with pytest.raises(KeyError):
+                db.features(13)  # gated: no keyframe
 
     def test_read_mode_on_missing_file(self, tmp_path):
         with pytest.raises(ConfigError):

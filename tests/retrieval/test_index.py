@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from core.conf import ConfigError
-from retrieval.index import (INDEXES, FlatIndex, FP16Index, HNSWIndex, KeyframeIndex, brute_force_search,
-                             create_index)
+from retrieval.index import (INDEXES, AutoIndex, FlatIndex, FP16Index, HNSWIndex, IVFPQIndex, KeyframeIndex,
+                             brute_force_search, create_index, load_index)
 
 D = 64
 
@@ -157,6 +157,69 @@ class TestSQ8Index:
         index = create_index(D, {"name": "sq8"})
         Ds, Is = index.search(xq[:2], 3)
         assert Is.shape == (2, 3) and (Is == -1).all()
+
+
+class TestIVFPQIndex:
+    def test_exact_until_trained(self, data):
+        xb, xq = data
+        index = create_index(D, {"name": "ivfpq", "m": 8, "nlist": 16})
+        assert isinstance(index, IVFPQIndex) and index.conf["train_size"] > len(xb)
+        index.add(xb[:700])
+        index.add(xb[700:])
+        assert index.ntotal == 2000 and not index.index.is_trained
+        np.testing.assert_array_equal(index.search(xq, 10)[1], brute_force_search(xq, xb, 10)[1])
+
+    def test_m_must_divide_the_dimension(self):
+        with pytest.raises(ConfigError, match="index.m .*divide"):
+            create_index(D, {"name": "ivfpq", "m": 24})
+
+
+class TestAutoIndex:
+    def test_exact_while_small_then_large(self, data):
+        xb, xq = data
+        index = create_index(D, {"name": "auto", "switch_at": 1000})
+        assert isinstance(index, AutoIndex)
+        index.add(xb[:999])
+        assert index.chosen == "flat"
+        np.testing.assert_array_equal(index.search(xq, 10)[1], brute_force_search(xq, xb[:999], 10)[1])
+        index.add(xb[999:1500])  # crosses switch_at: rebuilt as HNSW from the codes held, positions kept
+        index.add(xb[1500:])
+        assert index.chosen == "hnsw" and index.ntotal == 2000 and index.index.ntotal == 0
+        _, I = index.search(xq, 10)
+        assert recall_at_k(I, brute_force_search(xq, xb, 10)[1]) >= 0.95
+
+    def test_options_checked(self):
+        with pytest.raises(ConfigError, match="index.large"):
+            create_index(D, {"name": "auto", "large": "ivf"})
+
+
+@pytest.mark.parametrize("conf, n", [({"name": "flat"}, 2000), ({"name": "fp16"}, 2000), ({"name": "hnsw"}, 2000),
+                                     ({"name": "sq8", "train_size": 500}, 300),
+                                     ({"name": "sq8", "train_size": 500}, 2000),
+                                     ({"name": "ivfpq", "m": 8, "nlist": 16}, 300),
+                                     ({"name": "auto", "switch_at": 1000}, 500),
+                                     ({"name": "auto", "switch_at": 1000}, 2000)])
+def test_save_and_load_give_the_same_search(tmp_path, data, conf, n):
+    xb, xq = data
+    index = create_index(D, conf)
+    index.add(xb[:n])
+    index.save(tmp_path / "codes.index")
+    back = load_index(tmp_path / "codes.index")
+    assert type(back) is type(index) and back.conf == index.conf and back.ntotal == n
+    for got, want in zip(back.search(xq, 10), index.search(xq, 10)):
+        np.testing.assert_array_equal(got, want)
+    back.add(xb[n:n + 10])  # it goes on growing
+    assert back.ntotal == min(n + 10, len(xb))
+
+
+def test_load_refuses_a_damaged_file(tmp_path, data):
+    index = create_index(D)
+    index.add(data[0][:100])
+    index.save(tmp_path / "codes.index")
+    raw = (tmp_path / "codes.index").read_bytes()
+    (tmp_path / "codes.index").write_bytes(raw[: len(raw) // 2])
+    with pytest.raises(ConfigError, match="not a readable code index"):
+        load_index(tmp_path / "codes.index")
 
 
 class TestCreateIndex:

@@ -1,0 +1,63 @@
+"""Real frames from ``../shared``, augmented: the stream and index benchmarks' input (more frames than the data
+sets hold, each a real image seen with another exposure and framing).
+
+Each augmented frame is a real frame with a random photometric change (gain, offset and gamma, as the CAE's
+training jitter) and a random crop (``crop`` of each side at most) resized back to the frame's size, so that it
+keeps the real image statistics and its place while no two frames are the same pixels.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Iterator, Sequence
+
+import cv2
+import numpy as np
+
+from core.images import image_entries, read_image
+
+__all__ = ["shared_frames", "augment", "augmented_frames"]
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "datasets"  #: the real data sets
+
+
+def shared_frames(root: str | Path = SHARED, kitti_only: bool = False) -> list[Path]:
+    """Image files of every data set under ``root`` (KITTI sequences, Nordland), sorted; ``kitti_only`` keeps the
+    KITTI ones (all of one size, as a camera stream has)."""
+    root = Path(root)
+    seqs = sorted((root / "kitti" / "sequences").glob("*/image_0"))
+    out = [p for s in seqs for p in image_entries(s)]
+    if not kitti_only and (root / "nordland" / "images").is_dir():
+        out += image_entries(root / "nordland" / "images")
+    return out
+
+
+def augment(image: np.ndarray, rng: np.random.Generator, strength: float = 0.3, crop: float = 0.1) -> np.ndarray:
+    """One random photometric + crop augmentation of a uint8 image, same shape and dtype.
+
+    Args:
+        image: ``(H, W[, C])`` uint8.
+        strength: gain and gamma drawn in ``1 +- strength``, offset in ``+- strength / 2`` (of full scale).
+        crop: at most this fraction of each side is cut before resizing back.
+    """
+    h, w = image.shape[:2]
+    t, l, b, r = (rng.uniform(0, crop, 4) * (h, w, h, w)).astype(int)
+    cut = image[t:h - b, l:w - r]
+    x = cv2.resize(cut, (w, h), interpolation=cv2.INTER_LINEAR).astype(np.float32) / 255.0
+    gain, gamma = rng.uniform(1 - strength, 1 + strength, 2)
+    offset = rng.uniform(-strength / 2, strength / 2)
+    x = np.clip(np.power(np.clip(x, 1e-4, 1), gamma) * gain + offset, 0, 1)
+    return (x * 255 + 0.5).astype(np.uint8)
+
+
+def augmented_frames(paths: Sequence[Path], n: int, seed: int = 0) -> Iterator[tuple[Path, np.ndarray]]:
+    """``n`` augmented frames: the real frames in order, again and again, each pass with new augmentations.
+
+    Yields:
+        ``(source path, (H, W[, C]) uint8 image)``.
+    """
+    rng = np.random.default_rng(seed)
+    for i in range(n):
+        p = paths[i % len(paths)]
+        img = read_image(p)  # read again each time: no cache inflating the memory a benchmark measures
+        yield p, (img if i < len(paths) else augment(img, rng))
