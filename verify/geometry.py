@@ -38,11 +38,13 @@ class GeometricVerifier:
         "max_iters": 2000,  # RANSAC iteration cap
         "recover_pose": True,  # essential only: also decompose E into R and the unit translation t
         "prefilter": True,  # essential only: first a fast fundamental-matrix MAGSAC; E runs on its inliers only
+        "reject_mirrored": True,  # a pair whose inliers fit a mirror (an orientation-reversing homography) has none:
+        #                           no camera motion mirrors an image, a look-alike place (or a flipped frame) can
     }
     conf_rules: dict[str, Any] = {
         "model": Choice("auto", "essential", "fundamental", "none"), "method": Choice(*_METHODS),
         "threshold": Float(0, 100, lo_open=True), "confidence": Float(0, 1, lo_open=True, hi_open=True),
-        "max_iters": Int(1, 1_000_000), "recover_pose": Bool(), "prefilter": Bool()}
+        "max_iters": Int(1, 1_000_000), "recover_pose": Bool(), "prefilter": Bool(), "reject_mirrored": Bool()}
 
     def __init__(self, conf: dict[str, Any] | None = None) -> None:
         self.conf = configure(self, conf, "geometry")
@@ -80,13 +82,16 @@ class GeometricVerifier:
         c = self.conf
         method = _METHODS[c["method"]]
         if model == "fundamental":
-            return self._fundamental(a, b, method)
+            return self._unmirrored(self._fundamental(a, b, method), a, b)
         subset = np.arange(m)
         if c["prefilter"] and m >= 8:  # the F pre-check needs 8 points; fewer go to the 5-point solver directly
             # The 5-point RANSAC costs ~0.5 ms an iteration and runs to max_iters on a bad pair; MAGSAC on F is
             # ~10x cheaper. E's inliers are (up to the threshold's definition) a subset of the best F's.
             pre = self._fundamental(a, b, cv2.USAC_MAGSAC)
             if pre.inliers < max(min_inliers, 5):
+                return pre
+            pre = self._unmirrored(pre, a, b)
+            if not pre.inliers:
                 return pre
             subset = np.flatnonzero(pre.mask)
         E, mask = cv2.findEssentialMat(a[subset], b[subset], K, method=method, prob=c["confidence"],
@@ -101,6 +106,26 @@ class GeometricVerifier:
             _, R, t, _ = cv2.recoverPose(E, a[inl], b[inl], K)
             t = t.ravel()
         return GeometryResult(int(inl.sum()), inl, model, R, t)
+
+    def _unmirrored(self, res: GeometryResult, a: np.ndarray, b: np.ndarray) -> GeometryResult:
+        """``res``, or no inliers where most of them fit one orientation-reversing homography (``reject_mirrored``).
+
+        Two views of a scene by a real camera never mirror each other: a plane's homography between them keeps the
+        orientation of the image (points in front of both cameras), so its local Jacobian ``det(H) / w^3`` is
+        positive. An epipolar model is blind to a mirror (a left-right flip is an affine map, which any fundamental
+        matrix of a degenerate pair explains), so a mirrored look-alike would pass with many inliers.
+        """
+        if not self.conf["reject_mirrored"] or res.inliers < 8:
+            return res
+        pa, pb = a[res.mask].reshape(-1, 2), b[res.mask].reshape(-1, 2)
+        H, hmask = cv2.findHomography(pa, pb, cv2.RANSAC, self.conf["threshold"])
+        if H is None or hmask is None or hmask.sum() < res.inliers / 2:
+            return res
+        fit = hmask.ravel().astype(bool)
+        w = pa[fit] @ H[2, :2] + H[2, 2]
+        if np.median(np.linalg.det(H) / w**3) < 0:
+            return GeometryResult(0, np.zeros(len(a), bool), res.model)
+        return res
 
     def _fundamental(self, a: np.ndarray, b: np.ndarray, method: int) -> GeometryResult:
         c = self.conf

@@ -87,9 +87,10 @@ class TestMainOnSample:
         assert r["retrieval"]["recall_at_k"] == pytest.approx({k: v for k, v in want["recall_k"].items()})
         assert r["pr_curve"]["max_recall_at_100_precision"] == pytest.approx(want["r100"])
 
-    def test_operating_point_lies_on_the_curve(self, report):
+    def test_operating_point_lies_on_the_curve(self, run, report):
         pc, op = report["pr_curve"], report["operating_point"]
-        k = max(i for i, t in enumerate(pc["thresholds"]) if t >= 30)
+        accept = json.loads((run / "summary.json").read_text())["calibration"]["accept_at_confidence"]
+        k = max(i for i, t in enumerate(pc["thresholds"]) if t >= accept)  # the calibrated confidence the run used
         assert (pc["true_positives"][k], pc["detections"][k]) == (op["true_positives"], op["detections"])
 
     def test_json_and_pngs_written(self, report):

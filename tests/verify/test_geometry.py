@@ -111,3 +111,32 @@ class TestGeometricVerifier:
             GeometricVerifier({"method": "prosac"})
         with pytest.raises(ConfigError, match="geometry.iters"):
             GeometricVerifier({"iters": 5})
+
+
+class TestMirror:
+    """A mirrored look-alike (the same frame or a revisit, flipped left-right) has inliers under an epipolar model
+    but no camera motion makes it: ``reject_mirrored`` gives it none; a real revisit keeps all of its inliers."""
+
+    @pytest.fixture(scope="class")
+    def flipped(self, sample_image, sift_features):
+        from verify.features import SIFT
+
+        out = {}
+        for q, c in ((30, 30), (60, 10)):
+            fq, fc = sift_features(q), SIFT().extract(np.ascontiguousarray(sample_image(c)[:, ::-1]))
+            m = match_ratio(fq.descriptors, fc.descriptors)
+            out[(q, c)] = (fq.keypoints[m[:, 0]], fc.keypoints[m[:, 1]])
+        return out
+
+    @pytest.mark.parametrize("K_known", [True, False])
+    def test_a_mirrored_frame_has_no_inliers(self, flipped, sample_K, K_known):
+        K = sample_K if K_known else None
+        for pts in flipped.values():
+            assert GeometricVerifier({"reject_mirrored": False})(*pts, K=K).inliers >= 20  # the epipolar model is blind
+            assert GeometricVerifier()(*pts, K=K).inliers == 0
+
+    def test_a_real_revisit_keeps_its_inliers(self, pairs, sample_K):
+        for K in (sample_K, None):
+            on, off = GeometricVerifier()(*pairs["true"], K=K), GeometricVerifier({"reject_mirrored": False})(
+                *pairs["true"], K=K)
+            assert on.inliers == off.inliers > 150
