@@ -230,6 +230,12 @@ def _measure(index: CodeIndex, e: dict[str, Any], xq: np.ndarray, I_gt: np.ndarr
             "bytes_per_code": e["bytes_per_code"], "build_s": e["add_s"], "gib": e["bytes_per_code"] * size / 2**30}
 
 
+#: indexes measured by default. ``ivfpq`` is left out: training OPQ + IVF-PQ crashed faiss (a segmentation fault in
+#: ``train``) inside the ``cae-lcd bench --quick`` process on raw 4096-d codes and was very slow under load; it
+#: is registered and tested (``tests/retrieval/test_index.py``) and measured with ``--names ... ivfpq``.
+DEFAULT_NAMES: tuple[str, ...] = ("flat", "fp16", "sq8", "hnsw")
+
+
 def _index_confs(names: Sequence[str], chunk: int) -> dict[str, dict[str, Any]]:
     confs = {n: dict(INDEX_CONFS.get(n, {"name": n})) for n in names}
     if "sq8" in confs:  # learn the quantiser from the first chunk, so every size reported is quantised
@@ -240,7 +246,7 @@ def _index_confs(names: Sequence[str], chunk: int) -> dict[str, dict[str, Any]]:
 
 
 def index_scaling(base: np.ndarray, sizes: Sequence[int] = (10_000, 100_000, 1_000_000),
-                  names: Sequence[str] = ("flat", "fp16", "sq8", "hnsw", "ivfpq"), n_queries: int = 50, k: int = 10,
+                  names: Sequence[str] = DEFAULT_NAMES, n_queries: int = 50, k: int = 10,
                   sigma: float = 0.01, chunk: int = 10_000, memory_gib: float = 6.0, cell_time_s: float = 90.0,
                   budget: Budget | None = None, seed: int = 0, base_label: str = "KITTI 00 + 07") -> dict[str, Any]:
     """Measures every index at every size (nested: the first ``sizes[i]`` codes of one stream).
@@ -321,7 +327,7 @@ def index_table(res: dict[str, Any]) -> str:
 
 
 def main(sizes: Sequence[int] = (10_000, 100_000), n_real: int = 5000, out: str | Path = "runs/bench/index",
-         names: Sequence[str] = ("flat", "fp16", "sq8", "hnsw", "ivfpq"), memory_gib: float = 6.0,
+         names: Sequence[str] = DEFAULT_NAMES, memory_gib: float = 6.0,
          cell_time_s: float = 300.0) -> dict[str, Any]:
     """Realistic codes, every index at every size; writes ``index.json`` and ``index.md`` into ``out``."""
     base = realistic_codes(n_real)
@@ -343,7 +349,8 @@ if __name__ == "__main__":
     ap.add_argument("--sizes", type=int, nargs="+", default=[10_000, 100_000], help="stored-code counts")
     ap.add_argument("--million", action="store_true", help="add 1,000,000 to --sizes (long: for a quiet machine)")
     ap.add_argument("--real", type=int, default=5000, help="augmented real frames encoded (issue: 20000)")
-    ap.add_argument("--names", nargs="+", default=["flat", "fp16", "sq8", "hnsw", "ivfpq"])
+    ap.add_argument("--names", nargs="+", default=list(DEFAULT_NAMES),
+                    help="index registry names (ivfpq too: see DEFAULT_NAMES)")
     ap.add_argument("--out", default="runs/bench/index")
     a = ap.parse_args()
     main(sorted(set(a.sizes) | ({1_000_000} if a.million else set())), a.real, a.out, a.names)
