@@ -127,13 +127,15 @@ def page_html() -> str:
     return _PAGE.replace("__ROUTES__", json.dumps(MAP_ROUTES)).replace("__POLL_MS__", str(POLL_MS))
 
 
-def map_router(service: Any, caller: Callable[..., str], owner_or_admin: Callable[[str, str], None]) -> APIRouter:
+def map_router(service: Any, caller: Callable[..., str], owner_or_admin: Callable[[str, str], None],
+               responses: dict[int | str, dict[str, Any]] | None = None) -> APIRouter:
     """``GET /map`` (no token: the page holds no data) and ``GET /robots/{name}/trajectory`` (robot itself or admin).
 
     Args:
         service: the server's ``FleetService``.
         caller: the server's token dependency (token -> caller name).
-        owner_or_admin: the server's access check (404 unknown robot, 403 another robot).
+        owner_or_admin: the server's access check (the same 404 for an unknown robot and another robot's).
+        responses: the refusals the server documents for every route (OpenAPI ``responses``).
     """
     router = APIRouter()
     html = page_html()
@@ -142,7 +144,7 @@ def map_router(service: Any, caller: Callable[..., str], owner_or_admin: Callabl
     def fleet_map() -> str:
         return html
 
-    @router.get("/robots/{name}/trajectory", response_class=PlainTextResponse)
+    @router.get("/robots/{name}/trajectory", response_class=PlainTextResponse, responses=responses or {})
     def trajectory(name: str, format: Literal["tum", "kitti"] = "tum", wait: bool = False,
                    who: str = Depends(caller)) -> str:
         owner_or_admin(name, who)

@@ -179,7 +179,7 @@ def create_app(state_dir: str | Path, admin_token: str, conf: dict[str, Any] | N
     caller, owner_or_admin = _auth(service, admin_token, throttle)
     _write_routes(app, service, caller, owner_or_admin)
     _read_routes(app, service, caller, owner_or_admin)
-    app.include_router(map_router(service, caller, owner_or_admin))  # GET /map, GET /robots/{name}/trajectory
+    app.include_router(map_router(service, caller, owner_or_admin, _PROBLEMS))  # GET /map, GET /robots/{name}/trajectory
     return app
 
 

@@ -4,8 +4,8 @@ The verification (``verify.verifier``) matches the query's local features agains
 essential matrix gives ``R, t`` with ``x_match = R x_query + t`` for a point ``x`` in each camera's frame, i.e. the
 pose of the query camera in the match camera's frame. Here it is computed again from the keyframes' features
 (``LoopDetector.keyframe_features``: stored, cached, or extracted again where the run extracted them lazily) with the
-run's own matcher and geometry settings (same features, same deterministic RANSAC: the same inliers as
-``loops.csv``, so a resumed run gets its edges too). ``t`` is a unit direction: from two images
+run's own matcher and geometry settings (the same features as stored, keypoints kept to 1/8 pixel, and the same
+deterministic RANSAC: the inliers of ``loops.csv`` within a few; a resumed run gets its edges too). ``t`` is a unit direction: from two images
 without depth the length of the baseline cannot be known, so **the translation is up to scale**.
 
 Information matrix (the rule, in g2o's order ``x y z`` then the three rotation components): each of the ``n``

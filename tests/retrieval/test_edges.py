@@ -65,7 +65,9 @@ def test_the_detect_run_writes_edges_a_back_end_loads(cli_sample_run, sample_seq
     run = RunFolder(out)
     loops, edges = run.read_loops(), run.read_edges()
     assert len(edges) == len(loops) > 0
-    assert np.array_equal(edges[:, :3], loops[:, [0, 1, 4]])  # the same verification: the same inliers
+    assert np.array_equal(edges[:, :2], loops[:, :2])
+    # the same verification on the stored features (keypoints kept to 1/8 pixel): the same inliers, within a few
+    assert np.abs(edges[:, 2] - loops[:, 4]).max() <= 0.05 * loops[:, 4].max()
     graph, initial = gtsam.readG2o(str(run.edges_g2o), True)
     assert graph.size() == len(loops) and initial.size() > 0
     from_g2o = [LoopEdge(int(f.keys()[1]), int(f.keys()[0]), 0, f.measured().rotation().matrix(),

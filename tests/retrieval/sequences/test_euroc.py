@@ -34,3 +34,7 @@ def test_bad_data_csv_is_one_error(tmp_path):
     (cam / "data.csv").write_text("#timestamp [ns],filename\n100,a.png\n100;b.png\n")
     with pytest.raises(ConfigError, match=r"data.csv, line 3: expected 'timestamp,file name'"):
         open_sequence(tmp_path)
+
+
+def test_same_loops_as_the_sample(euroc_folder, sample_loops, detect_like_sample, tmp_path):
+    np.testing.assert_array_equal(detect_like_sample(euroc_folder, tmp_path / "run"), sample_loops)

@@ -43,9 +43,11 @@ def test_reads_frames_stamps_and_camera_info(bags, name, storage, has_K, sample_
         assert seq.K is None
 
 
-def test_same_loops_as_the_sample(bags, sample_loops, detect_like_sample, tmp_path):
-    """``cae-lcd detect rec --topic /cam0/image_raw`` reads the bag lazily through the detector."""
-    np.testing.assert_array_equal(detect_like_sample(bags / "ros2", tmp_path / "run", "--topic", TOPIC), sample_loops)
+@pytest.mark.parametrize("name", ["ros2", "ros2.mcap", "ros1.bag"])
+def test_same_loops_as_the_sample(bags, name, sample_loops, detect_like_sample, tmp_path):
+    """``cae-lcd detect rec --topic /cam0/image_raw`` reads the bag lazily through the detector (ROS 2 sqlite3 and
+    mcap, ROS 1)."""
+    np.testing.assert_array_equal(detect_like_sample(bags / name, tmp_path / "run", "--topic", TOPIC), sample_loops)
 
 
 def test_topic_errors(bags):

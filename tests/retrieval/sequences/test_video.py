@@ -36,3 +36,8 @@ def test_bad_options_are_one_error(video_file, sample_dir, tmp_path):
     (tmp_path / "broken.mp4").write_bytes(b"not a video")
     with pytest.raises(ConfigError, match="cannot open video|holds no frame"):
         open_sequence(tmp_path / "broken.mp4")
+
+
+def test_same_loops_as_the_sample(video_file, sample_loops, detect_like_sample, tmp_path):
+    """A lossless video of the sample: the frames are the sample's, so are the loops (read lazily, in order)."""
+    np.testing.assert_array_equal(detect_like_sample(video_file, tmp_path / "run"), sample_loops)
