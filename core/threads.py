@@ -1,4 +1,4 @@
-"""One thread policy for every numeric library in the process: torch, OpenCV and faiss together.
+"""One thread policy for every numeric library in the process: torch, OpenCV, faiss and numpy's BLAS together.
 
 Each library keeps its own pool (torch's OpenMP team, OpenCV's, faiss's OpenMP), and a pool of N threads that
 waits at a barrier after each operation stalls as soon as one of its threads is descheduled: beside a busy
@@ -6,7 +6,10 @@ neighbour process (a SLAM system's tracking and mapping threads) a 2-thread enco
 pools side by side oversubscribe the cores. The policy is therefore: **each library single-threaded by default**
 (``threads=1``), and the cores used by the pipeline's own workers instead (``retrieval.detect`` reads, decodes and
 encodes ahead in a worker thread while the main thread decides), which a busy neighbour slows in proportion but
-cannot stall.
+cannot stall. numpy's BLAS (OpenBLAS) follows the same number through ``threadpoolctl``: besides the stalls, a
+BLAS that splits a product over another number of threads sums in another order, and a run would then differ in
+the last digits from the same run in a worker process that has one thread (``cae-lcd detect`` over many sequences
+on Ray).
 
     >>> from core.threads import apply_thread_policy
     >>> apply_thread_policy(1)
@@ -20,6 +23,7 @@ import os
 
 import cv2
 import torch
+from threadpoolctl import threadpool_limits
 
 __all__ = ["apply_thread_policy", "cpu_count"]
 
@@ -35,7 +39,7 @@ def cpu_count() -> int:
 
 
 def apply_thread_policy(threads: int | None = 1) -> int:
-    """Sets the intra-op threads of torch, OpenCV and faiss to the same number (process-wide).
+    """Sets the intra-op threads of torch, OpenCV, faiss and numpy's BLAS to the same number (process-wide).
 
     Args:
         threads: threads each library may use; None = every core this process may run on.
@@ -53,5 +57,6 @@ def apply_thread_policy(threads: int | None = 1) -> int:
         pass
     else:
         faiss.omp_set_num_threads(n)
-    log.debug("thread policy: %d thread(s) for torch, OpenCV and faiss", n)
+    threadpool_limits(n, user_api="blas")  # numpy's OpenBLAS (and any other BLAS loaded), from now on
+    log.debug("thread policy: %d thread(s) for torch, OpenCV, faiss and BLAS", n)
     return n

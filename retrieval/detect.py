@@ -25,6 +25,7 @@ from core.conf import ConfigError, dump_conf
 from core.errors import ImageError
 from core.files import prepare_out_dir
 from core.progress import progress_bar
+from core.threads import apply_thread_policy
 
 from .calibrate import Calibration, TooFewFrames, calibrate, calibration_frames
 from .database import KeyframeDatabase
@@ -251,6 +252,7 @@ def main(path: str | Path | None = None, out: str | Path | None = None, conf: di
     """
     seq = open_sequence(SAMPLE_DIR if path is None else path, camera, topic, stride)
     resolved = resolve_conf(conf)
+    apply_thread_policy(resolved["runtime"]["threads"])  # before the calibration: its whitening uses BLAS too
     out = Path(out) if out is not None else default_out(seq)
     created = not out.exists()
     run = RunFolder(prepare_out_dir(out))
