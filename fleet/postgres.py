@@ -10,23 +10,17 @@ processes creating the layout at once are serialised by an advisory lock.
 
 from __future__ import annotations
 
-import hmac
-import json
 import logging
-import os
 import threading
 import time
 from contextlib import contextmanager
 from typing import Any, Iterator, Sequence
 
-import numpy as np
-
 from core.conf import ConfigError, Int, configure
 from core.errors import ConflictError, DatabaseError
 
-from .graph import EDGE_KINDS
 from .sim3 import Sim3
-from .store import (FORMAT_VERSION, EdgeRecord, FleetStore, KeyframeAck, OverlapRecord, hash_token, loadable, pose_json,
+from .store import (FORMAT_VERSION, EdgeRecord, KeyframeAck, OverlapRecord, SQLStore, loadable, pose_json,
                     sim3_from_json, sim3_json)
 
 __all__ = ["PostgresStore", "is_postgres_url"]
@@ -61,7 +55,7 @@ def is_postgres_url(location: str) -> bool:
     return str(location).startswith(("postgresql://", "postgres://"))
 
 
-class PostgresStore(FleetStore):
+class PostgresStore(SQLStore):
     """``FleetStore`` on one PostgreSQL database; one connection per store, shared by its threads under a lock.
 
     Args:
@@ -72,6 +66,8 @@ class PostgresStore(FleetStore):
         DatabaseError: the server cannot be reached, or the database holds other tables, another ``format_version``.
     """
 
+    _P = "%s"
+    _ORDER = "seq"
     default_conf: dict[str, Any] = {
         "token_iterations": 100_000,  # PBKDF2 iterations for a new robot's token (kept per robot)
         "connect_timeout_s": 10,  # how long opening the connection may take before failing
@@ -134,27 +130,6 @@ class PostgresStore(FleetStore):
             except self._pg.Error as err:
                 raise DatabaseError(f"{self._where}: {_one_line(err)}") from None
 
-    # ----------------------------------------------------------------------------------------------------- robots
-    def add_robot(self, name: str, token: str) -> None:
-        if not name or not token:
-            raise ConfigError("a robot needs a non-empty name and token")
-        salt = os.urandom(16)
-        iterations = self.conf["token_iterations"]
-        with self._transaction() as db:
-            if db.execute("SELECT 1 FROM robots WHERE name = %s", (name,)).fetchone():
-                raise ConfigError(f"robot {name!r} is already registered")
-            db.execute("INSERT INTO robots (name, salt, token_hash, iterations, created) VALUES (%s, %s, %s, %s, %s)",
-                       (name, salt, hash_token(token, salt, iterations), iterations, time.time()))
-
-    def robots(self) -> list[str]:
-        return [r[0] for r in self._read("SELECT name FROM robots ORDER BY seq")]
-
-    def verify_token(self, name: str, token: str) -> bool:
-        rows = self._read("SELECT salt, token_hash, iterations FROM robots WHERE name = %s", (name,))
-        # an unknown robot costs a hash too, so the answer's timing does not tell which names exist
-        salt, stored, iterations = rows[0] if rows else (b"", b"", self.conf["token_iterations"])
-        return hmac.compare_digest(hash_token(token, bytes(salt), iterations), bytes(stored)) and bool(rows)
-
     # -------------------------------------------------------------------------------------------------- keyframes
     def ack_keyframe(self, ack: KeyframeAck, edges: Sequence[EdgeRecord] = ()) -> bool:
         pose = pose_json(ack.pose)
@@ -173,27 +148,14 @@ class PostgresStore(FleetStore):
             self._insert_edges(db, edges)
         return True
 
-    def keyframes(self, robot: str) -> list[KeyframeAck]:
-        rows = self._read("SELECT keyframe, timestamp, pose FROM keyframes WHERE robot = %s ORDER BY keyframe",
-                          (robot,))
-        return [KeyframeAck(robot, k, t, np.array(json.loads(p)).reshape(4, 4)) for k, t, p in rows]
-
     # ------------------------------------------------------------------------------------------------------ edges
     @staticmethod
     def _insert_edges(db: Any, edges: Sequence[EdgeRecord]) -> None:
-        for e in edges:
-            if e.kind not in EDGE_KINDS:
-                raise ConfigError(f"edge kind must be one of {', '.join(EDGE_KINDS)}; got {e.kind!r}")
-        if edges:
+        rows = SQLStore._edge_rows(edges)
+        if rows:
             with db.cursor() as cur:
                 cur.executemany("INSERT INTO edges (kind, robot_a, keyframe_a, robot_b, keyframe_b, sim3, score) "
-                                "VALUES (%s, %s, %s, %s, %s, %s, %s)",
-                                [(e.kind, e.robot_a, int(e.keyframe_a), e.robot_b, int(e.keyframe_b),
-                                  sim3_json(e.relative), float(e.score)) for e in edges])
-
-    def add_edges(self, edges: Sequence[EdgeRecord]) -> None:
-        with self._transaction() as db:
-            self._insert_edges(db, edges)
+                                "VALUES (%s, %s, %s, %s, %s, %s, %s)", rows)
 
     def edges(self, kind: str | None = None, robot: str | None = None) -> list[EdgeRecord]:
         rows = self._read("SELECT kind, robot_a, keyframe_a, robot_b, keyframe_b, sim3, score FROM edges "

@@ -44,7 +44,7 @@ from core.errors import ConflictError, DatabaseError
 from .graph import EDGE_KINDS
 from .sim3 import Sim3
 
-__all__ = ["FORMAT_VERSION", "KeyframeAck", "EdgeRecord", "OverlapRecord", "FleetStore", "SQLiteStore",
+__all__ = ["FORMAT_VERSION", "KeyframeAck", "EdgeRecord", "OverlapRecord", "FleetStore", "SQLStore", "SQLiteStore",
            "hash_token", "pose_json", "sim3_json", "sim3_from_json"]
 
 log = logging.getLogger(__name__)
@@ -111,7 +111,8 @@ def _loadable(rows: Sequence[tuple], load: Callable[[tuple], Any], what: str) ->
     return out
 
 
-sim3_json, sim3_from_json, loadable = _sim3_json, _sim3_from_json, _loadable  # shared with the other backends (fleet.postgres)
+# shared with the other backends (fleet.postgres)
+sim3_json, sim3_from_json, loadable = _sim3_json, _sim3_from_json, _loadable
 
 
 def pose_json(pose: np.ndarray) -> str:
@@ -197,7 +198,68 @@ CREATE TABLE transforms (robot TEXT PRIMARY KEY REFERENCES robots(name), sim3 TE
 """
 
 
-class SQLiteStore(FleetStore):
+class SQLStore(FleetStore):
+    """What the SQL backends share (``SQLiteStore``, ``fleet.postgres.PostgresStore``): robots and their tokens,
+    keyframe reads, edge checks. A backend gives its parameter placeholder ``_P``, the column that orders rows as
+    they were inserted ``_ORDER``, ``_transaction()`` (a write transaction yielding a connection) and ``_read``."""
+
+    _P = "?"  #: the driver's parameter placeholder
+    _ORDER = "rowid"  #: orders a table's rows as they were inserted
+    conf: dict[str, Any]
+
+    @abstractmethod
+    def _transaction(self) -> Any: ...
+
+    @abstractmethod
+    def _read(self, sql: str, args: Sequence[Any] = ()) -> list[tuple]: ...
+
+    def add_robot(self, name: str, token: str) -> None:
+        if not name or not token:
+            raise ConfigError("a robot needs a non-empty name and token")
+        salt = os.urandom(16)
+        iterations = self.conf["token_iterations"]
+        p = self._P
+        with self._transaction() as db:
+            if db.execute(f"SELECT 1 FROM robots WHERE name = {p}", (name,)).fetchone():
+                raise ConfigError(f"robot {name!r} is already registered")
+            db.execute("INSERT INTO robots (name, salt, token_hash, iterations, created) "
+                       f"VALUES ({p}, {p}, {p}, {p}, {p})",
+                       (name, salt, hash_token(token, salt, iterations), iterations, time.time()))
+
+    def robots(self) -> list[str]:
+        return [r[0] for r in self._read(f"SELECT name FROM robots ORDER BY {self._ORDER}")]
+
+    def verify_token(self, name: str, token: str) -> bool:
+        rows = self._read(f"SELECT salt, token_hash, iterations FROM robots WHERE name = {self._P}", (name,))
+        # an unknown robot costs a hash too, so the answer's timing does not tell which names exist
+        salt, stored, iterations = rows[0] if rows else (b"", b"", self.conf["token_iterations"])
+        return hmac.compare_digest(hash_token(token, bytes(salt), iterations), bytes(stored)) and bool(rows)
+
+    def keyframes(self, robot: str) -> list[KeyframeAck]:
+        rows = self._read(f"SELECT keyframe, timestamp, pose FROM keyframes WHERE robot = {self._P} ORDER BY keyframe",
+                          (robot,))
+        return [KeyframeAck(robot, k, t, np.array(json.loads(p)).reshape(4, 4)) for k, t, p in rows]
+
+    @staticmethod
+    def _edge_rows(edges: Sequence[EdgeRecord]) -> list[tuple]:
+        """The rows of ``edges`` for ``INSERT INTO edges (kind, robot_a, keyframe_a, robot_b, keyframe_b, sim3,
+        score)``, each kind checked first (ConfigError: nothing is written)."""
+        for e in edges:
+            if e.kind not in EDGE_KINDS:
+                raise ConfigError(f"edge kind must be one of {', '.join(EDGE_KINDS)}; got {e.kind!r}")
+        return [(e.kind, e.robot_a, int(e.keyframe_a), e.robot_b, int(e.keyframe_b), _sim3_json(e.relative),
+                 float(e.score)) for e in edges]
+
+    def add_edges(self, edges: Sequence[EdgeRecord]) -> None:
+        with self._transaction() as db:
+            self._insert_edges(db, edges)
+
+    @staticmethod
+    @abstractmethod
+    def _insert_edges(db: Any, edges: Sequence[EdgeRecord]) -> None: ...
+
+
+class SQLiteStore(SQLStore):
     """``FleetStore`` on one SQLite file; safe to share between the threads of one process (one lock).
 
     Args:
@@ -271,27 +333,6 @@ class SQLiteStore(FleetStore):
             except sqlite3.Error as err:
                 raise DatabaseError(f"{self.path}: {err}") from None
 
-    # ----------------------------------------------------------------------------------------------------- robots
-    def add_robot(self, name: str, token: str) -> None:
-        if not name or not token:
-            raise ConfigError("a robot needs a non-empty name and token")
-        salt = os.urandom(16)
-        iterations = self.conf["token_iterations"]
-        with self._transaction() as db:
-            if db.execute("SELECT 1 FROM robots WHERE name = ?", (name,)).fetchone():
-                raise ConfigError(f"robot {name!r} is already registered")
-            db.execute("INSERT INTO robots VALUES (?, ?, ?, ?, ?)",
-                       (name, salt, hash_token(token, salt, iterations), iterations, time.time()))
-
-    def robots(self) -> list[str]:
-        return [r[0] for r in self._read("SELECT name FROM robots ORDER BY rowid")]
-
-    def verify_token(self, name: str, token: str) -> bool:
-        rows = self._read("SELECT salt, token_hash, iterations FROM robots WHERE name = ?", (name,))
-        # an unknown robot costs a hash too, so the answer's timing does not tell which names exist
-        salt, stored, iterations = rows[0] if rows else (b"", b"", self.conf["token_iterations"])
-        return hmac.compare_digest(hash_token(token, salt, iterations), stored) and bool(rows)
-
     # -------------------------------------------------------------------------------------------------- keyframes
     def ack_keyframe(self, ack: KeyframeAck, edges: Sequence[EdgeRecord] = ()) -> bool:
         pose = pose_json(ack.pose)
@@ -309,24 +350,11 @@ class SQLiteStore(FleetStore):
             self._insert_edges(db, edges)
         return True
 
-    def keyframes(self, robot: str) -> list[KeyframeAck]:
-        rows = self._read("SELECT keyframe, timestamp, pose FROM keyframes WHERE robot = ? ORDER BY keyframe",
-                          (robot,))
-        return [KeyframeAck(robot, k, t, np.array(json.loads(p)).reshape(4, 4)) for k, t, p in rows]
-
     # ------------------------------------------------------------------------------------------------------ edges
     @staticmethod
     def _insert_edges(db: sqlite3.Connection, edges: Sequence[EdgeRecord]) -> None:
-        for e in edges:
-            if e.kind not in EDGE_KINDS:
-                raise ConfigError(f"edge kind must be one of {', '.join(EDGE_KINDS)}; got {e.kind!r}")
-            db.execute("INSERT INTO edges (kind, robot_a, keyframe_a, robot_b, keyframe_b, sim3, score) "
-                       "VALUES (?, ?, ?, ?, ?, ?, ?)", (e.kind, e.robot_a, int(e.keyframe_a), e.robot_b,
-                                                        int(e.keyframe_b), _sim3_json(e.relative), float(e.score)))
-
-    def add_edges(self, edges: Sequence[EdgeRecord]) -> None:
-        with self._transaction() as db:
-            self._insert_edges(db, edges)
+        db.executemany("INSERT INTO edges (kind, robot_a, keyframe_a, robot_b, keyframe_b, sim3, score) "
+                       "VALUES (?, ?, ?, ?, ?, ?, ?)", SQLStore._edge_rows(edges))
 
     def edges(self, kind: str | None = None, robot: str | None = None) -> list[EdgeRecord]:
         rows = self._read("SELECT kind, robot_a, keyframe_a, robot_b, keyframe_b, sim3, score FROM edges "
