@@ -17,7 +17,6 @@ sets (``cae-lcd bench`` adds them to its false-loop columns, beside KITTI 00 and
 
 from __future__ import annotations
 
-import argparse
 import logging
 import re
 import time
@@ -33,7 +32,7 @@ from evaluation.metrics import precision_recall
 from retrieval.run_folder import RunFolder
 from retrieval.sequences import open_sequence
 
-from .common import REPO, detect_run, md_table
+from .common import detect_run, md_table, study_parser
 
 __all__ = ["plain_folder", "stress_folders", "stress_sets", "evaluate", "aliasing_table", "main"]
 
@@ -139,15 +138,12 @@ def main(data: Path, run_dir: Path, out: Path | None, only: str = "") -> dict[st
         from .run import write_section  # bench.run imports this module (its false-loop stress rows)
 
         write_section(out, body, "aliasing")
-    print(body)  # noqa: T201 (a study's command-line output)
+    log.info("\n%s", body)
     return res
 
 
 def _cli() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "datasets")
-    ap.add_argument("--run-dir", type=Path, default=Path("runs/bench/aliasing"))
-    ap.add_argument("--out", default=str(REPO / "BENCHMARKS.md"), help="Markdown file to update ('' = none)")
+    ap = study_parser(__doc__, "runs/bench/aliasing")
     ap.add_argument("--only", default="", help="run only the sets whose name contains this text (table not written)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")

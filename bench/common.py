@@ -3,6 +3,7 @@ peak-memory reading), a sequence's ground truth, the metrics of a run, and Markd
 
 from __future__ import annotations
 
+import argparse
 import logging
 import multiprocessing
 import resource
@@ -20,7 +21,7 @@ from evaluation.metrics import best_per_query, pr_curve, precision_recall, recal
 from retrieval.run_folder import CANDIDATE_COLUMNS, RunFolder, read_csv_table
 from retrieval.sequences import open_sequence
 
-__all__ = ["Budget", "detect_run", "ground_truth_pairs", "run_metrics", "md_table", "fmt", "REPO"]
+__all__ = ["Budget", "detect_run", "ground_truth_pairs", "run_metrics", "md_table", "fmt", "REPO", "study_parser"]
 
 log = logging.getLogger(__name__)
 
@@ -135,3 +136,13 @@ def md_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
     lines += ["| " + " | ".join(c if isinstance(c, str) else fmt(c) for c in row) + " |" for row in rows]
     return "\n".join(lines)
+
+
+def study_parser(doc: str, run_dir: str) -> argparse.ArgumentParser:
+    """The command line every ``python -m bench.<study>`` shares: ``--data`` (the datasets), ``--run-dir`` (its run
+    folders, default ``run_dir``) and ``--out`` (the Markdown file its sections go to; '' = none)."""
+    ap = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "datasets")
+    ap.add_argument("--run-dir", type=Path, default=Path(run_dir))
+    ap.add_argument("--out", default=str(REPO / "BENCHMARKS.md"), help="Markdown file to update ('' = none)")
+    return ap

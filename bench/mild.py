@@ -16,7 +16,6 @@ BENCHMARKS.md.
 
 from __future__ import annotations
 
-import argparse
 import logging
 import time
 from pathlib import Path
@@ -31,7 +30,7 @@ from retrieval.mild import DESCRIPTOR_BITS, MildDescriptor, MultiIndexHash, expe
 from retrieval.places import RowTable
 from retrieval.temporal import BayesFilter
 
-from .common import REPO, detect_run, ground_truth_pairs, md_table
+from .common import detect_run, ground_truth_pairs, md_table, study_parser
 from .methods import method_metrics
 from .run import write_section
 
@@ -192,10 +191,7 @@ def main(data: Path, run_dir: Path, out: Path | None, parts: tuple[str, ...] = P
 
 
 def _cli() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "datasets")
-    ap.add_argument("--run-dir", type=Path, default=Path("runs/bench/mild"))
-    ap.add_argument("--out", default=str(REPO / "BENCHMARKS.md"), help="Markdown file to update ('' = none)")
+    ap = study_parser(__doc__, "runs/bench/mild")
     ap.add_argument("--parts", default=",".join(PARTS), help=f"comma-separated subset of {','.join(PARTS)}")
     ap.add_argument("--sizes", default="1000,10000,100000", help="database sizes (images) for the speed part")
     args = ap.parse_args()

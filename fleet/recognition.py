@@ -262,6 +262,12 @@ class FleetRecognizer:
                 r.poses[keyframe] = kf.pose
                 r.add(keyframe, kf.entry)
 
+    parallel_robots = False  #: keyframes of different robots must not be processed at the same time (one instance)
+
+    def committed(self, robot: str) -> None:
+        """The service stored the robot's latest keyframe. Nothing to do here: every robot lives in this one
+        recognizer (``fleet.workers.RayRecognizer`` shares it with its other workers now)."""
+
     def has(self, robot: str, keyframe: int) -> bool:
         """True when the robot's database already holds ``keyframe`` (or a later one)."""
         r = self.robots.get(robot)

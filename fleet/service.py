@@ -187,7 +187,8 @@ class FleetService:
             edges = [] if last is None else [EdgeRecord("odometry", robot, last.keyframe, robot, ack.keyframe,
                                                         Sim3.from_pose(last.pose).inverse().compose(local))]
             self.store.ack_keyframe(ack, edges + found.edges)
-            getattr(self.recognizer, "committed", lambda robot: None)(robot)  # others may match it now (workers)
+            if self.recognizer is not None:
+                self.recognizer.committed(robot)  # stored: other robots may match it now (Ray workers share it)
             for overlap in found.overlaps:
                 self.store.add_overlap(overlap)
             with self._lock:
@@ -217,7 +218,7 @@ class FleetService:
     def _submit_lock(self, robot: str) -> threading.Lock:
         """The lock a robot's keyframe is processed under: one for all robots, or one per robot when the recognizer
         processes robots in parallel (``fleet.workers.RayRecognizer``)."""
-        if not getattr(self.recognizer, "parallel_robots", False):
+        if self.recognizer is None or not self.recognizer.parallel_robots:
             return self._submit
         with self._submit:
             return self._robot_locks.setdefault(robot, threading.Lock())

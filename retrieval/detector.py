@@ -318,12 +318,10 @@ class LoopDetector:
                 self.decision.commit(fid, rows[:, 0].astype(np.int64),
                                      np.where(rows[:, 2] >= self.conf["policy"]["min_matches"], rows[:, 3], -1))
             self.places.insert(fid, entry, timestamp)
-            if feats is None:  # database mode: read back from the database when needed
-                pass
-            elif not len(feats) and self._frame_source is not None:  # not extracted then (or none found): again
-                #                                                       when needed
-                self._unextracted.add(fid)
-            else:  # memory mode: everything back in memory
+            # database mode (feats None): read back from the database when needed
+            if feats is not None and not len(feats) and self._frame_source is not None:
+                self._unextracted.add(fid)  # not extracted then (or none found): again when needed
+            elif feats is not None:  # memory mode: everything back in memory
                 self.features[fid] = feats
             n += 1
         self._next_id = db.last_frame_id() + 1
