@@ -144,10 +144,13 @@ def map_router(service: Any, caller: Callable[..., str], owner_or_admin: Callabl
     def fleet_map() -> str:
         return html
 
-    @router.get("/robots/{name}/trajectory", response_class=PlainTextResponse, responses=responses or {})
+    # the refusals are JSON like every route's (``responses``); the trajectory itself is plain text
+    text = {200: {"content": {"text/plain": {"schema": {"type": "string"}}}, "description": "the trajectory"}}
+
+    @router.get("/robots/{name}/trajectory", responses={**(responses or {}), **text})
     def trajectory(name: str, format: Literal["tum", "kitti"] = "tum", wait: bool = False,
-                   who: str = Depends(caller)) -> str:
+                   who: str = Depends(caller)) -> PlainTextResponse:
         owner_or_admin(name, who)
-        return format_trajectory(*corrected_trajectory(service, name, wait), format)
+        return PlainTextResponse(format_trajectory(*corrected_trajectory(service, name, wait), format))
 
     return router

@@ -95,3 +95,11 @@ def test_headless_chromium_draws_what_the_api_holds(served, tmp_path):
     assert int(status["overlaps"]) == len(overlap_edges) > 0
     shot = screenshot(page, tmp_path / "map.png")
     assert shot.stat().st_size > 10_000
+
+
+def test_the_trajectory_route_documents_text_and_json_refusals(tmp_path):
+    """The trajectory is plain text; its refusals are JSON like every route's (what schemathesis checks at random)."""
+    responses = create_app(tmp_path, "a" * 24).openapi()["paths"]["/robots/{name}/trajectory"]["get"]["responses"]
+    assert "text/plain" in responses["200"]["content"]
+    assert all(list(r["content"]) == ["application/json"] for code, r in responses.items() if code != "200")
+    assert {"401", "404", "422", "429"} <= set(responses)
