@@ -38,6 +38,7 @@ import hashlib
 import json
 import logging
 import math
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -66,6 +67,7 @@ __all__ = ["Calibration", "TooFewFrames", "CALIBRATION_FORMAT", "calibrate", "ca
 log = logging.getLogger(__name__)
 
 CALIBRATION_FORMAT = 2  #: ``format_version`` of calibration.h5
+PROBE = 4  #: one sampled query in this many is looked at first: are there local features enough to verify?
 _LN10 = math.log(10.0)
 
 
@@ -90,6 +92,9 @@ class Calibration:
             cosine under which a frame no longer looks like the query (``retrieval.decision``).
         samples: the measured distributions, by name (``random_inliers``, ``hard_inliers``, ``positive_inliers``,
             ``hard_fused``, ``positive_fused``, ``adjacent_cos``): saved in ``calibration.h5`` under ``samples/``.
+        seconds: wall time of a fresh calibration, ``{"own": s, "shared": s}``: its own work (edge ratios, whitening,
+            nulls, sampled verifications, fits) and the run's work it did ahead (reading and encoding every frame,
+            local features the run reuses); empty for a loaded one (not saved).
     """
 
     edge_reference: float | None = None
@@ -102,6 +107,7 @@ class Calibration:
     descriptor: str = ""
     fused: dict[str, float] = field(default_factory=dict)
     samples: dict[str, np.ndarray] = field(default_factory=dict)
+    seconds: dict[str, float] = field(default_factory=dict)
 
     @property
     def path(self) -> str:
@@ -242,22 +248,26 @@ def calibration_frames(n_frames: int, window: int, length: int, max_frames: int)
 
 def _encode_all(frames: Iterable[tuple[int, np.ndarray]], gate: EdgeGate, descriptor: GlobalDescriptor,
                 progress: bool, known: dict[int, np.ndarray] | None = None
-                ) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray], float]:
+                ) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray], float, float]:
     """Pass over the frames: edge ratios first (the reference), then codes of the frames that pass the gate (taken
-    from ``known`` where it has them: codes computed ahead from the same images)."""
+    from ``known`` where it has them: codes computed ahead from the same images); the last value is the seconds
+    spent on edge ratios (the calibration's own work: the run measures them again)."""
     known = {} if known is None else known
     images: dict[int, np.ndarray] = {}
     ratios = {}
+    gate_s = 0.0
     for fid, image in tqdm(frames, desc="calibrate: read", unit="frame", disable=not progress, leave=False):
         images[fid] = image
+        t0 = time.perf_counter()
         ratios[fid] = gate.edge_ratio(image)
+        gate_s += time.perf_counter() - t0
     reference = float(np.median(list(ratios.values()))) if ratios else 0.0
     gate.reference = reference
     codes = {}
     for fid in tqdm(list(images), desc="calibrate: encode", unit="frame", disable=not progress, leave=False):
         if not gate.conf["enabled"] or ratios[fid] >= gate.threshold:
             codes[fid] = known[fid] if fid in known else descriptor(images[fid])
-    return images, codes, reference
+    return images, codes, reference, gate_s
 
 
 def _null_scores(ids: np.ndarray, table: CodeTable, filt: TemporalFilter, window: int) -> np.ndarray:
@@ -305,7 +315,8 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
                           f"not to be loops); got {window}. Set calibration.enabled: false to use fixed thresholds")
     t0 = time.perf_counter()
     gate = EdgeGate(conf["gate"])
-    images, raw, reference = _encode_all(frames, gate, descriptor, progress, codes)
+    images, raw, reference, gate_s = _encode_all(frames, gate, descriptor, progress, codes)
+    shared = time.perf_counter() - t0 - gate_s  # reading and encoding every frame: the run's work, reused
     if len(raw) < max(MIN_FIT_CODES, window):
         raise TooFewFrames(f"calibration needs at least {max(MIN_FIT_CODES, window)} frames that pass the gate; "
                            f"got {len(raw)} of {len(images)}")
@@ -329,13 +340,17 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
     cal.tests = {"score": max(n_keyframes, (n_keyframes - window) ** 2 / 2),  # every query against every keyframe
                  "inliers": n_keyframes * conf["search"]["k"]}
     _score_path(cal, null)
-    _inlier_path(cal, conf, images, null, table, K, progress, features)
+    shared += _inlier_path(cal, conf, images, null, table, K, progress, features)
     _stretch(cal, ids, table)
     for key, value in cal.thresholds().items():
         if value is not None:
             cal.notes.append(f"accept: {key} >= {value:.4g} (expected false loops over the run "
                              f"<= {cal.expected_false_loops:g} / 2)")
-    cal.notes.append(f"calibrated on {len(images)} frames in {time.perf_counter() - t0:.1f} s")
+    total = time.perf_counter() - t0
+    cal.seconds = {"own": total - shared, "shared": shared}
+    cal.notes.append(f"calibrated on {len(images)} frames in {total:.1f} s: its own work (gate reference, "
+                     f"whitening, nulls, verifying the sampled pairs, fitting) {total - shared:.1f} s; reading, "
+                     f"encoding and extracting local features the run reuses {shared:.1f} s")
     for line in cal.notes:
         log.info("calibration: %s", line)
     return cal
@@ -397,29 +412,34 @@ def _extract_side_by_side(fconf: dict[str, Any], images: dict[int, np.ndarray], 
 
 class _Verify:
     """Verifies pairs of calibration frames as the run does (features extracted once per frame, into ``feats``: the
-    run reuses them)."""
+    run reuses them); thread-safe (one verifier per thread: OpenCV and torch release the GIL)."""
 
     def __init__(self, conf: dict[str, Any], images: dict[int, np.ndarray], K: np.ndarray | None,
                  feats: dict[int, Any]) -> None:
-        self.fconf = conf["features"]
-        self.verifier = create_verifier(conf["matcher"], conf["geometry"])
+        self.conf, self.fconf = conf, conf["features"]
         self.min_matches = conf["policy"]["min_matches"]
         self.images, self.K, self.feats = images, K, feats
+        self._local = threading.local()
+        self.extract_s = 0.0  # wall seconds spent extracting features (work the run reuses)
 
     def keypoints(self) -> list[int]:
         return [len(f) for f in self.feats.values()]
 
     def prefetch(self, fids: Iterable[int]) -> None:
         """Extracts the features of ``fids`` (those in the calibration and not extracted yet) on every core."""
+        t0 = time.perf_counter()
         todo = sorted({int(f) for f in fids if f in self.images and f not in self.feats})
         self.feats.update(_extract_side_by_side(self.fconf, self.images, todo))
+        self.extract_s += time.perf_counter() - t0
 
     def __call__(self, q: int, r: int) -> int | None:
-        """Inliers of ``(q, r)`` (0 with too few matches), None where a frame is not in the calibration."""
-        if q not in self.images or r not in self.images:
+        """Inliers of ``(q, r)`` (0 with too few matches), None where a frame is not in the calibration or its
+        features were not extracted (``prefetch`` first)."""
+        if q not in self.feats or r not in self.feats:
             return None
-        self.prefetch((q, r))
-        check = self.verifier.verify(self.feats[q], [self.feats[r]], self.K, 0, 0, True)[0]
+        if not hasattr(self._local, "verifier"):
+            self._local.verifier = create_verifier(self.conf["matcher"], self.conf["geometry"])
+        check = self._local.verifier.verify(self.feats[q], [self.feats[r]], self.K, 0, 0, True)[0]
         return max(check.inliers, 0) if check.matches >= self.min_matches else 0
 
 
@@ -447,15 +467,24 @@ def _plan(null: np.ndarray, table: CodeTable, picks: np.ndarray, gap: int,
 
 def _samples(plan: list[tuple[str, list[tuple[int, int]]]], verify: _Verify,
              progress: bool) -> dict[str, list[list[int]]]:
-    """Inlier counts of the planned sequences (``_plan``) by kind; features of every frame extracted first, on every
-    core. A sequence whose first pair is not in the calibration is left out."""
+    """Inlier counts of the planned sequences (``_plan``) by kind; features of every frame extracted first, then the
+    sequences verified side by side on every core (the same counts as one after another). A sequence whose first
+    pair is not in the calibration is left out."""
     verify.prefetch(f for _, pairs in plan for pair in pairs for f in pair)
     out: dict[str, list[list[int]]] = {"random": [], "hard": [], "hard2": [], "positive": []}
-    for name, pairs in tqdm(plan, desc="calibrate: verify", unit="sequence", disable=not progress, leave=False):
-        seq = [verify(q, r) for q, r in pairs]
-        if seq[0] is not None:
-            out[name].append([x for x in seq if x is not None])
+    with ThreadPoolExecutor(min(cpu_count(), max(1, len(plan))), thread_name_prefix="calibrate-verify") as pool:
+        seqs = pool.map(lambda item: [verify(q, r) for q, r in item[1]], plan)
+        for (name, _), seq in zip(plan, tqdm(seqs, desc="calibrate: verify", unit="sequence", total=len(plan),
+                                              disable=not progress, leave=False)):
+            if seq[0] is not None:
+                out[name].append([x for x in seq if x is not None])
     return out
+
+
+def _hard(got: dict[str, list[list[int]]]) -> np.ndarray:
+    """The hard-negative inlier samples of ``_samples``' output: every pair of the hard sequences, the second hard
+    negatives' own pairs."""
+    return np.array([x for seq in got["hard"] for x in seq] + [s[0] for s in got["hard2"]], np.float64)
 
 
 def _fused_samples(seqs: list[list[int]], decision: Decision) -> np.ndarray:
@@ -469,28 +498,30 @@ def _fused_samples(seqs: list[list[int]], decision: Decision) -> np.ndarray:
 
 
 def _inlier_path(cal: Calibration, conf: dict[str, Any], images: dict[int, np.ndarray], null: np.ndarray,
-                 table: CodeTable, K: np.ndarray | None, progress: bool, feats: dict[int, Any] | None = None) -> None:
+                 table: CodeTable, K: np.ndarray | None, progress: bool, feats: dict[int, Any] | None = None) -> float:
     """Hard negatives, random pairs and positives verified; the pair tail, the fused tail, whether one pair may
     decide alone; or verification switched off where local features are too few. The local features extracted go
-    into ``feats`` (for the run to reuse)."""
+    into ``feats`` (for the run to reuse); returns the seconds spent extracting them."""
     cc = conf["calibration"]
     if cc["verification"] == "off":
         cal.notes.append("verification: off (calibration.verification)")
-        return
+        return 0.0
     verify = _Verify(conf, images, K, {} if feats is None else feats)
     queries = np.unique(null[:, 0]).astype(np.int64)
     n_q = min(len(queries), max(10, cc["null_pairs"] // (2 + 2 * SPAN)))
     picks = queries[np.unique(np.linspace(0, len(queries) - 1, n_q).astype(int))]
     window = conf["search"]["exclude_recent"]
     gap = max(1, window // 25)  # a near neighbour: the same place under the sequence's own motion
-    got = _samples(_plan(null, table, picks, gap, window), verify, progress)
+    plan = _plan(null, table, picks, gap, window)
+    verify.prefetch(f for _, pairs in plan[::PROBE] for pair in pairs for f in pair)  # features enough to verify?
     median_kp = float(np.median(verify.keypoints()))
     if cc["verification"] == "auto" and median_kp < cc["min_features"]:
         cal.notes.append(f"verification: off, local features too few to verify (median {median_kp:.0f} keypoints "
                          f"per frame < calibration.min_features {cc['min_features']}); loops rest on the normalised "
                          "code and temporal consistency")
-        return
-    hard = np.array([x for seq in got["hard"] for x in seq] + [s[0] for s in got["hard2"]], np.float64)
+        return 0.0  # features the run will not use: not the run's work
+    got = _samples(plan, verify, progress)
+    hard = _hard(got)
     tail = TailModel.fit(hard)
     cal.inlier_null = {**tail.as_dict(), "floor": float(cc["min_inliers"]), "samples": float(len(hard))}
     dec = Decision(tail, TailModel(0.0, 1 / _LN10), cal.tests["inliers"], cal.accept_at, False,
@@ -515,3 +546,4 @@ def _inlier_path(cal: Calibration, conf: dict[str, Any], images: dict[int, np.nd
                      f"{np.median(hard_e):.1f}, max {hard_e.max():.1f}; positive sequences median "
                      f"{np.median(pos_e):.1f}; geometry " + ("separates: one pair may decide alone" if separates else
                                                             "does not separate: a loop needs 2 frames of evidence"))
+    return verify.extract_s

@@ -226,6 +226,19 @@ def _run_frames(det: LoopDetector, seq: Sequence, start: int, progress: bool,
     return timings
 
 
+def _log_seconds(seconds: dict[str, float]) -> None:
+    """One line: the wall time of the calibration (its own work apart from the run's work it did ahead) and of the
+    frames."""
+    if "calibration_own" not in seconds:
+        log.info("seconds: calibration %.1f, frames %.1f", seconds["calibration"], seconds["frames"])
+        return
+    wall = seconds["calibration"] + seconds["frames"]
+    log.info("seconds: calibration %.1f (its own work %.1f = %.0f %% of the run's %.1f s; reading, encoding and "
+             "local features the run reuses %.1f), frames %.1f", seconds["calibration"], seconds["calibration_own"],
+             100 * seconds["calibration_own"] / max(wall, 1e-9), wall, seconds["calibration_shared"],
+             seconds["frames"])
+
+
 def main(path: str | Path | None = None, out: str | Path | None = None, conf: dict[str, Any] | None = None,
          camera: str | None = None, progress: bool = True, topic: str | None = None,
          stride: int = 1) -> dict[str, Any]:
@@ -278,6 +291,8 @@ def main(path: str | Path | None = None, out: str | Path | None = None, conf: di
         t0 = time.perf_counter()
         timings = _run_frames(det, seq, start, progress, codes)
         seconds["frames"] = time.perf_counter() - t0
+        seconds.update({f"calibration_{k}": v for k, v in (cal.seconds if cal is not None else {}).items()})
+        _log_seconds(seconds)
         loops = run.write_tables(det.db.results())
         verified = bool(cal.inlier_null) if cal is not None else bool(resolved["policy"]["verify"])
         edges = loop_edges(det.keyframe_features, loops, seq.K, resolved) if verified else []  # a pose only where it was verified

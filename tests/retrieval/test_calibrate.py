@@ -158,3 +158,29 @@ def test_features_side_by_side_equal_one_after_another(sample_image):
         want = sift.extract(image)
         assert np.array_equal(got[fid].keypoints, want.keypoints)
         assert np.array_equal(got[fid].descriptors, want.descriptors)
+
+
+def test_own_seconds_apart_from_the_runs_work(sample_dir, tmp_path):
+    summary = detect(sample_dir, tmp_path / "run", progress=False)
+    sec = summary["seconds"]
+    # the calibration's own work (edge ratios, whitening, nulls, verifications, fits) is timed apart from the
+    # run's work it does ahead (reading, encoding, local features the run reuses)
+    assert sec["calibration_own"] > 0 and sec["calibration_shared"] > 0
+    assert sec["calibration_own"] + sec["calibration_shared"] <= sec["calibration"]  # that one adds loading, saving
+    assert sec["calibration_own"] < sec["calibration_shared"]  # features and codes dominate; verifying ~150 does not
+    assert any("its own work" in n and "the run reuses" in n for n in summary["calibration"]["notes"])
+
+
+def test_verifications_side_by_side_equal_one_after_another(sample_image):
+    from retrieval.calibrate import _samples, _Verify
+    from retrieval.detector import resolve_conf
+
+    images = {i: sample_image(i) for i in (0, 2, 4, 50, 52, 54, 60)}
+    plan = [("hard", [(54, 4), (52, 2), (50, 0)]), ("positive", [(54, 52), (52, 50)]), ("random", [(60, 0)])]
+    conf = resolve_conf({})
+    got = _samples(plan, _Verify(conf, images, None, {}), False)
+    one = _Verify(conf, images, None, {})
+    one.prefetch(images)
+    for (kind, pairs) in plan:
+        assert got[kind] == [[one(q, r) for q, r in pairs]]
+    assert got["positive"][0][0] > 20  # real neighbours verify
