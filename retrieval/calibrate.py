@@ -4,12 +4,16 @@ Before a run, the calibration looks at the sequence itself (``cae-lcd calibrate 
 ``cae-lcd detect``) and chooses, with the reasons printed:
 
 1. **The gate's reference**: the median edge ratio of the sequence (``verify.gate``, relative mode).
-2. **The code normalisation**: PCA-whitening fitted on the sequence's own codes (``cae.whitening``); with
-   ``whitening.source: weights``, the one ``cae-lcd train`` fitted on the training images and saved with the weights.
+2. **The code normalisation**: PCA-whitening fitted on the sequence's own codes (``cae.whitening``; with
+   ``whitening.skip_still``, without the frames where the camera stood still); with ``whitening.source: weights``,
+   the one ``cae-lcd train`` fitted on the training images and saved with the weights.
 3. **The null distributions**: frames on the far side of the exclusion window (from half of
    ``search.exclude_recent`` frames back to just inside it) are close in time, so they share the camera, the light
-   and the season, but the camera has moved on, so they are not loops. Their temporal-filter scores are the score
-   path's null (a Gaussian through the median and the 90th percentile). For the inlier path the null is what the
+   and the season, but the camera has moved on, so they are not loops (a pair between which the camera stood still,
+   its code unchanged frame after frame, is one place and is left out). Their temporal-filter scores are the score
+   path's null (a Gaussian through the median and the 90th percentile); the same for the fused score of 2 and 3
+   consecutive windows on each pair's line (``retrieval.decision.ScoreSpans``: where the code is weak, as across
+   seasons, evidence repeated over more frames can accept what one window cannot). For the inlier path the null is what the
    detector really tests: the **hard negatives**, the far-side keyframes retrieval would return for a sampled query
    (keeping ``exclude_recent // 10`` frames off the boundary), verified as in the run, each followed back two frames
    (look-alike streets look alike for several frames). A random far-side pair per query is verified too, to show
@@ -23,13 +27,22 @@ Before a run, the calibration looks at the sequence itself (``cae-lcd calibrate 
    temporal consistency, the *score path*.
 5. **The threshold**, a-contrario: a candidate is accepted when the expected number of false loops at its strength
    over the whole run, ``NFA = tests * P_null(>= value)``, is at most ``expected_false_loops / 2`` (the score path
-   tests every query against every keyframe; the inlier path tests ``k`` candidates per query). The
+   tests every query against every keyframe, at every span of fused windows; the inlier path tests ``k``
+   candidates per query). The
    ``confidence`` of a candidate is ``-log10 NFA`` (the larger the surer); it is what ``loops.csv`` ranks by.
 6. **Too recent**: the cosine under which a frame no longer looks like the query (the adjacent frames' 10th
    percentile); the run refuses keyframes of the stretch the query is still in (``retrieval.decision.Horizon``).
 
 ``calibration.h5`` keeps every measured distribution under ``samples/`` (random, hard and positive inliers, hard and
 positive fused evidence, adjacent cosines); the notes (printed, and in ``summary.json``) summarise them.
+
+**Its cost, and what is not its cost.** A fresh calibration reads and encodes every frame and extracts the local
+features of the frames it verifies: that is the run's work done ahead (``detect`` hands the codes and features to the
+run, which then does not redo it). Its own work is the edge ratios, the whitening, the nulls, verifying the sampled
+pairs (side by side on every core: OpenCV and torch release the GIL) and the fits. Both are timed apart
+(``Calibration.seconds``; ``summary.json`` ``seconds``: ``calibration`` in all, ``calibration_own``,
+``calibration_shared``, ``frames``; one log line). Where local features are too few, a quarter of the planned pairs'
+frames is looked at first and nothing is verified.
 """
 
 from __future__ import annotations
@@ -58,15 +71,16 @@ from verify.features import create_extractor
 from verify.gate import EdgeGate
 from verify.verifier import create_verifier
 
-from .decision import SPAN, TOL, Decision, Horizon, TailModel
+from .decision import SPAN, TOL, Decision, Horizon, ScoreSpans, TailModel, gaussian_log10_sf
 from .descriptors import GlobalDescriptor
-from .temporal import CodeTable, TemporalFilter
+from .temporal import CodeTable, NoFilter, SequenceFilter, TemporalFilter
 
 __all__ = ["Calibration", "TooFewFrames", "CALIBRATION_FORMAT", "calibrate", "calibration_frames"]
 
 log = logging.getLogger(__name__)
 
 CALIBRATION_FORMAT = 2  #: ``format_version`` of calibration.h5
+STILL_COS = 0.999  #: raw codes of adjacent frames this alike: the camera stood still (one place, not a null pair)
 PROBE = 4  #: one sampled query in this many is looked at first: are there local features enough to verify?
 _LN10 = math.log(10.0)
 
@@ -92,6 +106,8 @@ class Calibration:
             cosine under which a frame no longer looks like the query (``retrieval.decision``).
         samples: the measured distributions, by name (``random_inliers``, ``hard_inliers``, ``positive_inliers``,
             ``hard_fused``, ``positive_fused``, ``adjacent_cos``): saved in ``calibration.h5`` under ``samples/``.
+        spans: the score path's fused windows, ``{"window": frames, "nulls": [[median, sigma], ...]}`` (one null per
+            number of windows fused, ``retrieval.decision.ScoreSpans``); empty = one window decides.
         seconds: wall time of a fresh calibration, ``{"own": s, "shared": s}``: its own work (edge ratios, whitening,
             nulls, sampled verifications, fits) and the run's work it did ahead (reading and encoding every frame,
             local features the run reuses); empty for a loaded one (not saved).
@@ -108,6 +124,7 @@ class Calibration:
     fused: dict[str, float] = field(default_factory=dict)
     samples: dict[str, np.ndarray] = field(default_factory=dict)
     seconds: dict[str, float] = field(default_factory=dict)
+    spans: dict[str, Any] = field(default_factory=dict)
 
     @property
     def path(self) -> str:
@@ -131,7 +148,7 @@ class Calibration:
         n = self.score_null
         if not n:
             return -math.inf
-        return -(math.log10(self.tests["score"]) + _gaussian_log10_sf((score - n["median"]) / n["sigma"]))
+        return -(math.log10(self.tests["score"]) + gaussian_log10_sf((score - n["median"]) / n["sigma"]))
 
     def inlier_confidence(self, inliers: int) -> float:
         """``-log10 NFA`` of an inlier count (``-inf`` when verification is off or the check did not run)."""
@@ -142,15 +159,23 @@ class Calibration:
             return -math.inf
         return -(math.log10(self.tests["inliers"]) + TailModel(n["u"], n["beta"]).log10_sf(inliers))
 
-    def decision(self, exclude_recent: int) -> Decision:
-        """The run's fused decision (``retrieval.decision``) on the inlier path, with the trajectory's "too recent"
-        rule (``exclude_recent`` frames as its floor)."""
+    def score_spans(self, filt: TemporalFilter | None) -> ScoreSpans | None:
+        """The score path's fused windows scored by the run's filter ``filt`` (None where not calibrated)."""
+        if not self.spans or filt is None:
+            return None
+        return ScoreSpans(filt.score, int(self.spans["window"]), [tuple(x) for x in self.spans["nulls"]],
+                          self.tests["score"])
+
+    def decision(self, exclude_recent: int, filt: TemporalFilter | None = None) -> Decision:
+        """The run's fused decision (``retrieval.decision``): on the inlier path, and on the score path the fused
+        windows scored by ``filt`` (the run's temporal filter); with the trajectory's "too recent" rule
+        (``exclude_recent`` frames as its floor)."""
         n, f = self.inlier_null, self.fused
         horizon = Horizon(f["stretch_cos"], exclude_recent) if "stretch_cos" in f else None
         return Decision(TailModel(n["u"], n["beta"]) if n else None,
                         TailModel(f.get("u", 0.0), f.get("beta", 1 / _LN10)), self.tests.get("inliers", 1.0),
                         self.accept_at, bool(f.get("single", 0.0)), horizon, n.get("floor", 0.0),
-                        int(f.get("span", SPAN)), int(f.get("tol", TOL)))
+                        int(f.get("span", SPAN)), int(f.get("tol", TOL)), spans=self.score_spans(filt))
 
     def thresholds(self) -> dict[str, float | None]:
         """The smallest temporal score or inlier count that is accepted (None for the path that does not decide)."""
@@ -172,7 +197,7 @@ class Calibration:
     def identity(self) -> str:
         """A short text that changes when any choice changes (stored in the keyframe database)."""
         body = json.dumps([self.edge_reference, self.score_null, self.inlier_null, self.tests,
-                           self.expected_false_loops, self.fused], sort_keys=True)
+                           self.expected_false_loops, self.fused, self.spans], sort_keys=True)
         h = hashlib.sha256(body.encode() + (self.whitening.identity().encode() if self.whitening else b""))
         return h.hexdigest()[:16]
 
@@ -181,7 +206,7 @@ class Calibration:
         meta = {"edge_reference": self.edge_reference, "score_null": self.score_null,
                 "inlier_null": self.inlier_null, "tests": self.tests,
                 "expected_false_loops": self.expected_false_loops, "notes": self.notes, "descriptor": self.descriptor,
-                "fused": self.fused}
+                "fused": self.fused, "spans": self.spans}
         with atomic_write(path, "wb") as f:
             with h5py.File(f, "w") as h5:
                 h5.attrs["format_version"] = CALIBRATION_FORMAT
@@ -219,18 +244,11 @@ class Calibration:
                                 "move it away to calibrate again") from None
         return cls(meta["edge_reference"], white, meta["score_null"], meta["inlier_null"], meta["tests"],
                    meta["expected_false_loops"], list(meta["notes"]), str(meta.get("descriptor", "")),
-                   dict(meta.get("fused", {})), samples)
+                   dict(meta.get("fused", {})), samples, spans=dict(meta.get("spans", {})))
 
 
 class TooFewFrames(ConfigError):
     """The sequence is too short to calibrate on (``detect`` then falls back to the fixed policy, with a warning)."""
-
-
-def _gaussian_log10_sf(z: float) -> float:
-    """``log10 P(Z >= z)`` for a standard normal, accurate far into the tail."""
-    if z < 8:
-        return math.log10(max(0.5 * math.erfc(z / math.sqrt(2.0)), 1e-300))
-    return (-0.5 * z * z - math.log(z * math.sqrt(2 * math.pi))) / _LN10
 
 
 # ------------------------------------------------------------------------------------------------- the calibration
@@ -270,12 +288,17 @@ def _encode_all(frames: Iterable[tuple[int, np.ndarray]], gate: EdgeGate, descri
     return images, codes, reference, gate_s
 
 
-def _null_scores(ids: np.ndarray, table: CodeTable, filt: TemporalFilter, window: int) -> np.ndarray:
-    """``(query, ref, score)`` rows for every far-side pair: ``window // 2 <= query - ref < window``."""
+def _null_scores(ids: np.ndarray, table: CodeTable, filt: TemporalFilter, window: int,
+                 moved: np.ndarray | None = None) -> np.ndarray:
+    """``(query, ref, score)`` rows for every far-side pair: ``window // 2 <= query - ref < window``, leaving out
+    the pairs between which the camera stood still (``moved``: ``(n,)`` bool by position in ``ids``, ``_moved``):
+    those are one place, not a pair known not to be a loop."""
     rows = []
     present = set(ids.tolist())
+    moves = dict(zip(ids.tolist(), np.cumsum(np.ones(len(ids), bool) if moved is None else moved).tolist()))
     for q in ids:
-        refs = np.array([r for r in range(q - window + 1, q - window // 2 + 1) if r in present], np.int64)
+        refs = np.array([r for r in range(q - window + 1, q - window // 2 + 1)
+                         if r in present and moves[int(q)] > moves[r]], np.int64)
         if len(refs):
             scores = filt.score(np.full(len(refs), q, np.int64), refs, table)
             rows.append(np.column_stack([np.full(len(refs), q), refs, scores]))
@@ -327,33 +350,38 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
                          f"({gate.conf['relative']:g} x median) are gated: {len(images) - len(raw)} of {len(images)}")
     ids = np.array(sorted(raw), np.int64)
     codes = np.stack([raw[i] for i in ids])
-    cal.whitening = _whitening(conf["whitening"], descriptor, codes, cal.notes)
+    moved = _moved(codes)  # False where the camera stood still (the code did not change)
+    cal.whitening = _whitening(conf["whitening"], descriptor, codes, cal.notes, moved)
     normed = cal.whitening.transform(codes) if cal.whitening is not None else codes
     table = CodeTable(normed.shape[1])
     for fid, code in zip(ids, normed):
         table.add(int(fid), code)
-    null = _null_scores(ids, table, filt, window)
+    null = _null_scores(ids, table, filt, window, moved)
     if len(null) < 20:
         raise TooFewFrames(f"calibration found only {len(null)} far-side pairs; give a longer sequence or a larger "
                            "search.exclude_recent")
     n_keyframes = max(len(ids) * n_frames / max(len(images), 1), 2.0)
     cal.tests = {"score": max(n_keyframes, (n_keyframes - window) ** 2 / 2),  # every query against every keyframe
                  "inliers": n_keyframes * conf["search"]["k"]}
-    _score_path(cal, null)
+    _score_path(cal, null, filt, table)
     shared += _inlier_path(cal, conf, images, null, table, K, progress, features)
     _stretch(cal, ids, table)
     for key, value in cal.thresholds().items():
         if value is not None:
             cal.notes.append(f"accept: {key} >= {value:.4g} (expected false loops over the run "
                              f"<= {cal.expected_false_loops:g} / 2)")
-    total = time.perf_counter() - t0
-    cal.seconds = {"own": total - shared, "shared": shared}
-    cal.notes.append(f"calibrated on {len(images)} frames in {total:.1f} s: its own work (gate reference, "
-                     f"whitening, nulls, verifying the sampled pairs, fitting) {total - shared:.1f} s; reading, "
-                     f"encoding and extracting local features the run reuses {shared:.1f} s")
+    _timed(cal, len(images), time.perf_counter() - t0, shared)
     for line in cal.notes:
         log.info("calibration: %s", line)
     return cal
+
+
+def _timed(cal: Calibration, n_images: int, total: float, shared: float) -> None:
+    """Records the calibration's wall time: its own work apart from the run's work it did ahead (``shared``)."""
+    cal.seconds = {"own": total - shared, "shared": shared}
+    cal.notes.append(f"calibrated on {n_images} frames in {total:.1f} s: its own work (gate reference, whitening, "
+                     f"nulls, verifying the sampled pairs, fitting) {total - shared:.1f} s; reading, encoding and "
+                     f"extracting local features the run reuses {shared:.1f} s")
 
 
 def _stretch(cal: Calibration, ids: np.ndarray, table: CodeTable) -> None:
@@ -367,8 +395,10 @@ def _stretch(cal: Calibration, ids: np.ndarray, table: CodeTable) -> None:
                      "10th percentile)")
 
 
-def _whitening(wconf: dict[str, Any], descriptor: GlobalDescriptor, codes: np.ndarray,
-               notes: list[str]) -> Whitening | None:
+def _whitening(wconf: dict[str, Any], descriptor: GlobalDescriptor, codes: np.ndarray, notes: list[str],
+               moved: np.ndarray) -> Whitening | None:
+    """The code normalisation (see the module doc); with ``whitening.skip_still``, fitted on the codes of frames
+    where the camera moved (``moved``, ``_moved``) when there are enough of them."""
     if not wconf["enabled"]:
         notes.append(f"codes: raw {codes.shape[1]}-d cosine (whitening.enabled: false)")
         return None
@@ -380,14 +410,28 @@ def _whitening(wconf: dict[str, Any], descriptor: GlobalDescriptor, codes: np.nd
     if wconf["source"] == "weights":
         raise ConfigError("whitening.source is 'weights' but the weights carry no whitening; train with "
                           "cae-lcd train (it saves one) or use source 'auto'")
-    white = Whitening.fit(codes, wconf["dim"], wconf["shrink"])
-    notes.append(f"codes: whitened to {white.dim}-d, fitted on this sequence's {len(codes)} codes "
-                 f"(shrink {wconf['shrink']:g})")
+    fit = codes[moved] if wconf["skip_still"] and moved.sum() >= MIN_FIT_CODES else codes
+    white = Whitening.fit(fit, wconf["dim"], wconf["shrink"])
+    notes.append(f"codes: whitened to {white.dim}-d, fitted on this sequence's {len(fit)} codes "
+                 f"(shrink {wconf['shrink']:g}" + (f"; {len(codes) - len(fit)} frames where the camera stood still "
+                                                   "left out)" if wconf["skip_still"] else ")"))
     return white
 
 
-def _score_path(cal: Calibration, null: np.ndarray) -> None:
-    """A Gaussian through the median and the 90th percentile of the far-side pairs' temporal scores."""
+def _moved(codes: np.ndarray) -> np.ndarray:
+    """``(n,)`` bool: False for a code the same as the one before it (cosine >= ``STILL_COS``: the camera stood
+    still). Far-side pairs between which the camera stood still are one place, not pairs known not to be loops;
+    with ``whitening.skip_still`` the whitening leaves such frames out too (a robot waiting at a station would weigh
+    that one place as often as it waited)."""
+    unit = codes / np.maximum(np.linalg.norm(codes, axis=1, keepdims=True), 1e-12)
+    return np.r_[True, np.einsum("ij,ij->i", unit[1:], unit[:-1]) < STILL_COS]
+
+
+def _score_path(cal: Calibration, null: np.ndarray, filt: TemporalFilter, table: CodeTable) -> None:
+    """A Gaussian through the median and the 90th percentile of the far-side pairs' temporal scores; with a filter
+    whose score is the run's (sequence, none), the same for the fused score of 2..``SPAN`` consecutive windows on
+    each pair's line, among the pairs whose windows all agree (``retrieval.decision.ScoreSpans``), and the run's
+    tests counted at every span."""
     scores = null[:, 2]
     q50, q90, spread = _tail_fit(scores)
     sigma = max(spread / 1.2816, 1e-4)
@@ -395,6 +439,25 @@ def _score_path(cal: Calibration, null: np.ndarray) -> None:
     cal.notes.append(f"score null: {len(scores)} far-side pairs, median {q50:.4f}, sigma {sigma:.4f} "
                      f"(90th percentile {q90:.4f}, max {scores.max():.4f}); {cal.tests['score']:.3g} pairs tested "
                      "in the run")
+    if not isinstance(filt, (SequenceFilter, NoFilter)):
+        return
+    window = int(filt.conf.get("length", 1))
+    spans = ScoreSpans(filt.score, window, [(q50, sigma)] * SPAN, 1.0)
+    fused = spans.fused(spans.windows(null[:, 0], null[:, 1], table))
+    nulls = [[q50, sigma]]
+    for j in range(1, fused.shape[1]):
+        ok = fused[~np.isnan(fused[:, j]), j]
+        if len(ok) < 20:  # too few far-side pairs to see that span's null
+            break
+        f50, _, f_spread = _tail_fit(ok)
+        nulls.append([f50, max(f_spread / 1.2816, 1e-4)])
+    if len(nulls) > 1:
+        cal.spans = {"window": float(window), "nulls": nulls}
+        cal.tests["score"] *= len(nulls)
+        cal.notes.append(f"score path fuses up to {len(nulls)} consecutive windows of {window} frames on a line "
+                         "(every window above the one-window median): null of the fused score " + ", ".join(
+                             f"{j + 1} windows: median {m:.4f}, sigma {sd:.4f}" for j, (m, sd) in enumerate(nulls))
+                         + f"; {cal.tests['score']:.3g} tests, every span counted")
 
 
 def _extract_side_by_side(fconf: dict[str, Any], images: dict[int, np.ndarray], fids: list[int]) -> dict[int, Any]:

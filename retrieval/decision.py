@@ -17,6 +17,14 @@ verified as in the run), and what a loop looks like: the **positives** (a frame 
   (``NFA <= expected_false_loops / 2``) and positive evidence of its own pair (geometry can always veto).
 - **Whether one pair may decide alone**: only where geometry separates on this sequence (the median positive pair
   would be accepted alone and no hard negative is); elsewhere a loop needs evidence from ``min_support`` frames.
+- **The score path fuses too** (``ScoreSpans``, where local features are too few to verify): the temporal score of
+  a hypothesis is the mean similarity along a line of ``length`` frames; the evidence of the ``span - 1`` windows of
+  ``length`` frames before it, on the same line (a consistent offset), is fused with it: the score of ``m``
+  consecutive windows is their mean, and its null is measured on the far-side pairs at that span (a Gaussian
+  through the median and the 90th percentile, as for one window). Every window must agree (score above its null's
+  median: one missing or contrary window vetoes), the run's tests count every span (``tests`` already multiplied by
+  ``span``), and the confidence is the best span's. Weak but consistent evidence over ``m * length`` frames (a
+  change of season) can then accept what ``length`` frames cannot.
 - **Too recent** (``Horizon``): a keyframe is not a loop while every stored frame between it and the query still
   looks like the query (cosine at least ``stretch_cos``, the adjacent frames' 10th percentile, with at most
   ``gap - 1`` dissimilar frames in a row): a slow robot stays in a place longer, a fast one leaves it sooner; the
@@ -35,7 +43,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["TailModel", "gamma_log10_sf", "Horizon", "Decision", "SPAN", "TOL", "GAP"]
+__all__ = ["TailModel", "gamma_log10_sf", "gaussian_log10_sf", "Horizon", "ScoreSpans", "Decision", "SPAN", "TOL",
+           "GAP"]
 
 LN10 = math.log(10.0)
 SPAN = 3  #: frames whose evidence one decision fuses (the query and the ones before it)
@@ -90,6 +99,59 @@ def gamma_log10_sf(k: int, decades: float) -> float:
     return min(0.0, (-s + top + math.log(sum(math.exp(t - top) for t in terms))) / LN10)
 
 
+def gaussian_log10_sf(z: float) -> float:
+    """``log10 P(Z >= z)`` for a standard normal, accurate far into the tail."""
+    if z < 8:
+        return math.log10(max(0.5 * math.erfc(z / math.sqrt(2.0)), 1e-300))
+    return (-0.5 * z * z - math.log(z * math.sqrt(2 * math.pi))) / LN10
+
+
+class ScoreSpans:
+    """The score path's fused evidence (see the module doc): ``score(q, r)`` over ``len(nulls)`` consecutive windows
+    of ``window`` frames on the line through ``(q, r)``.
+
+    Args:
+        score: the temporal filter's pair score, ``(queries (n,), refs (n,), source) -> (n,)``.
+        window: frames one score covers (the filter's ``length``).
+        nulls: ``[(median, sigma)]`` of the far-side pairs' fused scores over 1, 2, ... windows.
+        tests: hypotheses the run tests (every span counted).
+    """
+
+    def __init__(self, score: Any, window: int, nulls: list[tuple[float, float]], tests: float) -> None:
+        self.score, self.window, self.nulls, self.tests = score, int(window), list(nulls), float(tests)
+
+    def windows(self, queries: np.ndarray, refs: np.ndarray, source: Any) -> np.ndarray:
+        """``(n, span)``: the score of each pair's window ``j`` (the pair moved back ``j * window`` frames on its
+        line); NaN where an earlier window's pair lies before the first frame (missing terms inside a window count 0,
+        as in the filter's own score)."""
+        shift = np.arange(len(self.nulls), dtype=np.int64) * self.window  # every window of every pair, one call
+        qj = (np.asarray(queries, np.int64)[:, None] - shift).ravel()
+        rj = (np.asarray(refs, np.int64)[:, None] - shift).ravel()
+        out = np.full(len(qj), np.nan)
+        ok = rj >= 0
+        if ok.any():
+            out[ok] = self.score(qj[ok], rj[ok], source)
+        return out.reshape(-1, len(self.nulls))
+
+    def fused(self, win: np.ndarray) -> np.ndarray:
+        """``(n, span)``: the fused score of spans 1..span (the mean of the first ``m`` windows), NaN where one of
+        them is missing or does not agree (under its own null's median)."""
+        med = np.array([m for m, _ in self.nulls])
+        agree = np.cumprod(np.nan_to_num(win, nan=-np.inf) > med[0], axis=1).astype(bool)
+        out = np.cumsum(np.nan_to_num(win), axis=1) / np.arange(1, win.shape[1] + 1)
+        return np.where(agree, out, np.nan)
+
+    def confidences(self, queries: np.ndarray, refs: np.ndarray, source: Any) -> np.ndarray:
+        """``(n,)`` ``-log10 NFA`` of each pair: the best span's (``-inf`` where no span agrees)."""
+        fused = self.fused(self.windows(queries, refs, source))
+        best = np.full(len(fused), -math.inf)
+        for j, (median, sigma) in enumerate(self.nulls):
+            for i in np.flatnonzero(~np.isnan(fused[:, j])):
+                z = (fused[i, j] - median) / sigma
+                best[i] = max(best[i], -(math.log10(self.tests) + gaussian_log10_sf(z)))
+        return best
+
+
 class Horizon:
     """The oldest keyframe still in the query's own stretch: frames back from the query stay in it while they look
     like the query (cosine >= ``cos``), until ``gap`` frames in a row do not (frames not stored are skipped)."""
@@ -128,13 +190,14 @@ class Decision:
         horizon: the "too recent" rule, or None (the frame floor only).
         floor: the fewest inliers that count as evidence (a 7-point model always fits 7).
         span, tol, min_support: frames fused, offset tolerance, frames with evidence a loop needs when not single.
+        spans: the score path's fused windows (``ScoreSpans``), or None (the ``fallback`` confidences decide).
     """
 
     def __init__(self, pair_tail: TailModel | None, fused_tail: TailModel, tests: float, accept_at: float, single: bool,
                  horizon: Horizon | None = None, floor: float = 0.0, span: int = SPAN, tol: int = TOL,
-                 min_support: int = 2) -> None:
+                 min_support: int = 2, spans: ScoreSpans | None = None) -> None:
         self.pair_tail, self.fused_tail, self.tests, self.floor = pair_tail, fused_tail, float(tests), float(floor)
-        self.accept_at, self.single, self.horizon = accept_at, single, horizon
+        self.accept_at, self.single, self.horizon, self.spans = accept_at, single, horizon, spans
         self.span, self.tol, self.min_support = span, tol, min_support
         self._recent: deque[tuple[int, np.ndarray, np.ndarray]] = deque(maxlen=max(span - 1, 1))
 
@@ -162,16 +225,19 @@ class Decision:
     def confidences(self, query_id: int, refs: np.ndarray, inliers: np.ndarray, source: Any,
                     fallback: np.ndarray | None = None) -> np.ndarray:
         """``-log10 NFA`` of each candidate ``(query_id, refs[i])`` with ``inliers[i]`` (-1: not verified);
-        ``-inf`` where it has no evidence of its own or is too recent. Score path (no ``pair_tail``): ``fallback``
-        (the calibrated temporal-score confidences, ``(m,)``) where the keyframe is not too recent."""
+        ``-inf`` where it has no evidence of its own or is too recent. Score path (no ``pair_tail``): the fused
+        windows' confidence (``spans``), else ``fallback`` (the calibrated temporal-score confidences, ``(m,)``),
+        where the keyframe is not too recent."""
         out = np.full(len(refs), -math.inf)
         oldest = self.horizon(query_id, source) if self.horizon is not None and len(refs) else None
         base = -math.log10(self.tests)
+        fused = self.spans.confidences(np.full(len(refs), query_id, np.int64), np.asarray(refs, np.int64), source) \
+            if self.pair_tail is None and self.spans is not None and len(refs) else fallback
         for i, (ref, inl) in enumerate(zip(np.asarray(refs).tolist(), np.asarray(inliers).tolist())):
             if oldest is not None and ref >= oldest:
                 continue
             if self.pair_tail is None:
-                out[i] = -math.inf if fallback is None else float(fallback[i])
+                out[i] = -math.inf if fused is None else float(fused[i])
                 continue
             e0 = self.evidence(inl)
             if e0 <= 0:

@@ -67,6 +67,7 @@ default_conf: dict[str, Any] = {
         #                    "sequence": the sequence's only; "weights": the one saved with the weights only
         "dim": DEFAULT_DIM,  # length of the whitened code (at most a quarter of the fitting codes)
         "shrink": DEFAULT_SHRINK,  # added to each component's variance, times their mean (regularises small sets)
+        "skip_still": False,  # fitted on the sequence: leave out frames whose code did not change (camera still)
     },
     "index": {"name": "auto"},  # code index by registry name (auto, flat, fp16, sq8, hnsw, ivfpq) and its options
     "temporal": {"name": "sequence"},  # temporal-consistency filter by registry name (sequence, none, bayes)
@@ -120,7 +121,7 @@ conf_rules: dict[str, Any] = {
     "policy": {"verify": Bool(), "min_matches": Int(0), "min_inliers": Int(0),
                "min_seq_score": Float(-1e9, 1e9, optional=True), "check_all": Bool()},
     "whitening": {"enabled": Bool(), "source": Choice("auto", "sequence", "weights"), "dim": Int(1, 4096),
-                  "shrink": Float(0, 100)},
+                  "shrink": Float(0, 100), "skip_still": Bool()},
     "calibration": {"enabled": Bool(), "expected_false_loops": Float(0, 100, lo_open=True),
                     "null_pairs": Int(10, 100_000), "min_features": Int(0), "min_inliers": Int(8),
                     "verification": Choice("auto", "on", "off"), "max_frames": Int(100)},
@@ -260,7 +261,7 @@ class LoopDetector:
         self._min_inliers = c["policy"]["min_inliers"]
         self.decision = None  # calibrated: the fused decision and the "too recent" rule (retrieval.decision)
         if self.calibration is not None:
-            self.decision = self.calibration.decision(c["search"]["exclude_recent"])
+            self.decision = self.calibration.decision(c["search"]["exclude_recent"], self.filter)
             self._min_inliers = int(self.decision.floor)  # weaker pairs still add fused evidence
         threads = c["runtime"]["threads"]
         if c["runtime"]["parallel"]:  # the feature worker and the encoder run at once: split the cores between them

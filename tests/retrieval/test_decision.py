@@ -140,3 +140,53 @@ class TestTooRecent:
                         break
         assert loops["trajectory"] == []
         assert loops["frame count only"]  # the frame floor alone calls the stretch a loop: the test can fail
+
+
+class TestScoreSpans:
+    """The score path fuses consecutive windows on one line (``ScoreSpans``)."""
+
+    @staticmethod
+    def _spans(values: dict[int, float], nulls=((0.0, 0.1), (0.0, 0.07), (0.0, 0.05))):
+        from retrieval.decision import ScoreSpans
+
+        def score(q, r, source):  # the filter's window score, by the window's query
+            return np.array([values.get(int(x), 0.0) for x in q], np.float64)
+
+        return ScoreSpans(score, 10, list(nulls), 1e4)
+
+    def test_weak_consistent_windows_accept_what_one_cannot(self):
+        accept_at = -math.log10(0.05)
+        one = self._spans({300: 0.35})  # the earlier windows (290, 280) at the null median: they do not agree
+        assert one.confidences(np.array([300]), np.array([100]), None)[0] < accept_at
+        three = self._spans({300: 0.35, 290: 0.35, 280: 0.35})  # the same weak evidence, three windows in a row
+        assert three.confidences(np.array([300]), np.array([100]), None)[0] >= accept_at
+
+    def test_a_contrary_window_vetoes_the_longer_spans(self):
+        spans = self._spans({300: 0.9, 290: -0.2, 280: 0.9})
+        fused = spans.fused(spans.windows(np.array([300]), np.array([100]), None))
+        assert not np.isnan(fused[0, 0]) and np.isnan(fused[0, 1:]).all()
+
+    def test_no_window_before_the_first_frame(self):
+        spans = self._spans({300: 0.35, 290: 0.35, 280: 0.35})
+        win = spans.windows(np.array([300]), np.array([15]), None)  # the third window's pair would be (280, -5)
+        assert not np.isnan(win[0, :2]).any() and np.isnan(win[0, 2])
+
+    def test_calibrated_on_real_frames_at_64x32(self, tmp_path_factory):
+        from bench.camera import shrunk_sample
+        from retrieval.calibrate import Calibration
+        from retrieval.detect import calibrate_sequence
+        from retrieval.sequences import open_sequence
+        from retrieval.temporal import create_filter
+
+        seq = open_sequence(shrunk_sample(tmp_path_factory.mktemp("s64") / "seq", (64, 32)))
+        cal = calibrate_sequence(seq, {}, progress=False)
+        assert cal.path == "score" and len(cal.spans["nulls"]) == 3 and cal.spans["window"] == 10
+        assert all(np.isfinite(m) and s > 0 for m, s in cal.spans["nulls"])
+        assert cal.spans["nulls"][0] == [cal.score_null["median"], cal.score_null["sigma"]]
+        assert any("consecutive windows" in n for n in cal.notes)
+        path = tmp_path_factory.mktemp("c") / "c.h5"
+        cal.save(path)
+        back = Calibration.load(path)
+        assert back.spans == cal.spans and back.identity() == cal.identity()
+        dec = back.decision(50, create_filter({}))
+        assert dec.spans is not None and dec.spans.tests == cal.tests["score"]
