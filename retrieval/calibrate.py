@@ -7,20 +7,20 @@ Before a run, the calibration looks at the sequence itself (``cae-lcd calibrate 
 2. **The code normalisation**: PCA-whitening fitted on the sequence's own codes (``cae.whitening``; with
    ``whitening.skip_still``, without the frames where the camera stood still); with ``whitening.source: weights``,
    the one ``cae-lcd train`` fitted on the training images and saved with the weights.
-3. **The null distributions**: frames on the far side of the exclusion window (from half of
-   ``search.exclude_recent`` frames back to just inside it) are close in time, so they share the camera, the light
-   and the season, but the camera has moved on, so they are not loops (a pair between which the camera stood still,
-   its code unchanged frame after frame, is one place and is left out). Their temporal-filter scores are the score
-   path's null (a Gaussian through the median and the 90th percentile); the same for the fused score of 2 and 3
-   consecutive windows on each pair's line (``retrieval.decision.ScoreSpans``: where the code is weak, as across
-   seasons, evidence repeated over more frames can accept what one window cannot). For the inlier path the null is
-   what the detector really tests: the **hard negatives**, the far-side keyframes retrieval would return for a
-   sampled query (keeping ``exclude_recent // 10`` frames off the boundary), verified as in the run, each followed
-   back two frames (look-alike streets look alike for several frames). A random far-side pair per query is
-   verified too, to show the difference; the **positives** are a frame and its neighbour ``exclude_recent // 25`` frames back, followed
-   back likewise. ``retrieval.decision`` turns them into the pair tail (an exponential above the hard null's median,
-   fitted by maximum likelihood, never lighter than its own largest sample), the fused-evidence tail, and whether
-   one pair may decide alone (only where the median positive would pass and no hard negative does).
+3. **The null distributions**: frames on the far side of the exclusion window (from half of ``search.exclude_recent``
+   frames back to just inside it) are close in time, so they share the camera, the light and the season, but the
+   camera has moved on, so they are not loops (a pair between which the camera stood still, its code unchanged frame
+   after frame, is one place and is left out). Their temporal-filter scores are the score path's null (a Gaussian
+   through the median and the 90th percentile); the same for the fused score of 2 and 3 consecutive windows on each
+   pair's line (``retrieval.decision.ScoreSpans``: where the code is weak, as across seasons, evidence repeated over
+   more frames can accept what one window cannot). For the inlier path the null is what the detector really tests:
+   the **hard negatives**, the far-side keyframes retrieval would return for a sampled query (keeping
+   ``exclude_recent // 10`` frames off the boundary), verified as in the run, each followed back two frames
+   (look-alike streets look alike for several frames). A random far-side pair per query is verified too, to show the
+   difference; the **positives** are a frame and its neighbour ``exclude_recent // 25`` frames back, followed back
+   likewise. ``retrieval.decision`` turns them into the pair tail (an exponential above the hard null's median,
+   fitted by maximum likelihood, never lighter than its own largest sample), the fused-evidence tail, and whether one
+   pair may decide alone (only where the median positive would pass and no hard negative does).
 4. **Which path decides**: where local features can verify (the median frame has at least ``min_features``
    keypoints), geometry decides, fused over consecutive frames: the *inlier path*. Where they are too few (a 64x32
    camera), verification is switched off and the summary says so: loops then rest on the normalised code plus
