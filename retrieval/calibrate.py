@@ -197,7 +197,8 @@ class Calibration:
     def identity(self) -> str:
         """A short text that changes when any choice changes (stored in the keyframe database)."""
         body = json.dumps([self.edge_reference, self.score_null, self.inlier_null, self.tests,
-                           self.expected_false_loops, self.fused, self.spans], sort_keys=True)
+                           self.expected_false_loops, self.fused] + ([self.spans] if self.spans else []),
+                          sort_keys=True)  # without spans: the identity an earlier calibration.h5 had
         h = hashlib.sha256(body.encode() + (self.whitening.identity().encode() if self.whitening else b""))
         return h.hexdigest()[:16]
 
