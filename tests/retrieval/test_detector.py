@@ -187,9 +187,10 @@ class TestResolveConf:
 
     def test_hnsw_options_allowed_only_for_hnsw(self):
         from retrieval.detector import resolve_conf
+        from retrieval.index import HNSWIndex
 
         conf = resolve_conf({"index": {"name": "hnsw", "m": 16}})
-        assert conf["index"] == {"name": "hnsw", "m": 16, "ef_search": 128, "ef_construction": 64}
+        assert conf["index"] == {**HNSWIndex.default_conf, "m": 16}
         with pytest.raises(ConfigError, match="index.m"):
             resolve_conf({"index": {"name": "flat", "m": 16}})
         with pytest.raises(ConfigError, match="unknown index 'nope'"):

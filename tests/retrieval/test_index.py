@@ -120,7 +120,7 @@ class TestHNSWIndex:
     def test_recall(self, data):
         xb, xq = data
         index = HNSWIndex(D, {"m": 16})
-        assert index.conf["m"] == 16 and index.index.hnsw.efSearch == 128
+        assert index.conf["m"] == 16 and index.index.hnsw.efSearch == HNSWIndex.default_conf["ef_search"]
         index.add(xb)
         Dh, Ih = index.search(xq, 10)
         _, Ib = brute_force_search(xq, xb, 10)
