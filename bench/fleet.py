@@ -36,18 +36,21 @@ log = logging.getLogger(__name__)
 
 LOAD_FORMAT_VERSION = 1  #: format of ``fleet_load.json``
 _LOOPBACK_RAY = {"RAY_AUTH_MODE": "disabled"}  #: the bench's Ray cluster lives on loopback for one run
+_MILVUS = {"places": {"index": {"name": "milvus"}}}  #: the scale-out run's place memory: milvus-lite (each worker's)
 
 
 def _serve(state: str, port: int) -> None:
     """The server process's body (``--serve``): uvicorn on loopback, the admin token from the environment, and the
-    store, workers and Ray address of a scale-out run (``FLEET_BENCH_STORE``, ``_WORKERS``, ``_RAY``) when given."""
+    store, workers, Ray address and recognition conf (JSON) of a scale-out run (``FLEET_BENCH_STORE``, ``_WORKERS``,
+    ``_RAY``, ``_RECOGNITION``) when given."""
     import uvicorn
 
     from fleet.server import create_app
 
     app = create_app(state, os.environ["FLEET_BENCH_TOKEN"], store=os.environ.get("FLEET_BENCH_STORE") or None,
                      workers=int(os.environ.get("FLEET_BENCH_WORKERS", "1")),
-                     ray_address=os.environ.get("FLEET_BENCH_RAY") or None)
+                     ray_address=os.environ.get("FLEET_BENCH_RAY") or None,
+                     recognition=json.loads(os.environ.get("FLEET_BENCH_RECOGNITION") or "null"))
     uvicorn.run(app, host="127.0.0.1", port=port, log_level="warning")
 
 
@@ -223,12 +226,12 @@ def scale_test(kitti_root: str | Path, out: Path, robots: int = 32, keyframes: i
             scale = {}
             for run, period in (("saturated", 0.0), ("half_load", interval)):
                 env = {"FLEET_BENCH_STORE": pg.create_database(f"bench_{run}"), "FLEET_BENCH_WORKERS": str(workers),
-                       "FLEET_BENCH_RAY": address, **_LOOPBACK_RAY}
+                       "FLEET_BENCH_RAY": address, "FLEET_BENCH_RECOGNITION": json.dumps(_MILVUS), **_LOOPBACK_RAY}
                 scale[run] = _run_mode(kitti_root, out / f"state_{run}", robots, keyframes, period, replicas, env)
     finally:
         head.terminate()
         head.wait(timeout=120)
-    result["scale_out"] = {"replicas": replicas, "workers": workers, "store": "postgresql", **scale,
+    result["scale_out"] = {"replicas": replicas, "workers": workers, "store": "postgresql", "places": "milvus", **scale,
                            "ratio": scale["saturated"]["keyframes_per_s"] / capacity}
     return result
 
@@ -236,7 +239,7 @@ def scale_test(kitti_root: str | Path, out: Path, robots: int = 32, keyframes: i
 def _scale_table(r: dict[str, Any]) -> str:
     rows = []
     for mode, label in (("single", "1 server, SQLite + faiss, in process"),
-                        ("scale_out", f"{r['scale_out']['replicas']} replicas, PostgreSQL, "
+                        ("scale_out", f"{r['scale_out']['replicas']} replicas, PostgreSQL + Milvus, "
                                       f"{r['scale_out']['workers']} Ray workers")):
         m = r[mode]
         rows.append([label, f"{m['saturated']['keyframes_per_s']:.2f}", f"{r['capacity_per_s']:.2f}",

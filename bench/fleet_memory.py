@@ -3,8 +3,9 @@
 The robot drives the 200 real KITTI 00 frames of ``../shared`` lap after lap (ground-truth poses, times going on), so
 from the second lap on every keyframe revisits a place: loops, verification and graph edges as on a patrol route.
 
-``python -m bench.fleet_memory [--keyframes 2000] [--out runs/bench/fleet_memory]`` prints a Markdown table and
-writes ``fleet_memory.json``; the bar (issue 19): RSS after 2000 within 1.2x of RSS after 200.
+``python -m bench.fleet_memory [--keyframes 2000] [--features database|memory] [--out runs/bench/fleet_memory]``
+prints a Markdown table and writes ``fleet_memory.json`` (``--features``: the detectors' ``runtime.features``: read
+back from each robot's keyframe database through a bounded cache, the fleet's default, or all kept in memory); the bar (issue 19): RSS after 2000 within 1.2x of RSS after 200.
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ __all__ = ["stream_memory", "main", "MEMORY_FORMAT_VERSION"]
 log = logging.getLogger(__name__)
 
 MEMORY_FORMAT_VERSION = 1  #: format of ``fleet_memory.json``
-CHECKPOINTS = (100, 200, 500, 1000, 2000, 4000)  #: keyframe counts at which RSS is read
+CHECKPOINTS = (50, 100, 200, 300, 400, 500, 1000, 2000, 4000)  #: keyframe counts at which RSS is read
 
 
 def _rss_mb() -> float:
@@ -77,6 +78,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--kitti", type=Path, default=REPO.parent / "shared" / "datasets" / "kitti")
     ap.add_argument("--keyframes", type=int, default=2000, help="keyframes the robot sends")
+    ap.add_argument("--features", choices=("database", "memory"), default="database",
+                    help="the detectors' runtime.features (the fleet's default: database)")
     ap.add_argument("--out", type=Path, default=REPO / "runs" / "bench" / "fleet_memory")
     args = ap.parse_args(argv)
     if not 1 <= args.keyframes <= 4000:
@@ -84,7 +87,9 @@ def main(argv: Sequence[str] | None = None) -> None:
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     out = prepare_out_dir(args.out)
     shutil.rmtree(out / "state", ignore_errors=True)
-    r = stream_memory(args.kitti, out / "state", args.keyframes)
+    r = stream_memory(args.kitti, out / "state", args.keyframes,
+                      {"detector": {"runtime": {"features": args.features}}})
+    r["features"] = args.features
     write_text_atomic(out / "fleet_memory.json", json.dumps(r, indent=2))
     print(md_table(["keyframes", "RSS MiB", "elapsed s"],
                    [[n, f"{r['rss_mb'][n]:.0f}", f"{r['seconds'][n]:.0f}"] for n in r["rss_mb"]]))

@@ -145,6 +145,8 @@ class FleetRecognizer:
             "min_matches": 5,  # putative matches a candidate needs
             "min_inliers": 50,  # geometric inliers a cross-robot match needs (the detector's fixed policy)
         },
+        "places": {"index": {"name": "flat"}},  # the place memory across robots: its code index (retrieval.index;
+        #                                         {"name": "milvus", "uri": ...}: Milvus, a server shared by workers)
         "overlap": OverlapTracker.default_conf,  # n-consecutive-match acceptance of an overlap
         "triangulation": PointTriangulator.default_conf,  # 3D points from a robot's neighbouring keyframe
         "sim3": Sim3Ransac.default_conf,  # RANSAC of an edge's similarity from 3D-3D matches
@@ -165,7 +167,7 @@ class FleetRecognizer:
         self.root = Path(state_dir) / "robots"
         self.descriptor = descriptor or create_descriptor(self.detector_conf["descriptor"])
         self.places = FleetPlaces(self.descriptor, weights_whitening(self.detector_conf, self.descriptor),
-                                  self.detector_conf)
+                                  self.detector_conf, self.conf["places"]["index"])
         self.tracker = OverlapTracker(self.conf["overlap"])
         self.triangulator = PointTriangulator(self.conf["triangulation"])
         self.robots: dict[str, _Robot] = {}
@@ -185,9 +187,15 @@ class FleetRecognizer:
         """
         conf = dict(conf or {})
         user_detector = conf.pop("detector", None)  # checked by the detector's own rules (its units' sections)
-        out = merge_conf({k: v for k, v in cls.default_conf.items() if k != "detector"}, conf, "recognition")
+        user_places = conf.pop("places", None)  # its index: by the index's own rules, as a detector's
+        out = merge_conf({k: v for k, v in cls.default_conf.items() if k not in ("detector", "places")}, conf,
+                         "recognition")
         check_conf(out, cls.conf_rules, "recognition")
         out["detector"] = resolve_conf(merge_conf(cls.default_conf["detector"], user_detector, strict=False))
+        places = merge_conf(cls.default_conf["places"], user_places, "recognition.places", strict=False)
+        if set(places) != {"index"}:
+            raise ConfigError(f"recognition.places has only 'index'; got {sorted(places)}")
+        out["places"] = {"index": resolve_conf({"index": places["index"]})["index"]}
         return out
 
     def _open(self, name: str, K: np.ndarray | None) -> _Robot:

@@ -77,10 +77,11 @@ class TestSeam:
         found = {p.name: bad for p in sorted(fleet.glob("*.py")) if (bad := private_detector_reads(p.read_text()))}
         assert not found
 
-    def test_the_place_memory_groups_other_robots_best_first(self, cae_descriptor, kitti):
+    @pytest.mark.parametrize("index", ["flat", "milvus"])
+    def test_the_place_memory_groups_other_robots_best_first(self, cae_descriptor, kitti, index):
         from retrieval.detector import resolve_conf
 
-        places = FleetPlaces(cae_descriptor, None, resolve_conf({"index": {"name": "flat"}}))
+        places = FleetPlaces(cae_descriptor, None, resolve_conf(), resolve_conf({"index": {"name": index}})["index"])
         codes = {i: cae_descriptor(kitti("00", i)[0]) for i in (0, 2, 100, 102)}
         for robot, i in (("A", 0), ("A", 100), ("B", 2), ("B", 102)):
             places.add(robot, i, codes[i] / np.linalg.norm(codes[i]))
@@ -91,6 +92,7 @@ class TestSeam:
         assert found["B"][1][0] > found["B"][1][1]
         assert list(places.search("A", codes[2] / np.linalg.norm(codes[2]), 1)) == ["B"]  # its top-1 only
         assert len(places) == 4 and len(places.places) == 4  # searching added nothing
+        places.close()
 
 
 class TestFleetRecognizer:
