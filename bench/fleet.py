@@ -2,8 +2,11 @@
 process; keyframes/s, per-request latency (p50, p99) and the server's peak memory.
 
 ``python -m bench.fleet [--robots 8] [--keyframes 20] [--out runs/bench/fleet]`` prints a Markdown table and writes
-``fleet_load.json``. Robot ``r`` sends frames ``r, r + N, r + 2N, ...`` of 00 with their ground-truth poses (so the
-robots overlap and cross-robot verification runs as it would in a real fleet).
+``fleet_load.json``. The robots drive in pairs along consecutive stretches of 00, with their ground-truth poses: robot
+``r`` sends every second frame of its pair's stretch (the even robot the even offsets), so a robot's keyframes are two
+frames apart, as a real robot's would be, and each pair overlaps along its whole stretch (cross-robot verification
+runs, and overlaps are accepted, as in a real fleet; with every robot N frames from its last, 3D points triangulated
+from its own neighbouring keyframes were too poor for any overlap edge).
 """
 
 from __future__ import annotations
@@ -144,9 +147,10 @@ def _cpu_seconds(pid: int) -> float:
 
 
 def _streams(kitti_root: str | Path, robots: int, keyframes: int) -> list[Any]:
-    """Robot ``r`` sends frames ``r, r + robots, ...`` of KITTI 00 (neighbours overlap)."""
-    return [kitti_stream(f"R{r:02d}", kitti_root, "00", list(range(r, r + robots * keyframes, robots)))
-            for r in range(robots)]
+    """Robot ``r`` sends frames ``s + r % 2, s + r % 2 + 2, ...`` of KITTI 00, ``s`` its pair's stretch
+    (``(r // 2) * 2 * keyframes``): robots ``2 i`` and ``2 i + 1`` overlap."""
+    return [kitti_stream(f"R{r:02d}", kitti_root, "00",
+                         [(r // 2) * 2 * keyframes + r % 2 + 2 * j for j in range(keyframes)]) for r in range(robots)]
 
 
 def _drive(urls: list[str], token: str, streams: list[Any], interval: float) -> dict[str, Any]:
@@ -264,8 +268,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     if args.serve:
         _serve(args.serve[0], int(args.serve[1]))
         return
-    if args.robots * args.keyframes > 200:
-        ap.error("--robots x --keyframes must be at most 200 (the frames of KITTI 00 here)")
+    if (args.robots + args.robots % 2) * args.keyframes > 200:
+        ap.error("--robots (rounded up to even) x --keyframes must be at most 200 (the frames of KITTI 00 here)")
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     out = prepare_out_dir(args.out)
     state = out / "state"

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import json
 import logging
+import threading
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
@@ -105,6 +106,7 @@ class _Robot:
         self.ids: list[int] = []  # keyframes in the place memory (passed the gate), ascending
         self.points: OrderedDict[int, np.ndarray] = OrderedDict()  # keyframe -> (N, 3) feature points (LRU)
         self.last: tuple[int, np.ndarray] | None = None  # the latest keyframe's searched entry (for ``export``)
+        self.lock = threading.Lock()  # held while its detector processes a keyframe, and to read its features
 
     def remember_points(self, keyframe: int, points: np.ndarray) -> np.ndarray:
         """Caches a keyframe's 3D points, dropping the least recently used past ``points_cache``."""
@@ -121,7 +123,12 @@ class _Robot:
 
 
 class FleetRecognizer:
-    """Loops and overlaps of every robot's keyframes (see the module doc); not thread-safe: callers serialise.
+    """Loops and overlaps of every robot's keyframes (see the module doc).
+
+    Keyframes of different robots may be processed at once (``parallel_robots``; callers serialise each robot's own):
+    a robot's detector (decode, gate, encode, features, its own search and verification, its database) and the
+    verification of its cross-robot candidates run outside the lock that guards what robots share (the place memory,
+    the overlap rules, the edges); the heavy work is in OpenCV and torch, which release the GIL.
 
     Args:
         state_dir: the server's state folder (robots' databases go in ``robots/NAME/``).
@@ -174,6 +181,7 @@ class FleetRecognizer:
         self._checks: dict[tuple[str, str], dict[int, Verification]] = {}  # recent verified matches per robot pair
         self._edges: dict[tuple[str, str], int] = {}
         self._recorded: set[frozenset[str]] = set()  # robot pairs whose overlap was recorded (this run)
+        self._lock = threading.RLock()  # what robots share: robots, places, tracker, checks, edges, points
         for folder in sorted(self.root.glob("*/camera.json")):
             if owns is None or owns(folder.parent.name):
                 self._open(folder.parent.name, None)
@@ -272,7 +280,7 @@ class FleetRecognizer:
                 r.ids.append(keyframe)
                 self.places.add(robot, keyframe, kf.entry)
 
-    parallel_robots = False  #: keyframes of different robots must not be processed at the same time (one instance)
+    parallel_robots = True  #: keyframes of different robots may be processed at the same time (see the class doc)
 
     def committed(self, robot: str) -> None:
         """The service stored the robot's latest keyframe. Nothing to do here: every robot lives in this one
@@ -301,36 +309,40 @@ class FleetRecognizer:
         Raises:
             ConfigError, ImageError: a bad input; nothing was stored.
         """
-        self.check(robot, K)
         check_image(image, "image")  # before a new robot's folder is made: a refused keyframe leaves nothing
-        r = self.robots.get(robot)
-        if r is None or isinstance(r.detector, _Adopted):  # first keyframe here (adopted keyframes: now owned)
-            r = self._open(robot, K)
-        res = r.detector.process(image, frame_id=keyframe, timestamp=timestamp, pose=pose,
-                                 fingerprint=_image_fingerprint(image))
-        self._save_camera(robot)
-        r.poses[keyframe] = np.asarray(pose, np.float64)
-        if res.gated or res.entry is None:
-            return Recognition(gated=True)
-        r.ids.append(keyframe)
-        r.last = (keyframe, res.entry)
-        if depth is not None and r.K is not None:
-            r.remember_points(keyframe, points_from_depth(r.detector.keyframe_features(keyframe).keypoints, depth,
-                                                          r.K))
+        with self._lock:
+            self.check(robot, K)
+            r = self.robots.get(robot)
+            if r is None or isinstance(r.detector, _Adopted):  # first keyframe here (adopted keyframes: now owned)
+                r = self._open(robot, K)
+        with r.lock:
+            res = r.detector.process(image, frame_id=keyframe, timestamp=timestamp, pose=pose,
+                                     fingerprint=_image_fingerprint(image))
+        with self._lock:
+            self._save_camera(robot)
+            r.poses[keyframe] = np.asarray(pose, np.float64)
+            if res.gated or res.entry is None:
+                return Recognition(gated=True)
+            r.ids.append(keyframe)
+            r.last = (keyframe, res.entry)
+            if depth is not None and r.K is not None:
+                r.remember_points(keyframe, points_from_depth(self._features(robot, [keyframe])[0].keypoints,
+                                                              depth, r.K))
+            c = self.conf["cross"]
+            found = self.places.search(robot, res.entry, c["search_k"])  # {other: (keyframes, scores)}, best first
+            chosen = shortlist({o: s for o, (_, s) in found.items()}, c["k"], c["min_score"], c["budget"])
+        matches = {o: m for o, top in chosen.items() if (m := self._best_match(robot, keyframe, o, found[o][0][top]))}
         out = Recognition()
-        if res.loop is not None:  # the detector's verification of the pair: not checked again
-            self._add_edge(out, "loop", (robot, res.loop.frame_id), (robot, keyframe), res.verification)
-        self._cross(out, robot, keyframe, res.entry)
-        self.places.add(robot, keyframe, res.entry)
+        with self._lock:
+            if res.loop is not None:  # the detector's verification of the pair: not checked again
+                self._add_edge(out, "loop", (robot, res.loop.frame_id), (robot, keyframe), res.verification)
+            self._cross(out, robot, keyframe, matches)
+            self.places.add(robot, keyframe, res.entry)
         return out
 
-    def _cross(self, out: Recognition, robot: str, keyframe: int, entry: np.ndarray) -> None:
-        """Searches the fleet's place memory and verifies against every other robot, updates the overlap rules,
-        adds edges."""
-        c = self.conf["cross"]
-        found = self.places.search(robot, entry, c["search_k"])  # {other: (keyframes, scores)}, best first
-        chosen = shortlist({o: s for o, (_, s) in found.items()}, c["k"], c["min_score"], c["budget"])
-        matches = {o: m for o, top in chosen.items() if (m := self._best_match(robot, keyframe, o, found[o][0][top]))}
+    def _cross(self, out: Recognition, robot: str, keyframe: int,
+               matches: dict[str, tuple[int, Verification]]) -> None:
+        """Updates the overlap rules with the keyframe's verified matches of other robots, adds edges."""
         accepted = self.tracker.update(robot, keyframe, {o: m[0] for o, m in matches.items()})
         keep = self.conf["overlap"]["required"]
         for other, (match, check) in matches.items():
@@ -365,10 +377,9 @@ class FleetRecognizer:
         """Of the other robot's keyframes ``top`` (its shortlisted candidates), the one that verifies best against
         the query (None: none passes)."""
         q, o, c = self.robots[robot], self.robots[other], self.conf["cross"]
-        det = q.detector
         K = q.K if q.K is not None and o.K is not None and np.allclose(q.K, o.K) else None
-        checks = det.verifier.verify(det.keyframe_features(keyframe), [o.detector.keyframe_features(i) for i in top],
-                                     K, c["min_matches"], c["min_inliers"], False)
+        checks = q.detector.verifier.verify(self._features(robot, [keyframe])[0], self._features(other, top), K,
+                                            c["min_matches"], c["min_inliers"], False)
         best = max(range(len(top)), key=lambda j: (checks[j].inliers, checks[j].matches))
         if checks[best].inliers < max(c["min_inliers"], 1):
             return None
@@ -380,10 +391,9 @@ class FleetRecognizer:
         pair = (a[0], b[0])
         if kind == "overlap" and self._edges.get(pair, 0) >= self.conf["max_edges_per_pair"]:
             return
-        ra, rb = self.robots[a[0]], self.robots[b[0]]
         if check is None:  # a loop the detector accepted without verifying it (``policy.verify: false``)
-            check = rb.detector.verifier.verify(rb.detector.keyframe_features(b[1]),
-                                                [ra.detector.keyframe_features(a[1])], rb.K)[0]
+            rb = self.robots[b[0]]
+            check = rb.detector.verifier.verify(self._features(b[0], [b[1]])[0], self._features(a[0], [a[1]]), rb.K)[0]
         pts_a, pts_b = self._points(a[0], a[1]), self._points(b[0], b[1])
         if pts_a is None or pts_b is None or check.inliers <= 0:
             return
@@ -404,9 +414,15 @@ class FleetRecognizer:
         near = r.neighbour(keyframe)
         if r.K is None or near is None or keyframe not in r.poses or near not in r.poses:
             return None
-        feats = r.detector.keyframe_features
-        return r.remember_points(keyframe, self.triangulator(feats(keyframe), r.poses[keyframe], feats(near),
-                                                             r.poses[near], r.K))
+        fk, fn = self._features(robot, [keyframe, near])
+        return r.remember_points(keyframe, self.triangulator(fk, r.poses[keyframe], fn, r.poses[near], r.K))
+
+    def _features(self, robot: str, keyframes: Any) -> list[Any]:
+        """The keyframes' local features (``LoopDetector.keyframe_features``), read while the robot's detector is
+        not processing a keyframe (its own thread may be)."""
+        r = self.robots[robot]
+        with r.lock:
+            return [r.detector.keyframe_features(int(k)) for k in keyframes]
 
     def _overlap_record(self, edge: EdgeRecord) -> OverlapRecord:
         """The accepted overlap: the similarity mapping robot b's map into robot a's, from ``edge``."""

@@ -33,7 +33,8 @@ ROBOT_NAME = r"[A-Za-z0-9_-]{1,64}"  #: what a robot's name may be
 
 class FleetService:
     """Robots, keyframes, place recognition and the pose graph over one store; safe to call from several threads
-    (keyframes are processed one at a time; the graph is solved in a worker thread).
+    (each robot's keyframes one at a time, different robots' at once when the recognizer allows it:
+    ``parallel_robots``; the graph is solved in a worker thread).
 
     Args:
         store: the robots, tokens, keyframes and edges.
