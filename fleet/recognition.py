@@ -143,7 +143,8 @@ class FleetRecognizer:
 
     default_conf: dict[str, Any] = {
         "detector": {"calibration": {"enabled": False},  # LoopDetector conf of every robot (fixed policy)
-                     "runtime": {"features": "database"}},  # features read back from its database (bounded cache)
+                     "runtime": {"features": "database",  # features read back from its database when needed,
+                                 "feature_cache": 64}},  # at most this many kept per robot (~64 kB each)
         "cross": {
             "search_k": 64,  # entries searched in the fleet's place memory per query (the robot's own among them)
             "k": 3,  # candidates of each other robot verified per query
