@@ -154,7 +154,7 @@ class FleetRecognizer:
             "min_inliers": 50,  # geometric inliers a cross-robot match needs (the detector's fixed policy)
         },
         "places": {"index": {"name": "flat"}},  # the place memory across robots: its code index (retrieval.index;
-        #                                         {"name": "milvus", "uri": ...}: Milvus, a server shared by workers)
+        #                                         {"name": "milvus", "uri": ...}: Milvus, a collection per recognizer)
         "overlap": OverlapTracker.default_conf,  # n-consecutive-match acceptance of an overlap
         "triangulation": PointTriangulator.default_conf,  # 3D points from a robot's neighbouring keyframe
         "sim3": Sim3Ransac.default_conf,  # RANSAC of an edge's similarity from 3D-3D matches
