@@ -46,6 +46,25 @@ def _rss_mb() -> float:
     raise RuntimeError("VmRSS unknown (not Linux)")
 
 
+def _target(state: Path, recognition: dict[str, Any] | None, bare: bool,
+            K: Any) -> tuple[Callable[..., Any], Callable[[], Any], Callable[[], Any]]:
+    """Where the keyframes go: ``(submit(i, t, pose, image), settle(), close())`` of a ``FleetService`` with place
+    recognition in process, or (``bare``) of one ``LoopDetector`` with the fleet's detector conf and a database."""
+    if bare:
+        state.mkdir(parents=True, exist_ok=True)
+        det = LoopDetector(FleetRecognizer.resolve(recognition)["detector"], K=K, database=state / "keyframes.h5")
+
+        def process(i: int, t: float, pose: Any, image: Any) -> None:
+            det.process(image, i, t, pose)
+        return process, lambda: None, det.close
+    service = FleetService(SQLiteStore(state / "fleet.sqlite"), None, FleetRecognizer(state, recognition))
+    service.register("A")
+
+    def submit(i: int, t: float, pose: Any, image: Any) -> None:
+        service.submit_keyframe("A", i, t, pose, image, K)
+    return submit, lambda: service.optimize(wait=True, timeout=300), service.close
+
+
 def stream_memory(kitti_root: str | Path, state: str | Path, keyframes: int = 2000,
                   recognition: dict[str, Any] | None = None, bare: bool = False) -> dict[str, Any]:
     """Streams ``keyframes`` keyframes of KITTI 00 (its 200 frames, lap after lap) as one robot; RSS at each
@@ -57,19 +76,7 @@ def stream_memory(kitti_root: str | Path, state: str | Path, keyframes: int = 20
     """
     lap = kitti_stream("A", kitti_root, "00", list(range(200)))
     period = float(lap.times[-1] - lap.times[0]) + 1.0
-    if bare:
-        Path(state).mkdir(parents=True, exist_ok=True)
-        det = LoopDetector(FleetRecognizer.resolve(recognition)["detector"], K=lap.K,
-                           database=Path(state) / "keyframes.h5")
-        submit: Callable[..., Any] = lambda i, t, pose, image: det.process(image, i, t, pose)  # noqa: E731
-        done: Callable[[], Any] = lambda: None  # noqa: E731
-        close: Callable[[], Any] = det.close
-    else:
-        service = FleetService(SQLiteStore(Path(state) / "fleet.sqlite"), None, FleetRecognizer(state, recognition))
-        service.register("A")
-        submit = lambda i, t, pose, image: service.submit_keyframe("A", i, t, pose, image, lap.K)  # noqa: E731
-        done = lambda: service.optimize(wait=True, timeout=300)  # noqa: E731
-        close = service.close
+    submit, settle, close = _target(Path(state), recognition, bare, lap.K)
     rss: dict[int, float] = {}
     seconds: dict[int, float] = {}
     started = time.perf_counter()
@@ -78,7 +85,7 @@ def stream_memory(kitti_root: str | Path, state: str | Path, keyframes: int = 20
             j = i % len(lap.frames)
             submit(i, float(lap.times[j]) + period * (i // len(lap.frames)), lap.poses[j], read_image(lap.images[j]))
             if i + 1 in CHECKPOINTS:
-                done()
+                settle()
                 rss[i + 1], seconds[i + 1] = _rss_mb(), time.perf_counter() - started
                 log.info("%d keyframes: RSS %.0f MiB, %.0f s", i + 1, rss[i + 1], seconds[i + 1])
     finally:
