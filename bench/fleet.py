@@ -2,8 +2,11 @@
 process; keyframes/s, per-request latency (p50, p99) and the server's peak memory.
 
 ``python -m bench.fleet [--robots 8] [--keyframes 20] [--out runs/bench/fleet]`` prints a Markdown table and writes
-``fleet_load.json``. Robot ``r`` sends frames ``r, r + N, r + 2N, ...`` of 00 with their ground-truth poses (so the
-robots overlap and cross-robot verification runs as it would in a real fleet).
+``fleet_load.json``. The robots drive in pairs along consecutive stretches of 00, with their ground-truth poses: robot
+``r`` sends every second frame of its pair's stretch (the even robot the even offsets), so a robot's keyframes are two
+frames apart, as a real robot's would be, and each pair overlaps along its whole stretch (cross-robot verification
+runs, and overlaps are accepted, as in a real fleet; with every robot N frames from its last, 3D points triangulated
+from its own neighbouring keyframes were too poor for any overlap edge).
 """
 
 from __future__ import annotations
@@ -36,18 +39,21 @@ log = logging.getLogger(__name__)
 
 LOAD_FORMAT_VERSION = 1  #: format of ``fleet_load.json``
 _LOOPBACK_RAY = {"RAY_AUTH_MODE": "disabled"}  #: the bench's Ray cluster lives on loopback for one run
+_MILVUS = {"places": {"index": {"name": "milvus"}}}  #: the scale-out run's place memory: milvus-lite (each worker's)
 
 
 def _serve(state: str, port: int) -> None:
     """The server process's body (``--serve``): uvicorn on loopback, the admin token from the environment, and the
-    store, workers and Ray address of a scale-out run (``FLEET_BENCH_STORE``, ``_WORKERS``, ``_RAY``) when given."""
+    store, workers, Ray address and recognition conf (JSON) of a scale-out run (``FLEET_BENCH_STORE``, ``_WORKERS``,
+    ``_RAY``, ``_RECOGNITION``) when given."""
     import uvicorn
 
     from fleet.server import create_app
 
     app = create_app(state, os.environ["FLEET_BENCH_TOKEN"], store=os.environ.get("FLEET_BENCH_STORE") or None,
                      workers=int(os.environ.get("FLEET_BENCH_WORKERS", "1")),
-                     ray_address=os.environ.get("FLEET_BENCH_RAY") or None)
+                     ray_address=os.environ.get("FLEET_BENCH_RAY") or None,
+                     recognition=json.loads(os.environ.get("FLEET_BENCH_RECOGNITION") or "null"))
     uvicorn.run(app, host="127.0.0.1", port=port, log_level="warning")
 
 
@@ -141,9 +147,10 @@ def _cpu_seconds(pid: int) -> float:
 
 
 def _streams(kitti_root: str | Path, robots: int, keyframes: int) -> list[Any]:
-    """Robot ``r`` sends frames ``r, r + robots, ...`` of KITTI 00 (neighbours overlap)."""
-    return [kitti_stream(f"R{r:02d}", kitti_root, "00", list(range(r, r + robots * keyframes, robots)))
-            for r in range(robots)]
+    """Robot ``r`` sends frames ``s + r % 2, s + r % 2 + 2, ...`` of KITTI 00, ``s`` its pair's stretch
+    (``(r // 2) * 2 * keyframes``): robots ``2 i`` and ``2 i + 1`` overlap."""
+    return [kitti_stream(f"R{r:02d}", kitti_root, "00",
+                         [(r // 2) * 2 * keyframes + r % 2 + 2 * j for j in range(keyframes)]) for r in range(robots)]
 
 
 def _drive(urls: list[str], token: str, streams: list[Any], interval: float) -> dict[str, Any]:
@@ -223,12 +230,12 @@ def scale_test(kitti_root: str | Path, out: Path, robots: int = 32, keyframes: i
             scale = {}
             for run, period in (("saturated", 0.0), ("half_load", interval)):
                 env = {"FLEET_BENCH_STORE": pg.create_database(f"bench_{run}"), "FLEET_BENCH_WORKERS": str(workers),
-                       "FLEET_BENCH_RAY": address, **_LOOPBACK_RAY}
+                       "FLEET_BENCH_RAY": address, "FLEET_BENCH_RECOGNITION": json.dumps(_MILVUS), **_LOOPBACK_RAY}
                 scale[run] = _run_mode(kitti_root, out / f"state_{run}", robots, keyframes, period, replicas, env)
     finally:
         head.terminate()
         head.wait(timeout=120)
-    result["scale_out"] = {"replicas": replicas, "workers": workers, "store": "postgresql", **scale,
+    result["scale_out"] = {"replicas": replicas, "workers": workers, "store": "postgresql", "places": "milvus", **scale,
                            "ratio": scale["saturated"]["keyframes_per_s"] / capacity}
     return result
 
@@ -236,7 +243,7 @@ def scale_test(kitti_root: str | Path, out: Path, robots: int = 32, keyframes: i
 def _scale_table(r: dict[str, Any]) -> str:
     rows = []
     for mode, label in (("single", "1 server, SQLite + faiss, in process"),
-                        ("scale_out", f"{r['scale_out']['replicas']} replicas, PostgreSQL, "
+                        ("scale_out", f"{r['scale_out']['replicas']} replicas, PostgreSQL + Milvus, "
                                       f"{r['scale_out']['workers']} Ray workers")):
         m = r[mode]
         rows.append([label, f"{m['saturated']['keyframes_per_s']:.2f}", f"{r['capacity_per_s']:.2f}",
@@ -261,8 +268,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     if args.serve:
         _serve(args.serve[0], int(args.serve[1]))
         return
-    if args.robots * args.keyframes > 200:
-        ap.error("--robots x --keyframes must be at most 200 (the frames of KITTI 00 here)")
+    if (args.robots + args.robots % 2) * args.keyframes > 200:
+        ap.error("--robots (rounded up to even) x --keyframes must be at most 200 (the frames of KITTI 00 here)")
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     out = prepare_out_dir(args.out)
     state = out / "state"

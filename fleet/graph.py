@@ -179,7 +179,7 @@ class PoseGraph:
         self._local[node] = local
         self.anchor = self.anchor or robot
         if prev is not None:
-            self._edges.append(Edge("odometry", prev, node, self._local[prev].inverse().compose(local)))
+            self._edges.append(Edge("odometry", prev, node, self._local[prev].to(local)))
         self._last[robot] = node
         return node
 

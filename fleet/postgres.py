@@ -180,6 +180,9 @@ class PostgresStore(SQLStore):
     def set_transforms(self, transforms: dict[str, Sim3]) -> None:
         now = time.time()
         with self._transaction() as db:
+            # replicas' optimisers replace the set at once: one after the other (readers are not blocked), else the
+            # second one's DELETE misses the first one's new rows and its INSERT collides with them
+            db.execute("LOCK TABLE transforms IN SHARE ROW EXCLUSIVE MODE")
             db.execute("DELETE FROM transforms")
             if transforms:
                 with db.cursor() as cur:

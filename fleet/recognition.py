@@ -4,26 +4,32 @@ inter-robot overlaps, each turned into a pose-graph edge (a similarity from 3D-3
 - One ``retrieval.LoopDetector`` per robot, its keyframes in ``STATE/robots/NAME/keyframes.h5`` (resumed on start),
   all sharing one global descriptor (the CAE encoder is loaded once per server). It reports the robot's own loops,
   with its usual recent-frame exclusion and its fixed acceptance policy (``policy.min_inliers``).
-- Inter-robot: the query's code is searched against every OTHER robot's keyframes (cosine top-``cross.k``, no recency
-  exclusion: another robot's frame is never "recent"), at most ``cross.budget`` of them in all (the most similar:
-  ``fleet.budget``), and verified by the same verifier (SIFT + geometry, fixed
-  inlier threshold ``cross.min_inliers``). Each robot pair's matches feed ``OverlapTracker``: an overlap is accepted
+- Inter-robot: the query's searched entry (``FrameResult.entry``) is searched in the fleet's one place memory
+  (``fleet.places.FleetPlaces``: a ``retrieval.places`` memory holding every robot's entries, faiss or Milvus; no
+  recency exclusion: another robot's frame is never "recent"): its top-``cross.search_k``, of each other robot at
+  most ``cross.k``, at most ``cross.budget`` in all (the most similar: ``fleet.budget``), verified by the robot's
+  detector's verifier (SIFT + geometry, fixed inlier threshold ``cross.min_inliers``). Each robot pair's matches feed ``OverlapTracker``: an overlap is accepted
   after ``overlap.required`` consecutive matching keyframes; from then on every verified match becomes an edge (at
   most ``max_edges_per_pair``).
+- A loop edge takes the detector's own verification of the pair (``FrameResult.verification``: its matches and
+  transform); nothing is verified twice.
 - An edge's similarity: 3D points of the matched features on both sides (the depth map when the keyframe came with
   one, else triangulated from the robot's own neighbouring keyframe with its local poses), then ``estimate_overlap``.
 
 Camera intrinsics are per robot (the first keyframe's), kept in ``STATE/robots/NAME/camera.json``. 3D points of at
-most ``points_cache`` keyframes per robot are kept in memory. (``detector.runtime.features: database`` would read
-features back from the robot's database instead of keeping them; measured, it makes RSS grow faster, ~5 MiB a
-keyframe, so it is not the default: see BENCHMARKS.md, issue 19.) Points from depth maps are kept in memory only: after a restart, or once dropped
-from the cache, keyframes that had one fall back to triangulation.
+most ``points_cache`` keyframes per robot are kept in memory. Local features are the detector's
+(``LoopDetector.keyframe_features``): with ``detector.runtime.features: database`` (the default here) they are read
+back from the robot's keyframe database, at most ``detector.runtime.feature_cache`` kept per robot; ``memory`` keeps
+them all. Points from depth maps are kept in memory only: after a restart, or once dropped from the cache, keyframes
+that had one fall back to triangulation. The fleet reaches no private attribute of a ``LoopDetector``
+(``tests/fleet/test_recognition.py`` checks it).
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import threading
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
@@ -37,10 +43,11 @@ from core.errors import ConflictError
 from core.files import write_text_atomic
 from core.images import check_image, fingerprint
 from retrieval.descriptors import GlobalDescriptor, create_descriptor
-from retrieval.detector import LoopDetector, resolve_conf
+from retrieval.detector import LoopDetector, resolve_conf, weights_whitening
 from verify.verifier import Verification
 
 from .budget import shortlist
+from .places import FleetPlaces
 from .overlap import OverlapTracker, PointTriangulator, estimate_overlap, points_from_depth
 from .sim3 import Sim3, Sim3Ransac
 from .store import EdgeRecord, OverlapRecord
@@ -77,27 +84,12 @@ class _Adopted:
     def __init__(self) -> None:
         self.features: dict[int, Any] = {}
 
+    def keyframe_features(self, frame_id: int) -> Any:
+        """The adopted keyframe's features (``LoopDetector.keyframe_features``'s interface)."""
+        return self.features[int(frame_id)]
+
     def close(self) -> None:
         """Nothing to release."""
-
-
-def remembering(descriptor: GlobalDescriptor) -> GlobalDescriptor:
-    """The same descriptor (same object state, so the same encoder), remembering its last code in ``.last``.
-
-    It stays an instance of the descriptor's own class, as ``LoopDetector`` requires.
-    """
-    base = type(descriptor)
-
-    class Remembering(base):  # type: ignore[valid-type, misc]
-        def __init__(self) -> None:  # no super().__init__: the wrapped descriptor's state is shared, not rebuilt
-            self.__dict__ = descriptor.__dict__
-            self.last: np.ndarray | None = None
-
-        def __call__(self, image: np.ndarray, features: Any = None, network_image: Any = None) -> np.ndarray:
-            self.last = base.__call__(self, image, features, network_image)
-            return self.last
-
-    return Remembering()
 
 
 def _image_fingerprint(image: np.ndarray) -> str:
@@ -106,19 +98,15 @@ def _image_fingerprint(image: np.ndarray) -> str:
 
 
 class _Robot:
-    """One robot's detector, intrinsics, local poses and searchable codes."""
+    """One robot's detector, intrinsics, local poses and keyframe ids (its entries are in ``FleetPlaces``)."""
 
     def __init__(self, detector: LoopDetector, K: np.ndarray | None, points_cache: int = 256) -> None:
         self.detector, self.K, self.points_cache = detector, K, points_cache
         self.poses: dict[int, np.ndarray] = {}  # keyframe -> (4, 4) local pose
         self.ids: list[int] = []  # keyframes in the place memory (passed the gate), ascending
-        self.codes = np.zeros((0, 0), np.float32)  # (len(ids), dim) searched entries
         self.points: OrderedDict[int, np.ndarray] = OrderedDict()  # keyframe -> (N, 3) feature points (LRU)
-
-    def add(self, keyframe: int, entry: np.ndarray) -> None:
-        entry = np.asarray(entry, np.float32).reshape(1, -1)
-        self.codes = entry if not self.ids else np.concatenate([self.codes, entry])
-        self.ids.append(int(keyframe))
+        self.last: tuple[int, np.ndarray] | None = None  # the latest keyframe's searched entry (for ``export``)
+        self.lock = threading.Lock()  # held while its detector processes a keyframe, and to read its features
 
     def remember_points(self, keyframe: int, points: np.ndarray) -> np.ndarray:
         """Caches a keyframe's 3D points, dropping the least recently used past ``points_cache``."""
@@ -135,7 +123,12 @@ class _Robot:
 
 
 class FleetRecognizer:
-    """Loops and overlaps of every robot's keyframes (see the module doc); not thread-safe: callers serialise.
+    """Loops and overlaps of every robot's keyframes (see the module doc).
+
+    Keyframes of different robots may be processed at once (``parallel_robots``; callers serialise each robot's own):
+    a robot's detector (decode, gate, encode, features, its own search and verification, its database) and the
+    verification of its cross-robot candidates run outside the lock that guards what robots share (the place memory,
+    the overlap rules, the edges); the heavy work is in OpenCV and torch, which release the GIL.
 
     Args:
         state_dir: the server's state folder (robots' databases go in ``robots/NAME/``).
@@ -149,14 +142,19 @@ class FleetRecognizer:
     """
 
     default_conf: dict[str, Any] = {
-        "detector": {"calibration": {"enabled": False}},  # LoopDetector conf of every robot (fixed policy)
+        "detector": {"calibration": {"enabled": False},  # LoopDetector conf of every robot (fixed policy)
+                     "runtime": {"features": "database",  # features read back from its database when needed,
+                                 "feature_cache": 64}},  # at most this many kept per robot (~64 kB each)
         "cross": {
+            "search_k": 64,  # entries searched in the fleet's place memory per query (the robot's own among them)
             "k": 3,  # candidates of each other robot verified per query
             "budget": 8,  # candidates verified per query over all other robots, the most similar (0: no bound)
             "min_score": 0.0,  # candidates under this cosine similarity are not verified
             "min_matches": 5,  # putative matches a candidate needs
             "min_inliers": 50,  # geometric inliers a cross-robot match needs (the detector's fixed policy)
         },
+        "places": {"index": {"name": "flat"}},  # the place memory across robots: its code index (retrieval.index;
+        #                                         {"name": "milvus", "uri": ...}: Milvus, a collection per recognizer)
         "overlap": OverlapTracker.default_conf,  # n-consecutive-match acceptance of an overlap
         "triangulation": PointTriangulator.default_conf,  # 3D points from a robot's neighbouring keyframe
         "sim3": Sim3Ransac.default_conf,  # RANSAC of an edge's similarity from 3D-3D matches
@@ -165,7 +163,7 @@ class FleetRecognizer:
         "points_cache": 256,  # keyframes' 3D feature points kept in memory per robot (least recently used dropped)
     }
     conf_rules: dict[str, Any] = {
-        "cross": {"k": Int(1, 1000), "budget": Int(0, 100_000), "min_score": Float(-1, 1), "min_matches": Int(0),
+        "cross": {"search_k": Int(1, 100_000), "k": Int(1, 1000), "budget": Int(0, 100_000), "min_score": Float(-1, 1), "min_matches": Int(0),
                   "min_inliers": Int(0)},
         "overlap": OverlapTracker.conf_rules, "triangulation": PointTriangulator.conf_rules,
         "sim3": Sim3Ransac.conf_rules, "min_points": Int(3), "max_edges_per_pair": Int(1), "points_cache": Int(1)}
@@ -175,13 +173,16 @@ class FleetRecognizer:
         self.conf = self.resolve(conf)
         self.detector_conf = self.conf["detector"]
         self.root = Path(state_dir) / "robots"
-        self.descriptor = remembering(descriptor or create_descriptor(self.detector_conf["descriptor"]))
+        self.descriptor = descriptor or create_descriptor(self.detector_conf["descriptor"])
+        self.places = FleetPlaces(self.descriptor, weights_whitening(self.detector_conf, self.descriptor),
+                                  self.detector_conf, self.conf["places"]["index"])
         self.tracker = OverlapTracker(self.conf["overlap"])
         self.triangulator = PointTriangulator(self.conf["triangulation"])
         self.robots: dict[str, _Robot] = {}
         self._checks: dict[tuple[str, str], dict[int, Verification]] = {}  # recent verified matches per robot pair
         self._edges: dict[tuple[str, str], int] = {}
         self._recorded: set[frozenset[str]] = set()  # robot pairs whose overlap was recorded (this run)
+        self._lock = threading.RLock()  # what robots share: robots, places, tracker, checks, edges, points
         for folder in sorted(self.root.glob("*/camera.json")):
             if owns is None or owns(folder.parent.name):
                 self._open(folder.parent.name, None)
@@ -195,9 +196,15 @@ class FleetRecognizer:
         """
         conf = dict(conf or {})
         user_detector = conf.pop("detector", None)  # checked by the detector's own rules (its units' sections)
-        out = merge_conf({k: v for k, v in cls.default_conf.items() if k != "detector"}, conf, "recognition")
+        user_places = conf.pop("places", None)  # its index: by the index's own rules, as a detector's
+        out = merge_conf({k: v for k, v in cls.default_conf.items() if k not in ("detector", "places")}, conf,
+                         "recognition")
         check_conf(out, cls.conf_rules, "recognition")
         out["detector"] = resolve_conf(merge_conf(cls.default_conf["detector"], user_detector, strict=False))
+        places = merge_conf(cls.default_conf["places"], user_places, "recognition.places", strict=False)
+        if set(places) != {"index"}:
+            raise ConfigError(f"recognition.places has only 'index'; got {sorted(places)}")
+        out["places"] = {"index": resolve_conf({"index": places["index"]})["index"]}
         return out
 
     def _open(self, name: str, K: np.ndarray | None) -> _Robot:
@@ -214,10 +221,14 @@ class FleetRecognizer:
         folder.mkdir(parents=True, exist_ok=True)
         det = LoopDetector(self.detector_conf, K=K, database=folder / "keyframes.h5", descriptor=self.descriptor)
         robot = self.robots[name] = _Robot(det, K, self.conf["points_cache"])
-        for rec in det.db:
-            if rec.pose is not None:
-                robot.poses[rec.frame_id] = Sim3.from_pose(rec.pose).matrix()
-            robot.add(rec.frame_id, rec.code)  # the store keeps the searched entry
+        if det.db is None:
+            return robot
+        for fid, entry, _, _ in det.db.search_entries(features=False):  # the store keeps the searched entry
+            self.places.add(name, fid, entry)
+            robot.ids.append(fid)
+        for fid, pose in zip(robot.ids, det.db.poses()):
+            if np.isfinite(pose).all():
+                robot.poses[fid] = Sim3.from_pose(pose).matrix()
         return robot
 
     def _save_camera(self, name: str) -> None:
@@ -240,9 +251,16 @@ class FleetRecognizer:
     def export(self, robot: str, keyframes: list[int] | None = None) -> list[tuple[int, SharedKeyframe]]:
         """The robot's keyframes (all, or those of ``keyframes`` in its place memory) as ``adopt`` takes them."""
         r = self.robots[robot]
-        pos = {k: i for i, k in enumerate(r.ids)}
-        return [(k, SharedKeyframe(r.codes[pos[k]], r.detector.features[k], r.poses[k], r.K))
-                for k in (r.ids if keyframes is None else keyframes) if k in pos and k in r.poses]
+        if keyframes is not None and r.last is not None and list(keyframes) == [r.last[0]]:
+            entries = dict([r.last])  # the keyframe just processed (``process``): not read back
+        elif r.detector.db is not None:
+            wanted = None if keyframes is None else set(keyframes)
+            entries = {fid: e for fid, e, _, _ in r.detector.db.search_entries(features=False)
+                       if wanted is None or fid in wanted}
+        else:
+            entries = {}
+        return [(k, SharedKeyframe(entries[k], r.detector.keyframe_features(k), r.poses[k], r.K))
+                for k in sorted(entries) if k in r.poses]
 
     def owned(self) -> list[str]:
         """The robots this recognizer runs the detector of (not adopted from another)."""
@@ -260,9 +278,10 @@ class FleetRecognizer:
             if keyframe not in r.detector.features:
                 r.detector.features[keyframe] = kf.features
                 r.poses[keyframe] = kf.pose
-                r.add(keyframe, kf.entry)
+                r.ids.append(keyframe)
+                self.places.add(robot, keyframe, kf.entry)
 
-    parallel_robots = False  #: keyframes of different robots must not be processed at the same time (one instance)
+    parallel_robots = True  #: keyframes of different robots may be processed at the same time (see the class doc)
 
     def committed(self, robot: str) -> None:
         """The service stored the robot's latest keyframe. Nothing to do here: every robot lives in this one
@@ -291,33 +310,40 @@ class FleetRecognizer:
         Raises:
             ConfigError, ImageError: a bad input; nothing was stored.
         """
-        self.check(robot, K)
         check_image(image, "image")  # before a new robot's folder is made: a refused keyframe leaves nothing
-        r = self.robots.get(robot)
-        if r is None or isinstance(r.detector, _Adopted):  # first keyframe here (adopted keyframes: now owned)
-            r = self._open(robot, K)
-        self.descriptor.last = None
-        res = r.detector.process(image, frame_id=keyframe, timestamp=timestamp, pose=pose,
-                                 fingerprint=_image_fingerprint(image))
-        self._save_camera(robot)
-        r.poses[keyframe] = np.asarray(pose, np.float64)
-        if res.gated or self.descriptor.last is None:
-            return Recognition(gated=True)
-        r.add(keyframe, r.detector.places.entry(self.descriptor.last))
-        if depth is not None and r.K is not None:
-            r.remember_points(keyframe, points_from_depth(r.detector.features[keyframe].keypoints, depth, r.K))
+        with self._lock:
+            self.check(robot, K)
+            r = self.robots.get(robot)
+            if r is None or isinstance(r.detector, _Adopted):  # first keyframe here (adopted keyframes: now owned)
+                r = self._open(robot, K)
+        with r.lock:
+            res = r.detector.process(image, frame_id=keyframe, timestamp=timestamp, pose=pose,
+                                     fingerprint=_image_fingerprint(image))
+        with self._lock:
+            self._save_camera(robot)
+            r.poses[keyframe] = np.asarray(pose, np.float64)
+            if res.gated or res.entry is None:
+                return Recognition(gated=True)
+            r.ids.append(keyframe)
+            r.last = (keyframe, res.entry)
+            if depth is not None and r.K is not None:
+                r.remember_points(keyframe, points_from_depth(self._features(robot, [keyframe])[0].keypoints,
+                                                              depth, r.K))
+            c = self.conf["cross"]
+            found = self.places.search(robot, res.entry, c["search_k"])  # {other: (keyframes, scores)}, best first
+            chosen = shortlist({o: s for o, (_, s) in found.items()}, c["k"], c["min_score"], c["budget"])
+        matches = {o: m for o, top in chosen.items() if (m := self._best_match(robot, keyframe, o, found[o][0][top]))}
         out = Recognition()
-        if res.loop is not None:
-            self._add_edge(out, "loop", (robot, res.loop.frame_id), (robot, keyframe), None)
-        self._cross(out, robot, keyframe)
+        with self._lock:
+            if res.loop is not None:  # the detector's verification of the pair: not checked again
+                self._add_edge(out, "loop", (robot, res.loop.frame_id), (robot, keyframe), res.verification)
+            self._cross(out, robot, keyframe, matches)
+            self.places.add(robot, keyframe, res.entry)
         return out
 
-    def _cross(self, out: Recognition, robot: str, keyframe: int) -> None:
-        """Searches and verifies against every other robot, updates the overlap rules, adds edges."""
-        c, q = self.conf["cross"], self.robots[robot].codes[-1]
-        scores = {o: r.codes @ q for o, r in self.robots.items() if o != robot and r.ids}
-        chosen = shortlist(scores, c["k"], c["min_score"], c["budget"])  # the keyframe's verification budget
-        matches = {o: m for o, top in chosen.items() if (m := self._best_match(robot, keyframe, o, top))}
+    def _cross(self, out: Recognition, robot: str, keyframe: int,
+               matches: dict[str, tuple[int, Verification]]) -> None:
+        """Updates the overlap rules with the keyframe's verified matches of other robots, adds edges."""
         accepted = self.tracker.update(robot, keyframe, {o: m[0] for o, m in matches.items()})
         keep = self.conf["overlap"]["required"]
         for other, (match, check) in matches.items():
@@ -349,17 +375,16 @@ class FleetRecognizer:
 
     def _best_match(self, robot: str, keyframe: int, other: str,
                     top: np.ndarray) -> tuple[int, Verification] | None:
-        """Of the other robot's keyframes at positions ``top`` (its shortlisted candidates), the one that verifies
-        best against the query (None: none passes)."""
+        """Of the other robot's keyframes ``top`` (its shortlisted candidates), the one that verifies best against
+        the query (None: none passes)."""
         q, o, c = self.robots[robot], self.robots[other], self.conf["cross"]
-        det = q.detector
         K = q.K if q.K is not None and o.K is not None and np.allclose(q.K, o.K) else None
-        checks = det.verifier.verify(det.features[keyframe], [o.detector.features[o.ids[i]] for i in top], K,
-                                     c["min_matches"], c["min_inliers"], False)
+        checks = q.detector.verifier.verify(self._features(robot, [keyframe])[0], self._features(other, top), K,
+                                            c["min_matches"], c["min_inliers"], False)
         best = max(range(len(top)), key=lambda j: (checks[j].inliers, checks[j].matches))
         if checks[best].inliers < max(c["min_inliers"], 1):
             return None
-        return o.ids[top[best]], checks[best]
+        return int(top[best]), checks[best]
 
     def _add_edge(self, out: Recognition, kind: str, a: tuple[str, int], b: tuple[str, int],
                   check: Verification | None) -> None:
@@ -367,9 +392,9 @@ class FleetRecognizer:
         pair = (a[0], b[0])
         if kind == "overlap" and self._edges.get(pair, 0) >= self.conf["max_edges_per_pair"]:
             return
-        ra, rb = self.robots[a[0]], self.robots[b[0]]
-        if check is None:  # a loop: the detector's verification is not kept, check the pair again
-            check = rb.detector.verifier.verify(rb.detector.features[b[1]], [ra.detector.features[a[1]]], rb.K)[0]
+        if check is None:  # a loop the detector accepted without verifying it (``policy.verify: false``)
+            rb = self.robots[b[0]]
+            check = rb.detector.verifier.verify(self._features(b[0], [b[1]])[0], self._features(a[0], [a[1]]), rb.K)[0]
         pts_a, pts_b = self._points(a[0], a[1]), self._points(b[0], b[1])
         if pts_a is None or pts_b is None or check.inliers <= 0:
             return
@@ -390,9 +415,15 @@ class FleetRecognizer:
         near = r.neighbour(keyframe)
         if r.K is None or near is None or keyframe not in r.poses or near not in r.poses:
             return None
-        feats = r.detector.features
-        return r.remember_points(keyframe, self.triangulator(feats[keyframe], r.poses[keyframe], feats[near],
-                                                             r.poses[near], r.K))
+        fk, fn = self._features(robot, [keyframe, near])
+        return r.remember_points(keyframe, self.triangulator(fk, r.poses[keyframe], fn, r.poses[near], r.K))
+
+    def _features(self, robot: str, keyframes: Any) -> list[Any]:
+        """The keyframes' local features (``LoopDetector.keyframe_features``), read while the robot's detector is
+        not processing a keyframe (its own thread may be)."""
+        r = self.robots[robot]
+        with r.lock:
+            return [r.detector.keyframe_features(int(k)) for k in keyframes]
 
     def _overlap_record(self, edge: EdgeRecord) -> OverlapRecord:
         """The accepted overlap: the similarity mapping robot b's map into robot a's, from ``edge``."""
@@ -404,6 +435,7 @@ class FleetRecognizer:
         return OverlapRecord(edge.robot_a, edge.robot_b, T, self.conf["overlap"]["required"], time.time())
 
     def close(self) -> None:
-        """Flushes and closes every robot's database."""
+        """Flushes and closes every robot's database and the place memory."""
         for r in self.robots.values():
             r.detector.close()
+        self.places.close()

@@ -33,7 +33,8 @@ ROBOT_NAME = r"[A-Za-z0-9_-]{1,64}"  #: what a robot's name may be
 
 class FleetService:
     """Robots, keyframes, place recognition and the pose graph over one store; safe to call from several threads
-    (keyframes are processed one at a time; the graph is solved in a worker thread).
+    (each robot's keyframes one at a time, different robots' at once when the recognizer allows it:
+    ``parallel_robots``; the graph is solved in a worker thread).
 
     Args:
         store: the robots, tokens, keyframes and edges.
@@ -185,12 +186,15 @@ class FleetService:
                                   f"({last.timestamp!r})")
             found = self._recognize(ack, image, K, depth)
             edges = [] if last is None else [EdgeRecord("odometry", robot, last.keyframe, robot, ack.keyframe,
-                                                        Sim3.from_pose(last.pose).inverse().compose(local))]
+                                                        Sim3.from_pose(last.pose).to(local))]
             self.store.ack_keyframe(ack, edges + found.edges)
             if self.recognizer is not None:
                 self.recognizer.committed(robot)  # stored: other robots may match it now (Ray workers share it)
-            for overlap in found.overlaps:
-                self.store.add_overlap(overlap)
+            if found.overlaps:  # the store is shared: another replica's worker may have accepted the pair already
+                known = {frozenset((o.robot_a, o.robot_b)) for o in self.store.overlaps()}
+                for overlap in found.overlaps:
+                    if frozenset((overlap.robot_a, overlap.robot_b)) not in known:
+                        self.store.add_overlap(overlap)
             with self._lock:
                 self._graph.add_keyframe(robot, ack.keyframe, ack.pose)
                 self._catch_up(found.edges)

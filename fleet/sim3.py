@@ -125,6 +125,11 @@ class Sim3:
         """``self o other``: apply ``other`` first, then ``self``."""
         return Sim3(self.s * other.s, self.R @ other.R, self.s * self.R @ other.t + self.t)
 
+    def to(self, other: "Sim3") -> "Sim3":
+        """``self^-1 o other``: ``other`` seen from ``self``, the edge between two poses (odometry: the previous
+        keyframe's pose ``.to`` the current one's)."""
+        return self.inverse().compose(other)
+
     def errors(self, reference: "Sim3") -> tuple[float, float, float]:
         """How far this transform is from ``reference``.
 

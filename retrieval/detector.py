@@ -51,7 +51,7 @@ from .index import INDEXES
 from .places import create_places
 from .temporal import FILTERS, create_filter
 
-__all__ = ["Candidate", "FrameResult", "LoopDetector", "STAGES", "default_conf", "conf_rules",
+__all__ = ["Candidate", "FrameResult", "LoopDetector", "weights_whitening", "STAGES", "default_conf", "conf_rules",
            "resolve_conf"]
 
 log = logging.getLogger(__name__)
@@ -166,6 +166,13 @@ def resolve_conf(conf: dict[str, Any] | None = None) -> dict[str, Any]:
     return resolved
 
 
+def weights_whitening(conf: dict[str, Any], descriptor: GlobalDescriptor) -> Any:
+    """The whitening an uncalibrated detector applies to ``descriptor``'s codes: the descriptor's own (its weights'),
+    when ``whitening.enabled`` and its source is not the sequence; else None."""
+    w = conf["whitening"]
+    return getattr(descriptor, "whitening", None) if w["enabled"] and w["source"] != "sequence" else None
+
+
 @dataclass
 class Candidate:
     frame_id: int  #: the keyframe (a hypothesis of the temporal filter)
@@ -191,6 +198,8 @@ class FrameResult:
     R: np.ndarray | None = field(default=None, repr=False)
     t: np.ndarray | None = field(default=None, repr=False)
     ms: dict[str, float] = field(default_factory=dict)
+    entry: np.ndarray | None = field(default=None, repr=False)  #: the searched entry (``places.entry``), None gated
+    verification: Verification | None = field(default=None, repr=False)  #: the loop's check: matches, transform
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready view (the fleet server and logs use it)."""
@@ -247,8 +256,7 @@ class LoopDetector:
         self.descriptor = descriptor if descriptor is not None else \
             create_descriptor(c["descriptor"], **({"encoder": encoder} if encoder is not None else {}))
         self.whitening = self.calibration.whitening if self.calibration is not None else \
-            (getattr(self.descriptor, "whitening", None)
-             if c["whitening"]["enabled"] and c["whitening"]["source"] != "sequence" else None)
+            weights_whitening(c, self.descriptor)
         if self.whitening is not None and self.whitening.input_dim != self.descriptor.dim:
             raise ConfigError(f"the whitening expects {self.whitening.input_dim}-d codes; the descriptor gives "
                               f"{self.descriptor.dim}-d ones")
@@ -408,7 +416,7 @@ class LoopDetector:
         ms["total"] = (time.perf_counter() - t_start) * 1e3
         geo = best.geometry if best is not None else None
         return FrameResult(fid, False, gate.edge_ratio, candidates, loop, getattr(geo, "R", None),
-                           getattr(geo, "t", None), ms)
+                           getattr(geo, "t", None), ms, entry, best)
 
     def _verify_and_insert(self, fid: int, edge_ratio: float, feats: Features | None, code: np.ndarray,
                            entry: np.ndarray, gray: np.ndarray,

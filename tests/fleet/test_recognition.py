@@ -3,12 +3,17 @@
 
 from __future__ import annotations
 
+import ast
+import re
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
 
 from core.conf import ConfigError
-from fleet.recognition import FleetRecognizer, remembering
+from fleet.places import FleetPlaces
+from fleet.recognition import FleetRecognizer
 from fleet.sim3 import Sim3
 
 
@@ -53,14 +58,41 @@ def overlapping(tmp_path_factory, kitti, cae_descriptor, known_sim3):
     return state, found
 
 
-class TestRemembering:
-    def test_same_class_same_code_remembered(self, cae_descriptor, kitti):
-        d = remembering(cae_descriptor)
-        image = kitti("00", 0)[0]
-        assert isinstance(d, type(cae_descriptor)) and d.encoder is cae_descriptor.encoder
-        code = d(image)
-        np.testing.assert_array_equal(code, cae_descriptor(image))
-        assert d.last is code
+def private_detector_reads(source: str) -> list[str]:
+    """``owner._name`` attribute reads in ``source`` whose owner is a detector (its text names ``detector``/``det``)."""
+    out = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Attribute) and re.fullmatch(r"_[a-z]\w*", node.attr):
+            owner = ast.unparse(node.value)
+            if re.search(r"\bdet\b|detector", owner):
+                out.append(f"{node.lineno}: {owner}.{node.attr}")
+    return sorted(out)
+
+
+class TestSeam:
+    def test_the_fleet_reaches_no_private_attribute_of_a_detector(self):
+        assert private_detector_reads("r.detector._features_of(3)\ndet._late\nself._edges") == \
+            ["1: r.detector._features_of", "2: det._late"]  # the check itself can fail
+        fleet = Path(__file__).resolve().parents[2] / "fleet"
+        found = {p.name: bad for p in sorted(fleet.glob("*.py")) if (bad := private_detector_reads(p.read_text()))}
+        assert not found
+
+    @pytest.mark.parametrize("index", ["flat", "milvus"])
+    def test_the_place_memory_groups_other_robots_best_first(self, cae_descriptor, kitti, index):
+        from retrieval.detector import resolve_conf
+
+        places = FleetPlaces(cae_descriptor, None, resolve_conf(), resolve_conf({"index": {"name": index}})["index"])
+        codes = {i: cae_descriptor(kitti("00", i)[0]) for i in (0, 2, 100, 102)}
+        for robot, i in (("A", 0), ("A", 100), ("B", 2), ("B", 102)):
+            places.add(robot, i, codes[i] / np.linalg.norm(codes[i]))
+        places.add("A", 0, codes[0])  # a known key is not added twice
+        assert len(places) == 4 and ("B", 102) in places
+        found = places.search("A", codes[2] / np.linalg.norm(codes[2]), 10)
+        assert sorted(found) == ["B"] and found["B"][0].tolist() == [2, 102]  # A's own left out; 2 itself first
+        assert found["B"][1][0] > found["B"][1][1]
+        assert list(places.search("A", codes[2] / np.linalg.norm(codes[2]), 1)) == ["B"]  # its top-1 only
+        assert len(places) == 4 and len(places.places) == 4  # searching added nothing
+        places.close()
 
 
 class TestFleetRecognizer:
@@ -109,8 +141,13 @@ class TestFleetRecognizer:
     def test_a_robot_revisiting_a_place_reports_a_loop(self, tmp_path, kitti, cae_descriptor):
         """KITTI 90: frames 134-145 drive again past frames 34-45 (about 0.7 m beside them)."""
         rec = FleetRecognizer(tmp_path, descriptor=cae_descriptor)
-        found = stream(rec, kitti, [("A", "90", i) for i in [*range(34, 46), *range(134, 146)]])
+        found = stream(rec, kitti, [("A", "90", i) for i in range(34, 46)])
+        calls = []  # one robot: only the detector verifies, and its verification makes the edge (not checked twice)
+        real = rec.robots["A"].detector.verifier.verify
+        rec.robots["A"].detector.verifier.verify = lambda *a, **kw: calls.append(1) or real(*a, **kw)
+        found += stream(rec, kitti, [("A", "90", i) for i in range(134, 146)])
         rec.close()
+        assert len(calls) <= 12
         loops = [e for r in found for e in r.edges]
         assert loops and {e.kind for e in loops} == {"loop"} and not [o for r in found for o in r.overlaps]
         for e in loops:

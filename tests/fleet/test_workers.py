@@ -63,3 +63,28 @@ def test_overlap_across_workers_and_a_killed_worker(local_ray, tmp_path, kitti_s
              for robot, i, pose, image, K in frames(kitti_sequences, kitti_poses, range(110, 116))]
     assert any(e.kind == "overlap" and e.robot_b == B for r in later for e in r.edges)  # B still matched with A
     rec.close()
+
+
+def test_two_replicas_over_http_on_postgresql_milvus_and_ray(local_ray, local_postgres, tmp_path, kitti_sequences,
+                                                               kitti_poses):
+    """Two front ends (uvicorn on loopback) on one PostgreSQL store and the same two Ray workers, the place memory on
+    Milvus: A streams through one, B through the other, and either replica serves the overlap and both robots."""
+    import cv2
+
+    from fleet.client import FleetClient
+    from fleet.runner import ServerThread
+    from fleet.server import create_app
+
+    url = local_postgres.create_database("replicas")
+    apps = [create_app(tmp_path, "admin", store=url, workers=2, recognition={"places": {"index": {"name": "milvus"}}})
+            for _ in range(2)]
+    with ServerThread(apps[0]) as one, ServerThread(apps[1]) as two:
+        tokens = {r: FleetClient(one.url, "admin").register(r) for r in (A, B)}
+        for robot, i, pose, image, K in frames(kitti_sequences, kitti_poses, range(100, 110)):
+            server = one if robot == A else two
+            assert FleetClient(server.url, tokens[robot]).submit_keyframe(
+                robot, i, float(i), pose, cv2.imencode(".png", image)[1].tobytes(), K)
+        for server in (one, two):  # the store's overlaps: once, though both robots' workers accepted the pair
+            overlaps = FleetClient(server.url, "admin").overlaps()
+            assert len(overlaps) == 1 and {overlaps[0]["robot_a"], overlaps[0]["robot_b"]} == {A, B}
+        assert len(FleetClient(two.url, tokens[B]).poses(B, wait=True)) == 5  # (one's graph has B's joined ones only)
