@@ -52,6 +52,8 @@ from core.conf import conf_diff, conf_get
 from core.errors import ConfigError, DatabaseError
 from verify.features import KEYPOINT_STEP, Features
 
+from .wal import FrameLog, read_records
+
 __all__ = ["FORMAT_VERSION", "CANDIDATE_ROW", "SKIP_REASONS", "KINDS", "MIN_FREE_BYTES", "CHUNK_ROWS",
            "FeatureStore", "KeyframeRecord", "FrameEntry", "KeyframeDatabase"]
 
@@ -75,6 +77,8 @@ _COLUMNS: dict[str, tuple[Any, tuple[int, ...]]] = {
 _ROW_CHECKED = ("frame_id", "kind", "timestamp", "pose", "edge_ratio", "loop", "source", "fingerprint", "message",
                 "code_end", "feat_end", "cand_end")
 _FEATURES = ("keypoints", "descriptors", "scales")
+_LOGGED = ("frame_id", "kind", "timestamp", "edge_ratio", "loop", "fingerprint", "message")  # as JSON in the log
+LOG_SUFFIX = ".log"  #: the write-ahead log is the store's path plus this (``keyframes.h5.log``)
 
 
 def _name_bytes(name: str) -> bytes:
@@ -200,7 +204,8 @@ class KeyframeDatabase:
         path: the ``.h5`` file; created when missing, resumed when present.
         conf: the resolved detector conf, saved in a new file and compared with an existing one.
         encoder: identity of the global descriptor (weights hash); an existing file made with another is refused.
-        flush_every: flush to disk after this many records (1 = a killed run loses nothing).
+        flush_every: frames moved from the write-ahead log into the columns at a time (every frame is in the log
+            when ``append`` returns, so a killed run loses nothing whatever this is; a larger block is cheaper).
         mode: ``"a"`` create or resume, ``"r"`` read only.
 
     Raises:
@@ -210,10 +215,11 @@ class KeyframeDatabase:
     """
 
     def __init__(self, path: str | Path, conf: dict[str, Any] | None = None, encoder: str = "",
-                 flush_every: int = 1, mode: str = "a") -> None:
+                 flush_every: int = 256, mode: str = "a") -> None:
         self.path = Path(path)
         self.flush_every = max(1, int(flush_every))
-        self._since_flush = 0
+        self._log: FrameLog | None = None
+        self._pending: list[tuple[dict[str, Any], dict[str, np.ndarray], dict[str, np.ndarray], dict[str, str]]] = []
         self._broken = False
         self._verified: set[int] = set()
         self._handles: dict[str, h5py.Dataset] = {}
@@ -231,12 +237,17 @@ class KeyframeDatabase:
             else:
                 self._create(conf, encoder)
             self._load_columns(mode)
+            if mode != "r":  # last: a refused file is left as it was, its log too
+                self._log = FrameLog(self.path.with_name(self.path.name + LOG_SUFFIX))
+                self._replay()
         except _READ_ERRORS as err:
+            self._close_log()
             self.file.close()
             if isinstance(err, (ConfigError, DatabaseError)):
                 raise
             raise self._damaged(err) from None
         except BaseException:
+            self._close_log()
             self.file.close()
             raise
 
@@ -303,6 +314,7 @@ class KeyframeDatabase:
             raise DatabaseError(f"{self.path} is damaged: {len(self._cols['frame_id'])} frame rows, {n} committed; "
                                 "move it away to start again")
         self._kf_rows = np.flatnonzero(self._cols["kind"] == 0)
+        self._h5_rows = n
         if mode != "r" and len(frames["frame_id"]) > n and frames["frame_id"][n] > self.last_frame_id():
             log.warning("%s: a half-written frame from an interrupted run is dropped (overwritten)", self.path)
 
@@ -354,37 +366,93 @@ class KeyframeDatabase:
         ds[start:start + len(rows)] = rows.astype(ds.dtype, copy=False)
         return start + len(rows)
 
-    def _append_row(self, row: dict[str, Any], ragged: dict[str, np.ndarray], features: dict[str, np.ndarray]
-                    ) -> None:
-        """Writes one frame: ragged arrays, then its row, then raises ``committed`` (the commit point)."""
+    def _append_row(self, row: dict[str, Any], ragged: dict[str, np.ndarray], features: dict[str, np.ndarray],
+                    attrs: dict[str, str] | None = None) -> None:
+        """Appends one frame to the write-ahead log (durable once this returns), then keeps it pending; every
+        ``flush_every`` frames the pending ones move into the columns (``_write_block``)."""
         if self._broken:
             raise DatabaseError(f"{self.path}: an earlier write failed; nothing more is written")
         self._ensure_space()
-        n = len(self._cols["frame_id"])
         try:
-            row["code_end"] = self._extend("codes", ragged["codes"], self._end("code_end"))
-            row["cand_end"] = self._extend("candidates", ragged["candidates"], self._end("cand_end"))
-            feat_end = self._end("feat_end")
-            for key in _FEATURES:
-                end = self._extend(f"features/{key}", features[key], feat_end)
-            row["feat_end"] = end if len(features["keypoints"]) else feat_end
-            fixed = _fixed_rows({k: [row[k]] for k in _FIXED.names})[0].tobytes()
-            row["checksum"] = _checksum(fixed, [row[k] for k in _TEXT], [ragged["codes"], ragged["candidates"]])
-            row["feat_checksum"] = _checksum(b"", [], [features[k] for k in _FEATURES])
-            for key, value in row.items():
-                ds = self._ds(f"frames/{key}")
-                _grow(ds, n + 1)
-                ds[n] = value
-            self.file.attrs["committed"] = n + 1
-            self._maybe_flush()
-        except (OSError, RuntimeError, ValueError) as err:
+            self._log.append({**{k: row[k] for k in _LOGGED}, "source": bytes(row["source"]).hex(),
+                              "attrs": attrs or {}},
+                             {"pose": np.asarray(row["pose"], np.float64), **ragged, **features})
+        except OSError as err:
             self._broken = True
-            raise DatabaseError(f"cannot write {self.path}: {str(err)[:160]}") from None
+            raise DatabaseError(f"cannot write {self._log.path}: {str(err)[:160]}") from None
+        self._remember(row, ragged, features, attrs or {})
+        if len(self._pending) >= self.flush_every:
+            self._write_block()
+
+    def _remember(self, row: dict[str, Any], ragged: dict[str, np.ndarray], features: dict[str, np.ndarray],
+                  attrs: dict[str, str]) -> None:
+        """Makes a logged frame visible (in-memory columns, offsets) and pending for the next block."""
+        row["code_end"] = self._end("code_end") + len(ragged["codes"])
+        row["cand_end"] = self._end("cand_end") + len(ragged["candidates"])
+        row["feat_end"] = self._end("feat_end") + len(features["keypoints"])
+        n = len(self._cols["frame_id"])
         for key in ("frame_id", "kind", "code_end", "feat_end", "cand_end"):
             self._cols[key] = np.append(self._cols[key], np.asarray(row[key], self._cols[key].dtype))
         if row["kind"] == 0:
             self._kf_rows = np.append(self._kf_rows, n)
         self._verified.add(n)
+        self._pending.append((row, ragged, features, attrs))
+
+    def _write_block(self) -> None:
+        """Moves the pending frames into the columns: ragged arrays past their committed ends, then the rows, then
+        ``committed`` raised and the file flushed (the commit point), then the log emptied."""
+        if not self._pending or self._broken:
+            return
+        self._ensure_space()
+        n0, m = self._h5_rows, len(self._pending)
+        rows = [p[0] for p in self._pending]
+        try:
+            for attrs in (p[3] for p in self._pending):
+                self.file.attrs.update({k: v for k, v in attrs.items() if k not in self.file.attrs})
+            self._extend_all("codes", [p[1]["codes"] for p in self._pending], "code_end", n0)
+            self._extend_all("candidates", [p[1]["candidates"] for p in self._pending], "cand_end", n0)
+            for key in _FEATURES:
+                self._extend_all(f"features/{key}", [p[2][key] for p in self._pending], "feat_end", n0)
+            fixed = _fixed_rows({k: [r[k] for r in rows] for k in _FIXED.names})
+            for j, (row, ragged, feats, _) in enumerate(self._pending):
+                row["checksum"] = _checksum(fixed[j].tobytes(), [row[k] for k in _TEXT],
+                                            [ragged["codes"], ragged["candidates"]])
+                row["feat_checksum"] = _checksum(b"", [], [feats[k] for k in _FEATURES])
+            for key in _COLUMNS:
+                ds = self._ds(f"frames/{key}")
+                _grow(ds, n0 + m)
+                values = [r[key] for r in rows]
+                ds[n0:n0 + m] = np.array(values, dtype=object) if ds.dtype.kind == "O" else np.asarray(values)
+            self.file.attrs["committed"] = n0 + m
+            self.file.flush()
+            self._log.clear()
+        except (OSError, RuntimeError, ValueError, TypeError) as err:
+            self._broken = True
+            raise DatabaseError(f"cannot write {self.path}: {str(err)[:160]}") from None
+        self._h5_rows, self._pending = n0 + m, []
+
+    def _extend_all(self, name: str, parts: list[np.ndarray], column: str, n0: int) -> None:
+        """Writes the pending rows' ``parts`` of ragged dataset ``name`` in one call, after row ``n0 - 1``'s end."""
+        parts = [p for p in parts if len(p)]
+        if parts:
+            self._extend(name, np.concatenate(parts), int(self._cols[column][n0 - 1]) if n0 else 0)
+
+    def _replay(self) -> None:
+        """Takes back the frames of the write-ahead log that the columns do not hold yet (a run killed between
+        two blocks), and writes them into the columns."""
+        last, n = self.last_frame_id(), 0
+        for meta, arrays in read_records(self._log.path):
+            if meta["frame_id"] <= last:
+                continue  # moved into the columns before the kill
+            row = {k: meta[k] for k in _LOGGED}
+            row.update({"source": bytes.fromhex(meta["source"]), "pose": arrays["pose"]})
+            self._remember(row, {k: arrays[k] for k in ("codes", "candidates")},
+                           {k: arrays[k] for k in _FEATURES}, meta["attrs"])
+            last, n = meta["frame_id"], n + 1
+        if n:
+            log.info("%s: %d frames taken back from the write-ahead log %s", self.path, n, self._log.path.name)
+        self._write_block()
+        self._log.clear()  # a torn record of a killed run (never used) goes too
 
     def _row(self, frame_id: int, kind: int, source: str, fingerprint: str, edge_ratio: float) -> dict[str, Any]:
         if len(self._cols["frame_id"]) and frame_id <= self._cols["frame_id"][-1]:
@@ -405,10 +473,9 @@ class KeyframeDatabase:
         cands = (np.zeros((0, len(CANDIDATE_ROW))) if rec.candidates is None
                  else np.asarray(rec.candidates, np.float64)).reshape(-1, len(CANDIDATE_ROW))
         ragged = {"codes": code if binary else code.astype(np.float16).reshape(1, -1), "candidates": cands}
-        if len(feats) and "metric" not in self.file.attrs:
-            self.file.attrs.update({"metric": feats.metric,
-                                    "descriptor_dtype": np.dtype(rec.features.descriptors.dtype).name})
-        self._append_row(row, ragged, _pack_features(feats))
+        attrs = {"metric": feats.metric, "descriptor_dtype": np.dtype(rec.features.descriptors.dtype).name} \
+            if len(feats) and "metric" not in self.file.attrs else {}
+        self._append_row(row, ragged, _pack_features(feats), attrs)
 
     def add_skipped(self, frame_id: int, reason: str, source: str = "", fingerprint: str = "",
                     edge_ratio: float = float("nan"), message: str = "") -> None:
@@ -424,12 +491,6 @@ class KeyframeDatabase:
                   ) -> None:
         """Records a frame the quality gate rejected."""
         self.add_skipped(frame_id, "gated", source, fingerprint, edge_ratio)
-
-    def _maybe_flush(self) -> None:
-        self._since_flush += 1
-        if self._since_flush >= self.flush_every:
-            self.file.flush()
-            self._since_flush = 0
 
     # ----------------------------------------------------------------------------------------------- reading
     @property
@@ -475,6 +536,7 @@ class KeyframeDatabase:
 
     def frames(self) -> list[FrameEntry]:
         """Every frame held (keyframes and skipped ones) in frame-id order, with what it was made from."""
+        self.sync()
         sources, prints = self._column("source"), self._column("fingerprint")
         return [FrameEntry(int(f), KINDS[int(k)], _name_str(s), str(p))
                 for f, k, s, p in zip(self._cols["frame_id"], self._cols["kind"], sources, prints)]
@@ -542,6 +604,8 @@ class KeyframeDatabase:
     def _features_at(self, row: int) -> Features:
         span = self._span("feat_end", row)
         try:
+            if row >= self._h5_rows:  # still pending: as logged (checked when the log was read or written)
+                return self._unpack(self._pending[row - self._h5_rows][2])
             packed = {"keypoints": self._read("features/keypoints", span, 2).astype(np.uint16).reshape(-1, 2),
                       "descriptors": self._read("features/descriptors", span, 1),
                       "scales": self._read("features/scales", span).astype(np.float16)}
@@ -552,6 +616,10 @@ class KeyframeDatabase:
             raise DatabaseError(f"{self.path} is damaged: the features of keyframe {int(self._cols['frame_id'][row])} "
                                 "fail their checksum; the files written from it are left as they were; move it "
                                 "away to start again")
+        return self._unpack(packed)
+
+    def _unpack(self, packed: dict[str, np.ndarray]) -> Features:
+        """Stored features (``_pack_features``) as the extractor gave them."""
         if not len(packed["keypoints"]):
             width = self.file["features/descriptors"].shape[1] if "features/descriptors" in self.file else 128
             return Features.empty(width, np.dtype(self.file.attrs.get("descriptor_dtype", "float32")),
@@ -562,6 +630,7 @@ class KeyframeDatabase:
 
     def __iter__(self) -> Iterator[KeyframeRecord]:
         """Keyframes in frame-id order."""
+        self.sync()
         for rows, block in self._blocks():
             c = block["cols"]
             for j, r in enumerate(rows.tolist()):
@@ -577,6 +646,7 @@ class KeyframeDatabase:
                                                                      Features | None]]:
         """``(frame_id, code, timestamp, features)`` per keyframe in frame-id order, checksums verified;
         ``features=False`` reads no local features (None in their place: resuming in database mode)."""
+        self.sync()
         for rows, block in self._blocks():
             c = block["cols"]
             for j, r in enumerate(rows.tolist()):
@@ -587,6 +657,7 @@ class KeyframeDatabase:
     def results(self) -> Iterator[tuple[int, np.ndarray, int]]:
         """``(frame_id, candidates (k, len(CANDIDATE_ROW)), loop)`` per keyframe in frame-id order, checksums
         verified."""
+        self.sync()
         for rows, block in self._blocks():
             c = block["cols"]
             for j in range(len(rows)):
@@ -594,23 +665,39 @@ class KeyframeDatabase:
 
     def poses(self) -> np.ndarray:
         """``(n, 3, 4)`` camera-to-world pose per keyframe in frame-id order, NaN where none was given."""
+        self.sync()
         out = [block["cols"]["pose"] for _, block in self._blocks()]
         return np.concatenate(out).reshape(-1, 3, 4).astype(np.float64) if out else np.zeros((0, 3, 4))
 
     def codes(self) -> tuple[np.ndarray, np.ndarray]:
         """All codes, ``(n, D)`` float32, with their frame ids ``(n,)``; ``(0, 0)`` and ``(0,)`` when the keyframes
         hold binary descriptors (MILD) instead of codes."""
+        self.sync()
         if "codes" not in self.file or self.file["codes"].dtype != np.float16:
             return np.zeros((0, 0), np.float32), np.zeros(0, np.int64)
         out = [np.concatenate(block["codes"]) for _, block in self._blocks()]
         return np.concatenate(out).astype(np.float32), self._cols["frame_id"][self._kf_rows].astype(np.int64)
 
+    def sync(self) -> None:
+        """Moves the frames still only in the write-ahead log into the columns now (readers of the columns call it)."""
+        if self._pending:
+            self._write_block()
+
+    def _close_log(self) -> None:
+        if self._log is not None:
+            self._log.close(remove=not self._broken)
+            self._log = None
+
     def close(self) -> None:
-        """Flushes and closes the file (after a failed write only closes: HDF5 cannot flush a broken file)."""
+        """Moves the log into the columns, flushes and closes the file (after a failed write only closes: HDF5
+        cannot flush a broken file; the log keeps the frames for the next run)."""
         if self.file.id.valid:
+            if not self._broken:
+                self.sync()
             if not self._broken:
                 self.file.flush()
                 self.file.close()
+        self._close_log()
 
     def __enter__(self) -> "KeyframeDatabase":
         return self

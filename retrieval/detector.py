@@ -106,7 +106,8 @@ default_conf: dict[str, Any] = {
         "parallel": False,  # features in a worker thread while the encoder runs (cores split); slower on 2 cores
         "lazy_features": True,  # local features only for frames that verify a candidate (extracted when needed,
         #                         then cached); False: on every frame as it arrives (the same results, slower)
-        "flush_every": 1,  # flush the database every this many frames (1: a killed run loses nothing)
+        "flush_every": 256,  # frames moved from the database's write-ahead log into its columns at a time (each
+        #                    frame is logged as it is stored: a killed run loses nothing whatever this is)
         "features": "memory",  # keyframe features for verification: "memory" (all), "database" (bounded memory)
         "feature_cache": 512,  # keyframes' features kept in memory (LRU): with features "database", and those
         #                        extracted late (lazy_features) in either mode
@@ -293,6 +294,9 @@ class LoopDetector:
         self._lazy = c["runtime"]["lazy_features"] and not c["runtime"]["parallel"] \
             and not self.descriptor.needs_features and (not has_database or frame_source is not None)
         self._frame_source = frame_source
+        # local features go into the database only where they cannot be had again from the frame's source (or are
+        # read back from there: features "database"); offline, its files give them again (~40 kB a frame less)
+        self._store_features = frame_source is None or c["runtime"]["features"] == "database"
         self._given: dict[int, Features] = dict(features or {})  # frame -> features extracted before (calibration)
         self._unextracted: set[int] = set()  # keyframes whose features were not extracted when they were processed
         self._copies: dict[int, tuple[bytes, float]] = {}  # without frame_source: their prepared grey image (PNG)
@@ -436,9 +440,9 @@ class LoopDetector:
         t0 = time.perf_counter()
         if self.db is not None:  # first: if the disk refuses it, the in-memory state has not moved either
             rows = np.array([cd.as_row() for cd in candidates], np.float64).reshape(-1, len(CANDIDATE_ROW))
-            self.db.append(KeyframeRecord(fid, entry, feats if feats is not None else self._no_features(), ts,
-                                          pose34, source, edge_ratio, rows, -1 if loop is None else loop.frame_id,
-                                          fingerprint))
+            stored = feats if feats is not None and self._store_features else self._no_features()
+            self.db.append(KeyframeRecord(fid, entry, stored, ts, pose34, source, edge_ratio, rows,
+                                          -1 if loop is None else loop.frame_id, fingerprint))
         self.places.insert(fid, entry, ts)
         self.filter.commit(fid, np.array([cd.frame_id for cd in candidates], np.int64))
         if self.decision is not None:
