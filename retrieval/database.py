@@ -59,7 +59,8 @@ __all__ = ["FORMAT_VERSION", "CANDIDATE_ROW", "SKIP_REASONS", "KINDS", "MIN_FREE
 
 log = logging.getLogger(__name__)
 
-FORMAT_VERSION = 5  #: 5: columnar (one dataset a column), float16 searched codes, compact features
+FORMAT_VERSION = 6  #: 6: 5 (columnar, float16 searched codes, compact features) + write-ahead log, features
+#: only where a frame cannot be read again
 CANDIDATE_ROW = ("frame_id", "score", "matches", "inliers", "seq_score", "confidence")  #: a stored candidate row
 SKIP_REASONS = ("gated", "unreadable")  #: why a frame is not a keyframe
 KINDS = ("keyframe",) + SKIP_REASONS  #: ``frames/kind`` values, by position
@@ -381,6 +382,8 @@ class KeyframeDatabase:
             self._broken = True
             raise DatabaseError(f"cannot write {self._log.path}: {str(err)[:160]}") from None
         self._remember(row, ragged, features, attrs or {})
+        if attrs:  # once per store (the first keyframe with features): what pending features are read back with
+            self.file.attrs.update(attrs)
         if len(self._pending) >= self.flush_every:
             self._write_block()
 
@@ -448,6 +451,7 @@ class KeyframeDatabase:
             row.update({"source": bytes.fromhex(meta["source"]), "pose": arrays["pose"]})
             self._remember(row, {k: arrays[k] for k in ("codes", "candidates")},
                            {k: arrays[k] for k in _FEATURES}, meta["attrs"])
+            self.file.attrs.update({k: v for k, v in meta["attrs"].items() if k not in self.file.attrs})
             last, n = meta["frame_id"], n + 1
         if n:
             log.info("%s: %d frames taken back from the write-ahead log %s", self.path, n, self._log.path.name)
