@@ -186,6 +186,18 @@ def _grow(ds: h5py.Dataset, size: int) -> None:
         ds.resize(max(size, len(ds) + max(ds.chunks[0], len(ds) // 4)), axis=0)
 
 
+def _append_one(view: np.ndarray, value: Any) -> np.ndarray:
+    """``view`` with ``value`` appended, as a view of a buffer that doubles when full (``np.append`` copied the
+    whole column on every frame: quadratic in the map's size)."""
+    n, base = len(view), view.base
+    if not isinstance(base, np.ndarray) or base.base is not None or base.ndim != 1 or len(base) <= n \
+            or base.dtype != view.dtype or n and not np.shares_memory(base[n - 1:n], view[n - 1:n]):
+        base = np.empty(max(64, 2 * n), view.dtype)
+        base[:n] = view
+    base[n] = value
+    return base[:n + 1]
+
+
 def _file_size_limit() -> float:
     soft = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
     return float("inf") if soft == resource.RLIM_INFINITY else float(soft)
@@ -395,9 +407,9 @@ class KeyframeDatabase:
         row["feat_end"] = self._end("feat_end") + len(features["keypoints"])
         n = len(self._cols["frame_id"])
         for key in ("frame_id", "kind", "code_end", "feat_end", "cand_end"):
-            self._cols[key] = np.append(self._cols[key], np.asarray(row[key], self._cols[key].dtype))
+            self._cols[key] = _append_one(self._cols[key], row[key])
         if row["kind"] == 0:
-            self._kf_rows = np.append(self._kf_rows, n)
+            self._kf_rows = _append_one(self._kf_rows, n)
         self._verified.add(n)
         self._pending.append((row, ragged, features, attrs))
 

@@ -304,8 +304,8 @@ class LoopDetector:
 
     def _load(self, db: KeyframeDatabase) -> None:
         """Rebuilds the place memory and the filter's history from the database, as the uninterrupted run had them:
-        each keyframe is searched again in frame order (the filter updated with what it saw then), then committed
-        with its stored hypotheses and inserted."""
+        each keyframe is registered again in frame order (searched again only for a filter whose state depends on
+        every search: it is updated with what it saw then), then committed with its stored hypotheses and inserted."""
         n = 0
         results = {q: cands for q, cands, _ in db.results()}
         for fid, entry, timestamp, feats in db.search_entries(features=self.features.db is None):
@@ -313,9 +313,11 @@ class LoopDetector:
                 self.places.check(entry)  # the store keeps the searched entry itself
             except ConfigError as err:
                 raise ConfigError(f"{db.path}: keyframe {fid}: {err}; the database is damaged") from None
-            scores, ids = self.places.search(fid, entry, timestamp, self.conf["search"]["k"])
             if self.filter.replays_history:  # its state depends on every update, not only on the kept hypotheses
+                scores, ids = self.places.search(fid, entry, timestamp, self.conf["search"]["k"])
                 self.filter.update(fid, ids[scores >= self.conf["search"]["min_score"]], self.places.source)
+            else:
+                self.places.register(fid, entry, timestamp)
             self.filter.commit(fid, results[fid][:, 0].astype(np.int64))
             if self.decision is not None:  # stored rows: frame_id, score, matches, inliers, ... (CANDIDATE_ROW)
                 rows = results[fid]
