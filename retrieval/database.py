@@ -1,7 +1,7 @@
 """The keyframe store, persisted in one HDF5 file: what a detector has seen, so a run can resume or be inspected.
 
 Built for millions of keyframes: append-only and columnar, every column one chunked, resizable dataset (no group
-per keyframe). Layout (``format_version`` 5)::
+per keyframe). Layout (``format_version`` 6)::
 
     /                 attrs: format_version, conf (JSON), descriptor (weights identity), software, created,
                       committed (frames visible: the commit point, written last)
@@ -15,8 +15,9 @@ per keyframe). Layout (``format_version`` 5)::
         source, fingerprint, message   (n,) variable-length strings (source as bytes: any file name survives)
         code_end, feat_end, cand_end   (n,) int64: end offsets into the ragged arrays below (start = the previous
                                         row's end; a skipped frame adds nothing)
-        checksum      (n,)     BLAKE2b-128 of the row, its code rows and its candidates (verified on read)
         feat_checksum (n,)     BLAKE2b-128 of the row's local features (verified when they are read)
+    /blocks/end, /blocks/checksum      per written block of rows (``flush_every`` frames): its end row and one
+                               BLAKE2b-128 of its rows, codes and candidates (verified on the first read)
     /codes            (R, D)   the searched code, float16 (whitened and unit-norm: what the index holds), one row a
                                keyframe; or (R, 32) uint8 binary descriptors, several rows a keyframe (MILD)
     /features/keypoints   (M, 2) uint16, x and y in 1/8 pixel (``verify.features.KEYPOINT_STEP``)
@@ -24,12 +25,14 @@ per keyframe). Layout (``format_version`` 5)::
     /features/scales      (M,)   float16
     /candidates       (C, 6)   float64 rows (CANDIDATE_ROW) of every hypothesis judged
 
-A frame is written in order: its ragged arrays past their committed ends, then its row, then ``committed`` is
-raised and the file flushed. Nothing past the committed ends is ever read, so a half-written frame from a killed run
-is invisible and overwritten when the run resumes after the last complete one (arrays grow a quarter at a time;
-HDF5 allocates no disk for chunks never written). Checksums are per frame row
-(the chunk a reader fetches), verified when read, so bit flips are reported as damage instead of being used.
-Free disk space is checked before each write (HDF5 cannot recover from a write that fails half-way).
+Local features are stored only where the detector cannot have them again (``LoopDetector``: offline, a keyframe's
+file gives them again; an empty span then). A frame goes first to the write-ahead log beside the file
+(``keyframes.h5.log``, ``retrieval.wal``: one write, durable once ``append`` returns), and ``flush_every`` frames at
+a time into the columns: ragged arrays past their committed ends, then the rows and the block's checksum, then
+``committed`` raised and the file flushed, then the log emptied. Nothing past the committed ends is ever read, so
+a block half-written by a killed run is invisible and overwritten when the run resumes, and the frames of the log
+that the columns lack are taken back (a torn last record is dropped). Bit flips are reported as damage instead of
+being used. Free disk space is checked before each write (HDF5 cannot recover from a write that fails half-way).
 """
 
 from __future__ import annotations
@@ -74,7 +77,7 @@ _COLUMNS: dict[str, tuple[Any, tuple[int, ...]]] = {
     "frame_id": (np.int64, ()), "kind": (np.uint8, ()), "timestamp": (np.float64, ()), "pose": (np.float64, (12,)),
     "edge_ratio": (np.float64, ()), "loop": (np.int64, ()), "source": (_BYTES, ()), "fingerprint": (_STR, ()),
     "message": (_STR, ()), "code_end": (np.int64, ()), "feat_end": (np.int64, ()), "cand_end": (np.int64, ()),
-    "checksum": ("S32", ()), "feat_checksum": ("S32", ())}
+    "feat_checksum": ("S32", ())}
 _ROW_CHECKED = ("frame_id", "kind", "timestamp", "pose", "edge_ratio", "loop", "source", "fingerprint", "message",
                 "code_end", "feat_end", "cand_end")
 _FEATURES = ("keypoints", "descriptors", "scales")
@@ -177,6 +180,12 @@ def _checksum(fixed: bytes, texts: list[Any], arrays: list[np.ndarray]) -> bytes
         if a.size:
             h.update(str(a.shape[1:]).encode() + np.ascontiguousarray(a).tobytes())
     return h.hexdigest().encode()
+
+
+def _block_checksum(cols: dict[str, Any], codes: np.ndarray, cands: np.ndarray) -> bytes:
+    """The one checksum of a written block: its rows' checked fields, texts, codes and candidates."""
+    texts = [t for k in _TEXT for t in cols[k]]
+    return _checksum(_fixed_rows(cols).tobytes(), texts, [np.asarray(codes), np.asarray(cands)])
 
 
 def _grow(ds: h5py.Dataset, size: int) -> None:
@@ -311,6 +320,9 @@ class KeyframeDatabase:
         for key, (dtype, tail) in _COLUMNS.items():
             frames.create_dataset(key, shape=(0, *tail), maxshape=(None, *tail), dtype=dtype,
                                   chunks=(CHUNK_ROWS, *tail))
+        blocks = self.file.require_group("blocks")
+        for key, dtype in (("end", np.int64), ("checksum", "S32")):
+            blocks.create_dataset(key, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(CHUNK_ROWS,))
         self.file.attrs.update({"format_version": FORMAT_VERSION, "conf": json.dumps(conf or {}),
                                 "descriptor": encoder, "software": "cae-loop-closure", "committed": 0,
                                 "created": time.strftime("%Y-%m-%dT%H:%M:%S")})
@@ -328,6 +340,12 @@ class KeyframeDatabase:
                                 "move it away to start again")
         self._kf_rows = np.flatnonzero(self._cols["kind"] == 0)
         self._h5_rows = n
+        ends = self.file["blocks/end"][:]  # the committed blocks: up to the one ending at row n (room past it)
+        last = np.flatnonzero(ends == n)[:1] if n else np.zeros(1, np.int64) - 1
+        if not len(last):
+            raise DatabaseError(f"{self.path} is damaged: no block ends at its {n} committed rows; move it away to "
+                                "start again")
+        self._block_ends = ends[:int(last[0]) + 1].astype(np.int64)
         if mode != "r" and len(frames["frame_id"]) > n and frames["frame_id"][n] > self.last_frame_id():
             log.warning("%s: a half-written frame from an interrupted run is dropped (overwritten)", self.path)
 
@@ -428,11 +446,9 @@ class KeyframeDatabase:
             self._extend_all("candidates", [p[1]["candidates"] for p in self._pending], "cand_end", n0)
             for key in _FEATURES:
                 self._extend_all(f"features/{key}", [p[2][key] for p in self._pending], "feat_end", n0)
-            fixed = _fixed_rows({k: [r[k] for r in rows] for k in _FIXED.names})
-            for j, (row, ragged, feats, _) in enumerate(self._pending):
-                row["checksum"] = _checksum(fixed[j].tobytes(), [row[k] for k in _TEXT],
-                                            [ragged["codes"], ragged["candidates"]])
+            for row, _, feats, _ in self._pending:
                 row["feat_checksum"] = _checksum(b"", [], [feats[k] for k in _FEATURES])
+            self._write_block_checksum(rows, [p[1] for p in self._pending], n0 + m)
             for key in _COLUMNS:
                 ds = self._ds(f"frames/{key}")
                 _grow(ds, n0 + m)
@@ -445,6 +461,20 @@ class KeyframeDatabase:
             self._broken = True
             raise DatabaseError(f"cannot write {self.path}: {str(err)[:160]}") from None
         self._h5_rows, self._pending = n0 + m, []
+
+    def _write_block_checksum(self, rows: list[dict[str, Any]], ragged: list[dict[str, np.ndarray]], end: int
+                              ) -> None:
+        """Appends the block's end row and its one checksum (rows, codes and candidates) to ``blocks/``."""
+        b = len(self._block_ends)
+        cols = {k: [r[k] for r in rows] for k in _ROW_CHECKED}
+        arrays = [[a[k] for a in ragged if len(a[k])] for k in ("codes", "candidates")]
+        joined = [np.concatenate(parts) if parts else np.zeros((0,)) for parts in arrays]
+        for key, value in (("end", end), ("checksum", _block_checksum(cols, *joined))):
+            ds = self._ds(f"blocks/{key}")
+            _grow(ds, b + 1)
+            ds[b] = value
+        self._block_ends = _append_one(self._block_ends, end)
+        self._verified.add(b)
 
     def _extend_all(self, name: str, parts: list[np.ndarray], column: str, n0: int) -> None:
         """Writes the pending rows' ``parts`` of ragged dataset ``name`` in one call, after row ``n0 - 1``'s end."""
@@ -566,39 +596,44 @@ class KeyframeDatabase:
             return np.zeros((0, width) if width else (0,))
         return self.file[name][span]
 
-    def _rows_block(self, rows: np.ndarray) -> dict[str, Any]:
-        """The checked columns, codes and candidates of ``rows`` (sorted row positions), checksums verified."""
-        cols = {k: self._column(k, rows) for k in _ROW_CHECKED + ("checksum",)}
-        fixed = _fixed_rows(cols)
-        lo, hi = int(rows[0]), int(rows[-1])
+    def _block_data(self, b: int) -> dict[str, Any]:
+        """All rows of written block ``b``: checked columns, codes, candidates; its checksum verified once."""
+        lo = int(self._block_ends[b - 1]) if b else 0
+        hi = int(self._block_ends[b])
+        rows = np.arange(lo, hi)
+        cols = {k: self._column(k, rows) for k in _ROW_CHECKED}
         code_base = int(self._cols["code_end"][lo - 1]) if lo else 0
         cand_base = int(self._cols["cand_end"][lo - 1]) if lo else 0
         try:
-            codes = self._read("codes", slice(code_base, int(self._cols["code_end"][hi])), 1)
-            cands = self._read("candidates", slice(cand_base, int(self._cols["cand_end"][hi])), len(CANDIDATE_ROW))
+            codes = self._read("codes", slice(code_base, int(self._cols["code_end"][hi - 1])), 1)
+            cands = self._read("candidates", slice(cand_base, int(self._cols["cand_end"][hi - 1])),
+                               len(CANDIDATE_ROW))
+            stored = bytes(self.file["blocks/checksum"][b])
         except _READ_ERRORS as err:
             raise self._damaged(err, "codes") from None
-        out: dict[str, Any] = {"cols": cols, "codes": [], "cands": []}
-        for j, r in enumerate(rows.tolist()):
-            cs, ks = self._span("code_end", r), self._span("cand_end", r)
-            code = codes[cs.start - code_base:cs.stop - code_base]
-            cand = cands[ks.start - cand_base:ks.stop - cand_base].reshape(-1, len(CANDIDATE_ROW))
-            if r not in self._verified:
-                if _checksum(fixed[j].tobytes(), [cols[k][j] for k in _TEXT], [code, cand]) \
-                        != bytes(cols["checksum"][j]):
-                    raise DatabaseError(f"{self.path} is damaged: keyframe {int(cols['frame_id'][j])} fails its "
-                                        "checksum; the files written from it are left as they were; move it away "
-                                        "to start again")
-                self._verified.add(r)
-            out["codes"].append(code)
-            out["cands"].append(cand)
-        return out
+        if b not in self._verified and _block_checksum(cols, codes, cands) != stored:
+            raise DatabaseError(f"{self.path} is damaged: frames {int(cols['frame_id'][0])}-{int(cols['frame_id'][-1])}"
+                                " fail their checksum; the files written from it are left as they were; move it "
+                                "away to start again")
+        self._verified.add(b)
+        return {"cols": cols, "codes": codes, "cands": cands, "code_base": code_base, "cand_base": cand_base}
 
     def _blocks(self) -> Iterator[tuple[np.ndarray, dict[str, Any]]]:
-        """Keyframe rows in blocks of ``CHUNK_ROWS``, each with its verified columns, codes and candidates."""
-        for start in range(0, len(self._kf_rows), CHUNK_ROWS):
-            rows = self._kf_rows[start:start + CHUNK_ROWS]
-            yield rows, self._rows_block(rows)
+        """Keyframe rows block by written block (``flush_every`` frames, one checksum each), each with its verified
+        columns, codes and candidates (``cols[k][j]``, ``codes[j]``, ``cands[j]`` for the ``j``-th keyframe row)."""
+        for b in range(len(self._block_ends)):
+            lo = int(self._block_ends[b - 1]) if b else 0
+            rows = self._kf_rows[(self._kf_rows >= lo) & (self._kf_rows < int(self._block_ends[b]))]
+            if not len(rows):
+                continue
+            d = self._block_data(b)
+            out: dict[str, Any] = {"cols": {k: v[rows - lo] for k, v in d["cols"].items()}, "codes": [], "cands": []}
+            for r in rows.tolist():
+                cs, ks = self._span("code_end", r), self._span("cand_end", r)
+                out["codes"].append(d["codes"][cs.start - d["code_base"]:cs.stop - d["code_base"]])
+                out["cands"].append(d["cands"][ks.start - d["cand_base"]:ks.stop - d["cand_base"]]
+                                    .reshape(-1, len(CANDIDATE_ROW)))
+            yield rows, out
 
     def _code(self, raw: np.ndarray) -> np.ndarray:
         """A stored code as given back: ``(D,)`` float32, or ``(n, 32)`` uint8 binary descriptors."""

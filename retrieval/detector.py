@@ -106,6 +106,9 @@ default_conf: dict[str, Any] = {
         "parallel": False,  # features in a worker thread while the encoder runs (cores split); slower on 2 cores
         "lazy_features": True,  # local features only for frames that verify a candidate (extracted when needed,
         #                         then cached); False: on every frame as it arrives (the same results, slower)
+        "features_ahead": True,  # lazy: a worker thread extracts local features beside the main thread (the query's
+        #                          while it is encoded when the previous frame needed its own, then while the
+        #                          candidates' are extracted): the same features, sooner on 2 cores
         "flush_every": 256,  # frames moved from the database's write-ahead log into its columns at a time (each
         #                    frame is logged as it is stored: a killed run loses nothing whatever this is)
         "features": "memory",  # keyframe features for verification: "memory" (all), "database" (bounded memory)
@@ -125,7 +128,7 @@ conf_rules: dict[str, Any] = {
     "calibration": {"enabled": Bool(), "expected_false_loops": Float(0, 100, lo_open=True),
                     "null_pairs": Int(10, 100_000), "min_features": Int(0), "min_inliers": Int(8),
                     "verification": Choice("auto", "on", "off"), "max_frames": Int(100)},
-    "runtime": {"threads": Int(1, 1024, optional=True), "parallel": Bool(), "lazy_features": Bool(),
+    "runtime": {"threads": Int(1, 1024, optional=True), "parallel": Bool(), "lazy_features": Bool(), "features_ahead": Bool(),
                 "flush_every": Int(1),
                 "features": Choice("memory", "database"), "feature_cache": Int(1)},
 }
@@ -277,6 +280,11 @@ class LoopDetector:
                                                    " calibration " + self.calibration.identity())
             self.db = KeyframeDatabase(database, persisted, identity, c["runtime"]["flush_every"])
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="features") if c["runtime"]["parallel"] else None
+        self._ahead = ThreadPoolExecutor(1, thread_name_prefix="features-ahead") \
+            if self._lazy and self._verify and c["runtime"]["features_ahead"] else None
+        self._ahead_extractor = create_extractor(c["features"]) if self._ahead is not None else None  # its own
+        self._spec: tuple[int, Any] | None = None  # (frame id, future) of the query's features extracted ahead
+        self._wanted = False  # whether the previous frame's query needed its local features
         self.features = FeatureStore(self.db if c["runtime"]["features"] == "database" else None,
                                      c["runtime"]["feature_cache"])
         if self.db is not None:
@@ -475,6 +483,8 @@ class LoopDetector:
             feats, ms["features"] = self._timed_extract(gray)
         elif self._pool is not None and self._verify:
             pending = self._pool.submit(self._timed_extract, gray)
+        if self._ahead is not None and self._wanted and fid not in self._given:  # a revisit under way: likely
+            self._spec = (fid, self._ahead.submit(self._ahead_extractor.extract, gray))
         t0 = time.perf_counter()
         if code is None:
             code = self.descriptor(image, feats, network_image=net)
@@ -543,13 +553,18 @@ class LoopDetector:
         c = self.conf
         todo = [i for i, cd in enumerate(candidates) if self._could_pass(cd)]
         checks: list[Verification | None] = [None] * len(candidates)
+        spec, self._spec, self._wanted = self._spec, None, bool(todo)
         if not todo:
             return feats, checks
         t0 = time.perf_counter()
         if feats is None:
             feats = self._given.pop(fid, None)
-            feats = feats if feats is not None else self.extractor.extract(gray)
+        if feats is None and self._ahead is not None:  # the worker extracts the query's, this thread the candidates'
+            spec = spec if spec is not None and spec[0] == fid else (fid, self._ahead.submit(
+                self._ahead_extractor.extract, gray))
         refs = [self._features_of(candidates[i].frame_id) for i in todo]
+        if feats is None:
+            feats = spec[1].result() if self._ahead is not None else self.extractor.extract(gray)
         ms["features"] += (time.perf_counter() - t0) * 1e3
         done = self.verifier.verify(feats, refs, self.K, c["policy"]["min_matches"], self._min_inliers,
                                     c["policy"]["check_all"])
@@ -623,9 +638,10 @@ class LoopDetector:
     def close(self) -> None:
         """Flushes and closes the database and stops the worker thread; ``process`` refuses to run afterwards."""
         self._closed = True
-        if self._pool is not None:
-            self._pool.shutdown(wait=True)
-            self._pool = None
+        for pool in (self._pool, self._ahead):
+            if pool is not None:
+                pool.shutdown(wait=True)
+        self._pool = self._ahead = None
         if self.db is not None:
             self.db.close()
 

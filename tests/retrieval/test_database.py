@@ -96,7 +96,8 @@ class TestKeyframeDatabase:
             assert f["features/descriptors"].dtype == np.uint8 and f["features/descriptors"].shape[1] == 128
             assert f["features/keypoints"].dtype == np.uint16 and f["features/scales"].dtype == np.float16
             assert f["candidates"].shape[1] == 6 and f.attrs["metric"] == "l2"
-            assert len(f["frames/checksum"][0]) == 32 and "keyframes" not in f  # no group per keyframe
+            assert len(f["blocks/checksum"][0]) == 32 and "keyframes" not in f  # no group per keyframe
+            assert f["blocks/end"][:1].tolist() == [5]  # one checksum for the block of five frames written at close
 
     def test_float_descriptors_kept_when_not_integral(self, tmp_path, sift_features):
         f = sift_features(3)
