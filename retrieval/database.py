@@ -173,9 +173,8 @@ def _checksum(fixed: bytes, texts: list[Any], arrays: list[np.ndarray]) -> bytes
     """BLAKE2b-128 (hex, 32 bytes) of a row's fixed fields, its texts (bytes or str) and arrays' bytes (an empty
     array counts as nothing: it reads back in the dataset's dtype, or as none before the dataset exists)."""
     h = hashlib.blake2b(fixed, digest_size=16)
-    for t in texts:
-        b = t if isinstance(t, bytes) else str(t).encode("utf-8", "surrogateescape")
-        h.update(len(b).to_bytes(4, "little") + b)
+    encoded = [t if isinstance(t, bytes) else str(t).encode("utf-8", "surrogateescape") for t in texts]
+    h.update(b"".join(len(b).to_bytes(4, "little") + b for b in encoded))
     for a in arrays:
         if a.size:
             h.update(str(a.shape[1:]).encode() + np.ascontiguousarray(a).tobytes())
@@ -556,7 +555,7 @@ class KeyframeDatabase:
         ``str``."""
         n = len(self._cols["frame_id"])
         try:
-            ds = self.file["frames"][key]
+            ds = self._ds(f"frames/{key}")
             if _COLUMNS[key][0] is _STR:
                 ds = ds.asstr()
             if rows is None:
@@ -596,12 +595,14 @@ class KeyframeDatabase:
             return np.zeros((0, width) if width else (0,))
         return self.file[name][span]
 
-    def _block_data(self, b: int) -> dict[str, Any]:
-        """All rows of written block ``b``: checked columns, codes, candidates; its checksum verified once."""
+    def _block_data(self, b: int, texts: bool) -> dict[str, Any]:
+        """All rows of written block ``b``: checked columns (the text ones when asked or not verified yet: they are
+        the slow ones to read), codes, candidates; its checksum verified once."""
         lo = int(self._block_ends[b - 1]) if b else 0
         hi = int(self._block_ends[b])
         rows = np.arange(lo, hi)
-        cols = {k: self._column(k, rows) for k in _ROW_CHECKED}
+        texts = texts or b not in self._verified
+        cols = {k: self._column(k, rows) for k in _ROW_CHECKED if texts or k not in _TEXT}
         code_base = int(self._cols["code_end"][lo - 1]) if lo else 0
         cand_base = int(self._cols["cand_end"][lo - 1]) if lo else 0
         try:
@@ -618,21 +619,22 @@ class KeyframeDatabase:
         self._verified.add(b)
         return {"cols": cols, "codes": codes, "cands": cands, "code_base": code_base, "cand_base": cand_base}
 
-    def _blocks(self) -> Iterator[tuple[np.ndarray, dict[str, Any]]]:
+    def _blocks(self, texts: bool = True) -> Iterator[tuple[np.ndarray, dict[str, Any]]]:
         """Keyframe rows block by written block (``flush_every`` frames, one checksum each), each with its verified
-        columns, codes and candidates (``cols[k][j]``, ``codes[j]``, ``cands[j]`` for the ``j``-th keyframe row)."""
+        columns (the text ones only when ``texts``), codes and candidates (``cols[k][j]``, ``codes[j]``,
+        ``cands[j]`` for the ``j``-th keyframe row)."""
         for b in range(len(self._block_ends)):
             lo = int(self._block_ends[b - 1]) if b else 0
             rows = self._kf_rows[(self._kf_rows >= lo) & (self._kf_rows < int(self._block_ends[b]))]
             if not len(rows):
                 continue
-            d = self._block_data(b)
-            out: dict[str, Any] = {"cols": {k: v[rows - lo] for k, v in d["cols"].items()}, "codes": [], "cands": []}
-            for r in rows.tolist():
-                cs, ks = self._span("code_end", r), self._span("cand_end", r)
-                out["codes"].append(d["codes"][cs.start - d["code_base"]:cs.stop - d["code_base"]])
-                out["cands"].append(d["cands"][ks.start - d["cand_base"]:ks.stop - d["cand_base"]]
-                                    .reshape(-1, len(CANDIDATE_ROW)))
+            d = self._block_data(b, texts)
+            out: dict[str, Any] = {"cols": {k: v[rows - lo] for k, v in d["cols"].items()}}
+            for key, column, base in (("codes", "code_end", "code_base"), ("cands", "cand_end", "cand_base")):
+                ends = self._cols[column]
+                starts = np.where(rows > 0, ends[np.maximum(rows - 1, 0)], 0) - d[base]
+                data = d[key] if key == "codes" else d[key].reshape(-1, len(CANDIDATE_ROW))
+                out[key] = [data[a:z] for a, z in zip(starts.tolist(), (ends[rows] - d[base]).tolist())]
             yield rows, out
 
     def _code(self, raw: np.ndarray) -> np.ndarray:
@@ -698,7 +700,7 @@ class KeyframeDatabase:
         """``(frame_id, code, timestamp, features)`` per keyframe in frame-id order, checksums verified;
         ``features=False`` reads no local features (None in their place: resuming in database mode)."""
         self.sync()
-        for rows, block in self._blocks():
+        for rows, block in self._blocks(texts=False):
             c = block["cols"]
             for j, r in enumerate(rows.tolist()):
                 ts = float(c["timestamp"][j])
@@ -709,7 +711,7 @@ class KeyframeDatabase:
         """``(frame_id, candidates (k, len(CANDIDATE_ROW)), loop)`` per keyframe in frame-id order, checksums
         verified."""
         self.sync()
-        for rows, block in self._blocks():
+        for rows, block in self._blocks(texts=False):
             c = block["cols"]
             for j in range(len(rows)):
                 yield int(c["frame_id"][j]), block["cands"][j], int(c["loop"][j])
