@@ -413,9 +413,10 @@ class TestLazyFeatures:
             return sample_image(fid)
 
         source = self.run({}, encoder, sample_seq, sample_image, frame_source=again)
+        alone = self.run({"runtime": {"features_ahead": False}}, encoder, sample_seq, sample_image)  # no worker
         rows = [[c.as_row() for c in r.candidates] for r in eager]
         assert sum(len(r) for r in rows) > 50 and len(loops_of(eager)) >= 15
-        for lazy in (copies, source):
+        for lazy in (copies, source, alone):
             assert [[c.as_row() for c in r.candidates] for r in lazy] == rows
             assert loops_of(lazy).tolist() == loops_of(eager).tolist()
         assert all(r.ms["features"] > 0 for r in eager)
