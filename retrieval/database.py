@@ -242,7 +242,7 @@ class KeyframeDatabase:
         self._log: FrameLog | None = None
         self._pending: list[tuple[dict[str, Any], dict[str, np.ndarray], dict[str, np.ndarray], dict[str, str]]] = []
         self._broken = False
-        self._verified: set[int] = set()
+        self._verified_blocks: set[int] = set()  # written blocks whose checksum held (or written here)
         self._handles: dict[str, h5py.Dataset] = {}
         exists = self.path.exists()
         if exists and not self.path.is_file():
@@ -427,7 +427,6 @@ class KeyframeDatabase:
             self._cols[key] = _append_one(self._cols[key], row[key])
         if row["kind"] == 0:
             self._kf_rows = _append_one(self._kf_rows, n)
-        self._verified.add(n)
         self._pending.append((row, ragged, features, attrs))
 
     def _write_block(self) -> None:
@@ -473,7 +472,7 @@ class KeyframeDatabase:
             _grow(ds, b + 1)
             ds[b] = value
         self._block_ends = _append_one(self._block_ends, end)
-        self._verified.add(b)
+        self._verified_blocks.add(b)
 
     def _extend_all(self, name: str, parts: list[np.ndarray], column: str, n0: int) -> None:
         """Writes the pending rows' ``parts`` of ragged dataset ``name`` in one call, after row ``n0 - 1``'s end."""
@@ -601,7 +600,7 @@ class KeyframeDatabase:
         lo = int(self._block_ends[b - 1]) if b else 0
         hi = int(self._block_ends[b])
         rows = np.arange(lo, hi)
-        texts = texts or b not in self._verified
+        texts = texts or b not in self._verified_blocks
         cols = {k: self._column(k, rows) for k in _ROW_CHECKED if texts or k not in _TEXT}
         code_base = int(self._cols["code_end"][lo - 1]) if lo else 0
         cand_base = int(self._cols["cand_end"][lo - 1]) if lo else 0
@@ -612,11 +611,11 @@ class KeyframeDatabase:
             stored = bytes(self.file["blocks/checksum"][b])
         except _READ_ERRORS as err:
             raise self._damaged(err, "codes") from None
-        if b not in self._verified and _block_checksum(cols, codes, cands) != stored:
+        if b not in self._verified_blocks and _block_checksum(cols, codes, cands) != stored:
             raise DatabaseError(f"{self.path} is damaged: frames {int(cols['frame_id'][0])}-{int(cols['frame_id'][-1])}"
                                 " fail their checksum; the files written from it are left as they were; move it "
                                 "away to start again")
-        self._verified.add(b)
+        self._verified_blocks.add(b)
         return {"cols": cols, "codes": codes, "cands": cands, "code_base": code_base, "cand_base": cand_base}
 
     def _blocks(self, texts: bool = True) -> Iterator[tuple[np.ndarray, dict[str, Any]]]:

@@ -128,8 +128,8 @@ conf_rules: dict[str, Any] = {
     "calibration": {"enabled": Bool(), "expected_false_loops": Float(0, 100, lo_open=True),
                     "null_pairs": Int(10, 100_000), "min_features": Int(0), "min_inliers": Int(8),
                     "verification": Choice("auto", "on", "off"), "max_frames": Int(100)},
-    "runtime": {"threads": Int(1, 1024, optional=True), "parallel": Bool(), "lazy_features": Bool(), "features_ahead": Bool(),
-                "flush_every": Int(1),
+    "runtime": {"threads": Int(1, 1024, optional=True), "parallel": Bool(), "lazy_features": Bool(),
+                "features_ahead": Bool(), "flush_every": Int(1),
                 "features": Choice("memory", "database"), "feature_cache": Int(1)},
 }
 
