@@ -550,9 +550,9 @@ class KeyframeDatabase:
         return len(self._kf_rows)
 
     def _column(self, key: str, rows: np.ndarray | None = None) -> np.ndarray:
-        """Column ``key`` of the committed rows (or of ``rows``, sorted positions); strings as ``bytes`` (source) or
-        ``str``."""
-        n = len(self._cols["frame_id"])
+        """Column ``key`` of the rows in the columns (or of ``rows``, sorted positions); strings as ``bytes``
+        (source) or ``str``."""
+        n = self._h5_rows
         try:
             ds = self._ds(f"frames/{key}")
             if _COLUMNS[key][0] is _STR:
@@ -579,9 +579,11 @@ class KeyframeDatabase:
         return int(self._cols["frame_id"][-1]) if len(self._cols["frame_id"]) else -1
 
     def frames(self) -> list[FrameEntry]:
-        """Every frame held (keyframes and skipped ones) in frame-id order, with what it was made from."""
-        self.sync()
-        sources, prints = self._column("source"), self._column("fingerprint")
+        """Every frame held (keyframes and skipped ones) in frame-id order, with what it was made from (the frames
+        still only in the write-ahead log included; nothing is written: a refused request reads this)."""
+        pending = [p[0] for p in self._pending]
+        sources = [*self._column("source"), *(r["source"] for r in pending)]
+        prints = [*self._column("fingerprint"), *(r["fingerprint"] for r in pending)]
         return [FrameEntry(int(f), KINDS[int(k)], _name_str(s), str(p))
                 for f, k, s, p in zip(self._cols["frame_id"], self._cols["kind"], sources, prints)]
 
