@@ -106,9 +106,10 @@ default_conf: dict[str, Any] = {
         "parallel": False,  # features in a worker thread while the encoder runs (cores split); slower on 2 cores
         "lazy_features": True,  # local features only for frames that verify a candidate (extracted when needed,
         #                         then cached); False: on every frame as it arrives (the same results, slower)
-        "features_ahead": True,  # lazy: a worker thread extracts local features beside the main thread (the query's
-        #                          while it is encoded when the previous frame needed its own, then while the
-        #                          candidates' are extracted): the same features, sooner on 2 cores
+        "features_ahead": False,  # lazy: a worker thread extracts local features beside the main thread (the query's
+        #                           while it is encoded when the previous frame needed its own, then while the
+        #                           candidates' are extracted): the same features; off by default: no gain
+        #                           measured on 2 shared cores (encode slowed as much as SIFT was hidden)
         "flush_every": 256,  # frames moved from the database's write-ahead log into its columns at a time (each
         #                    frame is logged as it is stored: a killed run loses nothing whatever this is)
         "features": "memory",  # keyframe features for verification: "memory" (all), "database" (bounded memory)

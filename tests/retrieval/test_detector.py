@@ -413,7 +413,7 @@ class TestLazyFeatures:
             return sample_image(fid)
 
         source = self.run({}, encoder, sample_seq, sample_image, frame_source=again)
-        alone = self.run({"runtime": {"features_ahead": False}}, encoder, sample_seq, sample_image)  # no worker
+        alone = self.run({"runtime": {"features_ahead": True}}, encoder, sample_seq, sample_image)  # the worker
         rows = [[c.as_row() for c in r.candidates] for r in eager]
         assert sum(len(r) for r in rows) > 50 and len(loops_of(eager)) >= 15
         for lazy in (copies, source, alone):
