@@ -1,7 +1,7 @@
 """The keyframe store, persisted in one HDF5 file: what a detector has seen, so a run can resume or be inspected.
 
 Built for millions of keyframes: append-only and columnar, every column one chunked, resizable dataset (no group
-per keyframe). Layout (``format_version`` 5)::
+per keyframe). Layout (``format_version`` 6)::
 
     /                 attrs: format_version, conf (JSON), descriptor (weights identity), software, created,
                       committed (frames visible: the commit point, written last)
@@ -15,8 +15,9 @@ per keyframe). Layout (``format_version`` 5)::
         source, fingerprint, message   (n,) variable-length strings (source as bytes: any file name survives)
         code_end, feat_end, cand_end   (n,) int64: end offsets into the ragged arrays below (start = the previous
                                         row's end; a skipped frame adds nothing)
-        checksum      (n,)     BLAKE2b-128 of the row, its code rows and its candidates (verified on read)
         feat_checksum (n,)     BLAKE2b-128 of the row's local features (verified when they are read)
+    /blocks/end, /blocks/checksum      per written block of rows (``flush_every`` frames): its end row and one
+                               BLAKE2b-128 of its rows, codes and candidates (verified on the first read)
     /codes            (R, D)   the searched code, float16 (whitened and unit-norm: what the index holds), one row a
                                keyframe; or (R, 32) uint8 binary descriptors, several rows a keyframe (MILD)
     /features/keypoints   (M, 2) uint16, x and y in 1/8 pixel (``verify.features.KEYPOINT_STEP``)
@@ -24,12 +25,14 @@ per keyframe). Layout (``format_version`` 5)::
     /features/scales      (M,)   float16
     /candidates       (C, 6)   float64 rows (CANDIDATE_ROW) of every hypothesis judged
 
-A frame is written in order: its ragged arrays past their committed ends, then its row, then ``committed`` is
-raised and the file flushed. Nothing past the committed ends is ever read, so a half-written frame from a killed run
-is invisible and overwritten when the run resumes after the last complete one (arrays grow a quarter at a time;
-HDF5 allocates no disk for chunks never written). Checksums are per frame row
-(the chunk a reader fetches), verified when read, so bit flips are reported as damage instead of being used.
-Free disk space is checked before each write (HDF5 cannot recover from a write that fails half-way).
+Local features are stored only where the detector cannot have them again (``LoopDetector``: offline, a keyframe's
+file gives them again; an empty span then). A frame goes first to the write-ahead log beside the file
+(``keyframes.h5.log``, ``retrieval.wal``: one write, durable once ``append`` returns), and ``flush_every`` frames at
+a time into the columns: ragged arrays past their committed ends, then the rows and the block's checksum, then
+``committed`` raised and the file flushed, then the log emptied. Nothing past the committed ends is ever read, so
+a block half-written by a killed run is invisible and overwritten when the run resumes, and the frames of the log
+that the columns lack are taken back (a torn last record is dropped). Bit flips are reported as damage instead of
+being used. Free disk space is checked before each write (HDF5 cannot recover from a write that fails half-way).
 """
 
 from __future__ import annotations
@@ -52,12 +55,15 @@ from core.conf import conf_diff, conf_get
 from core.errors import ConfigError, DatabaseError
 from verify.features import KEYPOINT_STEP, Features
 
+from .wal import FrameLog, read_records
+
 __all__ = ["FORMAT_VERSION", "CANDIDATE_ROW", "SKIP_REASONS", "KINDS", "MIN_FREE_BYTES", "CHUNK_ROWS",
            "FeatureStore", "KeyframeRecord", "FrameEntry", "KeyframeDatabase"]
 
 log = logging.getLogger(__name__)
 
-FORMAT_VERSION = 5  #: 5: columnar (one dataset a column), float16 searched codes, compact features
+FORMAT_VERSION = 6  #: 6: 5 (columnar, float16 searched codes, compact features) + write-ahead log, features
+#: only where a frame cannot be read again
 CANDIDATE_ROW = ("frame_id", "score", "matches", "inliers", "seq_score", "confidence")  #: a stored candidate row
 SKIP_REASONS = ("gated", "unreadable")  #: why a frame is not a keyframe
 KINDS = ("keyframe",) + SKIP_REASONS  #: ``frames/kind`` values, by position
@@ -71,10 +77,12 @@ _COLUMNS: dict[str, tuple[Any, tuple[int, ...]]] = {
     "frame_id": (np.int64, ()), "kind": (np.uint8, ()), "timestamp": (np.float64, ()), "pose": (np.float64, (12,)),
     "edge_ratio": (np.float64, ()), "loop": (np.int64, ()), "source": (_BYTES, ()), "fingerprint": (_STR, ()),
     "message": (_STR, ()), "code_end": (np.int64, ()), "feat_end": (np.int64, ()), "cand_end": (np.int64, ()),
-    "checksum": ("S32", ()), "feat_checksum": ("S32", ())}
+    "feat_checksum": ("S32", ())}
 _ROW_CHECKED = ("frame_id", "kind", "timestamp", "pose", "edge_ratio", "loop", "source", "fingerprint", "message",
                 "code_end", "feat_end", "cand_end")
 _FEATURES = ("keypoints", "descriptors", "scales")
+_LOGGED = ("frame_id", "kind", "timestamp", "edge_ratio", "loop", "fingerprint", "message")  # as JSON in the log
+LOG_SUFFIX = ".log"  #: the write-ahead log is the store's path plus this (``keyframes.h5.log``)
 
 
 def _name_bytes(name: str) -> bytes:
@@ -165,13 +173,18 @@ def _checksum(fixed: bytes, texts: list[Any], arrays: list[np.ndarray]) -> bytes
     """BLAKE2b-128 (hex, 32 bytes) of a row's fixed fields, its texts (bytes or str) and arrays' bytes (an empty
     array counts as nothing: it reads back in the dataset's dtype, or as none before the dataset exists)."""
     h = hashlib.blake2b(fixed, digest_size=16)
-    for t in texts:
-        b = t if isinstance(t, bytes) else str(t).encode("utf-8", "surrogateescape")
-        h.update(len(b).to_bytes(4, "little") + b)
+    encoded = [t if isinstance(t, bytes) else str(t).encode("utf-8", "surrogateescape") for t in texts]
+    h.update(b"".join(len(b).to_bytes(4, "little") + b for b in encoded))
     for a in arrays:
         if a.size:
             h.update(str(a.shape[1:]).encode() + np.ascontiguousarray(a).tobytes())
     return h.hexdigest().encode()
+
+
+def _block_checksum(cols: dict[str, Any], codes: np.ndarray, cands: np.ndarray) -> bytes:
+    """The one checksum of a written block: its rows' checked fields, texts, codes and candidates."""
+    texts = [t for k in _TEXT for t in cols[k]]
+    return _checksum(_fixed_rows(cols).tobytes(), texts, [np.asarray(codes), np.asarray(cands)])
 
 
 def _grow(ds: h5py.Dataset, size: int) -> None:
@@ -179,6 +192,18 @@ def _grow(ds: h5py.Dataset, size: int) -> None:
     rarely resize (rows past the committed ends are unused: HDF5 allocates no disk for chunks never written)."""
     if len(ds) < size:
         ds.resize(max(size, len(ds) + max(ds.chunks[0], len(ds) // 4)), axis=0)
+
+
+def _append_one(view: np.ndarray, value: Any) -> np.ndarray:
+    """``view`` with ``value`` appended, as a view of a buffer that doubles when full (``np.append`` copied the
+    whole column on every frame: quadratic in the map's size)."""
+    n, base = len(view), view.base
+    if not isinstance(base, np.ndarray) or base.base is not None or base.ndim != 1 or len(base) <= n \
+            or base.dtype != view.dtype or n and not np.shares_memory(base[n - 1:n], view[n - 1:n]):
+        base = np.empty(max(64, 2 * n), view.dtype)
+        base[:n] = view
+    base[n] = value
+    return base[:n + 1]
 
 
 def _file_size_limit() -> float:
@@ -200,7 +225,8 @@ class KeyframeDatabase:
         path: the ``.h5`` file; created when missing, resumed when present.
         conf: the resolved detector conf, saved in a new file and compared with an existing one.
         encoder: identity of the global descriptor (weights hash); an existing file made with another is refused.
-        flush_every: flush to disk after this many records (1 = a killed run loses nothing).
+        flush_every: frames moved from the write-ahead log into the columns at a time (every frame is in the log
+            when ``append`` returns, so a killed run loses nothing whatever this is; a larger block is cheaper).
         mode: ``"a"`` create or resume, ``"r"`` read only.
 
     Raises:
@@ -210,12 +236,13 @@ class KeyframeDatabase:
     """
 
     def __init__(self, path: str | Path, conf: dict[str, Any] | None = None, encoder: str = "",
-                 flush_every: int = 1, mode: str = "a") -> None:
+                 flush_every: int = 256, mode: str = "a") -> None:
         self.path = Path(path)
         self.flush_every = max(1, int(flush_every))
-        self._since_flush = 0
+        self._log: FrameLog | None = None
+        self._pending: list[tuple[dict[str, Any], dict[str, np.ndarray], dict[str, np.ndarray], dict[str, str]]] = []
         self._broken = False
-        self._verified: set[int] = set()
+        self._verified_blocks: set[int] = set()  # written blocks whose checksum held (or written here)
         self._handles: dict[str, h5py.Dataset] = {}
         exists = self.path.exists()
         if exists and not self.path.is_file():
@@ -231,12 +258,17 @@ class KeyframeDatabase:
             else:
                 self._create(conf, encoder)
             self._load_columns(mode)
+            if mode != "r":  # last: a refused file is left as it was, its log too
+                self._log = FrameLog(self.path.with_name(self.path.name + LOG_SUFFIX))
+                self._replay()
         except _READ_ERRORS as err:
+            self._close_log()
             self.file.close()
             if isinstance(err, (ConfigError, DatabaseError)):
                 raise
             raise self._damaged(err) from None
         except BaseException:
+            self._close_log()
             self.file.close()
             raise
 
@@ -287,6 +319,9 @@ class KeyframeDatabase:
         for key, (dtype, tail) in _COLUMNS.items():
             frames.create_dataset(key, shape=(0, *tail), maxshape=(None, *tail), dtype=dtype,
                                   chunks=(CHUNK_ROWS, *tail))
+        blocks = self.file.require_group("blocks")
+        for key, dtype in (("end", np.int64), ("checksum", "S32")):
+            blocks.create_dataset(key, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(CHUNK_ROWS,))
         self.file.attrs.update({"format_version": FORMAT_VERSION, "conf": json.dumps(conf or {}),
                                 "descriptor": encoder, "software": "cae-loop-closure", "committed": 0,
                                 "created": time.strftime("%Y-%m-%dT%H:%M:%S")})
@@ -303,6 +338,13 @@ class KeyframeDatabase:
             raise DatabaseError(f"{self.path} is damaged: {len(self._cols['frame_id'])} frame rows, {n} committed; "
                                 "move it away to start again")
         self._kf_rows = np.flatnonzero(self._cols["kind"] == 0)
+        self._h5_rows = n
+        ends = self.file["blocks/end"][:]  # the committed blocks: up to the one ending at row n (room past it)
+        last = np.flatnonzero(ends == n)[:1] if n else np.zeros(1, np.int64) - 1
+        if not len(last):
+            raise DatabaseError(f"{self.path} is damaged: no block ends at its {n} committed rows; move it away to "
+                                "start again")
+        self._block_ends = ends[:int(last[0]) + 1].astype(np.int64)
         if mode != "r" and len(frames["frame_id"]) > n and frames["frame_id"][n] > self.last_frame_id():
             log.warning("%s: a half-written frame from an interrupted run is dropped (overwritten)", self.path)
 
@@ -354,37 +396,107 @@ class KeyframeDatabase:
         ds[start:start + len(rows)] = rows.astype(ds.dtype, copy=False)
         return start + len(rows)
 
-    def _append_row(self, row: dict[str, Any], ragged: dict[str, np.ndarray], features: dict[str, np.ndarray]
-                    ) -> None:
-        """Writes one frame: ragged arrays, then its row, then raises ``committed`` (the commit point)."""
+    def _append_row(self, row: dict[str, Any], ragged: dict[str, np.ndarray], features: dict[str, np.ndarray],
+                    attrs: dict[str, str] | None = None) -> None:
+        """Appends one frame to the write-ahead log (durable once this returns), then keeps it pending; every
+        ``flush_every`` frames the pending ones move into the columns (``_write_block``)."""
         if self._broken:
             raise DatabaseError(f"{self.path}: an earlier write failed; nothing more is written")
         self._ensure_space()
-        n = len(self._cols["frame_id"])
         try:
-            row["code_end"] = self._extend("codes", ragged["codes"], self._end("code_end"))
-            row["cand_end"] = self._extend("candidates", ragged["candidates"], self._end("cand_end"))
-            feat_end = self._end("feat_end")
+            self._log.append({**{k: row[k] for k in _LOGGED}, "source": bytes(row["source"]).hex(),
+                              "attrs": attrs or {}},
+                             {"pose": np.asarray(row["pose"], np.float64), **ragged, **features})
+        except OSError as err:
+            self._broken = True
+            raise DatabaseError(f"cannot write {self._log.path}: {str(err)[:160]}") from None
+        self._remember(row, ragged, features, attrs or {})
+        if attrs:  # once per store (the first keyframe with features): what pending features are read back with
+            self.file.attrs.update(attrs)
+        if len(self._pending) >= self.flush_every:
+            self._write_block()
+
+    def _remember(self, row: dict[str, Any], ragged: dict[str, np.ndarray], features: dict[str, np.ndarray],
+                  attrs: dict[str, str]) -> None:
+        """Makes a logged frame visible (in-memory columns, offsets) and pending for the next block."""
+        row["code_end"] = self._end("code_end") + len(ragged["codes"])
+        row["cand_end"] = self._end("cand_end") + len(ragged["candidates"])
+        row["feat_end"] = self._end("feat_end") + len(features["keypoints"])
+        n = len(self._cols["frame_id"])
+        for key in ("frame_id", "kind", "code_end", "feat_end", "cand_end"):
+            self._cols[key] = _append_one(self._cols[key], row[key])
+        if row["kind"] == 0:
+            self._kf_rows = _append_one(self._kf_rows, n)
+        self._pending.append((row, ragged, features, attrs))
+
+    def _write_block(self) -> None:
+        """Moves the pending frames into the columns: ragged arrays past their committed ends, then the rows, then
+        ``committed`` raised and the file flushed (the commit point), then the log emptied."""
+        if not self._pending or self._broken:
+            return
+        self._ensure_space()
+        n0, m = self._h5_rows, len(self._pending)
+        rows = [p[0] for p in self._pending]
+        try:
+            for attrs in (p[3] for p in self._pending):
+                self.file.attrs.update({k: v for k, v in attrs.items() if k not in self.file.attrs})
+            self._extend_all("codes", [p[1]["codes"] for p in self._pending], "code_end", n0)
+            self._extend_all("candidates", [p[1]["candidates"] for p in self._pending], "cand_end", n0)
             for key in _FEATURES:
-                end = self._extend(f"features/{key}", features[key], feat_end)
-            row["feat_end"] = end if len(features["keypoints"]) else feat_end
-            fixed = _fixed_rows({k: [row[k]] for k in _FIXED.names})[0].tobytes()
-            row["checksum"] = _checksum(fixed, [row[k] for k in _TEXT], [ragged["codes"], ragged["candidates"]])
-            row["feat_checksum"] = _checksum(b"", [], [features[k] for k in _FEATURES])
-            for key, value in row.items():
+                self._extend_all(f"features/{key}", [p[2][key] for p in self._pending], "feat_end", n0)
+            for row, _, feats, _ in self._pending:
+                row["feat_checksum"] = _checksum(b"", [], [feats[k] for k in _FEATURES])
+            self._write_block_checksum(rows, [p[1] for p in self._pending], n0 + m)
+            for key in _COLUMNS:
                 ds = self._ds(f"frames/{key}")
-                _grow(ds, n + 1)
-                ds[n] = value
-            self.file.attrs["committed"] = n + 1
-            self._maybe_flush()
-        except (OSError, RuntimeError, ValueError) as err:
+                _grow(ds, n0 + m)
+                values = [r[key] for r in rows]
+                ds[n0:n0 + m] = np.array(values, dtype=object) if ds.dtype.kind == "O" else np.asarray(values)
+            self.file.attrs["committed"] = n0 + m
+            self.file.flush()
+            self._log.clear()
+        except (OSError, RuntimeError, ValueError, TypeError) as err:
             self._broken = True
             raise DatabaseError(f"cannot write {self.path}: {str(err)[:160]}") from None
-        for key in ("frame_id", "kind", "code_end", "feat_end", "cand_end"):
-            self._cols[key] = np.append(self._cols[key], np.asarray(row[key], self._cols[key].dtype))
-        if row["kind"] == 0:
-            self._kf_rows = np.append(self._kf_rows, n)
-        self._verified.add(n)
+        self._h5_rows, self._pending = n0 + m, []
+
+    def _write_block_checksum(self, rows: list[dict[str, Any]], ragged: list[dict[str, np.ndarray]], end: int
+                              ) -> None:
+        """Appends the block's end row and its one checksum (rows, codes and candidates) to ``blocks/``."""
+        b = len(self._block_ends)
+        cols = {k: [r[k] for r in rows] for k in _ROW_CHECKED}
+        arrays = [[a[k] for a in ragged if len(a[k])] for k in ("codes", "candidates")]
+        joined = [np.concatenate(parts) if parts else np.zeros((0,)) for parts in arrays]
+        for key, value in (("end", end), ("checksum", _block_checksum(cols, *joined))):
+            ds = self._ds(f"blocks/{key}")
+            _grow(ds, b + 1)
+            ds[b] = value
+        self._block_ends = _append_one(self._block_ends, end)
+        self._verified_blocks.add(b)
+
+    def _extend_all(self, name: str, parts: list[np.ndarray], column: str, n0: int) -> None:
+        """Writes the pending rows' ``parts`` of ragged dataset ``name`` in one call, after row ``n0 - 1``'s end."""
+        parts = [p for p in parts if len(p)]
+        if parts:
+            self._extend(name, np.concatenate(parts), int(self._cols[column][n0 - 1]) if n0 else 0)
+
+    def _replay(self) -> None:
+        """Takes back the frames of the write-ahead log that the columns do not hold yet (a run killed between
+        two blocks), and writes them into the columns."""
+        last, n = self.last_frame_id(), 0
+        for meta, arrays in read_records(self._log.path):
+            if meta["frame_id"] <= last:
+                continue  # moved into the columns before the kill
+            row = {k: meta[k] for k in _LOGGED}
+            row.update({"source": bytes.fromhex(meta["source"]), "pose": arrays["pose"]})
+            self._remember(row, {k: arrays[k] for k in ("codes", "candidates")},
+                           {k: arrays[k] for k in _FEATURES}, meta["attrs"])
+            self.file.attrs.update({k: v for k, v in meta["attrs"].items() if k not in self.file.attrs})
+            last, n = meta["frame_id"], n + 1
+        if n:
+            log.info("%s: %d frames taken back from the write-ahead log %s", self.path, n, self._log.path.name)
+        self._write_block()
+        self._log.clear()  # a torn record of a killed run (never used) goes too
 
     def _row(self, frame_id: int, kind: int, source: str, fingerprint: str, edge_ratio: float) -> dict[str, Any]:
         if len(self._cols["frame_id"]) and frame_id <= self._cols["frame_id"][-1]:
@@ -405,10 +517,9 @@ class KeyframeDatabase:
         cands = (np.zeros((0, len(CANDIDATE_ROW))) if rec.candidates is None
                  else np.asarray(rec.candidates, np.float64)).reshape(-1, len(CANDIDATE_ROW))
         ragged = {"codes": code if binary else code.astype(np.float16).reshape(1, -1), "candidates": cands}
-        if len(feats) and "metric" not in self.file.attrs:
-            self.file.attrs.update({"metric": feats.metric,
-                                    "descriptor_dtype": np.dtype(rec.features.descriptors.dtype).name})
-        self._append_row(row, ragged, _pack_features(feats))
+        attrs = {"metric": feats.metric, "descriptor_dtype": np.dtype(rec.features.descriptors.dtype).name} \
+            if len(feats) and "metric" not in self.file.attrs else {}
+        self._append_row(row, ragged, _pack_features(feats), attrs)
 
     def add_skipped(self, frame_id: int, reason: str, source: str = "", fingerprint: str = "",
                     edge_ratio: float = float("nan"), message: str = "") -> None:
@@ -425,12 +536,6 @@ class KeyframeDatabase:
         """Records a frame the quality gate rejected."""
         self.add_skipped(frame_id, "gated", source, fingerprint, edge_ratio)
 
-    def _maybe_flush(self) -> None:
-        self._since_flush += 1
-        if self._since_flush >= self.flush_every:
-            self.file.flush()
-            self._since_flush = 0
-
     # ----------------------------------------------------------------------------------------------- reading
     @property
     def conf(self) -> dict[str, Any]:
@@ -445,11 +550,11 @@ class KeyframeDatabase:
         return len(self._kf_rows)
 
     def _column(self, key: str, rows: np.ndarray | None = None) -> np.ndarray:
-        """Column ``key`` of the committed rows (or of ``rows``, sorted positions); strings as ``bytes`` (source) or
-        ``str``."""
-        n = len(self._cols["frame_id"])
+        """Column ``key`` of the rows in the columns (or of ``rows``, sorted positions); strings as ``bytes``
+        (source) or ``str``."""
+        n = self._h5_rows
         try:
-            ds = self.file["frames"][key]
+            ds = self._ds(f"frames/{key}")
             if _COLUMNS[key][0] is _STR:
                 ds = ds.asstr()
             if rows is None:
@@ -474,8 +579,11 @@ class KeyframeDatabase:
         return int(self._cols["frame_id"][-1]) if len(self._cols["frame_id"]) else -1
 
     def frames(self) -> list[FrameEntry]:
-        """Every frame held (keyframes and skipped ones) in frame-id order, with what it was made from."""
-        sources, prints = self._column("source"), self._column("fingerprint")
+        """Every frame held (keyframes and skipped ones) in frame-id order, with what it was made from (the frames
+        still only in the write-ahead log included; nothing is written: a refused request reads this)."""
+        pending = [p[0] for p in self._pending]
+        sources = [*self._column("source"), *(r["source"] for r in pending)]
+        prints = [*self._column("fingerprint"), *(r["fingerprint"] for r in pending)]
         return [FrameEntry(int(f), KINDS[int(k)], _name_str(s), str(p))
                 for f, k, s, p in zip(self._cols["frame_id"], self._cols["kind"], sources, prints)]
 
@@ -488,39 +596,47 @@ class KeyframeDatabase:
             return np.zeros((0, width) if width else (0,))
         return self.file[name][span]
 
-    def _rows_block(self, rows: np.ndarray) -> dict[str, Any]:
-        """The checked columns, codes and candidates of ``rows`` (sorted row positions), checksums verified."""
-        cols = {k: self._column(k, rows) for k in _ROW_CHECKED + ("checksum",)}
-        fixed = _fixed_rows(cols)
-        lo, hi = int(rows[0]), int(rows[-1])
+    def _block_data(self, b: int, texts: bool) -> dict[str, Any]:
+        """All rows of written block ``b``: checked columns (the text ones when asked or not verified yet: they are
+        the slow ones to read), codes, candidates; its checksum verified once."""
+        lo = int(self._block_ends[b - 1]) if b else 0
+        hi = int(self._block_ends[b])
+        rows = np.arange(lo, hi)
+        texts = texts or b not in self._verified_blocks
+        cols = {k: self._column(k, rows) for k in _ROW_CHECKED if texts or k not in _TEXT}
         code_base = int(self._cols["code_end"][lo - 1]) if lo else 0
         cand_base = int(self._cols["cand_end"][lo - 1]) if lo else 0
         try:
-            codes = self._read("codes", slice(code_base, int(self._cols["code_end"][hi])), 1)
-            cands = self._read("candidates", slice(cand_base, int(self._cols["cand_end"][hi])), len(CANDIDATE_ROW))
+            codes = self._read("codes", slice(code_base, int(self._cols["code_end"][hi - 1])), 1)
+            cands = self._read("candidates", slice(cand_base, int(self._cols["cand_end"][hi - 1])),
+                               len(CANDIDATE_ROW))
+            stored = bytes(self.file["blocks/checksum"][b])
         except _READ_ERRORS as err:
             raise self._damaged(err, "codes") from None
-        out: dict[str, Any] = {"cols": cols, "codes": [], "cands": []}
-        for j, r in enumerate(rows.tolist()):
-            cs, ks = self._span("code_end", r), self._span("cand_end", r)
-            code = codes[cs.start - code_base:cs.stop - code_base]
-            cand = cands[ks.start - cand_base:ks.stop - cand_base].reshape(-1, len(CANDIDATE_ROW))
-            if r not in self._verified:
-                if _checksum(fixed[j].tobytes(), [cols[k][j] for k in _TEXT], [code, cand]) \
-                        != bytes(cols["checksum"][j]):
-                    raise DatabaseError(f"{self.path} is damaged: keyframe {int(cols['frame_id'][j])} fails its "
-                                        "checksum; the files written from it are left as they were; move it away "
-                                        "to start again")
-                self._verified.add(r)
-            out["codes"].append(code)
-            out["cands"].append(cand)
-        return out
+        if b not in self._verified_blocks and _block_checksum(cols, codes, cands) != stored:
+            raise DatabaseError(f"{self.path} is damaged: frames {int(cols['frame_id'][0])}-{int(cols['frame_id'][-1])}"
+                                " fail their checksum; the files written from it are left as they were; move it "
+                                "away to start again")
+        self._verified_blocks.add(b)
+        return {"cols": cols, "codes": codes, "cands": cands, "code_base": code_base, "cand_base": cand_base}
 
-    def _blocks(self) -> Iterator[tuple[np.ndarray, dict[str, Any]]]:
-        """Keyframe rows in blocks of ``CHUNK_ROWS``, each with its verified columns, codes and candidates."""
-        for start in range(0, len(self._kf_rows), CHUNK_ROWS):
-            rows = self._kf_rows[start:start + CHUNK_ROWS]
-            yield rows, self._rows_block(rows)
+    def _blocks(self, texts: bool = True) -> Iterator[tuple[np.ndarray, dict[str, Any]]]:
+        """Keyframe rows block by written block (``flush_every`` frames, one checksum each), each with its verified
+        columns (the text ones only when ``texts``), codes and candidates (``cols[k][j]``, ``codes[j]``,
+        ``cands[j]`` for the ``j``-th keyframe row)."""
+        for b in range(len(self._block_ends)):
+            lo = int(self._block_ends[b - 1]) if b else 0
+            rows = self._kf_rows[(self._kf_rows >= lo) & (self._kf_rows < int(self._block_ends[b]))]
+            if not len(rows):
+                continue
+            d = self._block_data(b, texts)
+            out: dict[str, Any] = {"cols": {k: v[rows - lo] for k, v in d["cols"].items()}}
+            for key, column, base in (("codes", "code_end", "code_base"), ("cands", "cand_end", "cand_base")):
+                ends = self._cols[column]
+                starts = np.where(rows > 0, ends[np.maximum(rows - 1, 0)], 0) - d[base]
+                data = d[key] if key == "codes" else d[key].reshape(-1, len(CANDIDATE_ROW))
+                out[key] = [data[a:z] for a, z in zip(starts.tolist(), (ends[rows] - d[base]).tolist())]
+            yield rows, out
 
     def _code(self, raw: np.ndarray) -> np.ndarray:
         """A stored code as given back: ``(D,)`` float32, or ``(n, 32)`` uint8 binary descriptors."""
@@ -542,6 +658,8 @@ class KeyframeDatabase:
     def _features_at(self, row: int) -> Features:
         span = self._span("feat_end", row)
         try:
+            if row >= self._h5_rows:  # still pending: as logged (checked when the log was read or written)
+                return self._unpack(self._pending[row - self._h5_rows][2])
             packed = {"keypoints": self._read("features/keypoints", span, 2).astype(np.uint16).reshape(-1, 2),
                       "descriptors": self._read("features/descriptors", span, 1),
                       "scales": self._read("features/scales", span).astype(np.float16)}
@@ -552,6 +670,10 @@ class KeyframeDatabase:
             raise DatabaseError(f"{self.path} is damaged: the features of keyframe {int(self._cols['frame_id'][row])} "
                                 "fail their checksum; the files written from it are left as they were; move it "
                                 "away to start again")
+        return self._unpack(packed)
+
+    def _unpack(self, packed: dict[str, np.ndarray]) -> Features:
+        """Stored features (``_pack_features``) as the extractor gave them."""
         if not len(packed["keypoints"]):
             width = self.file["features/descriptors"].shape[1] if "features/descriptors" in self.file else 128
             return Features.empty(width, np.dtype(self.file.attrs.get("descriptor_dtype", "float32")),
@@ -562,6 +684,7 @@ class KeyframeDatabase:
 
     def __iter__(self) -> Iterator[KeyframeRecord]:
         """Keyframes in frame-id order."""
+        self.sync()
         for rows, block in self._blocks():
             c = block["cols"]
             for j, r in enumerate(rows.tolist()):
@@ -577,7 +700,8 @@ class KeyframeDatabase:
                                                                      Features | None]]:
         """``(frame_id, code, timestamp, features)`` per keyframe in frame-id order, checksums verified;
         ``features=False`` reads no local features (None in their place: resuming in database mode)."""
-        for rows, block in self._blocks():
+        self.sync()
+        for rows, block in self._blocks(texts=False):
             c = block["cols"]
             for j, r in enumerate(rows.tolist()):
                 ts = float(c["timestamp"][j])
@@ -587,30 +711,47 @@ class KeyframeDatabase:
     def results(self) -> Iterator[tuple[int, np.ndarray, int]]:
         """``(frame_id, candidates (k, len(CANDIDATE_ROW)), loop)`` per keyframe in frame-id order, checksums
         verified."""
-        for rows, block in self._blocks():
+        self.sync()
+        for rows, block in self._blocks(texts=False):
             c = block["cols"]
             for j in range(len(rows)):
                 yield int(c["frame_id"][j]), block["cands"][j], int(c["loop"][j])
 
     def poses(self) -> np.ndarray:
         """``(n, 3, 4)`` camera-to-world pose per keyframe in frame-id order, NaN where none was given."""
+        self.sync()
         out = [block["cols"]["pose"] for _, block in self._blocks()]
         return np.concatenate(out).reshape(-1, 3, 4).astype(np.float64) if out else np.zeros((0, 3, 4))
 
     def codes(self) -> tuple[np.ndarray, np.ndarray]:
         """All codes, ``(n, D)`` float32, with their frame ids ``(n,)``; ``(0, 0)`` and ``(0,)`` when the keyframes
         hold binary descriptors (MILD) instead of codes."""
+        self.sync()
         if "codes" not in self.file or self.file["codes"].dtype != np.float16:
             return np.zeros((0, 0), np.float32), np.zeros(0, np.int64)
         out = [np.concatenate(block["codes"]) for _, block in self._blocks()]
         return np.concatenate(out).astype(np.float32), self._cols["frame_id"][self._kf_rows].astype(np.int64)
 
+    def sync(self) -> None:
+        """Moves the frames still only in the write-ahead log into the columns now (readers of the columns call it)."""
+        if self._pending:
+            self._write_block()
+
+    def _close_log(self) -> None:
+        if self._log is not None:
+            self._log.close(remove=not self._broken)
+            self._log = None
+
     def close(self) -> None:
-        """Flushes and closes the file (after a failed write only closes: HDF5 cannot flush a broken file)."""
+        """Moves the log into the columns, flushes and closes the file (after a failed write only closes: HDF5
+        cannot flush a broken file; the log keeps the frames for the next run)."""
         if self.file.id.valid:
+            if not self._broken:
+                self.sync()
             if not self._broken:
                 self.file.flush()
                 self.file.close()
+        self._close_log()
 
     def __enter__(self) -> "KeyframeDatabase":
         return self

@@ -107,7 +107,12 @@ default_conf: dict[str, Any] = {
         "parallel": False,  # features in a worker thread while the encoder runs (cores split); slower on 2 cores
         "lazy_features": True,  # local features only for frames that verify a candidate (extracted when needed,
         #                         then cached); False: on every frame as it arrives (the same results, slower)
-        "flush_every": 1,  # flush the database every this many frames (1: a killed run loses nothing)
+        "features_ahead": False,  # lazy: a worker thread extracts local features beside the main thread (the query's
+        #                           while it is encoded when the previous frame needed its own, then while the
+        #                           candidates' are extracted): the same features; off by default: no gain
+        #                           measured on 2 shared cores (encode slowed as much as SIFT was hidden)
+        "flush_every": 256,  # frames moved from the database's write-ahead log into its columns at a time (each
+        #                    frame is logged as it is stored: a killed run loses nothing whatever this is)
         "features": "memory",  # keyframe features for verification: "memory" (all), "database" (bounded memory)
         "feature_cache": 512,  # keyframes' features kept in memory (LRU): with features "database", and those
         #                        extracted late (lazy_features) in either mode
@@ -126,7 +131,7 @@ conf_rules: dict[str, Any] = {
                     "null_pairs": Int(10, 100_000), "min_features": Int(0), "min_inliers": Int(8),
                     "verification": Choice("auto", "on", "off"), "max_frames": Int(100)},
     "runtime": {"threads": Int(1, 1024, optional=True), "parallel": Bool(), "lazy_features": Bool(),
-                "flush_every": Int(1),
+                "features_ahead": Bool(), "flush_every": Int(1),
                 "features": Choice("memory", "database"), "feature_cache": Int(1)},
 }
 
@@ -285,6 +290,11 @@ class LoopDetector:
                                                    " calibration " + self.calibration.identity())
             self.db = KeyframeDatabase(database, persisted, identity, c["runtime"]["flush_every"])
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="features") if c["runtime"]["parallel"] else None
+        self._ahead = ThreadPoolExecutor(1, thread_name_prefix="features-ahead") \
+            if self._lazy and self._verify and c["runtime"]["features_ahead"] else None
+        self._ahead_extractor = create_extractor(c["features"]) if self._ahead is not None else None  # its own
+        self._spec: tuple[int, Any] | None = None  # (frame id, future) of the query's features extracted ahead
+        self._wanted = False  # whether the previous frame's query needed its local features
         self.features = FeatureStore(self.db if c["runtime"]["features"] == "database" else None,
                                      c["runtime"]["feature_cache"])
         if self.db is not None:
@@ -302,6 +312,9 @@ class LoopDetector:
         self._lazy = c["runtime"]["lazy_features"] and not c["runtime"]["parallel"] \
             and not self.descriptor.needs_features and (not has_database or frame_source is not None)
         self._frame_source = frame_source
+        # local features go into the database only where they cannot be had again from the frame's source (or are
+        # read back from there: features "database"); offline, its files give them again (~40 kB a frame less)
+        self._store_features = frame_source is None or c["runtime"]["features"] == "database"
         self._given: dict[int, Features] = dict(features or {})  # frame -> features extracted before (calibration)
         self._unextracted: set[int] = set()  # keyframes whose features were not extracted when they were processed
         self._copies: dict[int, tuple[bytes, float]] = {}  # without frame_source: their prepared grey image (PNG)
@@ -309,8 +322,8 @@ class LoopDetector:
 
     def _load(self, db: KeyframeDatabase) -> None:
         """Rebuilds the place memory and the filter's history from the database, as the uninterrupted run had them:
-        each keyframe is searched again in frame order (the filter updated with what it saw then), then committed
-        with its stored hypotheses and inserted."""
+        each keyframe is registered again in frame order (searched again only for a filter whose state depends on
+        every search: it is updated with what it saw then), then committed with its stored hypotheses and inserted."""
         n = 0
         results = {q: cands for q, cands, _ in db.results()}
         for fid, entry, timestamp, feats in db.search_entries(features=self.features.db is None):
@@ -318,9 +331,11 @@ class LoopDetector:
                 self.places.check(entry)  # the store keeps the searched entry itself
             except ConfigError as err:
                 raise ConfigError(f"{db.path}: keyframe {fid}: {err}; the database is damaged") from None
-            scores, ids = self.places.search(fid, entry, timestamp, self.conf["search"]["k"])
             if self.filter.replays_history:  # its state depends on every update, not only on the kept hypotheses
+                scores, ids = self.places.search(fid, entry, timestamp, self.conf["search"]["k"])
                 self.filter.update(fid, ids[scores >= self.conf["search"]["min_score"]], self.places.source)
+            else:
+                self.places.register(fid, entry, timestamp)
             self.filter.commit(fid, results[fid][:, 0].astype(np.int64))
             if self.decision is not None:  # stored rows: frame_id, score, matches, inliers, ... (CANDIDATE_ROW)
                 rows = results[fid]
@@ -445,9 +460,9 @@ class LoopDetector:
         t0 = time.perf_counter()
         if self.db is not None:  # first: if the disk refuses it, the in-memory state has not moved either
             rows = np.array([cd.as_row() for cd in candidates], np.float64).reshape(-1, len(CANDIDATE_ROW))
-            self.db.append(KeyframeRecord(fid, entry, feats if feats is not None else self._no_features(), ts,
-                                          pose34, source, edge_ratio, rows, -1 if loop is None else loop.frame_id,
-                                          fingerprint))
+            stored = feats if feats is not None and self._store_features else self._no_features()
+            self.db.append(KeyframeRecord(fid, entry, stored, ts, pose34, source, edge_ratio, rows,
+                                          -1 if loop is None else loop.frame_id, fingerprint))
         self.places.insert(fid, entry, ts)
         self.filter.commit(fid, np.array([cd.frame_id for cd in candidates], np.int64))
         if self.decision is not None:
@@ -478,6 +493,8 @@ class LoopDetector:
             feats, ms["features"] = self._timed_extract(gray)
         elif self._pool is not None and self._verify:
             pending = self._pool.submit(self._timed_extract, gray)
+        if self._ahead is not None and self._wanted and fid not in self._given:  # a revisit under way: likely
+            self._spec = (fid, self._ahead.submit(self._ahead_extractor.extract, gray))
         t0 = time.perf_counter()
         if code is None:
             code = self.descriptor(image, feats, network_image=net)
@@ -546,13 +563,18 @@ class LoopDetector:
         c = self.conf
         todo = [i for i, cd in enumerate(candidates) if self._could_pass(cd)]
         checks: list[Verification | None] = [None] * len(candidates)
+        spec, self._spec, self._wanted = self._spec, None, bool(todo)
         if not todo:
             return feats, checks
         t0 = time.perf_counter()
         if feats is None:
             feats = self._given.pop(fid, None)
-            feats = feats if feats is not None else self.extractor.extract(gray)
+        if feats is None and self._ahead is not None:  # the worker extracts the query's, this thread the candidates'
+            spec = spec if spec is not None and spec[0] == fid else (fid, self._ahead.submit(
+                self._ahead_extractor.extract, gray))
         refs = [self._features_of(candidates[i].frame_id) for i in todo]
+        if feats is None:
+            feats = spec[1].result() if self._ahead is not None else self.extractor.extract(gray)
         ms["features"] += (time.perf_counter() - t0) * 1e3
         done = self.verifier.verify(feats, refs, self.K, c["policy"]["min_matches"], self._min_inliers,
                                     c["policy"]["check_all"])
@@ -626,9 +648,10 @@ class LoopDetector:
     def close(self) -> None:
         """Flushes and closes the database and stops the worker thread; ``process`` refuses to run afterwards."""
         self._closed = True
-        if self._pool is not None:
-            self._pool.shutdown(wait=True)
-            self._pool = None
+        for pool in (self._pool, self._ahead):
+            if pool is not None:
+                pool.shutdown(wait=True)
+        self._pool = self._ahead = None
         if self.db is not None:
             self.db.close()
 

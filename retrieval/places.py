@@ -14,6 +14,7 @@ interface, shapes included::
     entry = places.entry(code)                # what is searched (and stored): the normalised code / the descriptors
     places.check(entry)                       # a stored entry this memory cannot use -> ConfigError
     scores, ids = places.search(frame_id, entry, timestamp, k)   # (m,) float32 best first, (m,) int64
+    places.register(frame_id, entry, timestamp)  # what search changes, without searching (resuming)
     places.insert(frame_id, entry, timestamp) # the frame becomes a keyframe (searchable once old enough)
     places.undo(frame_id)                     # the frame was not inserted after all (search registered it)
     places.source                             # temporal.SimilaritySource over the stored frames
@@ -54,6 +55,10 @@ class Places:
 
     def insert(self, frame_id: int, entry: np.ndarray, timestamp: float | None) -> None:
         raise NotImplementedError
+
+    def register(self, frame_id: int, entry: np.ndarray, timestamp: float | None) -> None:
+        """What ``search`` changes, without the result (a resume whose filter needs no replay of every search)."""
+        self.search(frame_id, entry, timestamp, 1)
 
     def undo(self, frame_id: int) -> None:
         raise NotImplementedError
@@ -97,6 +102,10 @@ class CodePlaces(Places):
         scores, ids = self.index.search(entry, k)
         self.source.add(frame_id, entry)
         return scores, ids
+
+    def register(self, frame_id: int, entry: np.ndarray, timestamp: float | None) -> None:
+        self.index.admit(frame_id, timestamp)  # no search: resuming 100k keyframes searched each (O(n^2))
+        self.source.add(frame_id, entry)
 
     def insert(self, frame_id: int, entry: np.ndarray, timestamp: float | None) -> None:
         self.index.add(frame_id, entry, timestamp)

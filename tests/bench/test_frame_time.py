@@ -4,8 +4,8 @@ from bench.frame_time import busy_neighbour, report, sift_yardstick, write_secti
 
 
 def _summary(median, wall_s, cal_s=None):
-    s = {"ms_per_frame": {"total": {"median": median, "p90": median * 2}}, "wall_s": wall_s, "frames": 200,
-         "peak_rss_bytes": 700 * 2**20, "loops": 100}
+    s = {"ms_per_frame": {"total": {"median": median, "p90": median * 2}, "insert": {"median": 0.25, "p90": 1}},
+         "wall_s": wall_s, "frames": 200, "peak_rss_bytes": 700 * 2**20, "loops": 100, "stored_bytes": 1_600_000}
     if cal_s is not None:
         s["seconds"] = {"calibration": cal_s, "frames": wall_s - cal_s}
     return s
@@ -19,7 +19,7 @@ def test_report_ratios():
                      "new_calibration_given": _summary(9.0, 3.6, 0.0)},
            "busy": {"sift_ms": 30.0, "new": _summary(15.0, 6.0, 1.0)}}
     text = report(res)
-    assert "| this code, no neighbour added | 10.0 | 0.50x | 20.0 | 1.00x | 12 % | 700 | 100 |" in text
+    assert "| this code, no neighbour added | 10.0 | 0.50x | 20.0 | 1.00x | 12 % | 0.25 | 8.0 | 700 | 100 |" in text
     assert "1.50x the run without it" in text and "median ms/frame 4.0x, wall time 5.0x" in text
     assert "identical: True" in text and "what it adds to the run: 10 %" in text
 

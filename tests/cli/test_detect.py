@@ -79,14 +79,19 @@ class TestDetectSample:
             assert len(db) == 100 and db.last_frame_id() == 99
             assert db.conf == {k: v for k, v in saved.items() if k != "runtime"}
 
-    def test_resume_after_interruption(self, cli_sample_run, detect_config_args, tmp_path, capsys):
-        """Simulates a run killed after frame 89 by deleting the tail of its database, then runs again."""
+    def test_resume_after_interruption(self, cli_sample_run, detect_conf, detect_config_args, tmp_path, capsys):
+        """Simulates a run killed after frame 89 (its last block of frames written, never committed, and its
+        write-ahead log lost), then runs again."""
         _, out = cli_sample_run
         run = tmp_path / "run"
-        shutil.copytree(out, run)
+        blocks = {**detect_conf, "runtime": {**detect_conf.get("runtime", {}), "flush_every": 30}}
+        (tmp_path / "blocks.yaml").write_text(yaml.safe_dump(blocks))
+        code, err = run_detect(["--out", run, "--config", tmp_path / "blocks.yaml"], capsys)  # blocks of 30 frames
+        assert code == 0, err
         with h5py.File(run / "keyframes.h5", "a") as f:  # frames 90-99 written, never committed (a kill -9)
-            assert f["frames/frame_id"][90] == 90
+            assert f["blocks/end"][:4].tolist() == [30, 60, 90, 100] and f["frames/frame_id"][90] == 90
             f.attrs["committed"] = 90
+        assert not (run / "keyframes.h5.log").exists()  # emptied and removed when the run closed
         code, err = run_detect(["--out", run, *detect_config_args], capsys)
         assert code == 0, err
         summary = json.loads((run / "summary.json").read_text())

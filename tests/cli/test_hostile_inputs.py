@@ -211,7 +211,7 @@ class TestDamagedDatabase:
         before = (out / "loops.csv").read_bytes()
         _flip_code_bytes(out / "keyframes.h5", 3)
         code, err = run_cli(["detect", seq, "--out", out, "--config", conf_file, "--no-progress"], capsys)
-        one_error_line(code, err, "keyframes.h5 is damaged", "keyframe 3")
+        one_error_line(code, err, "keyframes.h5 is damaged", "fail their checksum")  # the block holding frame 3
         assert (out / "loops.csv").read_bytes() == before
         code, err = run_cli(["evaluate", out, "--gt", REPO / "retrieval" / "sample" / "loops.txt", "--out",
                              tmp_path / "ev"], capsys)
@@ -349,9 +349,13 @@ class TestBadOut:
 # ----------------------------------------------------------------------------------------------- disk full
 class TestDiskFull:
     def test_clean_error_then_resume_to_the_same_result(self, tmp_path, baseline, conf_file):
-        """A file-size limit (RLIMIT_FSIZE, no root needed) stands in for a full disk."""
+        """A file-size limit (RLIMIT_FSIZE, no root needed) stands in for a full disk. Frames go into the store's
+        columns two at a time (``runtime.flush_every``), so the store grows during the run (the default moves them
+        256 at a time: these 16 frames would be written once, at the end)."""
         seq, _, loops = baseline
         out = tmp_path / "run"
+        conf_file = tmp_path / "blocks.yaml"
+        conf_file.write_text(CONF + "runtime: {flush_every: 2}\n")
         script = textwrap.dedent("""
             import resource, signal, sys
             signal.signal(signal.SIGXFSZ, signal.SIG_IGN)

@@ -86,7 +86,7 @@ class TestKeyframeDatabase:
 
     def test_storage_layout(self, db_path, records):
         with h5py.File(db_path, "r") as f:
-            assert int(f.attrs["format_version"]) == FORMAT_VERSION == 5
+            assert int(f.attrs["format_version"]) == FORMAT_VERSION == 6
             assert f.attrs["descriptor"] == ENCODER_ID and int(f.attrs["committed"]) == 5
             assert f["frames/frame_id"][:5].tolist() == [3, 7, 12, 13, 14]  # (room for growth past the commit)
             assert f["frames/kind"][:5].tolist() == [0, 0, 0, 1, 1]  # keyframes, then two gated frames
@@ -96,7 +96,8 @@ class TestKeyframeDatabase:
             assert f["features/descriptors"].dtype == np.uint8 and f["features/descriptors"].shape[1] == 128
             assert f["features/keypoints"].dtype == np.uint16 and f["features/scales"].dtype == np.float16
             assert f["candidates"].shape[1] == 6 and f.attrs["metric"] == "l2"
-            assert len(f["frames/checksum"][0]) == 32 and "keyframes" not in f  # no group per keyframe
+            assert len(f["blocks/checksum"][0]) == 32 and "keyframes" not in f  # no group per keyframe
+            assert f["blocks/end"][:1].tolist() == [5]  # one checksum for the block of five frames written at close
 
     def test_float_descriptors_kept_when_not_integral(self, tmp_path, sift_features):
         f = sift_features(3)
@@ -159,7 +160,7 @@ class TestKeyframeDatabase:
     def test_other_format_version_refused(self, db_path):
         with h5py.File(db_path, "a") as f:
             f.attrs["format_version"] = 4  # the group-per-keyframe layout before this one
-        with pytest.raises(ConfigError, match="format_version 4; this software reads 5"):
+        with pytest.raises(ConfigError, match="format_version 4; this software reads 6"):
             KeyframeDatabase(db_path, CONF, ENCODER_ID)
 
     @staticmethod
@@ -225,3 +226,61 @@ class TestKeyframeDatabase:
         with pytest.raises(ConfigError):
             KeyframeDatabase(tmp_path / "missing.h5", mode="r")
         assert not (tmp_path / "missing.h5").exists()
+
+
+_KILLED_WRITER = """
+import os, sys, numpy as np
+from retrieval.database import KeyframeDatabase, KeyframeRecord
+from verify.features import Features
+rng = np.random.default_rng(0)
+db = KeyframeDatabase(sys.argv[1], {}, "x", flush_every=int(sys.argv[2]))
+for i in range(int(sys.argv[3])):
+    f = Features(rng.uniform(0, 500, (20, 2)).astype(np.float32), rng.integers(0, 256, (20, 128)).astype(np.float32),
+                 rng.uniform(1, 9, 20).astype(np.float32))
+    db.append(KeyframeRecord(i, rng.standard_normal(8).astype(np.float32), f, float(i), source=f"{i}.png",
+                             candidates=np.array([[max(0, i - 1), 0.5, 3, 2, 0.1, 1.0]]), loop=i - 1))
+    if i % 3 == 2:
+        db.add_gated(1000 + i)  # ids must increase: gated ids go far above, then the keyframes stop
+        break
+os._exit(0)  # as a kill -9: nothing closed, nothing flushed
+"""
+
+
+class TestWriteAheadLog:
+    """Each frame is in the write-ahead log when ``append`` returns; the columns get it a block at a time."""
+
+    @staticmethod
+    def _write(path, flush_every, n):
+        import subprocess
+        import sys
+        subprocess.run([sys.executable, "-c", _KILLED_WRITER, str(path), str(flush_every), str(n)], check=True)
+
+    def test_killed_writer_loses_nothing(self, tmp_path):
+        self._write(tmp_path / "a.h5", 1000, 3)  # killed with every frame still only in the log
+        self._write(tmp_path / "b.h5", 1, 3)  # every frame in the columns at once
+        assert (tmp_path / "a.h5.log").stat().st_size > 0
+        with KeyframeDatabase(tmp_path / "a.h5", {}, "x") as a, KeyframeDatabase(tmp_path / "b.h5", {}, "x") as b:
+            assert [e.frame_id for e in a.frames()] == [e.frame_id for e in b.frames()] == [0, 1, 2, 1002]
+            for ra, rb in zip(a, b):
+                np.testing.assert_array_equal(ra.code, rb.code)
+                np.testing.assert_array_equal(ra.features.descriptors, rb.features.descriptors)
+                np.testing.assert_array_equal(ra.candidates, rb.candidates)
+                assert (ra.source, ra.loop, ra.timestamp) == (rb.source, rb.loop, rb.timestamp)
+        assert not (tmp_path / "a.h5.log").exists()  # taken into the columns, then removed
+
+    def test_torn_log_record_dropped(self, tmp_path):
+        self._write(tmp_path / "a.h5", 1000, 3)
+        log = tmp_path / "a.h5.log"
+        log.write_bytes(log.read_bytes()[:-5])  # the last frame's record torn by the kill
+        with KeyframeDatabase(tmp_path / "a.h5", {}, "x") as db:
+            assert [e.frame_id for e in db.frames()] == [0, 1, 2]
+            db.append(KeyframeRecord(3, np.ones(8, np.float32), Features.empty()))  # and the run goes on
+        with KeyframeDatabase(tmp_path / "a.h5", mode="r") as db:
+            assert db.last_frame_id() == 3 and len(db) == 4
+
+    def test_pending_features_read_back(self, tmp_path, records):
+        with KeyframeDatabase(tmp_path / "p.h5", CONF, flush_every=100) as db:
+            db.append(records[0])
+            assert int(db.file.attrs["committed"]) == 0  # still in the log only
+            np.testing.assert_array_equal(db.features(records[0].frame_id).descriptors,
+                                          records[0].features.descriptors)
