@@ -52,8 +52,10 @@ def serve(state: str, host: str = "127.0.0.1", port: int = 8765, admin: str | No
     """
     import uvicorn  # here: the CLI's other commands do not load the fleet's dependencies (the [fleet] extra)
     from fleet.runner import server_config
+    from core.threads import limit_malloc_arenas
     from fleet.server import create_app
 
+    limit_malloc_arenas()  # before uvicorn's and the service's threads start: RSS flat as keyframes stream in
     if not 0 < port < 65536:
         raise ConfigError(f"--port must be in 1..65535; got {port}")
     conf = load_conf_file(config) if config else {}

@@ -25,9 +25,12 @@ import cv2
 import torch
 from threadpoolctl import threadpool_limits
 
-__all__ = ["apply_thread_policy", "cpu_count"]
+__all__ = ["apply_thread_policy", "cpu_count", "limit_malloc_arenas", "MALLOC_ARENAS"]
 
 log = logging.getLogger(__name__)
+
+MALLOC_ARENAS = 2  #: glibc malloc arenas a long-running server keeps (``limit_malloc_arenas``)
+_M_ARENA_MAX = -8  # glibc's mallopt parameter number for M_ARENA_MAX (malloc.h)
 
 
 def cpu_count() -> int:
@@ -60,3 +63,27 @@ def apply_thread_policy(threads: int | None = 1) -> int:
     threadpool_limits(n, user_api="blas")  # numpy's OpenBLAS (and any other BLAS loaded), from now on
     log.debug("thread policy: %d thread(s) for torch, OpenCV, faiss and BLAS", n)
     return n
+
+
+def limit_malloc_arenas(arenas: int = MALLOC_ARENAS) -> bool:
+    """Caps glibc's malloc arenas for this process (``mallopt(M_ARENA_MAX, arenas)``), as ``MALLOC_ARENA_MAX`` in the
+    environment would, for a long-running server whose threads (uvicorn's, the optimiser's, robots processed in
+    parallel) otherwise each grow an arena of their own: the fleet server's RSS then keeps growing with the keyframes
+    streamed although nothing is kept (BENCHMARKS.md, issue 19: 1.35x from 200 to 500 keyframes, flat with 2 arenas).
+    Call it before the threads start. A ``MALLOC_ARENA_MAX`` already in the environment wins; elsewhere than glibc
+    (macOS, musl) it does nothing.
+
+    Returns:
+        True where the cap was set.
+    """
+    if os.environ.get("MALLOC_ARENA_MAX"):
+        return False
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL("libc.so.6")
+        done = bool(libc.mallopt(_M_ARENA_MAX, int(arenas)))
+    except (OSError, AttributeError):
+        return False
+    log.debug("malloc arenas capped at %d: %s", arenas, done)
+    return done
