@@ -44,7 +44,8 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--index-memory-gib", type=float, default=_DEFAULTS["index_memory_gib"],
                    help="largest index built, GiB (default %(default)s)")
     p.add_argument("--index-sizes", type=_int_list,
-                   help="comma-separated stored-code counts (default 10000,100000; 10000,100000,1000000 adds the million row, ~15 min)")
+                   help="comma-separated stored-code counts (default 10000,100000; 10000,100000,1000000 adds "
+                        "the million row, ~15 min)")
     p.add_argument("--training-epochs", type=int, default=_DEFAULTS["training_epochs"],
                    help="epochs for the other-data weights of the training study (default %(default)s)")
     p.set_defaults(func=run)
