@@ -22,7 +22,7 @@ from typing import Any, Callable, Sequence
 
 from core.files import prepare_out_dir, write_text_atomic
 from core.images import read_image
-from core.threads import limit_malloc_arenas
+from core.threads import reexec_with_capped_arenas
 from fleet.demo import kitti_stream
 from fleet.recognition import FleetRecognizer
 from fleet.service import FleetService
@@ -104,11 +104,11 @@ def main(argv: Sequence[str] | None = None) -> None:
                     help="the detectors' runtime.features (the fleet's default: database)")
     ap.add_argument("--bare", action="store_true", help="one LoopDetector with the fleet's detector conf, no fleet")
     ap.add_argument("--malloc-arenas", action=argparse.BooleanOptionalAction, default=True,
-                    help="cap glibc's malloc arenas as `cae-lcd serve` does (core.threads.limit_malloc_arenas)")
+                    help="cap glibc's malloc arenas as `cae-lcd serve` does (core.threads)")
     ap.add_argument("--out", type=Path, default=REPO / "runs" / "bench" / "fleet_memory")
     args = ap.parse_args(argv)
     if args.malloc_arenas:
-        limit_malloc_arenas()
+        reexec_with_capped_arenas()
     if not 1 <= args.keyframes <= 4000:
         ap.error("--keyframes must be in 1..4000")
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")

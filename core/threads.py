@@ -20,17 +20,18 @@ from __future__ import annotations
 
 import logging
 import os
+import platform
+import sys
 
 import cv2
 import torch
 from threadpoolctl import threadpool_limits
 
-__all__ = ["apply_thread_policy", "cpu_count", "limit_malloc_arenas", "MALLOC_ARENAS"]
+__all__ = ["apply_thread_policy", "cpu_count", "reexec_with_capped_arenas", "MALLOC_ARENAS"]
 
 log = logging.getLogger(__name__)
 
-MALLOC_ARENAS = 2  #: glibc malloc arenas a long-running server keeps (``limit_malloc_arenas``)
-_M_ARENA_MAX = -8  # glibc's mallopt parameter number for M_ARENA_MAX (malloc.h)
+MALLOC_ARENAS = 2  #: glibc malloc arenas a long-running server keeps (``reexec_with_capped_arenas``)
 
 
 def cpu_count() -> int:
@@ -65,25 +66,17 @@ def apply_thread_policy(threads: int | None = 1) -> int:
     return n
 
 
-def limit_malloc_arenas(arenas: int = MALLOC_ARENAS) -> bool:
-    """Caps glibc's malloc arenas for this process (``mallopt(M_ARENA_MAX, arenas)``), as ``MALLOC_ARENA_MAX`` in the
-    environment would, for a long-running server whose threads (uvicorn's, the optimiser's, robots processed in
-    parallel) otherwise each grow an arena of their own: the fleet server's RSS then keeps growing with the keyframes
-    streamed although nothing is kept (BENCHMARKS.md, issue 19: 1.35x from 200 to 500 keyframes, flat with 2 arenas).
-    Call it before the threads start. A ``MALLOC_ARENA_MAX`` already in the environment wins; elsewhere than glibc
-    (macOS, musl) it does nothing.
-
-    Returns:
-        True where the cap was set.
+def reexec_with_capped_arenas(arenas: int = MALLOC_ARENAS) -> None:
+    """Restarts this process (same pid, same command line) with ``MALLOC_ARENA_MAX=arenas`` in its environment, for a
+    long-running server: each of its threads (uvicorn's, the optimiser's, robots processed in parallel) otherwise
+    grows a glibc malloc arena of its own, and its RSS keeps growing with the keyframes streamed although nothing is
+    kept (``python -m bench.fleet_memory``: 656 -> 1457 MiB from 200 to 2000 keyframes; 1.2x with the cap).
+    ``mallopt(M_ARENA_MAX)`` at run time cannot undo the arenas the imports already made (measured: still 1.7x over
+    200 -> 1000 keyframes), hence the restart. Returns at once where the environment already says (a user's own ``MALLOC_ARENA_MAX`` wins)
+    or elsewhere than glibc; call it first thing in a command's entry point, before anything is started or written.
     """
-    if os.environ.get("MALLOC_ARENA_MAX"):
-        return False
-    try:
-        import ctypes
+    if os.environ.get("MALLOC_ARENA_MAX") or platform.libc_ver()[0] != "glibc":
+        return
+    os.environ["MALLOC_ARENA_MAX"] = str(int(arenas))
+    os.execv(sys.executable, [sys.executable, *sys.orig_argv[1:]])
 
-        libc = ctypes.CDLL("libc.so.6")
-        done = bool(libc.mallopt(_M_ARENA_MAX, int(arenas)))
-    except (OSError, AttributeError):
-        return False
-    log.debug("malloc arenas capped at %d: %s", arenas, done)
-    return done

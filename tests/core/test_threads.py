@@ -49,8 +49,8 @@ def test_detector_applies_its_runtime_threads(restore_threads, encoder):
 _ARENAS_SCRIPT = """
 import ctypes, sys, tempfile, threading
 if sys.argv[1] == "cap":
-    from core.threads import limit_malloc_arenas
-    assert limit_malloc_arenas(1)
+    from core.threads import reexec_with_capped_arenas
+    reexec_with_capped_arenas(1)  # runs this script again with MALLOC_ARENA_MAX=1
 keep, together = [], threading.Barrier(4)
 def work():  # four threads alive at once, each allocating: glibc gives each its own arena unless capped
     keep.append([bytearray(1000) for _ in range(100)])
@@ -81,7 +81,7 @@ class TestMallocArenas:
         assert self._heaps("cap") == 1
 
     def test_the_environment_wins(self, monkeypatch):
-        from core.threads import limit_malloc_arenas
+        from core.threads import reexec_with_capped_arenas
 
         monkeypatch.setenv("MALLOC_ARENA_MAX", "4")
-        assert limit_malloc_arenas() is False
+        assert reexec_with_capped_arenas() is None  # returned: no restart (the test process would be replaced)
