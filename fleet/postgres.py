@@ -173,10 +173,6 @@ class PostgresStore(SQLStore):
                        (overlap.robot_a, overlap.robot_b, sim3_json(overlap.transform), int(overlap.matches),
                         float(overlap.accepted)))
 
-    def overlaps(self) -> list[OverlapRecord]:
-        rows = self._read('SELECT robot_a, robot_b, sim3, matches, accepted FROM "overlaps" ORDER BY accepted, seq')
-        return loadable(rows, lambda r: OverlapRecord(r[0], r[1], sim3_from_json(r[2]), r[3], r[4]), "overlap")
-
     def set_transforms(self, transforms: dict[str, Sim3]) -> None:
         now = time.time()
         with self._transaction() as db:
@@ -189,19 +185,6 @@ class PostgresStore(SQLStore):
                     cur.executemany("INSERT INTO transforms (robot, sim3, updated) VALUES (%s, %s, %s)",
                                     [(robot, sim3_json(T), now) for robot, T in transforms.items()])
 
-    def transforms(self) -> dict[str, Sim3]:
-        rows = self._read("SELECT robot, sim3 FROM transforms ORDER BY seq")
-        return dict(loadable(rows, lambda r: (r[0], sim3_from_json(r[1])), "transform"))
-
-    def close(self) -> None:
-        with self._lock:
-            self._db.close()
-
-    def __enter__(self) -> "PostgresStore":
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 def _one_line(err: Exception) -> str:

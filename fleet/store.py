@@ -34,7 +34,7 @@ from abc import ABC, abstractmethod
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterator, Sequence
+from typing import Any, Callable, Iterator, Self, Sequence
 
 import numpy as np
 
@@ -206,6 +206,8 @@ class SQLStore(FleetStore):
     _P = "?"  #: the driver's parameter placeholder
     _ORDER = "rowid"  #: orders a table's rows as they were inserted
     conf: dict[str, Any]
+    _db: Any  #: the driver's connection
+    _lock: threading.Lock  #: guards ``_db``
 
     @abstractmethod
     def _transaction(self) -> Any: ...
@@ -257,6 +259,25 @@ class SQLStore(FleetStore):
     @staticmethod
     @abstractmethod
     def _insert_edges(db: Any, edges: Sequence[EdgeRecord]) -> None: ...
+
+    def overlaps(self) -> list[OverlapRecord]:
+        rows = self._read('SELECT robot_a, robot_b, sim3, matches, accepted FROM "overlaps" '  # a keyword in PostgreSQL
+                          f"ORDER BY accepted, {self._ORDER}")
+        return _loadable(rows, lambda r: OverlapRecord(r[0], r[1], _sim3_from_json(r[2]), r[3], r[4]), "overlap")
+
+    def transforms(self) -> dict[str, Sim3]:
+        rows = self._read(f"SELECT robot, sim3 FROM transforms ORDER BY {self._ORDER}")
+        return dict(_loadable(rows, lambda r: (r[0], _sim3_from_json(r[1])), "transform"))
+
+    def close(self) -> None:
+        with self._lock:
+            self._db.close()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
 
 class SQLiteStore(SQLStore):
@@ -369,10 +390,6 @@ class SQLiteStore(SQLStore):
                        (overlap.robot_a, overlap.robot_b, _sim3_json(overlap.transform), int(overlap.matches),
                         float(overlap.accepted)))
 
-    def overlaps(self) -> list[OverlapRecord]:
-        rows = self._read("SELECT robot_a, robot_b, sim3, matches, accepted FROM overlaps ORDER BY accepted, rowid")
-        return _loadable(rows, lambda r: OverlapRecord(r[0], r[1], _sim3_from_json(r[2]), r[3], r[4]), "overlap")
-
     def set_transforms(self, transforms: dict[str, Sim3]) -> None:
         now = time.time()
         with self._transaction() as db:
@@ -380,16 +397,3 @@ class SQLiteStore(SQLStore):
             db.executemany("INSERT INTO transforms VALUES (?, ?, ?)",
                            [(robot, _sim3_json(T), now) for robot, T in transforms.items()])
 
-    def transforms(self) -> dict[str, Sim3]:
-        rows = self._read("SELECT robot, sim3 FROM transforms ORDER BY rowid")
-        return dict(_loadable(rows, lambda r: (r[0], _sim3_from_json(r[1])), "transform"))
-
-    def close(self) -> None:
-        with self._lock:
-            self._db.close()
-
-    def __enter__(self) -> "SQLiteStore":
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
