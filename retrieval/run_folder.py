@@ -85,6 +85,11 @@ def read_csv_table(path: str | Path, columns: tuple[str, ...], id_columns: int =
     return np.array(rows, np.float64).reshape(-1, len(columns))
 
 
+def _file(name: str) -> property:
+    """A run folder's file ``name`` as a read-only ``Path`` attribute."""
+    return property(lambda self: self.root / name, doc=f"``{name}`` in the run folder")
+
+
 @dataclass(frozen=True)
 class RunFolder:
     """The files of one run (see the module doc)."""
@@ -94,33 +99,16 @@ class RunFolder:
     def __post_init__(self) -> None:
         object.__setattr__(self, "root", Path(self.root))
 
-    @property
-    def conf(self) -> Path:
-        return self.root / "conf.yaml"
-
-    @property
-    def calibration(self) -> Path:
-        return self.root / "calibration.h5"
-
-    @property
-    def database(self) -> Path:
-        return self.root / "keyframes.h5"
-
-    @property
-    def loops(self) -> Path:
-        return self.root / "loops.csv"
-
-    @property
-    def candidates(self) -> Path:
-        return self.root / "candidates.csv"
-
-    @property
-    def summary(self) -> Path:
-        return self.root / "summary.json"
-
-    @property
-    def ground_truth_poses(self) -> Path:
-        return self.root / "ground_truth_poses.txt"
+    conf = _file("conf.yaml")
+    calibration = _file("calibration.h5")
+    database = _file("keyframes.h5")
+    loops = _file("loops.csv")
+    candidates = _file("candidates.csv")
+    summary = _file("summary.json")
+    ground_truth_poses = _file("ground_truth_poses.txt")
+    edges_g2o = _file("loop_edges.g2o")
+    edges_csv = _file("loop_edges.csv")
+    edges_json = _file("loop_edges.json")
 
     def write_ground_truth_poses(self, poses: np.ndarray) -> Path:
         """Writes ``(N, 3, 4)`` camera-to-world poses as a KITTI poses file (12 numbers a line); returns its path."""
@@ -157,18 +145,6 @@ class RunFolder:
     def read_candidates(self) -> np.ndarray | None:
         """``(C, 8)`` float64 rows of ``CANDIDATE_COLUMNS``; None when the run has no candidates.csv."""
         return read_csv_table(self.candidates, CANDIDATE_COLUMNS) if self.candidates.is_file() else None
-
-    @property
-    def edges_g2o(self) -> Path:
-        return self.root / "loop_edges.g2o"
-
-    @property
-    def edges_csv(self) -> Path:
-        return self.root / "loop_edges.csv"
-
-    @property
-    def edges_json(self) -> Path:
-        return self.root / "loop_edges.json"
 
     def write_edges(self, edges: list[LoopEdge], poses: np.ndarray | None = None) -> None:
         """Writes ``loop_edges.g2o``, ``.csv`` and ``.json`` (see the module doc).
