@@ -70,10 +70,10 @@ def reexec_with_capped_arenas(arenas: int = MALLOC_ARENAS) -> None:
     """Restarts this process (same pid, same command line) with ``MALLOC_ARENA_MAX=arenas`` in its environment, for a
     long-running server: each of its threads (uvicorn's, the optimiser's, robots processed in parallel) otherwise
     grows a glibc malloc arena of its own, and its RSS keeps growing with the keyframes streamed although nothing is
-    kept (``python -m bench.fleet_memory``: 656 -> 1457 MiB from 200 to 2000 keyframes; 1.2x with the cap).
-    ``mallopt(M_ARENA_MAX)`` at run time cannot undo the arenas the imports already made (measured: still 1.7x over
-    200 -> 1000 keyframes), hence the restart. Returns at once where the environment already says (a user's own ``MALLOC_ARENA_MAX`` wins)
-    or elsewhere than glibc; call it first thing in a command's entry point, before anything is started or written.
+    kept. ``mallopt(M_ARENA_MAX)`` at run time cannot undo the arenas the imports already made, hence the restart
+    (both measured with ``python -m bench.fleet_memory``: BENCHMARKS.md, issue 19). Returns at once where the
+    environment already says (a user's own ``MALLOC_ARENA_MAX`` wins) or elsewhere than glibc; call it in a command's
+    entry point once its arguments are checked, before anything is started or written.
     """
     if os.environ.get("MALLOC_ARENA_MAX") or platform.libc_ver()[0] != "glibc":
         return

@@ -155,9 +155,9 @@ class HNSWIndex(CodeIndex):
     default_conf: dict[str, Any] = {
         "name": "hnsw",
         "m": 32,  # graph degree (faiss HNSW M): more = better recall, more memory
-        "ef_search": 256,  # candidate list size at search time: more = better recall, slower (1M realistic codes:
-        #                    recall@10 0.976 at 0.44 ms, BENCHMARKS.md "Index scaling"; 128 gave 0.818)
-        "ef_construction": 128,  # candidate list size while inserting (64 left recall@10 at 0.90 with ef_search 512)
+        "ef_search": 256,  # candidate list size at search time: more = better recall, slower (chosen on 1M
+        #                    realistic codes with ef_construction: BENCHMARKS.md, issue 18, "a million keyframes")
+        "ef_construction": 128,  # candidate list size while inserting: the graph's quality bounds the recall
     }
     conf_rules: dict[str, Any] = {"m": Int(2, 512), "ef_search": Int(1, 100_000), "ef_construction": Int(1, 100_000)}
 
