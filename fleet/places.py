@@ -4,7 +4,8 @@ by ``(robot, keyframe)``.
 
 Cross-robot search has no recency exclusion (another robot's frame is never "recent"), and a query from outside
 the memory's own sequence is not registered in its similarity table (``Places.undo`` right after the search), so
-the memory holds each entry once, in its index. What stays in this process per keyframe is its key (two ints).
+the memory holds each entry once, in its index. What stays in this process per keyframe is its key (two ints), and
+its entry with an in-process index (faiss); none with Milvus.
 """
 
 from __future__ import annotations
