@@ -83,6 +83,7 @@ _ROW_CHECKED = ("frame_id", "kind", "timestamp", "pose", "edge_ratio", "loop", "
 _FEATURES = ("keypoints", "descriptors", "scales")
 _LOGGED = ("frame_id", "kind", "timestamp", "edge_ratio", "loop", "fingerprint", "message")  # as JSON in the log
 LOG_SUFFIX = ".log"  #: the write-ahead log is the store's path plus this (``keyframes.h5.log``)
+INDEX_SUFFIX = ".index"  #: the place index saved on close is the store's path plus this (``keyframes.h5.index``)
 
 
 def _name_bytes(name: str) -> bytes:
@@ -574,6 +575,15 @@ class KeyframeDatabase:
         """Frame ids the gate rejected, ``(n,)`` int64."""
         return self.skipped("gated")
 
+    @property
+    def index_path(self) -> Path:
+        """Where the detector saves its place index beside this store (``retrieval.index.KeyframeIndex.save``)."""
+        return self.path.with_name(self.path.name + INDEX_SUFFIX)
+
+    def keyframe_ids(self) -> np.ndarray:
+        """Frame ids of the keyframes, ``(n,)`` int64 ascending (the frames still only in the log included)."""
+        return self._cols["frame_id"][self._kf_rows].astype(np.int64)
+
     def last_frame_id(self) -> int:
         """The largest frame id stored (keyframe or not), -1 when empty."""
         return int(self._cols["frame_id"][-1]) if len(self._cols["frame_id"]) else -1
@@ -730,7 +740,7 @@ class KeyframeDatabase:
         if "codes" not in self.file or self.file["codes"].dtype != np.float16:
             return np.zeros((0, 0), np.float32), np.zeros(0, np.int64)
         out = [np.concatenate(block["codes"]) for _, block in self._blocks()]
-        return np.concatenate(out).astype(np.float32), self._cols["frame_id"][self._kf_rows].astype(np.int64)
+        return np.concatenate(out).astype(np.float32), self.keyframe_ids()
 
     def sync(self) -> None:
         """Moves the frames still only in the write-ahead log into the columns now (readers of the columns call it)."""

@@ -327,6 +327,10 @@ class LoopDetector:
         every search: it is updated with what it saw then), then committed with its stored hypotheses and inserted."""
         n = 0
         results = {q: cands for q, cands, _ in db.results()}
+        if not self.filter.replays_history:  # else every search is replayed against the index as it was then
+            restored = self.places.restore_index(db.index_path, db.keyframe_ids())
+            if restored:
+                log.info("restored the place index of %d keyframes from %s", restored, db.index_path)
         for fid, entry, timestamp, feats in db.search_entries(features=self.features.db is None):
             try:
                 self.places.check(entry)  # the store keeps the searched entry itself
@@ -654,7 +658,17 @@ class LoopDetector:
                 pool.shutdown(wait=True)
         self._pool = self._ahead = None
         if self.db is not None:
+            self._save_index(self.db)
             self.db.close()
+
+    def _save_index(self, db: KeyframeDatabase) -> None:
+        """Saves the place index beside the store for the next resume (where rebuilding it would cost); a failure
+        only costs that resume a rebuild."""
+        try:
+            if self.places.save_index(db.index_path):
+                log.info("saved the place index of %d keyframes to %s", len(self.places), db.index_path)
+        except OSError as err:
+            log.warning("could not save the place index to %s (%s); a resume rebuilds it", db.index_path, err)
 
     def __enter__(self) -> "LoopDetector":
         return self

@@ -15,17 +15,20 @@ Index types, by registry name (``index.name``):
 - ``auto``: picks by map size: exact (``flat``) while small, then rebuilds itself once as the ``large`` index
   (``hnsw`` by default) when the map reaches ``switch_at`` codes.
 
-Every index saves to and loads from a file (``CodeIndex.save`` / ``load_index``; ``KeyframeIndex`` keeps its
-frame ids beside the faiss index).
+Every index saves to and loads from a file (``CodeIndex.save`` / ``load_index``). ``KeyframeIndex.save`` writes its
+frame ids beside the faiss index, and a detector with a keyframe store saves it there on ``close`` (``keyframes.h5``
+-> ``keyframes.h5.index``) and restores it on resume instead of rebuilding it, for the indexes whose rebuild costs
+(``save_with_store``: graph and trained ones; exact ones are rebuilt from the store's codes as fast).
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import os
 from collections import deque
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 import faiss
 import numpy as np
@@ -33,8 +36,11 @@ import numpy as np
 from core.conf import Choice, Float, Int, Registry, configure, merge_conf
 from core.errors import ConfigError
 
+log = logging.getLogger(__name__)
+
 __all__ = ["AdmissionQueue", "CodeIndex", "FlatIndex", "FP16Index", "SQ8Index", "HNSWIndex", "IVFPQIndex", "AutoIndex",
-           "INDEXES", "create_index", "load_index", "KeyframeIndex", "brute_force_search"]
+           "INDEXES", "create_index", "load_index", "read_index_file", "write_index_file", "KeyframeIndex",
+           "brute_force_search"]
 
 
 def brute_force_search(xq: np.ndarray, xb: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -58,6 +64,10 @@ class CodeIndex:
     default_conf: dict[str, Any] = {"name": "flat"}
     conf_rules: dict[str, Any] = {}
     factory = "Flat"
+    #: a keyframe store saves this index beside it (graph and trained indexes: rebuilding one from the stored codes
+    #: costs minutes at a million); an exact one (flat, fp16) is rebuilt from the store's codes as fast as a saved
+    #: copy would load
+    save_with_store = True
 
     def __init__(self, dim: int, conf: dict[str, Any] | None = None) -> None:
         self.conf = configure(self, conf, "index")
@@ -100,21 +110,35 @@ class CodeIndex:
         setattr(self, name, part)
 
     def save(self, path: str | Path) -> None:
-        """Writes the index to ``path`` atomically (temporary file, then rename): a JSON header (conf, dimension,
-        part sizes) then each faiss part serialised."""
-        path = Path(path)
-        blobs = {name: faiss.serialize_index(part).tobytes() for name, part in self._parts().items()}
-        head = json.dumps({"conf": self.conf, "dim": self.dim, "parts": [[n, len(b)] for n, b in blobs.items()]})
-        tmp = path.with_name(path.name + ".tmp")
+        """Writes the index to ``path`` atomically (``write_index_file`` without arrays)."""
+        write_index_file(path, self)
+
+
+def write_index_file(path: str | Path, index: CodeIndex, arrays: Mapping[str, np.ndarray] | None = None) -> None:
+    """Writes ``index`` and named 1-d ``arrays`` to ``path`` atomically (a temporary file, then a rename; the
+    temporary file is removed when writing fails): a JSON header (conf, dimension, part and array sizes), each faiss
+    part serialised, then each array's bytes."""
+    path = Path(path)
+    blobs = {name: faiss.serialize_index(part).tobytes() for name, part in index._parts().items()}
+    arrs = {name: np.ascontiguousarray(a).reshape(-1) for name, a in (arrays or {}).items()}
+    head = json.dumps({"conf": index.conf, "dim": index.dim, "parts": [[n, len(b)] for n, b in blobs.items()],
+                       "arrays": [[n, a.dtype.str, len(a)] for n, a in arrs.items()]}).encode()
+    tmp = path.with_name(path.name + ".tmp")
+    try:
         with open(tmp, "wb") as fh:
-            fh.write(len(head.encode()).to_bytes(8, "little") + head.encode())
+            fh.write(len(head).to_bytes(8, "little") + head)
             for blob in blobs.values():
                 fh.write(blob)
+            for a in arrs.values():
+                fh.write(a.tobytes())
         os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
-def load_index(path: str | Path) -> "CodeIndex":
-    """An index written by ``CodeIndex.save``, as it was (same conf, codes and search parameters).
+def read_index_file(path: str | Path) -> tuple[CodeIndex, dict[str, np.ndarray]]:
+    """The index and arrays ``write_index_file`` wrote, as they were (same conf, codes and search parameters).
 
     Raises:
         ConfigError: not an index file, or damaged.
@@ -130,9 +154,22 @@ def load_index(path: str | Path) -> "CodeIndex":
             index._set_part(name, faiss.deserialize_index(np.frombuffer(data, np.uint8, size, pos)))
             pos += size
         index._configure()
+        arrays = {}
+        for name, dtype, count in head.get("arrays", []):
+            arrays[name] = np.frombuffer(data, np.dtype(dtype), int(count), pos).copy()
+            pos += arrays[name].nbytes
     except (OSError, ValueError, KeyError, TypeError, RuntimeError, UnicodeDecodeError) as err:
         raise ConfigError(f"{path} is not a readable code index ({type(err).__name__}: {str(err)[:120]})") from None
-    return index
+    return index, arrays
+
+
+def load_index(path: str | Path) -> "CodeIndex":
+    """An index written by ``CodeIndex.save``, as it was (``read_index_file`` without the arrays).
+
+    Raises:
+        ConfigError: not an index file, or damaged.
+    """
+    return read_index_file(path)[0]
 
 
 INDEXES: Registry[CodeIndex] = Registry("index")
@@ -142,12 +179,14 @@ INDEXES: Registry[CodeIndex] = Registry("index")
 class FlatIndex(CodeIndex):
     default_conf: dict[str, Any] = {"name": "flat"}  # exact search over float32 codes
     factory = "Flat"
+    save_with_store = False
 
 
 @INDEXES.register("fp16")
 class FP16Index(CodeIndex):
     default_conf: dict[str, Any] = {"name": "fp16"}  # exact search over float16-rounded codes, half the memory
     factory = "SQfp16"
+    save_with_store = False
 
 
 @INDEXES.register("hnsw")
@@ -237,6 +276,40 @@ class KeyframeIndex:
         if ready:
             self.frame_ids.extend(fid for fid, _ in ready)
             self.index.add(np.stack([code for _, code in ready]))
+
+    def save(self, path: str | Path) -> bool:
+        """Writes the admitted codes' index and their frame ids to ``path`` (``write_index_file``) when the index is
+        worth keeping beside a keyframe store (``CodeIndex.save_with_store``); returns whether it wrote."""
+        if not self.index.save_with_store:
+            return False
+        write_index_file(path, self.index, {"frame_ids": np.asarray(self.frame_ids, np.int64)})
+        return True
+
+    def restore(self, path: str | Path, keyframe_ids: np.ndarray) -> int:
+        """Takes back, into this empty index, what ``save`` wrote, when its frame ids are the first of a keyframe
+        store's ``keyframe_ids`` ``(n,)`` (a store only appends: the keyframes after them are added as usual) and it
+        was made with this index's conf.
+
+        Returns:
+            How many of ``keyframe_ids`` the restored index holds; 0 when nothing was restored (no file, or one that
+            does not fit: logged), and the caller adds every keyframe again.
+        """
+        if len(self) or not Path(path).is_file():
+            return 0
+        try:
+            index, arrays = read_index_file(path)
+        except ConfigError as err:
+            log.warning("%s; the index is rebuilt from the keyframe store", err)
+            return 0
+        ids = arrays.get("frame_ids", np.zeros(0, np.int64))
+        keyframe_ids = np.asarray(keyframe_ids, np.int64)
+        if index.conf != self.index.conf or index.dim != self.index.dim or index.ntotal != len(ids) \
+                or len(ids) > len(keyframe_ids) or not np.array_equal(ids, keyframe_ids[:len(ids)]):
+            log.warning("%s was saved for other keyframes or another index; the index is rebuilt from the keyframe "
+                        "store", path)
+            return 0
+        self.index, self.frame_ids = index, ids.tolist()
+        return len(ids)
 
     def search(self, code: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         """Top-``k`` among the admitted keyframes (call ``admit`` for the query frame first); changes nothing.
@@ -374,6 +447,10 @@ class AutoIndex(CodeIndex):
             self.large = create_index(self.dim, {"name": self.conf["large"]})
         self.large._set_part(name[len("large."):], part)
         self.large._configure()
+
+    @property
+    def save_with_store(self) -> bool:  # type: ignore[override]
+        return self.large is not None and self.large.save_with_store
 
     @property
     def chosen(self) -> str:

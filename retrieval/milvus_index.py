@@ -41,6 +41,7 @@ class MilvusIndex(CodeIndex):
         "batch": 1000,  # codes per insert request
     }
     conf_rules: dict[str, Any] = {"uri": Text(), "collection": Text(_NAME), "batch": Int(1, 100_000)}
+    save_with_store = False  # the collection lives in Milvus; a keyframe store's resume adds its codes again
 
     def __init__(self, dim: int, conf: dict[str, Any] | None = None) -> None:
         from pymilvus import MilvusClient  # here: only this index needs it

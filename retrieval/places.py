@@ -17,6 +17,8 @@ interface, shapes included::
     places.register(frame_id, entry, timestamp)  # what search changes, without searching (resuming)
     places.insert(frame_id, entry, timestamp) # the frame becomes a keyframe (searchable once old enough)
     places.undo(frame_id)                     # the frame was not inserted after all (search registered it)
+    places.save_index(path)                   # beside a keyframe store, on close: True when written
+    places.restore_index(path, keyframe_ids)  # on resume, before registering: how many keyframes it already holds
     places.source                             # temporal.SimilaritySource over the stored frames
     len(places)                               # keyframes inserted (searchable or still too recent)
 """
@@ -24,6 +26,7 @@ interface, shapes included::
 from __future__ import annotations
 
 from collections import OrderedDict
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -63,6 +66,15 @@ class Places:
     def undo(self, frame_id: int) -> None:
         raise NotImplementedError
 
+    def save_index(self, path: str | Path) -> bool:
+        """Writes what a resume would otherwise rebuild to ``path``; False: nothing worth saving (the default)."""
+        return False
+
+    def restore_index(self, path: str | Path, keyframe_ids: np.ndarray) -> int:
+        """Takes back what ``save_index`` wrote for the first of a store's ``keyframe_ids`` ``(n,)``; returns how
+        many it holds (their ``insert`` then adds nothing again); 0: nothing restored (the default)."""
+        return 0
+
     def __len__(self) -> int:
         raise NotImplementedError
 
@@ -80,6 +92,7 @@ class CodePlaces(Places):
         s = conf["search"]
         self.index = KeyframeIndex(dim, conf["index"], s["exclude_recent"], s["exclude_recent_s"])
         self.source = CodeTable(dim, self._searchable)
+        self._restored_to = -1  # keyframes up to this frame id came back in a saved index (restore_index)
 
     def check(self, entry: np.ndarray) -> None:
         if entry.shape != (self.dim,) or not np.isfinite(entry).all():
@@ -108,10 +121,19 @@ class CodePlaces(Places):
         self.source.add(frame_id, entry)
 
     def insert(self, frame_id: int, entry: np.ndarray, timestamp: float | None) -> None:
-        self.index.add(frame_id, entry, timestamp)
+        if frame_id > self._restored_to:  # else already in the index restore_index took back
+            self.index.add(frame_id, entry, timestamp)
 
     def undo(self, frame_id: int) -> None:
         self.source.remove_last(frame_id)
+
+    def save_index(self, path: str | Path) -> bool:
+        return self.index.save(path)
+
+    def restore_index(self, path: str | Path, keyframe_ids: np.ndarray) -> int:
+        n = self.index.restore(path, keyframe_ids)
+        self._restored_to = int(keyframe_ids[n - 1]) if n else -1
+        return n
 
     def __len__(self) -> int:
         return len(self.index)

@@ -191,6 +191,34 @@ class TestFeatureStoreMode:
             LoopDetector({"runtime": {"features": "disk"}}, encoder=encoder)
 
 
+class TestSavedIndex:
+    def test_resume_takes_the_saved_graph_index_and_equals_uninterrupted_run(self, tmp_path, sample_seq,
+                                                                             sample_image, encoder, caplog):
+        """A graph index (rebuilt in minutes at a million keyframes) is saved beside the store on close and taken
+        back on resume; the resumed run finds what the uninterrupted one did."""
+        conf = {"index": {"name": "hnsw"}}
+        seq = sample_seq
+
+        def run(det, frames):
+            return [(r.frame_id, -1 if r.loop is None else r.loop.frame_id)
+                    for r in (det.process(sample_image(i), i, float(seq.timestamps[i])) for i in frames)]
+
+        with LoopDetector(conf, K=seq.K, encoder=encoder) as det:
+            whole = run(det, range(len(seq)))
+        db = tmp_path / "keyframes.h5"
+        with LoopDetector(conf, K=seq.K, database=db, encoder=encoder) as det:
+            first = run(det, range(RESUME_AT))
+        assert (tmp_path / "keyframes.h5.index").is_file()
+        with caplog.at_level("INFO", logger="retrieval.detector"):
+            with LoopDetector(conf, K=seq.K, database=db, encoder=encoder) as det:
+                assert "restored the place index of" in caplog.text
+                second = run(det, range(RESUME_AT, len(seq)))
+                indexed = det.places.index.frame_ids
+                assert indexed == sorted(set(indexed)) and det.places.index.index.ntotal == len(indexed)
+        assert first + second == whole
+        assert sum(m >= 0 for _, m in whole) >= 45
+
+
 class TestCandidate:
     def test_as_row(self):
         assert Candidate(3, 0.5, 10, 7, 0.4, 2.5).as_row() == (3, 0.5, 10, 7, 0.4, 2.5)

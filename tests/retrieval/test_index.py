@@ -320,3 +320,46 @@ class TestKeyframeIndex:
         first = kf.search(codes[0], 10)
         np.testing.assert_array_equal(kf.search(codes[0], 10)[1], first[1])
         assert sorted(first[1].tolist()) == [0, 1, 2, 3, 4]
+
+
+class TestSaveWithStore:
+    """``KeyframeIndex.save`` / ``restore``: what a detector writes beside its keyframe store and takes back."""
+
+    def fill(self, conf, codes, n):
+        kf = KeyframeIndex(D, conf, exclude_recent=5)
+        for i in range(n):
+            query(kf, codes[i], i, 1)
+            kf.add(i, codes[i])
+        return kf
+
+    def test_graph_index_restored_searches_as_saved(self, tmp_path, data):
+        codes = data[0][:300]
+        kf = self.fill({"name": "hnsw", "m": 8}, codes, 300)
+        assert kf.save(tmp_path / "kf.index")
+        back = KeyframeIndex(D, {"name": "hnsw", "m": 8}, exclude_recent=5)
+        assert back.restore(tmp_path / "kf.index", np.arange(400)) == len(kf.frame_ids) == 295
+        for q in data[1][:10]:
+            for got, want in zip(back.search(q, 10), kf.search(q, 10)):
+                np.testing.assert_array_equal(got, want)
+
+    def test_exact_index_is_not_saved(self, tmp_path, data):
+        kf = self.fill({"name": "flat"}, data[0], 50)
+        assert not kf.save(tmp_path / "kf.index")
+        assert not (tmp_path / "kf.index").exists()
+
+    @pytest.mark.parametrize("ids, conf", [(np.arange(1, 400), {"name": "hnsw", "m": 8}),  # not the store's first
+                                           (np.arange(200), {"name": "hnsw", "m": 8}),  # the store has fewer
+                                           (np.arange(400), {"name": "hnsw", "m": 16})])  # another index
+    def test_a_file_that_does_not_fit_is_not_taken(self, tmp_path, data, ids, conf, caplog):
+        self.fill({"name": "hnsw", "m": 8}, data[0], 300).save(tmp_path / "kf.index")
+        back = KeyframeIndex(D, conf, exclude_recent=5)
+        assert back.restore(tmp_path / "kf.index", ids) == 0
+        assert len(back) == 0 and "rebuilt" in caplog.text
+
+    def test_a_damaged_file_is_not_taken(self, tmp_path, data, caplog):
+        self.fill({"name": "hnsw", "m": 8}, data[0], 300).save(tmp_path / "kf.index")
+        raw = (tmp_path / "kf.index").read_bytes()
+        (tmp_path / "kf.index").write_bytes(raw[: len(raw) - 100])
+        back = KeyframeIndex(D, {"name": "hnsw", "m": 8})
+        assert back.restore(tmp_path / "kf.index", np.arange(400)) == 0 and "not a readable code index" in caplog.text
+        assert back.restore(tmp_path / "missing.index", np.arange(400)) == 0
