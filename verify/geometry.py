@@ -5,6 +5,8 @@ numpy in, numpy out. Points are ``(M, 2)`` float pixel coordinates in the origin
 
 from __future__ import annotations
 
+import functools
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -18,13 +20,41 @@ __all__ = ["GeometryResult", "GeometricVerifier"]
 _METHODS = {"ransac": cv2.RANSAC, "lmeds": cv2.LMEDS, "magsac": cv2.USAC_MAGSAC, "usac": cv2.USAC_DEFAULT}
 
 
+#: the mirror test looks for a homography that holds at least this share of a pair's inliers ...
+_MIRROR_SHARE = 0.5
+#: ... and finds one that exists with this probability: RANSAC needs log(1 - p) / log(1 - share^4) 4-point samples
+#: (143 here) where the default cap would run 2000 on every real pair (none of which has such a homography)
+_MIRROR_CONFIDENCE = 0.9999
+_MIRROR_ITERS = math.ceil(math.log(1 - _MIRROR_CONFIDENCE) / math.log(1 - _MIRROR_SHARE ** 4))
+
+
 @dataclass
 class GeometryResult:
     inliers: int  #: number of RANSAC inliers (0 when the model could not be estimated)
     mask: np.ndarray  #: (M,) bool, True for inliers
     model: str  #: "essential", "fundamental" or "none"
-    R: np.ndarray | None = field(default=None, repr=False)  #: (3, 3) rotation query -> candidate, essential only
-    t: np.ndarray | None = field(default=None, repr=False)  #: (3,) unit translation direction, essential only
+    #: essential with ``recover_pose``: ``(E (3, 3), query inliers (n, 1, 2), candidate inliers (n, 1, 2), K (3, 3))``,
+    #: decomposed into ``R``, ``t`` on first use (only an accepted loop needs them: ~1 ms a pair saved)
+    essential: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = field(default=None, repr=False,
+                                                                                   compare=False)
+
+    @functools.cached_property
+    def _pose(self) -> tuple[np.ndarray | None, np.ndarray | None]:
+        if self.essential is None:
+            return None, None
+        E, a, b, K = self.essential
+        _, R, t, _ = cv2.recoverPose(E, a, b, K)
+        return R, t.ravel()
+
+    @property
+    def R(self) -> np.ndarray | None:
+        """``(3, 3)`` rotation query -> candidate; essential only, else None."""
+        return self._pose[0]
+
+    @property
+    def t(self) -> np.ndarray | None:
+        """``(3,)`` unit translation direction; essential only, else None."""
+        return self._pose[1]
 
 
 class GeometricVerifier:
@@ -101,11 +131,8 @@ class GeometricVerifier:
         E = E[:3]  # several solutions come stacked as (3k, 3): the mask belongs to the first
         inl = np.zeros(m, bool)
         inl[subset[mask.ravel().astype(bool)]] = True
-        R = t = None
-        if c["recover_pose"] and inl.sum() >= 5:
-            _, R, t, _ = cv2.recoverPose(E, a[inl], b[inl], K)
-            t = t.ravel()
-        return GeometryResult(int(inl.sum()), inl, model, R, t)
+        essential = (E, a[inl], b[inl], K) if c["recover_pose"] and inl.sum() >= 5 else None
+        return GeometryResult(int(inl.sum()), inl, model, essential)
 
     def _unmirrored(self, res: GeometryResult, a: np.ndarray, b: np.ndarray) -> GeometryResult:
         """``res``, or no inliers where most of them fit one orientation-reversing homography (``reject_mirrored``).
@@ -118,8 +145,9 @@ class GeometricVerifier:
         if not self.conf["reject_mirrored"] or res.inliers < 8:
             return res
         pa, pb = a[res.mask].reshape(-1, 2), b[res.mask].reshape(-1, 2)
-        H, hmask = cv2.findHomography(pa, pb, cv2.RANSAC, self.conf["threshold"])
-        if H is None or hmask is None or hmask.sum() < res.inliers / 2:
+        H, hmask = cv2.findHomography(pa, pb, cv2.RANSAC, self.conf["threshold"], maxIters=_MIRROR_ITERS,
+                                      confidence=_MIRROR_CONFIDENCE)
+        if H is None or hmask is None or hmask.sum() < res.inliers * _MIRROR_SHARE:
             return res
         fit = hmask.ravel().astype(bool)
         w = pa[fit] @ H[2, :2] + H[2, 2]
