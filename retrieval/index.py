@@ -26,6 +26,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import time
 from collections import deque
 from pathlib import Path
 from typing import Any, Mapping
@@ -332,6 +333,7 @@ class TrainedIndex(CodeIndex):
 
     def __init__(self, dim: int, conf: dict[str, Any] | None = None) -> None:
         self.exact = faiss.IndexFlatIP(dim)  # the codes stored before training
+        self.train_seconds = 0.0  # what learning the quantisers took (once, at train_size codes)
         super().__init__(dim, conf)
 
     def _parts(self) -> dict[str, Any]:
@@ -351,7 +353,10 @@ class TrainedIndex(CodeIndex):
             self.exact.add(xb)
         if self.exact.ntotal >= max(1, int(self.conf["train_size"])):
             codes = self.exact.reconstruct_n(0, self.exact.ntotal)
+            t0 = time.perf_counter()
             self.index.train(codes)
+            self.train_seconds = time.perf_counter() - t0
+            log.info("index %s learned from %d codes in %.1f s", self.conf["name"], len(codes), self.train_seconds)
             self.index.add(codes)
             self.exact.reset()
 
