@@ -71,7 +71,7 @@ from verify.features import create_extractor
 from verify.gate import EdgeGate
 from verify.verifier import create_verifier
 
-from .decision import SPAN, TOL, Decision, Horizon, ScoreSpans, TailModel, gaussian_log10_sf
+from .decision import SPAN, TOL, Decision, Horizon, ScoreSpans, Stops, TailModel, gaussian_log10_sf
 from .descriptors import GlobalDescriptor
 from .temporal import CodeTable, NoFilter, SequenceFilter, TemporalFilter
 
@@ -175,7 +175,8 @@ class Calibration:
         return Decision(TailModel(n["u"], n["beta"]) if n else None,
                         TailModel(f.get("u", 0.0), f.get("beta", 1 / _LN10)), self.tests.get("inliers", 1.0),
                         self.accept_at, bool(f.get("single", 0.0)), horizon, n.get("floor", 0.0),
-                        int(f.get("span", SPAN)), int(f.get("tol", TOL)), spans=self.score_spans(filt))
+                        int(f.get("span", SPAN)), int(f.get("tol", TOL)), spans=self.score_spans(filt),
+                        stops=Stops(f["still_cos"]) if "still_cos" in f else None)
 
     def thresholds(self) -> dict[str, float | None]:
         """The smallest temporal score or inlier count that is accepted (None for the path that does not decide)."""
@@ -292,14 +293,24 @@ def _encode_all(frames: Iterable[tuple[int, np.ndarray]], gate: EdgeGate, descri
 def _null_scores(ids: np.ndarray, table: CodeTable, filt: TemporalFilter, window: int,
                  moved: np.ndarray | None = None) -> np.ndarray:
     """``(query, ref, score)`` rows for every far-side pair: ``window // 2 <= query - ref < window``, leaving out
-    the pairs between which the camera stood still (``moved``: ``(n,)`` bool by position in ``ids``, ``_moved``):
-    those are one place, not a pair known not to be a loop."""
+    the pairs whose line passes two frames between which the camera stood still (``moved``: ``(n,)`` bool by position
+    in ``ids``, ``_moved``): the pair moved back together over the frames its fused score reads (``SPAN`` windows of
+    the filter's ``length``) must have moved apart at every step; a pair at one stop is one place, not a pair known
+    not to be a loop, and its line would carry that place into the nulls' tails."""
+    ids = np.asarray(ids, np.int64)
+    if not len(ids):
+        return np.zeros((0, 3))
+    moves = np.full(int(ids.max()) + 1, -1, np.int64)  # moved frames up to each frame id (-1: not present)
+    moves[ids] = np.cumsum(np.ones(len(ids), bool) if moved is None else moved)
+    back = np.arange(SPAN * int(filt.conf.get("length", 1)), dtype=np.int64)
     rows = []
-    present = set(ids.tolist())
-    moves = dict(zip(ids.tolist(), np.cumsum(np.ones(len(ids), bool) if moved is None else moved).tolist()))
-    for q in ids:
-        refs = np.array([r for r in range(q - window + 1, q - window // 2 + 1)
-                         if r in present and moves[int(q)] > moves[r]], np.int64)
+    for q in ids.tolist():
+        refs = np.arange(max(0, q - window + 1), max(0, q - window // 2 + 1), dtype=np.int64)
+        refs = refs[moves[refs] >= 0]
+        qs, rs = q - back[None, :], refs[:, None] - back[None, :]
+        mq, mr = moves[np.maximum(qs, 0)], moves[np.maximum(rs, 0)]
+        apart = (rs < 0) | (mq < 0) | (mr < 0) | (mq > mr)
+        refs = refs[apart.all(1)]
         if len(refs):
             scores = filt.score(np.full(len(refs), q, np.int64), refs, table)
             rows.append(np.column_stack([np.full(len(refs), q), refs, scores]))
@@ -366,7 +377,7 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
                  "inliers": n_keyframes * conf["search"]["k"]}
     _score_path(cal, null, filt, table)
     shared += _inlier_path(cal, conf, images, null, table, K, progress, features)
-    _stretch(cal, ids, table)
+    _stretch(cal, ids, table, moved)
     for key, value in cal.thresholds().items():
         if value is not None:
             cal.notes.append(f"accept: {key} >= {value:.4g} (expected false loops over the run "
@@ -385,15 +396,22 @@ def _timed(cal: Calibration, n_images: int, total: float, shared: float) -> None
                      f"extracting local features the run reuses {shared:.1f} s")
 
 
-def _stretch(cal: Calibration, ids: np.ndarray, table: CodeTable) -> None:
-    """The cosine under which a frame no longer looks like the query: the 10th percentile of adjacent frames'."""
-    ids = ids[1:][np.diff(ids) == 1]
-    adjacent = table.pairs(ids, ids - 1).astype(np.float64)
+def _stretch(cal: Calibration, ids: np.ndarray, table: CodeTable, moved: np.ndarray) -> None:
+    """The cosine under which a frame no longer looks like the query (the 10th percentile of adjacent frames'), and
+    the normalised codes' cosine at which the camera stood still (the lowest of the adjacent frames whose raw codes
+    say so, ``_moved``; ``STILL_COS`` where it never stood still): ``retrieval.decision.Horizon`` and ``Stops``."""
+    adj = np.r_[False, np.diff(ids) == 1]
+    adjacent = table.pairs(ids[adj], ids[adj] - 1).astype(np.float64)
     cal.samples["adjacent_cos"] = adjacent
     cal.fused["stretch_cos"] = float(np.quantile(adjacent, 0.1)) if len(adjacent) else 1.0
+    still = adjacent[~moved[adj]]
+    cal.fused["still_cos"] = float(min(still.min(), STILL_COS)) if len(still) else STILL_COS
     cal.notes.append(f"too recent: frames within search.exclude_recent, and every frame back to where the code "
                      f"stops looking like the query (cosine < {cal.fused['stretch_cos']:.3f}, the adjacent frames' "
                      "10th percentile)")
+    cal.notes.append(f"stops: {len(still)} frames where the camera stood still (normalised cosine to the frame "
+                     f"before >= {cal.fused['still_cos']:.3f}); a still query is matched only where the reference "
+                     "stood still as long")
 
 
 def _whitening(wconf: dict[str, Any], descriptor: GlobalDescriptor, codes: np.ndarray, notes: list[str],
