@@ -4,13 +4,19 @@ Before a run, the calibration looks at the sequence itself (``cae-lcd calibrate 
 ``cae-lcd detect``) and chooses, with the reasons printed:
 
 1. **The gate's reference**: the median edge ratio of the sequence (``verify.gate``, relative mode).
-2. **The code normalisation**: PCA-whitening fitted on the sequence's own codes (``cae.whitening``; with
-   ``whitening.skip_still``, without the frames where the camera stood still); with ``whitening.source: weights``,
-   the one ``cae-lcd train`` fitted on the training images and saved with the weights.
+2. **The code normalisation**: PCA-whitening fitted on the sequence's own codes (``cae.whitening``), each place
+   weighed once: with ``whitening.skip_still`` (the default) a stop, the frames where the camera stood still (raw
+   code unchanged from the frame before, cosine >= ``STILL_COS``), counts as its first frame only, not as often as
+   the robot waited there (on Nordland 176 of 985 frames are three stations; fitted on them all, the whitening spends
+   its variance on those few places and the waiting frames find no match); with ``whitening.source: weights``, the
+   one ``cae-lcd train`` fitted on the training images and saved with the weights.
 3. **The null distributions**: frames on the far side of the exclusion window (from half of ``search.exclude_recent``
    frames back to just inside it) are close in time, so they share the camera, the light and the season, but the
    camera has moved on, so they are not loops (a pair between which the camera stood still, its code unchanged frame
-   after frame, is one place and is left out). Their temporal-filter scores are the score path's null (a Gaussian
+   after frame, is one place and is left out, and so is a pair whose *line* passes such a place: the pair moved back
+   together over the frames its fused score reads, query and reference must have moved apart at every step, else
+   the line's terms include one stop matched to itself and the nulls' tails hold a place, not a non-loop). Their
+   temporal-filter scores are the score path's null (a Gaussian
    through the median and the 90th percentile); the same for the fused score of 2 and 3 consecutive windows on each
    pair's line (``retrieval.decision.ScoreSpans``: where the code is weak, as across seasons, evidence repeated over
    more frames can accept what one window cannot). For the inlier path the null is what the detector really tests:
@@ -32,6 +38,9 @@ Before a run, the calibration looks at the sequence itself (``cae-lcd calibrate 
    ``confidence`` of a candidate is ``-log10 NFA`` (the larger the surer); it is what ``loops.csv`` ranks by.
 6. **Too recent**: the cosine under which a frame no longer looks like the query (the adjacent frames' 10th
    percentile); the run refuses keyframes of the stretch the query is still in (``retrieval.decision.Horizon``).
+7. **Stops**: the normalised codes' cosine at which the camera stood still (the lowest among the adjacent frames the
+   raw codes call still; ``STILL_COS`` where it never stood still); the run matches a still query only to a keyframe
+   where the reference stood still at least as long (``retrieval.decision.Stops``).
 
 ``calibration.h5`` keeps every measured distribution under ``samples/`` (random, hard and positive inliers, hard and
 positive fused evidence, adjacent cosines); the notes (printed, and in ``summary.json``) summarise them.
@@ -80,7 +89,8 @@ __all__ = ["Calibration", "TooFewFrames", "CALIBRATION_FORMAT", "calibrate", "ca
 log = logging.getLogger(__name__)
 
 CALIBRATION_FORMAT = 2  #: ``format_version`` of calibration.h5
-STILL_COS = 0.999  #: raw codes of adjacent frames this alike: the camera stood still (one place, not a null pair)
+STILL_COS = 0.999  #: raw codes of adjacent frames this alike: the camera stood still (one place: not a null pair,
+#                     weighed once by the whitening, matched only to a stop as long)
 PROBE = 4  #: one sampled query in this many is looked at first: are there local features enough to verify?
 _LN10 = math.log(10.0)
 
@@ -101,9 +111,10 @@ class Calibration:
         expected_false_loops: the a-contrario target over the whole run.
         notes: one line per choice, saying why (printed, and kept in the summary).
         descriptor: identity of the global descriptor (weights) it was made with; a run with other weights refuses it.
-        fused: ``{"u", "beta", "single", "span", "tol", "stretch_cos", "samples"}``: the tail of the fused evidence
-            on hard-negative sequences (decades), whether one pair may decide alone (1.0) or not (0.0), and the
-            cosine under which a frame no longer looks like the query (``retrieval.decision``).
+        fused: ``{"u", "beta", "single", "span", "tol", "stretch_cos", "still_cos", "samples"}``: the tail of the
+            fused evidence on hard-negative sequences (decades), whether one pair may decide alone (1.0) or not
+            (0.0), the cosine under which a frame no longer looks like the query, and the one at or above which the
+            camera stood still (``retrieval.decision``; a calibration.h5 without it: no stop rule).
         samples: the measured distributions, by name (``random_inliers``, ``hard_inliers``, ``positive_inliers``,
             ``hard_fused``, ``positive_fused``, ``adjacent_cos``): saved in ``calibration.h5`` under ``samples/``.
         spans: the score path's fused windows, ``{"window": frames, "nulls": [[median, sigma], ...]}`` (one null per
