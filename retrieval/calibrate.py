@@ -38,9 +38,9 @@ Before a run, the calibration looks at the sequence itself (``cae-lcd calibrate 
    ``confidence`` of a candidate is ``-log10 NFA`` (the larger the surer); it is what ``loops.csv`` ranks by.
 6. **Too recent**: the cosine under which a frame no longer looks like the query (the adjacent frames' 10th
    percentile); the run refuses keyframes of the stretch the query is still in (``retrieval.decision.Horizon``).
-7. **Stops**: the normalised codes' cosine at which the camera stood still (the lowest among the adjacent frames the
-   raw codes call still; ``STILL_COS`` where it never stood still); the run matches a still query only to a keyframe
-   where the reference stood still at least as long (``retrieval.decision.Stops``).
+7. **Stops**: the normalised codes' cosine at which the camera stood still (the one that best reproduces, on the
+   adjacent frames, the raw codes' verdict; ``STILL_COS`` where it never stood still); the run matches a still
+   query only to a keyframe where the reference stood still at least as long (``retrieval.decision.Stops``).
 
 ``calibration.h5`` keeps every measured distribution under ``samples/`` (random, hard and positive inliers, hard and
 positive fused evidence, adjacent cosines); the notes (printed, and in ``summary.json``) summarise them.
@@ -409,20 +409,32 @@ def _timed(cal: Calibration, n_images: int, total: float, shared: float) -> None
 
 def _stretch(cal: Calibration, ids: np.ndarray, table: CodeTable, moved: np.ndarray) -> None:
     """The cosine under which a frame no longer looks like the query (the 10th percentile of adjacent frames'), and
-    the normalised codes' cosine at which the camera stood still (the lowest of the adjacent frames whose raw codes
-    say so, ``_moved``; ``STILL_COS`` where it never stood still): ``retrieval.decision.Horizon`` and ``Stops``."""
+    the normalised codes' cosine at which the camera stood still (``_still_cos``): ``retrieval.decision.Horizon``
+    and ``Stops``."""
     adj = np.r_[False, np.diff(ids) == 1]
     adjacent = table.pairs(ids[adj], ids[adj] - 1).astype(np.float64)
     cal.samples["adjacent_cos"] = adjacent
     cal.fused["stretch_cos"] = float(np.quantile(adjacent, 0.1)) if len(adjacent) else 1.0
-    still = adjacent[~moved[adj]]
-    cal.fused["still_cos"] = float(min(still.min(), STILL_COS)) if len(still) else STILL_COS
+    still = ~moved[adj]
+    cal.fused["still_cos"] = _still_cos(adjacent, still)
     cal.notes.append(f"too recent: frames within search.exclude_recent, and every frame back to where the code "
                      f"stops looking like the query (cosine < {cal.fused['stretch_cos']:.3f}, the adjacent frames' "
                      "10th percentile)")
-    cal.notes.append(f"stops: {len(still)} frames where the camera stood still (normalised cosine to the frame "
+    cal.notes.append(f"stops: {int(still.sum())} frames where the camera stood still (normalised cosine to the frame "
                      f"before >= {cal.fused['still_cos']:.3f}); a still query is matched only where the reference "
                      "stood still as long")
+
+
+def _still_cos(adjacent: np.ndarray, still: np.ndarray) -> float:
+    """The normalised cosine that best reproduces the raw codes' verdict (``_moved``) on the adjacent frames
+    (``adjacent`` ``(n,)`` cosines, ``still`` ``(n,)`` bool): the fewest pairs on the wrong side, the lowest such cosine
+    (every still pair still where they agree); ``STILL_COS`` where the camera never stood still."""
+    if not still.any():
+        return STILL_COS
+    cand = np.unique(adjacent[still])
+    moving = np.sort(adjacent[~still])
+    wrong = np.searchsorted(np.sort(adjacent[still]), cand, "left") + len(moving) - np.searchsorted(moving, cand)
+    return float(min(cand[int(np.argmin(wrong))], STILL_COS))
 
 
 def _whitening(wconf: dict[str, Any], descriptor: GlobalDescriptor, codes: np.ndarray, notes: list[str],
