@@ -129,7 +129,8 @@ def nordland_codes(encoder):
     if not (NORDLAND / "images").is_dir():
         pytest.skip(f"shared Nordland data not found at {NORDLAND} (../shared is absent)")
     descriptor = create_descriptor({"name": "cae"}, encoder=encoder)
-    return {i: descriptor(read_image(NORDLAND / "images" / f"{i:06d}.png")) for i in NORDLAND_FRAMES}
+    codes = descriptor.encode_batch([read_image(NORDLAND / "images" / f"{i:06d}.png") for i in NORDLAND_FRAMES])
+    return dict(zip(NORDLAND_FRAMES, codes))
 
 
 @pytest.fixture(scope="session")
