@@ -4,13 +4,19 @@ Before a run, the calibration looks at the sequence itself (``cae-lcd calibrate 
 ``cae-lcd detect``) and chooses, with the reasons printed:
 
 1. **The gate's reference**: the median edge ratio of the sequence (``verify.gate``, relative mode).
-2. **The code normalisation**: PCA-whitening fitted on the sequence's own codes (``cae.whitening``; with
-   ``whitening.skip_still``, without the frames where the camera stood still); with ``whitening.source: weights``,
-   the one ``cae-lcd train`` fitted on the training images and saved with the weights.
+2. **The code normalisation**: PCA-whitening fitted on the sequence's own codes (``cae.whitening``), each place
+   weighed once: with ``whitening.skip_still`` (the default) a stop, the frames where the camera stood still (raw
+   code unchanged from the frame before, cosine >= ``STILL_COS``), counts as its first frame only, not as often as
+   the robot waited there (on Nordland 176 of 985 frames are three stations; fitted on them all, the whitening spends
+   its variance on those few places and the waiting frames find no match); with ``whitening.source: weights``, the
+   one ``cae-lcd train`` fitted on the training images and saved with the weights.
 3. **The null distributions**: frames on the far side of the exclusion window (from half of ``search.exclude_recent``
    frames back to just inside it) are close in time, so they share the camera, the light and the season, but the
    camera has moved on, so they are not loops (a pair between which the camera stood still, its code unchanged frame
-   after frame, is one place and is left out). Their temporal-filter scores are the score path's null (a Gaussian
+   after frame, is one place and is left out, and so is a pair whose *line* passes such a place: the pair moved back
+   together over the frames its fused score reads, query and reference must have moved apart at every step, else
+   the line's terms include one stop matched to itself and the nulls' tails hold a place, not a non-loop). Their
+   temporal-filter scores are the score path's null (a Gaussian
    through the median and the 90th percentile); the same for the fused score of 2 and 3 consecutive windows on each
    pair's line (``retrieval.decision.ScoreSpans``: where the code is weak, as across seasons, evidence repeated over
    more frames can accept what one window cannot). For the inlier path the null is what the detector really tests:
@@ -32,6 +38,9 @@ Before a run, the calibration looks at the sequence itself (``cae-lcd calibrate 
    ``confidence`` of a candidate is ``-log10 NFA`` (the larger the surer); it is what ``loops.csv`` ranks by.
 6. **Too recent**: the cosine under which a frame no longer looks like the query (the adjacent frames' 10th
    percentile); the run refuses keyframes of the stretch the query is still in (``retrieval.decision.Horizon``).
+7. **Stops**: the normalised codes' cosine at which the camera stood still (the one that best reproduces, on the
+   adjacent frames, the raw codes' verdict; ``STILL_COS`` where it never stood still); the run matches a still
+   query only to a keyframe where the reference stood still at least as long (``retrieval.decision.Stops``).
 
 ``calibration.h5`` keeps every measured distribution under ``samples/`` (random, hard and positive inliers, hard and
 positive fused evidence, adjacent cosines); the notes (printed, and in ``summary.json``) summarise them.
@@ -71,7 +80,7 @@ from verify.features import create_extractor
 from verify.gate import EdgeGate
 from verify.verifier import create_verifier
 
-from .decision import SPAN, TOL, Decision, Horizon, ScoreSpans, TailModel, gaussian_log10_sf
+from .decision import SPAN, TOL, Decision, Horizon, ScoreSpans, Stops, TailModel, gaussian_log10_sf
 from .descriptors import GlobalDescriptor
 from .temporal import CodeTable, NoFilter, SequenceFilter, TemporalFilter
 
@@ -80,7 +89,8 @@ __all__ = ["Calibration", "TooFewFrames", "CALIBRATION_FORMAT", "calibrate", "ca
 log = logging.getLogger(__name__)
 
 CALIBRATION_FORMAT = 2  #: ``format_version`` of calibration.h5
-STILL_COS = 0.999  #: raw codes of adjacent frames this alike: the camera stood still (one place, not a null pair)
+STILL_COS = 0.999  #: raw codes of adjacent frames this alike: the camera stood still (one place: not a null pair,
+#                     weighed once by the whitening, matched only to a stop as long)
 PROBE = 4  #: one sampled query in this many is looked at first: are there local features enough to verify?
 _LN10 = math.log(10.0)
 
@@ -101,9 +111,10 @@ class Calibration:
         expected_false_loops: the a-contrario target over the whole run.
         notes: one line per choice, saying why (printed, and kept in the summary).
         descriptor: identity of the global descriptor (weights) it was made with; a run with other weights refuses it.
-        fused: ``{"u", "beta", "single", "span", "tol", "stretch_cos", "samples"}``: the tail of the fused evidence
-            on hard-negative sequences (decades), whether one pair may decide alone (1.0) or not (0.0), and the
-            cosine under which a frame no longer looks like the query (``retrieval.decision``).
+        fused: ``{"u", "beta", "single", "span", "tol", "stretch_cos", "still_cos", "samples"}``: the tail of the
+            fused evidence on hard-negative sequences (decades), whether one pair may decide alone (1.0) or not
+            (0.0), the cosine under which a frame no longer looks like the query, and the one at or above which the
+            camera stood still (``retrieval.decision``; a calibration.h5 without it: no stop rule).
         samples: the measured distributions, by name (``random_inliers``, ``hard_inliers``, ``positive_inliers``,
             ``hard_fused``, ``positive_fused``, ``adjacent_cos``): saved in ``calibration.h5`` under ``samples/``.
         spans: the score path's fused windows, ``{"window": frames, "nulls": [[median, sigma], ...]}`` (one null per
@@ -175,7 +186,8 @@ class Calibration:
         return Decision(TailModel(n["u"], n["beta"]) if n else None,
                         TailModel(f.get("u", 0.0), f.get("beta", 1 / _LN10)), self.tests.get("inliers", 1.0),
                         self.accept_at, bool(f.get("single", 0.0)), horizon, n.get("floor", 0.0),
-                        int(f.get("span", SPAN)), int(f.get("tol", TOL)), spans=self.score_spans(filt))
+                        int(f.get("span", SPAN)), int(f.get("tol", TOL)), spans=self.score_spans(filt),
+                        stops=Stops(f["still_cos"]) if "still_cos" in f else None)
 
     def thresholds(self) -> dict[str, float | None]:
         """The smallest temporal score or inlier count that is accepted (None for the path that does not decide)."""
@@ -292,14 +304,24 @@ def _encode_all(frames: Iterable[tuple[int, np.ndarray]], gate: EdgeGate, descri
 def _null_scores(ids: np.ndarray, table: CodeTable, filt: TemporalFilter, window: int,
                  moved: np.ndarray | None = None) -> np.ndarray:
     """``(query, ref, score)`` rows for every far-side pair: ``window // 2 <= query - ref < window``, leaving out
-    the pairs between which the camera stood still (``moved``: ``(n,)`` bool by position in ``ids``, ``_moved``):
-    those are one place, not a pair known not to be a loop."""
+    the pairs whose line passes two frames between which the camera stood still (``moved``: ``(n,)`` bool by position
+    in ``ids``, ``_moved``): the pair moved back together over the frames its fused score reads (``SPAN`` windows of
+    the filter's ``length``) must have moved apart at every step; a pair at one stop is one place, not a pair known
+    not to be a loop, and its line would carry that place into the nulls' tails."""
+    ids = np.asarray(ids, np.int64)
+    if not len(ids):
+        return np.zeros((0, 3))
+    moves = np.full(int(ids.max()) + 1, -1, np.int64)  # moved frames up to each frame id (-1: not present)
+    moves[ids] = np.cumsum(np.ones(len(ids), bool) if moved is None else moved)
+    back = np.arange(SPAN * int(filt.conf.get("length", 1)), dtype=np.int64)
     rows = []
-    present = set(ids.tolist())
-    moves = dict(zip(ids.tolist(), np.cumsum(np.ones(len(ids), bool) if moved is None else moved).tolist()))
-    for q in ids:
-        refs = np.array([r for r in range(q - window + 1, q - window // 2 + 1)
-                         if r in present and moves[int(q)] > moves[r]], np.int64)
+    for q in ids.tolist():
+        refs = np.arange(max(0, q - window + 1), max(0, q - window // 2 + 1), dtype=np.int64)
+        refs = refs[moves[refs] >= 0]
+        qs, rs = q - back[None, :], refs[:, None] - back[None, :]
+        mq, mr = moves[np.maximum(qs, 0)], moves[np.maximum(rs, 0)]
+        apart = (rs < 0) | (mq < 0) | (mr < 0) | (mq > mr)
+        refs = refs[apart.all(1)]
         if len(refs):
             scores = filt.score(np.full(len(refs), q, np.int64), refs, table)
             rows.append(np.column_stack([np.full(len(refs), q), refs, scores]))
@@ -366,7 +388,7 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
                  "inliers": n_keyframes * conf["search"]["k"]}
     _score_path(cal, null, filt, table)
     shared += _inlier_path(cal, conf, images, null, table, K, progress, features)
-    _stretch(cal, ids, table)
+    _stretch(cal, ids, table, moved)
     for key, value in cal.thresholds().items():
         if value is not None:
             cal.notes.append(f"accept: {key} >= {value:.4g} (expected false loops over the run "
@@ -385,15 +407,34 @@ def _timed(cal: Calibration, n_images: int, total: float, shared: float) -> None
                      f"extracting local features the run reuses {shared:.1f} s")
 
 
-def _stretch(cal: Calibration, ids: np.ndarray, table: CodeTable) -> None:
-    """The cosine under which a frame no longer looks like the query: the 10th percentile of adjacent frames'."""
-    ids = ids[1:][np.diff(ids) == 1]
-    adjacent = table.pairs(ids, ids - 1).astype(np.float64)
+def _stretch(cal: Calibration, ids: np.ndarray, table: CodeTable, moved: np.ndarray) -> None:
+    """The cosine under which a frame no longer looks like the query (the 10th percentile of adjacent frames'), and
+    the normalised codes' cosine at which the camera stood still (``_still_cos``): ``retrieval.decision.Horizon``
+    and ``Stops``."""
+    adj = np.r_[False, np.diff(ids) == 1]
+    adjacent = table.pairs(ids[adj], ids[adj] - 1).astype(np.float64)
     cal.samples["adjacent_cos"] = adjacent
     cal.fused["stretch_cos"] = float(np.quantile(adjacent, 0.1)) if len(adjacent) else 1.0
+    still = ~moved[adj]
+    cal.fused["still_cos"] = _still_cos(adjacent, still)
     cal.notes.append(f"too recent: frames within search.exclude_recent, and every frame back to where the code "
                      f"stops looking like the query (cosine < {cal.fused['stretch_cos']:.3f}, the adjacent frames' "
                      "10th percentile)")
+    cal.notes.append(f"stops: {int(still.sum())} frames where the camera stood still (normalised cosine to the frame "
+                     f"before >= {cal.fused['still_cos']:.3f}); a still query is matched only where the reference "
+                     "stood still as long")
+
+
+def _still_cos(adjacent: np.ndarray, still: np.ndarray) -> float:
+    """The normalised cosine that best reproduces the raw codes' verdict (``_moved``) on the adjacent frames
+    (``adjacent`` ``(n,)`` cosines, ``still`` ``(n,)`` bool): the fewest pairs on the wrong side, the lowest such cosine
+    (every still pair still where they agree); ``STILL_COS`` where the camera never stood still."""
+    if not still.any():
+        return STILL_COS
+    cand = np.unique(adjacent[still])
+    moving = np.sort(adjacent[~still])
+    wrong = np.searchsorted(np.sort(adjacent[still]), cand, "left") + len(moving) - np.searchsorted(moving, cand)
+    return float(min(cand[int(np.argmin(wrong))], STILL_COS))
 
 
 def _whitening(wconf: dict[str, Any], descriptor: GlobalDescriptor, codes: np.ndarray, notes: list[str],

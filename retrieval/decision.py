@@ -29,6 +29,14 @@ verified as in the run), and what a loop looks like: the **positives** (a frame 
   looks like the query (cosine at least ``stretch_cos``, the adjacent frames' 10th percentile, with at most
   ``gap - 1`` dissimilar frames in a row): a slow robot stays in a place longer, a fast one leaves it sooner; the
   frame count ``search.exclude_recent`` stays the floor.
+- **A stop is one place, matched to a stop** (``Stops``): frames between which the camera stood still (the code
+  unchanged, cosine at least ``still_cos``) are one observation repeated, not new evidence: a robot waiting at a
+  station, or in front of a shelf, would otherwise fill a whole window of agreement with one image. A query that has
+  stood still for ``s`` frames (its stop so far) may therefore only be matched to a keyframe where the reference
+  stood still at least as long (``s`` frames up to it): a stop matched to a stop, along the line. Where the query
+  waits longer than the reference ever did there, the line (both traversals moving alike) no longer holds and the
+  query's frame within the reference's passage is undetermined: no loop (the query's arrival, a moving frame, was
+  decided on its own evidence). A moving query is not affected.
 
 Shapes: ``Decision.confidences(query_id, refs (m,) int64, inliers (m,) int64, source) -> (m,) float64``;
 ``Decision.commit(query_id, refs (m,), inliers (m,))``.
@@ -43,8 +51,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["TailModel", "gamma_log10_sf", "gaussian_log10_sf", "Horizon", "ScoreSpans", "Decision", "SPAN", "TOL",
-           "GAP"]
+__all__ = ["TailModel", "gamma_log10_sf", "gaussian_log10_sf", "Horizon", "Stops", "ScoreSpans", "Decision", "SPAN",
+           "TOL", "GAP"]
 
 LN10 = math.log(10.0)
 SPAN = 3  #: frames whose evidence one decision fuses (the query and the ones before it)
@@ -177,6 +185,45 @@ class Horizon:
         return oldest
 
 
+class Stops:
+    """How long the camera has stood still at each stored frame: ``length(f)`` = the frames in a row up to ``f``
+    whose code is unchanged from the frame before (cosine >= ``cos``; a frame not stored ends a stop). Memoised for
+    frames inside a stop only (most frames move: one lookup each), so the memory grows with the stops, not the run."""
+
+    def __init__(self, cos: float) -> None:
+        self.cos = float(cos)
+        self._len: dict[int, int] = {}
+
+    def lengths(self, frames: np.ndarray, source: Any) -> np.ndarray:
+        """``(n,)`` int64: the stop length at each of ``frames`` ``(n,)`` (0: the camera moved onto it)."""
+        return np.array([self._length(int(f), source) for f in np.asarray(frames, np.int64).tolist()], np.int64)
+
+    def _length(self, frame: int, source: Any) -> int:
+        walk = []
+        f = frame
+        while f not in self._len and f > 0 and self._still(f, source):
+            walk.append(f)
+            f -= 1
+        n = self._len.get(f, 0)
+        for g in reversed(walk):
+            n += 1
+            self._len[g] = n
+        return self._len.get(frame, 0)
+
+    def _still(self, frame: int, source: Any) -> bool:
+        sim = float(source.pairs(np.array([frame], np.int64), np.array([frame - 1], np.int64))[0])
+        return not math.isnan(sim) and sim >= self.cos
+
+    def admissible(self, query_id: int, refs: np.ndarray, source: Any) -> np.ndarray:
+        """``(m,)`` bool: whether each of ``refs`` ``(m,)`` may be the query's loop (a moving query: all; a still one:
+        where the reference stood still at least as long as the query has)."""
+        refs = np.asarray(refs, np.int64)
+        stop = self._length(int(query_id), source)
+        if stop == 0:
+            return np.ones(len(refs), bool)
+        return self.lengths(refs, source) >= stop
+
+
 class Decision:
     """The streaming decision of one run (see the module doc).
 
@@ -191,12 +238,14 @@ class Decision:
         floor: the fewest inliers that count as evidence (a 7-point model always fits 7).
         span, tol, min_support: frames fused, offset tolerance, frames with evidence a loop needs when not single.
         spans: the score path's fused windows (``ScoreSpans``), or None (the ``fallback`` confidences decide).
+        stops: the "a stop is matched to a stop" rule (``Stops``), or None (not applied).
     """
 
     def __init__(self, pair_tail: TailModel | None, fused_tail: TailModel, tests: float, accept_at: float, single: bool,
                  horizon: Horizon | None = None, floor: float = 0.0, span: int = SPAN, tol: int = TOL,
-                 min_support: int = 2, spans: ScoreSpans | None = None) -> None:
+                 min_support: int = 2, spans: ScoreSpans | None = None, stops: Stops | None = None) -> None:
         self.pair_tail, self.fused_tail, self.tests, self.floor = pair_tail, fused_tail, float(tests), float(floor)
+        self.stops = stops
         self.accept_at, self.single, self.horizon, self.spans = accept_at, single, horizon, spans
         self.span, self.tol, self.min_support = span, tol, min_support
         self._recent: deque[tuple[int, np.ndarray, np.ndarray]] = deque(maxlen=max(span - 1, 1))
@@ -225,16 +274,18 @@ class Decision:
     def confidences(self, query_id: int, refs: np.ndarray, inliers: np.ndarray, source: Any,
                     fallback: np.ndarray | None = None) -> np.ndarray:
         """``-log10 NFA`` of each candidate ``(query_id, refs[i])`` with ``inliers[i]`` (-1: not verified);
-        ``-inf`` where it has no evidence of its own or is too recent. Score path (no ``pair_tail``): the fused
+        ``-inf`` where it has no evidence of its own, is too recent, or is a still query's keyframe where the
+        reference did not stand still as long (``stops``). Score path (no ``pair_tail``): the fused
         windows' confidence (``spans``), else ``fallback`` (the calibrated temporal-score confidences, ``(m,)``),
         where the keyframe is not too recent."""
         out = np.full(len(refs), -math.inf)
         oldest = self.horizon(query_id, source) if self.horizon is not None and len(refs) else None
         base = -math.log10(self.tests)
+        allowed = self.stops.admissible(query_id, refs, source) if self.stops is not None and len(refs) else None
         fused = self.spans.confidences(np.full(len(refs), query_id, np.int64), np.asarray(refs, np.int64), source) \
             if self.pair_tail is None and self.spans is not None and len(refs) else fallback
         for i, (ref, inl) in enumerate(zip(np.asarray(refs).tolist(), np.asarray(inliers).tolist())):
-            if oldest is not None and ref >= oldest:
+            if (oldest is not None and ref >= oldest) or (allowed is not None and not allowed[i]):
                 continue
             if self.pair_tail is None:
                 out[i] = -math.inf if fused is None else float(fused[i])

@@ -67,7 +67,8 @@ default_conf: dict[str, Any] = {
         #                    "sequence": the sequence's only; "weights": the one saved with the weights only
         "dim": DEFAULT_DIM,  # length of the whitened code (at most a quarter of the fitting codes)
         "shrink": DEFAULT_SHRINK,  # added to each component's variance, times their mean (regularises small sets)
-        "skip_still": False,  # fitted on the sequence: leave out frames whose code did not change (camera still)
+        "skip_still": True,  # fitted on the sequence: leave out frames whose code did not change (camera still: one
+        #                     place, weighed once, not as often as the robot waited there)
     },
     "index": {"name": "auto"},  # code index by registry name (auto, flat, fp16, sq8, hnsw, ivfpq) and its options
     "temporal": {"name": "sequence"},  # temporal-consistency filter by registry name (sequence, none, bayes)

@@ -19,6 +19,10 @@ REPO = Path(__file__).parents[1]
 SHARED = Path(__file__).parents[1].parent / "shared"
 SAMPLE_DIR = REPO / "retrieval" / "sample"
 KITTI_SEQUENCES = SHARED / "datasets" / "kitti" / "sequences"
+NORDLAND = SHARED / "datasets" / "nordland"
+# A Nordland station where the train waits in both seasons: summer frames 206-241 and winter 705-745 are one stop
+# each (the winter train waits 3 frames longer); NORDLAND_FRAMES holds them and the frames around them.
+NORDLAND_FRAMES = (*range(150, 260), *range(680, 760))
 
 # Sample frames 55 and 5 are a true revisit (retrieval/sample/loops.txt holds "55 5"); 55 and 30 are far apart.
 TRUE_PAIR = (55, 5)
@@ -113,6 +117,20 @@ def encoder():
     import cae
 
     return cae.load_encoder(device="cpu")
+
+
+@pytest.fixture(scope="session")
+def nordland_codes(encoder):
+    """``{frame_id: raw (4096,) code}`` of the real Nordland frames ``NORDLAND_FRAMES`` (64x32; skips when the shared
+    data set is absent), encoded once per session."""
+    from core.images import read_image
+    from retrieval.descriptors import create_descriptor
+
+    if not (NORDLAND / "images").is_dir():
+        pytest.skip(f"shared Nordland data not found at {NORDLAND} (../shared is absent)")
+    descriptor = create_descriptor({"name": "cae"}, encoder=encoder)
+    codes = descriptor.encode_batch([read_image(NORDLAND / "images" / f"{i:06d}.png") for i in NORDLAND_FRAMES])
+    return dict(zip(NORDLAND_FRAMES, codes))
 
 
 @pytest.fixture(scope="session")

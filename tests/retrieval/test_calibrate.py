@@ -184,3 +184,52 @@ def test_verifications_side_by_side_equal_one_after_another(sample_image):
     for (kind, pairs) in plan:
         assert got[kind] == [[one(q, r) for q, r in pairs]]
     assert got["positive"][0][0] > 20  # real neighbours verify
+
+
+class TestStops:
+    """Where the camera stood still (Nordland summer: the train waits at frames 206-241), one place weighed once."""
+
+    @staticmethod
+    def _summer(nordland_codes):
+        from retrieval.calibrate import _moved
+
+        ids = np.array([i for i in sorted(nordland_codes) if i < 500], np.int64)
+        codes = np.stack([nordland_codes[int(i)] for i in ids])
+        return ids, codes, _moved(codes)
+
+    def test_no_null_line_through_a_stop(self, nordland_codes):
+        from retrieval.calibrate import _null_scores
+        from retrieval.decision import SPAN
+        from retrieval.temporal import CodeTable, create_filter
+
+        ids, codes, moved = self._summer(nordland_codes)
+        table = CodeTable(codes.shape[1])
+        for fid, code in zip(ids, codes):
+            table.add(int(fid), code / np.linalg.norm(code))
+        filt = create_filter({"name": "sequence"})
+        pairs = {(int(q), int(r)) for q, r, _ in _null_scores(ids, table, filt, 50, moved)}
+        stop, back = set(range(206, 242)), SPAN * filt.conf["length"]
+        assert (200, 160) in pairs and len(pairs) > 500  # far from the stop: a null pair
+        assert (250, 220) not in pairs  # the camera moved between them, but their line runs through the stop
+        assert not any({q - t, r - t} <= stop for q, r in pairs for t in range(back))
+
+    def test_whitening_and_still_cosine(self, nordland_codes):
+        from retrieval.calibrate import STILL_COS, _stretch, _whitening
+        from retrieval.detector import resolve_conf
+        from retrieval.temporal import CodeTable
+
+        ids, codes, moved = self._summer(nordland_codes)
+        notes: list[str] = []
+        white = _whitening(resolve_conf({})["whitening"], None, codes, notes, moved)
+        assert (~moved).sum() >= 35 and white.fitted_on == moved.sum()  # by default the stop's frames are left out
+        assert "stood still left out" in notes[0]
+        table = CodeTable(white.dim)
+        for fid, code in zip(ids, white.transform(codes)):
+            table.add(int(fid), code)
+        cal = Calibration()
+        _stretch(cal, ids, table, moved)
+        adjacent = table.pairs(ids[1:], ids[1:] - 1)
+        says_still = adjacent >= cal.fused["still_cos"]
+        assert cal.fused["still_cos"] <= STILL_COS
+        assert says_still[~moved[1:]].all() and says_still[moved[1:]].sum() <= 1  # the raw codes' verdict (one at 0.9989)
+        assert any("stood still" in n for n in cal.notes)

@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from retrieval.decision import Decision, Horizon, TailModel, gamma_log10_sf
+from retrieval.decision import Decision, Horizon, Stops, TailModel, gamma_log10_sf
 
 
 @pytest.fixture(scope="module")
@@ -131,6 +131,7 @@ class TestTooRecent:
         loops = {}
         floor_only = copy.deepcopy(cal)
         floor_only.fused.pop("stretch_cos")
+        floor_only.fused.pop("still_cos")  # a stop is matched only to a stop as long: it would refuse this too
         for rule, calib in (("trajectory", cal), ("frame count only", floor_only)):
             loops[rule] = []
             with LoopDetector(calibration=calib) as det:
@@ -140,6 +141,44 @@ class TestTooRecent:
                         break
         assert loops["trajectory"] == []
         assert loops["frame count only"]  # the frame floor alone calls the stretch a loop: the test can fail
+
+
+@pytest.fixture(scope="module")
+def table(nordland_codes):
+    """The real Nordland frames' unit raw codes as a ``CodeTable`` (frame ids as in the sequence)."""
+    from retrieval.temporal import CodeTable
+
+    table = CodeTable(4096)
+    for fid, code in nordland_codes.items():
+        table.add(fid, code / np.linalg.norm(code))
+    return table
+
+
+class TestStops:
+    """A stop is one place, matched to a stop: on Nordland's real station stops (summer 206-241, winter 705-745, where
+    the winter train waits 5 frames longer)."""
+
+    @staticmethod
+    def _stops():
+        from retrieval.calibrate import STILL_COS
+
+        return Stops(STILL_COS)
+
+    def test_stop_lengths(self, table):
+        lengths = self._stops().lengths(np.array([206, 207, 240, 241, 242, 744]), table)
+        assert lengths.tolist() == [0, 1, 34, 35, 0, 39]  # summer: arrives at 206, still 207-241; winter: 706-745
+
+    def test_a_still_query_matches_a_stop_as_long(self, table):
+        stops = self._stops()
+        assert stops.admissible(730, np.array([240, 250]), table).tolist() == [True, False]  # a stop, not a passage
+        assert not stops.admissible(744, np.array([240, 242]), table).any()  # waited longer than the reference did
+        assert stops.admissible(755, np.array([240, 250]), table).all()  # a moving query: not affected
+
+    def test_decision_refuses_only_the_inadmissible(self, table):
+        dec = Decision(None, TailModel(0.0, 1.0), 1.0, 1.0, False, stops=self._stops())
+        fallback = np.array([10.0])
+        assert dec.confidences(730, np.array([240]), np.array([-1]), table, fallback)[0] == 10.0
+        assert dec.confidences(744, np.array([240]), np.array([-1]), table, fallback)[0] == -math.inf
 
 
 class TestScoreSpans:
