@@ -232,9 +232,9 @@ def _measure(index: CodeIndex, e: dict[str, Any], xq: np.ndarray, I_gt: np.ndarr
             "bytes_per_code": e["bytes_per_code"], "build_s": e["add_s"], "gib": e["bytes_per_code"] * size / 2**30}
 
 
-#: indexes measured by default. ``ivfpq`` is left out: training OPQ + IVF-PQ crashed faiss (a segmentation fault in
-#: ``train``) inside the ``cae-lcd bench --quick`` process on raw 4096-d codes and was very slow under load; it
-#: is registered and tested (``tests/retrieval/test_index.py``) and measured with ``--names ... ivfpq``.
+#: indexes measured by default. ``ivfpq`` is left out: learning OPQ + IVF-PQ takes minutes on 2 cores (271 s on the
+#: first 10k codes under load, BENCHMARKS.md "Issue 18"), too long for ``cae-lcd bench``; it is registered and
+#: tested (``tests/retrieval/test_index.py``) and measured with ``--names ... ivfpq``.
 DEFAULT_NAMES: tuple[str, ...] = ("flat", "fp16", "sq8", "hnsw")
 
 
