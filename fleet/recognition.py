@@ -153,8 +153,8 @@ class FleetRecognizer:
             "min_matches": 5,  # putative matches a candidate needs
             "min_inliers": 50,  # geometric inliers a cross-robot match needs (the detector's fixed policy)
         },
-        "places": {"index": {"name": "flat"}},  # the place memory across robots: its code index (retrieval.index;
-        #                                         {"name": "milvus", "uri": ...}: Milvus, a collection per recognizer)
+        "places": {"index": {"name": "fp16"}},  # the place memory across robots: its code index (retrieval.index;
+        #   fp16: exact for the float16-rounded entries, half of flat's memory; {"name": "milvus", "uri": ...}: Milvus)
         "overlap": OverlapTracker.default_conf,  # n-consecutive-match acceptance of an overlap
         "triangulation": PointTriangulator.default_conf,  # 3D points from a robot's neighbouring keyframe
         "sim3": Sim3Ransac.default_conf,  # RANSAC of an edge's similarity from 3D-3D matches

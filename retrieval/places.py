@@ -79,7 +79,7 @@ class CodePlaces(Places):
         self.dim = dim = descriptor.dim if whitening is None else whitening.dim
         s = conf["search"]
         self.index = KeyframeIndex(dim, conf["index"], s["exclude_recent"], s["exclude_recent_s"])
-        self.source = CodeTable(dim, self._searchable)
+        self.source = CodeTable(dim, self._searchable, np.float16)  # entries are float16-rounded: kept exactly
 
     def check(self, entry: np.ndarray) -> None:
         if entry.shape != (self.dim,) or not np.isfinite(entry).all():

@@ -77,7 +77,7 @@ class TestSeam:
         found = {p.name: bad for p in sorted(fleet.glob("*.py")) if (bad := private_detector_reads(p.read_text()))}
         assert not found
 
-    @pytest.mark.parametrize("index", ["flat", "milvus"])
+    @pytest.mark.parametrize("index", ["flat", "fp16", "milvus"])
     def test_the_place_memory_groups_other_robots_best_first(self, cae_descriptor, kitti, index):
         from retrieval.detector import resolve_conf
 
