@@ -9,8 +9,9 @@ keyframes, and keeps its keyframe database under the shared state folder. Each k
 are copied to the other actors (``FleetRecognizer.export`` -> ``adopt``) once the service has stored it
 (``committed``), so every robot is matched against every other one; of another worker's robot an actor keeps the
 features of the ``adopted_features`` (64) most recently used keyframes and asks the owner for the others when a match
-needs them (``FETCH``): a worker's memory does not grow by every other robot's features. Keyframes of robots on different shards
-are processed at the same time (``parallel_robots``): the service then serialises keyframes per robot only.
+needs them (``FETCH``): a worker's memory does not grow by every other robot's features. Keyframes of robots on
+different shards are processed at the same time (``parallel_robots``): the service then serialises keyframes per robot
+only.
 
 Several front-end replicas on one Ray cluster share the workers (named after the state folder). A worker that dies
 is started again on its next request, and its robots continue there: the new actor reopens their
@@ -32,7 +33,7 @@ from core.errors import ConfigError
 from .recognition import FleetRecognizer, Recognition
 from .store import EdgeRecord, OverlapRecord
 
-__all__ = ["RayRecognizer", "shard_of", "create_recognizer"]
+__all__ = ["RayRecognizer", "shard_of", "shard_name", "create_recognizer"]
 
 log = logging.getLogger(__name__)
 
@@ -68,16 +69,19 @@ class _Shard:
         import ray
 
         i = shard_of(robot, self.workers)
-        for attempt in (0, 1):  # a worker started again since (``RayRecognizer._on_shard``): its new handle
-            if i not in self._owners:
-                self._owners[i] = ray.get_actor(shard_name(self.state_dir, i, self.workers), namespace=NAMESPACE)
-            try:
-                return ray.get(self._owners[i].features.options(concurrency_group=FETCH).remote(robot, [keyframe]))[0]
-            except ray.exceptions.RayActorError:
-                del self._owners[i]
-                if attempt:
-                    raise
-        raise AssertionError("unreachable")
+        try:
+            return ray.get(self._owner(i).features.options(concurrency_group=FETCH).remote(robot, [keyframe]))[0]
+        except ray.exceptions.RayActorError:  # started again since (``RayRecognizer._on_shard``): its new handle
+            self._owners.pop(i, None)
+            return ray.get(self._owner(i).features.options(concurrency_group=FETCH).remote(robot, [keyframe]))[0]
+
+    def _owner(self, index: int) -> Any:
+        """The actor of shard ``index`` (looked up by name once)."""
+        import ray
+
+        if index not in self._owners:
+            self._owners[index] = ray.get_actor(shard_name(self.state_dir, index, self.workers), namespace=NAMESPACE)
+        return self._owners[index]
 
     def features(self, robot: str, keyframes: list[int]) -> list:
         return self.rec.features(robot, keyframes)

@@ -131,8 +131,8 @@ class TestFleetRecognizer:
         recs = {}
         for name in ("A", "B"):
             other = "B" if name == "A" else "A"
-            recs[name] = FleetRecognizer(tmp_path, {"adopted_features": 1}, cae_descriptor, owns=lambda n, m=name: n == m,
-                                         fetch=fetch_from(lambda o=other: recs[o]))
+            recs[name] = FleetRecognizer(tmp_path, {"adopted_features": 1}, cae_descriptor,
+                                         owns=lambda n, m=name: n == m, fetch=fetch_from(lambda o=other: recs[o]))
         found = []
         for robot, seq, i in [("A" if i % 2 == 0 else "B", "00", i) for i in range(100, 120)]:
             image, pose, K = kitti(seq, i)
