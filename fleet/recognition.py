@@ -27,6 +27,7 @@ that had one fall back to triangulation. The fleet reaches no private attribute 
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import threading
@@ -73,20 +74,41 @@ class SharedKeyframe:
     """What another recognizer needs of a keyframe to match it across robots (``export`` -> ``adopt``)."""
 
     entry: np.ndarray  #: ``(d,)`` the searched code
-    features: Any  #: ``verify.features.Features`` of the keyframe
+    features: Any  #: ``verify.features.Features`` of the keyframe (None: fetched from its owner when needed)
     pose: np.ndarray  #: ``(4, 4)`` local pose
     K: np.ndarray | None  #: ``(3, 3)`` the robot's intrinsics
 
 
 class _Adopted:
-    """Stands in for the detector of a robot another recognizer owns: its keyframes' features only."""
+    """Stands in for the detector of a robot another recognizer owns: the local features of its ``cache`` most
+    recently used keyframes; the others are fetched from the owner (``fetch(keyframe)``) when a match needs them."""
 
-    def __init__(self) -> None:
-        self.features: dict[int, Any] = {}
+    def __init__(self, cache: int, fetch: Callable[[int], Any] | None = None) -> None:
+        self.cache, self.fetch = max(1, int(cache)), fetch
+        self.features: OrderedDict[int, Any] = OrderedDict()
+
+    def remember(self, frame_id: int, features: Any) -> None:
+        """Keeps a keyframe's features, dropping the least recently used past ``cache``."""
+        self.features[int(frame_id)] = features
+        self.features.move_to_end(int(frame_id))
+        while len(self.features) > self.cache:
+            self.features.popitem(last=False)
 
     def keyframe_features(self, frame_id: int) -> Any:
-        """The adopted keyframe's features (``LoopDetector.keyframe_features``'s interface)."""
-        return self.features[int(frame_id)]
+        """The adopted keyframe's features (``LoopDetector.keyframe_features``'s interface), fetched if not kept.
+
+        Raises:
+            KeyError: not kept, and nothing to fetch them from.
+        """
+        k = int(frame_id)
+        if k in self.features:
+            self.features.move_to_end(k)
+            return self.features[k]
+        if self.fetch is None:
+            raise KeyError(k)
+        features = self.fetch(k)
+        self.remember(k, features)
+        return features
 
     def close(self) -> None:
         """Nothing to release."""
@@ -136,6 +158,8 @@ class FleetRecognizer:
         descriptor: an already built global descriptor; None: built once from ``detector.descriptor``.
         owns: which robots this recognizer opens from the state folder (None: all); the others' keyframes come
             through ``adopt`` (``fleet.workers`` shards robots over several recognizers this way).
+        fetch: ``fetch(robot, keyframe)`` -> the local features of another recognizer's keyframe that this one no
+            longer keeps (``adopted_features``); None: only those kept are matched.
 
     Raises:
         ConfigError: a bad conf. DatabaseError: a damaged robot database.
@@ -153,24 +177,29 @@ class FleetRecognizer:
             "min_matches": 5,  # putative matches a candidate needs
             "min_inliers": 50,  # geometric inliers a cross-robot match needs (the detector's fixed policy)
         },
-        "places": {"index": {"name": "flat"}},  # the place memory across robots: its code index (retrieval.index;
-        #                                         {"name": "milvus", "uri": ...}: Milvus, a collection per recognizer)
+        "places": {"index": {"name": "fp16"}},  # the place memory across robots: its code index (retrieval.index;
+        #   fp16: exact for the float16-rounded entries, half of flat's memory; {"name": "milvus", "uri": ...}: Milvus)
         "overlap": OverlapTracker.default_conf,  # n-consecutive-match acceptance of an overlap
         "triangulation": PointTriangulator.default_conf,  # 3D points from a robot's neighbouring keyframe
         "sim3": Sim3Ransac.default_conf,  # RANSAC of an edge's similarity from 3D-3D matches
         "min_points": 20,  # 3D-3D RANSAC inliers an edge needs
         "max_edges_per_pair": 30,  # overlap edges kept per robot pair (the accepting run's first)
         "points_cache": 256,  # keyframes' 3D feature points kept in memory per robot (least recently used dropped)
+        "adopted_features": 64,  # of a robot another Ray worker owns: local features kept per robot (least recently
+        #                          used dropped; the others are fetched from its worker when a match needs them)
     }
     conf_rules: dict[str, Any] = {
         "cross": {"search_k": Int(1, 100_000), "k": Int(1, 1000), "budget": Int(0, 100_000), "min_score": Float(-1, 1), "min_matches": Int(0),
                   "min_inliers": Int(0)},
         "overlap": OverlapTracker.conf_rules, "triangulation": PointTriangulator.conf_rules,
-        "sim3": Sim3Ransac.conf_rules, "min_points": Int(3), "max_edges_per_pair": Int(1), "points_cache": Int(1)}
+        "sim3": Sim3Ransac.conf_rules, "min_points": Int(3), "max_edges_per_pair": Int(1), "points_cache": Int(1),
+        "adopted_features": Int(1)}
 
     def __init__(self, state_dir: str | Path, conf: dict[str, Any] | None = None,
-                 descriptor: GlobalDescriptor | None = None, owns: Callable[[str], bool] | None = None) -> None:
+                 descriptor: GlobalDescriptor | None = None, owns: Callable[[str], bool] | None = None,
+                 fetch: Callable[[str, int], Any] | None = None) -> None:
         self.conf = self.resolve(conf)
+        self.fetch = fetch
         self.detector_conf = self.conf["detector"]
         self.root = Path(state_dir) / "robots"
         self.descriptor = descriptor or create_descriptor(self.detector_conf["descriptor"])
@@ -249,7 +278,8 @@ class FleetRecognizer:
             raise ConflictError(f"robot {robot!r} sent keyframe {keyframe} before, with another image")
 
     def export(self, robot: str, keyframes: list[int] | None = None) -> list[tuple[int, SharedKeyframe]]:
-        """The robot's keyframes (all, or those of ``keyframes`` in its place memory) as ``adopt`` takes them."""
+        """The robot's keyframes (all, or those of ``keyframes`` in its place memory) as ``adopt`` takes them: the
+        local features of the latest ``adopted_features`` only (``None`` for the others: ``features`` on demand)."""
         r = self.robots[robot]
         if keyframes is not None and r.last is not None and list(keyframes) == [r.last[0]]:
             entries = dict([r.last])  # the keyframe just processed (``process``): not read back
@@ -259,8 +289,14 @@ class FleetRecognizer:
                        if wanted is None or fid in wanted}
         else:
             entries = {}
-        return [(k, SharedKeyframe(entries[k], r.detector.keyframe_features(k), r.poses[k], r.K))
-                for k in sorted(entries) if k in r.poses]
+        ids = [k for k in sorted(entries) if k in r.poses]
+        with_features = set(ids[-self.conf["adopted_features"]:])
+        return [(k, SharedKeyframe(entries[k], r.detector.keyframe_features(k) if k in with_features else None,
+                                   r.poses[k], r.K)) for k in ids]
+
+    def features(self, robot: str, keyframes: list[int]) -> list[Any]:
+        """The local features of keyframes of a robot this recognizer owns (another one's ``fetch``)."""
+        return self._features(robot, keyframes)
 
     def owned(self) -> list[str]:
         """The robots this recognizer runs the detector of (not adopted from another)."""
@@ -271,12 +307,15 @@ class FleetRecognizer:
         recognizer owns is left alone."""
         r = self.robots.get(robot)
         if r is None:
-            r = self.robots[robot] = _Robot(_Adopted(), shared[0][1].K if shared else None)  # type: ignore[arg-type]
+            fetch = None if self.fetch is None else functools.partial(self.fetch, robot)
+            r = self.robots[robot] = _Robot(_Adopted(self.conf["adopted_features"], fetch),  # type: ignore[arg-type]
+                                            shared[0][1].K if shared else None)
         if not isinstance(r.detector, _Adopted):
             return
         for keyframe, kf in shared:
-            if keyframe not in r.detector.features:
-                r.detector.features[keyframe] = kf.features
+            if keyframe not in r.poses:
+                if kf.features is not None:
+                    r.detector.remember(keyframe, kf.features)
                 r.poses[keyframe] = kf.pose
                 r.ids.append(keyframe)
                 self.places.add(robot, keyframe, kf.entry)

@@ -173,12 +173,12 @@ class FleetService:
         K = None if K is None else check_intrinsics(K)
         with self._submit_lock(robot):
             ack = KeyframeAck(robot, keyframe, timestamp, local.matrix())
-            acks = self.store.keyframes(robot)  # the store, not this process: replicas share it
-            if any(a.keyframe == keyframe for a in acks):  # a retry (False) or a conflict (ConflictError)
+            # the store, not this process: replicas share it (one row each, not the robot's every keyframe)
+            if self.store.keyframe(robot, keyframe) is not None:  # a retry (False) or a conflict (ConflictError)
                 if self.recognizer is not None and image is not None:
                     self.recognizer.check_retry(robot, keyframe, image)
                 return self.store.ack_keyframe(ack)
-            last = max(acks, key=lambda a: a.keyframe) if acks else None
+            last = self.store.last_keyframe(robot)
             if last is not None and keyframe < last.keyframe:
                 raise ConfigError(f"robot {robot}: keyframe {keyframe} is not after its last one ({last.keyframe})")
             if last is not None and timestamp < last.timestamp:
@@ -215,9 +215,8 @@ class FleetService:
         for robot in {r for e in edges for r in (e.robot_a, e.robot_b)}:
             if any(Node(r, k) not in known for e in edges for r, k in ((e.robot_a, e.keyframe_a),
                                                                       (e.robot_b, e.keyframe_b)) if r == robot):
-                for ack in self.store.keyframes(robot):
-                    if ack.keyframe > last.get(robot, -1):
-                        self._graph.add_keyframe(robot, ack.keyframe, ack.pose)
+                for ack in self.store.keyframes(robot, after=last.get(robot, -1)):
+                    self._graph.add_keyframe(robot, ack.keyframe, ack.pose)
 
     def _submit_lock(self, robot: str) -> threading.Lock:
         """The lock a robot's keyframe is processed under: one for all robots, or one per robot when the recognizer

@@ -147,8 +147,16 @@ class FleetStore(ABC):
         """
 
     @abstractmethod
-    def keyframes(self, robot: str) -> list[KeyframeAck]:
-        """The robot's acknowledged keyframes, by id."""
+    def keyframes(self, robot: str, after: int = -1) -> list[KeyframeAck]:
+        """The robot's acknowledged keyframes with ids after ``after`` (all by default), by id."""
+
+    @abstractmethod
+    def keyframe(self, robot: str, keyframe: int) -> KeyframeAck | None:
+        """The robot's acknowledged keyframe ``keyframe`` (None: not stored); one row read, not the robot's all."""
+
+    @abstractmethod
+    def last_keyframe(self, robot: str) -> KeyframeAck | None:
+        """The robot's acknowledged keyframe with the largest id (None: none yet); one row read."""
 
     @abstractmethod
     def add_edges(self, edges: Sequence[EdgeRecord]) -> None:
@@ -237,10 +245,20 @@ class SQLStore(FleetStore):
         salt, stored, iterations = rows[0] if rows else (b"", b"", self.conf["token_iterations"])
         return hmac.compare_digest(hash_token(token, bytes(salt), iterations), bytes(stored)) and bool(rows)
 
-    def keyframes(self, robot: str) -> list[KeyframeAck]:
-        rows = self._read(f"SELECT keyframe, timestamp, pose FROM keyframes WHERE robot = {self._P} ORDER BY keyframe",
-                          (robot,))
+    def _acks(self, robot: str, where: str, args: tuple, order: str = "") -> list[KeyframeAck]:
+        """The robot's keyframes matching ``where`` (with ``args``), ordered by ``order``."""
+        rows = self._read(f"SELECT keyframe, timestamp, pose FROM keyframes WHERE robot = {self._P} AND {where} "
+                          f"ORDER BY keyframe {order}", (robot, *args))
         return [KeyframeAck(robot, k, t, np.array(json.loads(p)).reshape(4, 4)) for k, t, p in rows]
+
+    def keyframes(self, robot: str, after: int = -1) -> list[KeyframeAck]:
+        return self._acks(robot, f"keyframe > {self._P}", (int(after),))
+
+    def keyframe(self, robot: str, keyframe: int) -> KeyframeAck | None:
+        return next(iter(self._acks(robot, f"keyframe = {self._P}", (int(keyframe),))), None)
+
+    def last_keyframe(self, robot: str) -> KeyframeAck | None:
+        return next(iter(self._acks(robot, "TRUE", (), "DESC LIMIT 1")), None)
 
     @staticmethod
     def _edge_rows(edges: Sequence[EdgeRecord]) -> list[tuple]:

@@ -7,8 +7,11 @@ Ray started with that many CPUs, or a cluster at ``ray_address``). Robot ``NAME`
 ``crc32(NAME) % workers``: that actor decodes, gates, encodes, extracts features, searches and verifies its
 keyframes, and keeps its keyframe database under the shared state folder. Each keyframe's code, features and pose
 are copied to the other actors (``FleetRecognizer.export`` -> ``adopt``) once the service has stored it
-(``committed``), so every robot is matched against every other one. Keyframes of robots on different shards
-are processed at the same time (``parallel_robots``): the service then serialises keyframes per robot only.
+(``committed``), so every robot is matched against every other one; of another worker's robot an actor keeps the
+features of the ``adopted_features`` (64) most recently used keyframes and asks the owner for the others when a match
+needs them (``FETCH``): a worker's memory does not grow by every other robot's features. Keyframes of robots on
+different shards are processed at the same time (``parallel_robots``): the service then serialises keyframes per robot
+only.
 
 Several front-end replicas on one Ray cluster share the workers (named after the state folder). A worker that dies
 is started again on its next request, and its robots continue there: the new actor reopens their
@@ -30,9 +33,13 @@ from core.errors import ConfigError
 from .recognition import FleetRecognizer, Recognition
 from .store import EdgeRecord, OverlapRecord
 
-__all__ = ["RayRecognizer", "shard_of", "create_recognizer"]
+__all__ = ["RayRecognizer", "shard_of", "shard_name", "create_recognizer"]
 
 log = logging.getLogger(__name__)
+
+
+NAMESPACE = "cae-lcd-fleet"  #: the Ray namespace of the workers
+FETCH = "fetch"  #: the workers' concurrency group that serves other workers' ``features`` requests
 
 
 def shard_of(robot: str, workers: int) -> int:
@@ -40,11 +47,44 @@ def shard_of(robot: str, workers: int) -> int:
     return zlib.crc32(robot.encode("utf-8")) % workers
 
 
+def shard_name(state_dir: str, index: int, workers: int) -> str:
+    """The Ray actor name of shard ``index``: named after the state folder, so that front-end replicas on one Ray
+    cluster share it (the first replica starts it, the others attach) and workers find each other."""
+    return f"fleet-{zlib.crc32(state_dir.encode()):08x}-{index}-of-{workers}"
+
+
 class _Shard:
-    """The body of one Ray actor: a ``FleetRecognizer`` that owns the robots of shard ``index``."""
+    """The body of one Ray actor: a ``FleetRecognizer`` that owns the robots of shard ``index``. Another robot's
+    keyframe features it no longer keeps are asked of that robot's worker, in its ``FETCH`` group (threads of their
+    own: two workers asking each other at once do not wait on each other's keyframe)."""
 
     def __init__(self, state_dir: str, conf: dict[str, Any] | None, index: int, workers: int) -> None:
-        self.rec = FleetRecognizer(state_dir, conf, owns=lambda name: shard_of(name, workers) == index)
+        self.state_dir, self.workers = state_dir, workers
+        self._owners: dict[int, Any] = {}
+        self.rec = FleetRecognizer(state_dir, conf, owns=lambda name: shard_of(name, workers) == index,
+                                   fetch=self._fetch)
+
+    def _fetch(self, robot: str, keyframe: int) -> Any:
+        """The features of another worker's keyframe, from that worker."""
+        import ray
+
+        i = shard_of(robot, self.workers)
+        try:
+            return ray.get(self._owner(i).features.options(concurrency_group=FETCH).remote(robot, [keyframe]))[0]
+        except ray.exceptions.RayActorError:  # started again since (``RayRecognizer._on_shard``): its new handle
+            self._owners.pop(i, None)
+            return ray.get(self._owner(i).features.options(concurrency_group=FETCH).remote(robot, [keyframe]))[0]
+
+    def _owner(self, index: int) -> Any:
+        """The actor of shard ``index`` (looked up by name once)."""
+        import ray
+
+        if index not in self._owners:
+            self._owners[index] = ray.get_actor(shard_name(self.state_dir, index, self.workers), namespace=NAMESPACE)
+        return self._owners[index]
+
+    def features(self, robot: str, keyframes: list[int]) -> list:
+        return self.rec.features(robot, keyframes)
 
     def owned(self) -> list[str]:
         return self.rec.owned()
@@ -104,7 +144,7 @@ class RayRecognizer:
             ray.init(address=ray_address or "local", num_cpus=None if ray_address else workers, include_dashboard=False,
                      log_to_driver=False, configure_logging=False)
         self.state_dir, self.conf, self.workers = str(Path(state_dir).resolve()), conf, workers
-        self._actor = ray.remote(num_cpus=1, max_restarts=0)(_Shard)
+        self._actor = ray.remote(num_cpus=1, max_restarts=0, concurrency_groups={FETCH: 1})(_Shard)
         self._shards = [self._start(i) for i in range(workers)]
         self._resumed: tuple[list[OverlapRecord], list[EdgeRecord]] | None = None
         self._recorded: set[frozenset[str]] = set()  # robot pairs whose overlap was reported (by either worker)
@@ -113,11 +153,9 @@ class RayRecognizer:
         self._share_all()
 
     def _start(self, index: int) -> Any:
-        """Shard ``index``'s actor: named after the state folder, so that front-end replicas on one Ray cluster
-        share it (the first replica starts it, the others attach)."""
-        name = f"fleet-{zlib.crc32(self.state_dir.encode()):08x}-{index}-of-{self.workers}"
-        return self._actor.options(name=name, namespace="cae-lcd-fleet", get_if_exists=True).remote(
-            self.state_dir, self.conf, index, self.workers)
+        """Shard ``index``'s actor (``shard_name``: replicas on one Ray cluster share it)."""
+        return self._actor.options(name=shard_name(self.state_dir, index, self.workers), namespace=NAMESPACE,
+                                   get_if_exists=True).remote(self.state_dir, self.conf, index, self.workers)
 
     def _share_all(self, to: list[int] | None = None) -> None:
         """Copies every owned robot's keyframes to the other shards (all, or the shards in ``to``)."""

@@ -91,7 +91,7 @@ class CodePlaces(Places):
         self.dim = dim = descriptor.dim if whitening is None else whitening.dim
         s = conf["search"]
         self.index = KeyframeIndex(dim, conf["index"], s["exclude_recent"], s["exclude_recent_s"])
-        self.source = CodeTable(dim, self._searchable)
+        self.source = CodeTable(dim, self._searchable, np.float16)  # entries are float16-rounded: kept exactly
         self._restored_to = -1  # keyframes up to this frame id came back in a saved index (restore_index)
 
     def check(self, entry: np.ndarray) -> None:

@@ -51,18 +51,26 @@ class SimilaritySource(Protocol):
 
 
 class CodeTable:
-    """Normalised codes by frame id, as a ``temporal.SimilaritySource`` (NaN for frames not stored)."""
+    """Normalised codes by frame id, as a ``temporal.SimilaritySource`` (NaN for frames not stored).
 
-    def __init__(self, dim: int, searchable: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
+    Args:
+        dim: code length.
+        searchable: which keyframes the current query may match (None: every stored one).
+        dtype: how the codes are kept: ``float16`` halves the memory and is exact for codes already rounded to
+            float16 precision (``places.CodePlaces.entry``): similarities are computed in float32 either way.
+    """
+
+    def __init__(self, dim: int, searchable: Callable[[np.ndarray], np.ndarray] | None = None,
+                 dtype: type = np.float32) -> None:
         self.dim = dim
         self._rows: dict[int, int] = {}
-        self._codes = np.zeros((0, dim), np.float32)
+        self._codes = np.zeros((0, dim), dtype)
         self._n = 0
         self._searchable = searchable
 
     def add(self, frame_id: int, code: np.ndarray) -> None:
         if self._n == len(self._codes):
-            grown = np.zeros((max(64, 2 * len(self._codes)), self.dim), np.float32)
+            grown = np.zeros((max(64, 2 * len(self._codes)), self.dim), self._codes.dtype)
             grown[: self._n] = self._codes[: self._n]
             self._codes = grown
         self._codes[self._n] = code
@@ -84,7 +92,8 @@ class CodeTable:
         out = np.full(len(rq), np.nan, np.float32)
         ok = (rq >= 0) & (rr >= 0)
         if ok.any():
-            out[ok] = np.einsum("ij,ij->i", self._codes[rq[ok]], self._codes[rr[ok]])
+            a, b = (self._codes[r[ok]].astype(np.float32, copy=False) for r in (rq, rr))
+            out[ok] = np.einsum("ij,ij->i", a, b)
         return out
 
     def searchable(self, refs: np.ndarray) -> np.ndarray:

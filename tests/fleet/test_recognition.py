@@ -77,7 +77,7 @@ class TestSeam:
         found = {p.name: bad for p in sorted(fleet.glob("*.py")) if (bad := private_detector_reads(p.read_text()))}
         assert not found
 
-    @pytest.mark.parametrize("index", ["flat", "milvus"])
+    @pytest.mark.parametrize("index", ["flat", "fp16", "milvus"])
     def test_the_place_memory_groups_other_robots_best_first(self, cae_descriptor, kitti, index):
         from retrieval.detector import resolve_conf
 
@@ -117,6 +117,33 @@ class TestFleetRecognizer:
             truth = node[e.robot_a](e.keyframe_a).inverse().compose(node[e.robot_b](e.keyframe_b))
             angle, scale, _ = e.relative.errors(truth)
             assert angle < 3.0 and scale < 0.05
+
+    def test_an_adopted_robot_keeps_few_features_and_fetches_the_others(self, tmp_path, kitti, cae_descriptor,
+                                                                        known_sim3):
+        """Two recognizers as two Ray workers would be (A on one, B on the other, each keyframe copied to the other
+        with ``export`` -> ``adopt``): with ``adopted_features`` 1 each keeps one of the other robot's keyframes'
+        features, fetches the rest from the owner, and the overlap is found as in one recognizer."""
+        fetched = []
+
+        def fetch_from(owner):
+            return lambda robot, k: fetched.append((robot, k)) or owner().features(robot, [k])[0]
+
+        recs = {}
+        for name in ("A", "B"):
+            other = "B" if name == "A" else "A"
+            recs[name] = FleetRecognizer(tmp_path, {"adopted_features": 1}, cae_descriptor,
+                                         owns=lambda n, m=name: n == m, fetch=fetch_from(lambda o=other: recs[o]))
+        found = []
+        for robot, seq, i in [("A" if i % 2 == 0 else "B", "00", i) for i in range(100, 120)]:
+            image, pose, K = kitti(seq, i)
+            pose = in_other_map(pose, known_sim3) if robot == "B" else pose
+            found.append(recs[robot].process(robot, i, float(i), pose, image, K))
+            recs["B" if robot == "A" else "A"].adopt(robot, recs[robot].export(robot, [i]))
+        kept = {name: len(recs[name].robots["B" if name == "A" else "A"].detector.features) for name in recs}
+        for rec in recs.values():
+            rec.close()
+        assert kept == {"A": 1, "B": 1} and fetched  # bounded, and the dropped ones were asked of their owner
+        assert sum(len(r.overlaps) for r in found) >= 1 and sum(len(r.edges) for r in found) >= 5
 
     def test_the_budget_bounds_the_candidates_verified(self, tmp_path, kitti, cae_descriptor):
         """Four robots on KITTI 00 and 07: a keyframe verifies at most ``cross.budget`` other robots' candidates."""

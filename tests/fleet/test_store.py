@@ -96,6 +96,10 @@ class TestStore:
         assert [a.keyframe for a in back] == list(range(0, 40, 2))
         np.testing.assert_array_equal(np.stack([a.pose for a in back]), np.stack(poses))
         assert back[3].timestamp == pytest.approx(0.3)
+        assert [a.keyframe for a in store.keyframes("A", after=33)] == [34, 36, 38]  # one row each, not all read
+        assert store.last_keyframe("A").keyframe == 38 and store.last_keyframe("Z") is None
+        np.testing.assert_array_equal(store.keyframe("A", 6).pose, poses[3])
+        assert store.keyframe("A", 7) is None and store.keyframe("Z", 0) is None
 
     def test_a_retry_is_idempotent_and_a_conflict_refused(self, store, kitti_poses):
         store.add_robot("A", "t")

@@ -48,7 +48,8 @@ def test_robots_are_sharded_by_name():
 
 
 def test_overlap_across_workers_and_a_killed_worker(local_ray, tmp_path, kitti_sequences, kitti_poses):
-    rec = create_recognizer(tmp_path, workers=2)
+    # one adopted keyframe's features kept per robot: the others' are fetched from their worker (fleet.workers FETCH)
+    rec = create_recognizer(tmp_path, {"adopted_features": 1}, workers=2)
     assert isinstance(rec, RayRecognizer) and rec.parallel_robots
     found = [process(rec, robot, i, pose, image, K)
              for robot, i, pose, image, K in frames(kitti_sequences, kitti_poses, range(100, 110))]
