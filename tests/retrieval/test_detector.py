@@ -128,14 +128,16 @@ class TestLoopDetector:
         with LoopDetector(encoder=encoder, database=tmp_path / "kf.h5") as det:
             assert det.next_frame_id == 1
 
-    def test_short_sequence_sequential_equals_parallel(self, encoder, sample_image, sample_K):
-        """Frames 0, 1, 2 then their revisits 50, 51, 52 (as ids 3, 4, 5), with a short exclusion window."""
+    def test_short_sequence_worker_equals_main_thread(self, encoder, sample_image, sample_K):
+        """Frames 0, 1, 2 then their revisits 50, 51, 52 (as ids 3, 4, 5), with a short exclusion window; features of
+        every frame (not lazy), from the worker thread or the main thread."""
         frames = [0, 1, 2, 50, 51, 52]
         conf = {"search": {"exclude_recent": 3}}
         out = {}
-        for parallel in (True, False):
-            with LoopDetector({**conf, "runtime": {"parallel": parallel}}, K=sample_K, encoder=encoder) as det:
-                out[parallel] = [det.process(sample_image(i)) for i in frames]
+        for worker in (True, False):
+            with LoopDetector({**conf, "runtime": {"feature_worker": worker, "lazy_features": False}}, K=sample_K,
+                              encoder=encoder) as det:
+                out[worker] = [det.process(sample_image(i)) for i in frames]
         for a, b in zip(out[True], out[False]):
             assert [c.as_row() for c in a.candidates] == [c.as_row() for c in b.candidates]
         loops = {(r.frame_id, r.loop.frame_id) for r in out[True] if r.loop is not None}
@@ -414,7 +416,7 @@ class TestLazyFeatures:
             return sample_image(fid)
 
         source = self.run({}, encoder, sample_seq, sample_image, frame_source=again)
-        alone = self.run({"runtime": {"features_ahead": True}}, encoder, sample_seq, sample_image)  # the worker
+        alone = self.run({"runtime": {"feature_worker": False}}, encoder, sample_seq, sample_image)  # no worker
         rows = [[c.as_row() for c in r.candidates] for r in eager]
         assert sum(len(r) for r in rows) > 50 and len(loops_of(eager)) >= 15
         for lazy in (copies, source, alone):
