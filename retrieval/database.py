@@ -135,7 +135,8 @@ class FeatureStore:
 @dataclass
 class KeyframeRecord:
     frame_id: int
-    code: np.ndarray  #: (D,) the searched code (stored as float16), or (n, 32) uint8 binary descriptors
+    code: np.ndarray  #: (D,) the searched code (stored as float16; (r, D / r) float: as r rows), or (n, 32) uint8
+    #                    binary descriptors
     features: Features
     timestamp: float | None = None
     pose: np.ndarray | None = None  #: (3, 4) camera-to-world, when known
@@ -523,7 +524,8 @@ class KeyframeDatabase:
             row["pose"] = np.asarray(rec.pose, np.float64).reshape(12)
         cands = (np.zeros((0, len(CANDIDATE_ROW))) if rec.candidates is None
                  else np.asarray(rec.candidates, np.float64)).reshape(-1, len(CANDIDATE_ROW))
-        ragged = {"codes": code if binary else code.astype(np.float16).reshape(1, -1), "candidates": cands}
+        rows = code.reshape(-1, code.shape[-1]) if code.ndim == 2 else code.reshape(1, -1)  # a code as rows of the width
+        ragged = {"codes": code if binary else rows.astype(np.float16), "candidates": cands}
         attrs = {"metric": feats.metric, "descriptor_dtype": np.dtype(rec.features.descriptors.dtype).name} \
             if len(feats) and "metric" not in self.file.attrs else {}
         self._append_row(row, ragged, _pack_features(feats, rec.image), attrs)
@@ -646,8 +648,8 @@ class KeyframeDatabase:
             yield rows, out
 
     def _code(self, raw: np.ndarray) -> np.ndarray:
-        """A stored code as given back: ``(D,)`` float32, or ``(n, 32)`` uint8 binary descriptors."""
-        return raw.astype(np.float32)[0] if raw.dtype == np.float16 else raw
+        """A stored code as given back: ``(D,)`` float32 (its rows joined), or ``(n, 32)`` uint8 binary descriptors."""
+        return raw.astype(np.float32).reshape(-1) if raw.dtype == np.float16 else raw
 
     def features(self, frame_id: int) -> Features:
         """One keyframe's local features (descriptors in the extractor's dtype), checksum verified.

@@ -69,6 +69,10 @@ default_conf: dict[str, Any] = {
         "dim": DEFAULT_DIM,  # length of the whitened code (at most a quarter of the fitting codes)
         "shrink": DEFAULT_SHRINK,  # added to each component's variance, times their mean (regularises small sets)
         "skip_still": False,  # fitted on the sequence: leave out frames whose code did not change (camera still)
+        "stream_fit": None,  # uncalibrated and no whitening from the weights: fit one on the stream's own first
+        #                      this many keyframes (raw codes searched until then), then search the whitened codes
+        #                      (index and table rebuilt once): a long stream's cost and memory stay small; None: raw
+        #                      codes (the fleet compares its robots' entries in the raw space: leave it None there)
     },
     "index": {"name": "auto"},  # code index by registry name (auto, flat, fp16, sq8, hnsw, ivfpq) and its options
     "temporal": {"name": "sequence"},  # temporal-consistency filter by registry name (sequence, none, bayes)
@@ -132,7 +136,7 @@ conf_rules: dict[str, Any] = {
     "policy": {"verify": Bool(), "min_matches": Int(0), "min_inliers": Int(0),
                "min_seq_score": Float(-1e9, 1e9, optional=True), "check_all": Bool()},
     "whitening": {"enabled": Bool(), "source": Choice("auto", "sequence", "weights"), "dim": Int(1, 4096),
-                  "shrink": Float(0, 100), "skip_still": Bool()},
+                  "shrink": Float(0, 100), "skip_still": Bool(), "stream_fit": Int(32, optional=True)},
     "calibration": {"enabled": Bool(), "expected_false_loops": Float(0, 100, lo_open=True),
                     "null_pairs": Int(10, 100_000), "min_features": Int(0), "min_inliers": Int(8),
                     "verification": Choice("auto", "on", "off"), "max_frames": Int(100)},
@@ -274,7 +278,9 @@ class LoopDetector:
         self.extractor = create_extractor(c["features"])
         self.verifier = create_verifier(c["matcher"], c["geometry"])
         self.verifier.geometry.model_for(self.K)  # fail now, not at the first loop, if E is asked without K
-        self.places = create_places(self.descriptor, self.whitening, c)
+        stream_fit = c["whitening"]["stream_fit"] if self.whitening is None and c["whitening"]["enabled"] \
+            and self.descriptor.searched_by == "cosine" else None
+        self.places = create_places(self.descriptor, self.whitening, c, stream_fit)
         self.filter = create_filter(c["temporal"])
         self._verify = bool(self.calibration.inlier_null) if self.calibration is not None else c["policy"]["verify"]
         self._min_inliers = c["policy"]["min_inliers"]
@@ -469,7 +475,7 @@ class LoopDetector:
         if self.db is not None:  # first: if the disk refuses it, the in-memory state has not moved either
             rows = np.array([cd.as_row() for cd in candidates], np.float64).reshape(-1, len(CANDIDATE_ROW))
             stored = feats if feats is not None and self._store_features else self._no_features()
-            self.db.append(KeyframeRecord(fid, entry, stored, ts, pose34, source, edge_ratio, rows,
+            self.db.append(KeyframeRecord(fid, self.places.stored(entry), stored, ts, pose34, source, edge_ratio, rows,
                                           -1 if loop is None else loop.frame_id, fingerprint,
                                           prep()[2] if self._keep_image else b""))
         self.places.insert(fid, entry, ts)
