@@ -119,9 +119,10 @@ default_conf: dict[str, Any] = {
         "flush_every": 256,  # frames moved from the database's write-ahead log into its columns at a time (each
         #                    frame is logged as it is stored: a killed run loses nothing whatever this is)
         "features": "memory",  # keyframe features for verification: "memory" (all), "database" (bounded memory);
-        #                    "image": a keyframe store keeps a small grey copy of each keyframe (at the extractor's
-        #                    resolution) instead of its features, which are extracted from it when needed (lazy)
-        #                    and cached: a stream's store and memory stay small (without a store: "memory")
+        #                    "image": as "database", but a keyframe whose features were not needed when it came
+        #                    (lazy) keeps a small grey copy (at the extractor's resolution) in the store instead,
+        #                    and its features are extracted from it when a later query needs them: a stream's
+        #                    store stays small where it does not revisit (without a store: "memory")
         "image_quality": 90,  # features "image": JPEG quality of the stored grey copy (the frame's own features are
         #                       extracted from the same copy); None: lossless PNG (about twice the bytes)
         "feature_cache": 512,  # keyframes' features kept in memory (LRU): with features "database", and those
@@ -301,7 +302,7 @@ class LoopDetector:
         self._jobs = FeatureJobs(functools.partial(create_extractor, c["features"]), c["runtime"]["feature_cache"]) \
             if c["runtime"]["feature_worker"] and self._verify and not self.descriptor.needs_features else None
         self._wanted = False  # whether the previous frame's query needed its local features
-        self.features = FeatureStore(self.db if c["runtime"]["features"] == "database" else None,
+        self.features = FeatureStore(self.db if c["runtime"]["features"] in ("database", "image") else None,
                                      c["runtime"]["feature_cache"])  # features kept (not ``_unextracted``)
         if self.db is not None:
             try:
@@ -321,9 +322,9 @@ class LoopDetector:
         self._lazy = rt["lazy_features"] and not self.descriptor.needs_features \
             and (not has_database or frame_source is not None or self._keep_image)
         self._frame_source = frame_source
-        # local features go into the database only where they cannot be had again from the frame's source or its
-        # stored copy (or are read back from there: features "database"); offline, its files give them again
-        self._store_features = (frame_source is None and not self._keep_image) or rt["features"] == "database"
+        # local features go into the database only where they cannot be had again from the frame's source (or are
+        # read back from there: features "database", "image"); offline, its files give them again
+        self._store_features = frame_source is None or rt["features"] in ("database", "image")
         self._given: dict[int, Features] = dict(features or {})  # frame -> features extracted before (calibration)
         self._unextracted: set[int] = set()  # keyframes whose features are not kept: extracted again when needed
         self._copies: dict[int, bytes] = {}  # no store, no frame_source: their lossless grey copy (``grey_copy``)
@@ -477,13 +478,13 @@ class LoopDetector:
             stored = feats if feats is not None and self._store_features else self._no_features()
             self.db.append(KeyframeRecord(fid, self.places.stored(entry), stored, ts, pose34, source, edge_ratio, rows,
                                           -1 if loop is None else loop.frame_id, fingerprint,
-                                          prep()[2] if self._keep_image else b""))
+                                          prep()[2] if self._keep_image and feats is None else b""))
         self.places.insert(fid, entry, ts)
         self.filter.commit(fid, np.array([cd.frame_id for cd in candidates], np.int64))
         if self.decision is not None:
             self.decision.commit(fid, np.array([cd.frame_id for cd in candidates], np.int64),
                                  np.array([self._counted(cd) for cd in candidates], np.int64))
-        if feats is not None and not self._keep_image:
+        if feats is not None:
             self.features[fid] = feats  # after the database has it: database mode may read it back from there
         else:  # not kept: extracted (again) if a query needs it (frame_source, the stored copy, or one kept here)
             self._unextracted.add(fid)
