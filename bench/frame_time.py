@@ -6,9 +6,9 @@ before this change, quiet and beside a busy neighbour, all side by side in one r
 1. quiet: one SIFT extraction at 512 px on every frame (the yardstick); ``cae-lcd detect`` with this code and with
    the code at ``--before`` (a ``git archive`` of that revision, run from a temporary folder), each in a fresh
    process (peak RSS is that process's own); the one-frame-at-a-time Python API (``LoopDetector.process``, the
-   run's calibration, frames read beforehand): back to back with and without the feature worker thread
-   (``runtime.feature_worker``), and fed at the sequence's camera rate (the latency a SLAM system sees: the next
-   frame comes when its timestamp says, gaps capped at 1 s);
+   run's calibration, frames read beforehand): with and without the feature worker thread
+   (``runtime.feature_worker``), back to back and fed at the sequence's camera rate (the latency a SLAM system sees:
+   the next frame comes when its timestamp says, gaps capped at 1 s);
 2. beside a busy neighbour (a process multiplying matrices with 2 torch threads, as a SLAM system's threads
    would): the yardstick and ``detect`` again (``--before-under-load`` also runs the old code there: slow).
 
@@ -98,9 +98,10 @@ def detect_in_process(code_root: Path, sequence: Path, out: Path, conf: dict[str
 
 
 API_RUNS = {  #: the API passes, by name: detector conf and whether frames come at the camera rate
-    "back to back": ({}, False),
+    "back to back, feature worker": ({"runtime": {"feature_worker": True}}, False),
     "back to back, no feature worker": ({"runtime": {"feature_worker": False}}, False),
-    "at the camera rate": ({}, True),
+    "at the camera rate, feature worker": ({"runtime": {"feature_worker": True}}, True),
+    "at the camera rate, no feature worker": ({"runtime": {"feature_worker": False}}, True),
 }
 
 

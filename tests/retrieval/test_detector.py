@@ -416,7 +416,7 @@ class TestLazyFeatures:
             return sample_image(fid)
 
         source = self.run({}, encoder, sample_seq, sample_image, frame_source=again)
-        alone = self.run({"runtime": {"feature_worker": False}}, encoder, sample_seq, sample_image)  # no worker
+        alone = self.run({"runtime": {"feature_worker": True}}, encoder, sample_seq, sample_image)  # the worker
         rows = [[c.as_row() for c in r.candidates] for r in eager]
         assert sum(len(r) for r in rows) > 50 and len(loops_of(eager)) >= 15
         for lazy in (copies, source, alone):
@@ -464,7 +464,7 @@ class TestStreamStore:
     the same tables as uninterrupted."""
 
     CONF = {"calibration": {"enabled": False}, "whitening": {"stream_fit": 32},
-            "runtime": {"features": "image", "feature_cache": 16}}
+            "runtime": {"features": "image", "feature_cache": 16, "feature_worker": True}}
 
     def run(self, path, encoder, sample_seq, sample_image, frames, conf=None):
         with LoopDetector(conf or self.CONF, K=sample_seq.K, database=path, encoder=encoder) as det:
