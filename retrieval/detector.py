@@ -38,7 +38,7 @@ from cae.whitening import DEFAULT_DIM, DEFAULT_SHRINK
 from core.checks import check_frame_id, check_intrinsics, check_pose, check_timestamp
 from core.conf import Bool, Choice, ConfigError, Float, Int, check_conf, merge_conf
 from core.images import check_image, to_gray_u8, to_uint8
-from core.threads import apply_thread_policy, cpu_count
+from core.threads import apply_thread_policy
 from verify.features import FEATURES, FeatureExtractor, Features, create_extractor
 from verify.gate import EdgeGate
 from verify.geometry import GeometricVerifier
@@ -117,7 +117,8 @@ default_conf: dict[str, Any] = {
         #                           candidates (the next frames' likely candidates) once it has verified; the main
         #                           thread runs a job itself when the worker has not started it. The same features
         #                           either way. Off by default: on 2 cores shared with other work it lost (API
-        #                           median 58 -> 68-72 ms under load: BENCHMARKS.md, issue 18); for a free core
+        #                           median 58 -> 68-72 ms under load: BENCHMARKS.md, issue 18): for a machine with
+        #                           a core to spare beside the detector
         "flush_every": 256,  # frames moved from the database's write-ahead log into its columns at a time (each
         #                    frame is logged as it is stored: a killed run loses nothing whatever this is)
         "features": "memory",  # keyframe features for verification: "memory" (all), "database" (bounded memory);
@@ -317,7 +318,7 @@ class LoopDetector:
                    features: dict[int, Features] | None) -> None:
         """The state of late feature extraction (``runtime.lazy_features``)."""
         c, rt = self.conf, self.conf["runtime"]
-        # a keyframe store keeps a grey copy of each keyframe instead of its features (runtime.features "image")
+        # a keyframe store keeps a grey copy of each keyframe whose features were not needed (runtime.features "image")
         self._keep_image = has_database and frame_source is None and rt["features"] == "image" and \
             rt["lazy_features"] and not self.descriptor.needs_features
         # lazy only where a frame can be had again after a restart: in memory, with a frame_source or its stored copy
