@@ -1,7 +1,8 @@
 """Issue 18 (speed): the per-frame cost offline and through the API, against one SIFT extraction, against the code
 before this change, quiet and beside a busy neighbour, all side by side in one run.
 
-``python -m bench.frame_time [--sequence ../shared/datasets/kitti/sequences/90] [--before REV]`` runs, in this order:
+``python -m bench.frame_time [--sequence ../shared/datasets/kitti/sequences/90] [--before REV]`` runs, in this order
+(``--api-only [--rounds 2] [--calibration PATH]``: the API passes alone, interleaved):
 
 1. quiet: one SIFT extraction at 512 px on every frame (the yardstick); ``cae-lcd detect`` with this code and with
    the code at ``--before`` (a ``git archive`` of that revision, run from a temporary folder), each in a fresh
@@ -43,7 +44,7 @@ from verify.features import SIFT
 from .common import md_table
 from .speed import system_info
 
-__all__ = ["sift_yardstick", "detect_in_process", "api_per_frame", "busy_neighbour", "main"]
+__all__ = ["sift_yardstick", "detect_in_process", "api_per_frame", "api_only", "busy_neighbour", "main"]
 
 log = logging.getLogger(__name__)
 
@@ -105,30 +106,58 @@ API_RUNS = {  #: the API passes, by name: detector conf and whether frames come 
 }
 
 
-def api_per_frame(images: list[np.ndarray], K: np.ndarray, calibration: Calibration,
-                  timestamps: np.ndarray | None = None) -> dict[str, dict[str, float]]:
+def api_per_frame(images: list[np.ndarray], K: np.ndarray, calibration: Calibration | None,
+                  timestamps: np.ndarray | None = None, rounds: int = 1) -> dict[str, dict[str, float]]:
     """``LoopDetector.process`` one frame at a time (in memory, lazy features kept as lossless copies), each pass of
-    ``API_RUNS``: median and p90 ms of ``ms["total"]``, the medians of the first and second halves of the frames,
-    and the loops found. At the camera rate frame ``i`` is given ``timestamps[i] - timestamps[i - 1]`` seconds (at
-    most 1) after frame ``i - 1`` was (a pass without timestamps: 0.1 s)."""
+    ``API_RUNS``, the passes interleaved ``rounds`` times (a loaded machine drifts): per pass, the median over the
+    rounds of its median and p90 ms of ``ms["total"]``, of the medians of the first and second halves of the
+    frames, and the loops found. At the camera rate frame ``i`` is given ``timestamps[i] - timestamps[i - 1]``
+    seconds (at most 1) after frame ``i - 1`` was (a pass without timestamps: 0.1 s)."""
     gaps = np.minimum(np.diff(timestamps), 1.0) if timestamps is not None and len(timestamps) == len(images) \
         else np.full(max(len(images) - 1, 0), 0.1)
-    out = {}
-    for name, (conf, paced) in API_RUNS.items():
-        results = []
-        with LoopDetector(conf, K=K, calibration=calibration) as det:
-            due = time.perf_counter()
-            for i, image in enumerate(images):
-                if paced and i:
-                    due += float(gaps[i - 1])
-                    time.sleep(max(0.0, due - time.perf_counter()))
-                results.append(det.process(image, i))
-        total = np.array([r.ms["total"] for r in results])
-        half = len(total) // 2
-        out[name] = {"median": float(np.median(total)), "p90": float(np.percentile(total, 90)),
-                     "first_half": float(np.median(total[:half])), "second_half": float(np.median(total[half:])),
-                     "loops": float(sum(r.loop is not None for r in results))}
-    return out
+    runs: dict[str, list[dict[str, float]]] = {name: [] for name in API_RUNS}
+    for _ in range(max(1, rounds)):
+        for name, (conf, paced) in API_RUNS.items():
+            runs[name].append(_api_pass(images, K, calibration, conf, gaps if paced else None))
+    return {name: {key: float(np.median([r[key] for r in done])) for key in done[0]} for name, done in runs.items()}
+
+
+def _api_pass(images: list[np.ndarray], K: np.ndarray, calibration: Calibration | None, conf: dict[str, Any],
+              gaps: np.ndarray | None) -> dict[str, float]:
+    """One pass of ``api_per_frame``: back to back, or frame ``i`` given ``gaps[i - 1]`` s after frame ``i - 1``."""
+    results = []
+    with LoopDetector(conf, K=K, calibration=calibration) as det:
+        due = time.perf_counter()
+        for i, image in enumerate(images):
+            if gaps is not None and i:
+                due += float(gaps[i - 1])
+                time.sleep(max(0.0, due - time.perf_counter()))
+            results.append(det.process(image, i))
+    total = np.array([r.ms["total"] for r in results])
+    half = len(total) // 2
+    return {"median": float(np.median(total)), "p90": float(np.percentile(total, 90)),
+            "first_half": float(np.median(total[:half])), "second_half": float(np.median(total[half:])),
+            "loops": float(sum(r.loop is not None for r in results))}
+
+
+def api_only(sequence: Path, calibration: Path | None, rounds: int, out: Path) -> dict[str, Any]:
+    """The API passes alone (``--api-only``): with the calibration given, else one made by ``detect`` first; the
+    passes and the system into ``out`` (JSON), one line a pass in the log; BENCHMARKS.md is not touched."""
+    seq = open_sequence(sequence)
+    images = [read_image(p) for p in seq.frames]
+    with tempfile.TemporaryDirectory(prefix="frame_time_api_") as tmp:
+        if calibration is None:
+            detect_in_process(REPO, sequence, Path(tmp) / "run")
+            calibration = Path(tmp) / "run" / "calibration.h5"
+        cal = Calibration.load(calibration)
+    res = {"sequence": str(sequence), "system": system_info(), "rounds": rounds,
+           "api": api_per_frame(images, seq.K, cal, getattr(seq, "timestamps", None), rounds)}
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(res, indent=1, default=str))
+    for name, a in res["api"].items():
+        log.info("%s: median %.1f ms (first half %.1f, second half %.1f), p90 %.1f, %d loops", name, a["median"],
+                 a["first_half"], a["second_half"], a["p90"], a["loops"])
+    return res
 
 
 @contextmanager
@@ -259,8 +288,14 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     p.add_argument("--out", type=Path, default=REPO / "BENCHMARKS.md")
     p.add_argument("--json", type=Path, default=REPO / "runs/bench/frame_time.json")
     p.add_argument("--from-json", action="store_true", help="rewrite the section from --json, measuring nothing")
+    p.add_argument("--api-only", action="store_true", help="only the API passes, interleaved --rounds times (JSON "
+                   "runs/bench/frame_time_api.json; BENCHMARKS.md untouched)")
+    p.add_argument("--rounds", type=int, default=2, help="--api-only: rounds of the interleaved API passes")
+    p.add_argument("--calibration", type=Path, help="--api-only: a calibration.h5 for the sequence (else made first)")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    if args.api_only:
+        return api_only(args.sequence, args.calibration, args.rounds, REPO / "runs/bench/frame_time_api.json")
     if args.from_json:
         res = json.loads(args.json.read_text())
         write_section(args.out, report(res))

@@ -1,5 +1,7 @@
 """The issue-18 speed benchmark's pieces (the measurement itself is ``python -m bench.frame_time``, not a test)."""
 
+import numpy as np
+
 from bench.frame_time import busy_neighbour, report, sift_yardstick, write_section
 
 
@@ -51,3 +53,14 @@ def test_report_lists_each_api_pass():
     text = report(res)
     assert "back to back: median 25.0 ms (first half of the frames 9.0, second half, the revisits, 30.0)" in text
     assert "at the camera rate: median 18.0 ms" in text
+
+
+def test_api_passes_interleaved(sample_seq, sample_image, monkeypatch):
+    import bench.frame_time as ft
+
+    monkeypatch.setattr(ft, "API_RUNS", {"back to back": ({}, False), "paced": ({}, True)})
+    images = [sample_image(i) for i in range(3)]
+    out = ft.api_per_frame(images, sample_seq.K, None, np.array([0.0, 0.05, 0.1]), rounds=2)
+    assert set(out) == {"back to back", "paced"}
+    assert all(a["median"] > 0 and a["loops"] == 0 and set(a) >= {"p90", "first_half", "second_half"}
+               for a in out.values())
