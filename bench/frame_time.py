@@ -1,12 +1,15 @@
 """Issue 18 (speed): the per-frame cost offline and through the API, against one SIFT extraction, against the code
 before this change, quiet and beside a busy neighbour, all side by side in one run.
 
-``python -m bench.frame_time [--sequence ../shared/datasets/kitti/sequences/90] [--before REV]`` runs, in this order:
+``python -m bench.frame_time [--sequence ../shared/datasets/kitti/sequences/90] [--before REV]`` runs, in this order
+(``--api-only [--rounds 2] [--calibration PATH]``: the API passes alone, interleaved):
 
 1. quiet: one SIFT extraction at 512 px on every frame (the yardstick); ``cae-lcd detect`` with this code and with
    the code at ``--before`` (a ``git archive`` of that revision, run from a temporary folder), each in a fresh
    process (peak RSS is that process's own); the one-frame-at-a-time Python API (``LoopDetector.process``, the
-   run's calibration, frames read beforehand);
+   run's calibration, frames read beforehand): with and without the feature worker thread
+   (``runtime.feature_worker``), back to back and fed at the sequence's camera rate (the latency a SLAM system sees:
+   the next frame comes when its timestamp says, gaps capped at 1 s);
 2. beside a busy neighbour (a process multiplying matrices with 2 torch threads, as a SLAM system's threads
    would): the yardstick and ``detect`` again (``--before-under-load`` also runs the old code there: slow).
 
@@ -41,7 +44,7 @@ from verify.features import SIFT
 from .common import md_table
 from .speed import system_info
 
-__all__ = ["sift_yardstick", "detect_in_process", "api_per_frame", "busy_neighbour", "main"]
+__all__ = ["sift_yardstick", "detect_in_process", "api_per_frame", "api_only", "busy_neighbour", "main"]
 
 log = logging.getLogger(__name__)
 
@@ -95,14 +98,66 @@ def detect_in_process(code_root: Path, sequence: Path, out: Path, conf: dict[str
     return summary
 
 
-def api_per_frame(images: list[np.ndarray], K: np.ndarray, calibration: Calibration) -> dict[str, float]:
-    """``LoopDetector.process`` one frame at a time (in memory, lazy features kept as lossless copies): median and
-    p90 ms of ``ms["total"]``, and the loops found."""
-    with LoopDetector(K=K, calibration=calibration) as det:
-        results = [det.process(image, i) for i, image in enumerate(images)]
-    total = [r.ms["total"] for r in results]
+API_RUNS = {  #: the API passes, by name: detector conf and whether frames come at the camera rate
+    "back to back, feature worker": ({"runtime": {"feature_worker": True}}, False),
+    "back to back, no feature worker": ({"runtime": {"feature_worker": False}}, False),
+    "at the camera rate, feature worker": ({"runtime": {"feature_worker": True}}, True),
+    "at the camera rate, no feature worker": ({"runtime": {"feature_worker": False}}, True),
+}
+
+
+def api_per_frame(images: list[np.ndarray], K: np.ndarray, calibration: Calibration | None,
+                  timestamps: np.ndarray | None = None, rounds: int = 1) -> dict[str, dict[str, float]]:
+    """``LoopDetector.process`` one frame at a time (in memory, lazy features kept as lossless copies), each pass of
+    ``API_RUNS``, the passes interleaved ``rounds`` times (a loaded machine drifts): per pass, the median over the
+    rounds of its median and p90 ms of ``ms["total"]``, of the medians of the first and second halves of the
+    frames, and the loops found. At the camera rate frame ``i`` is given ``timestamps[i] - timestamps[i - 1]``
+    seconds (at most 1) after frame ``i - 1`` was (a pass without timestamps: 0.1 s)."""
+    gaps = np.minimum(np.diff(timestamps), 1.0) if timestamps is not None and len(timestamps) == len(images) \
+        else np.full(max(len(images) - 1, 0), 0.1)
+    runs: dict[str, list[dict[str, float]]] = {name: [] for name in API_RUNS}
+    for _ in range(max(1, rounds)):
+        for name, (conf, paced) in API_RUNS.items():
+            runs[name].append(_api_pass(images, K, calibration, conf, gaps if paced else None))
+    return {name: {key: float(np.median([r[key] for r in done])) for key in done[0]} for name, done in runs.items()}
+
+
+def _api_pass(images: list[np.ndarray], K: np.ndarray, calibration: Calibration | None, conf: dict[str, Any],
+              gaps: np.ndarray | None) -> dict[str, float]:
+    """One pass of ``api_per_frame``: back to back, or frame ``i`` given ``gaps[i - 1]`` s after frame ``i - 1``."""
+    results = []
+    with LoopDetector(conf, K=K, calibration=calibration) as det:
+        due = time.perf_counter()
+        for i, image in enumerate(images):
+            if gaps is not None and i:
+                due += float(gaps[i - 1])
+                time.sleep(max(0.0, due - time.perf_counter()))
+            results.append(det.process(image, i))
+    total = np.array([r.ms["total"] for r in results])
+    half = len(total) // 2
     return {"median": float(np.median(total)), "p90": float(np.percentile(total, 90)),
+            "first_half": float(np.median(total[:half])), "second_half": float(np.median(total[half:])),
             "loops": float(sum(r.loop is not None for r in results))}
+
+
+def api_only(sequence: Path, calibration: Path | None, rounds: int, out: Path) -> dict[str, Any]:
+    """The API passes alone (``--api-only``): with the calibration given, else one made by ``detect`` first; the
+    passes and the system into ``out`` (JSON), one line a pass in the log; BENCHMARKS.md is not touched."""
+    seq = open_sequence(sequence)
+    images = [read_image(p) for p in seq.frames]
+    with tempfile.TemporaryDirectory(prefix="frame_time_api_") as tmp:
+        if calibration is None:
+            detect_in_process(REPO, sequence, Path(tmp) / "run")
+            calibration = Path(tmp) / "run" / "calibration.h5"
+        cal = Calibration.load(calibration)
+    res = {"sequence": str(sequence), "system": system_info(), "rounds": rounds,
+           "api": api_per_frame(images, seq.K, cal, getattr(seq, "timestamps", None), rounds)}
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(res, indent=1, default=str))
+    for name, a in res["api"].items():
+        log.info("%s: median %.1f ms (first half %.1f, second half %.1f), p90 %.1f, %d loops", name, a["median"],
+                 a["first_half"], a["second_half"], a["p90"], a["loops"])
+    return res
 
 
 @contextmanager
@@ -140,7 +195,7 @@ def _runs(sequence: Path, before: Path, tmp: Path, label: str, with_before: bool
         out["before"] = detect_in_process(before, sequence, tmp / f"before_{label}")
     if label == "quiet":
         cal = Calibration.load(tmp / f"new_{label}" / "calibration.h5")
-        out["api"] = api_per_frame(images, seq.K, cal)
+        out["api"] = api_per_frame(images, seq.K, cal, getattr(seq, "timestamps", None))
     log.info("%s: %s", label, {k: v.get("ms_per_frame", {}).get("total") if isinstance(v, dict) else v
                                for k, v in out.items()})
     return out
@@ -178,9 +233,11 @@ def report(res: dict[str, Any]) -> str:
              f"{res['system']['load_avg']}; every figure in this table comes from the same run.",
              f"- Yardstick: one SIFT extraction at 512 px, median {q['sift_ms']:.1f} ms quiet, {b['sift_ms']:.1f} ms "
              "beside the neighbour.",
-             f"- One frame at a time through the Python API (`LoopDetector.process`, the run's calibration, frames "
-             f"already in memory): median {q['api']['median']:.1f} ms, p90 {q['api']['p90']:.1f} ms "
-             f"({q['api']['loops']:.0f} loops).",
+             "- One frame at a time through the Python API (`LoopDetector.process`, the run's calibration, frames "
+             "already in memory): " + "; ".join(
+                 f"{name}: median {a['median']:.1f} ms (first half of the frames {a['first_half']:.1f}, second half, "
+                 f"the revisits, {a['second_half']:.1f}), p90 {a['p90']:.1f} ms, {a['loops']:.0f} loops"
+                 for name, a in _api_runs(q["api"]).items()) + ".",
              "- What the per-frame median counts: the frame's own stages (gate to insert) once the calibration has "
              "run; the work the calibration did on the run's behalf (every frame decoded and encoded in batches, "
              "SIFT on the frames it verified, then reused by the run) is not in it, but is in the amortised wall "
@@ -204,6 +261,12 @@ def report(res: dict[str, Any]) -> str:
     return table + "\n\n" + "\n".join(lines)
 
 
+def _api_runs(api: dict[str, Any]) -> dict[str, dict[str, float]]:
+    """The API passes of a result (an older JSON held one pass, back to back)."""
+    return api if "median" not in api else {"back to back": {"first_half": float("nan"),
+                                                              "second_half": float("nan"), **api}}
+
+
 def write_section(path: Path, text: str) -> None:
     """Replaces (or appends) this benchmark's marked section of ``path``."""
     begin, end = f"<!-- {MARK}:begin -->", f"<!-- {MARK}:end -->"
@@ -225,8 +288,14 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     p.add_argument("--out", type=Path, default=REPO / "BENCHMARKS.md")
     p.add_argument("--json", type=Path, default=REPO / "runs/bench/frame_time.json")
     p.add_argument("--from-json", action="store_true", help="rewrite the section from --json, measuring nothing")
+    p.add_argument("--api-only", action="store_true", help="only the API passes, interleaved --rounds times (JSON "
+                   "runs/bench/frame_time_api.json; BENCHMARKS.md untouched)")
+    p.add_argument("--rounds", type=int, default=2, help="--api-only: rounds of the interleaved API passes")
+    p.add_argument("--calibration", type=Path, help="--api-only: a calibration.h5 for the sequence (else made first)")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    if args.api_only:
+        return api_only(args.sequence, args.calibration, args.rounds, REPO / "runs/bench/frame_time_api.json")
     if args.from_json:
         res = json.loads(args.json.read_text())
         write_section(args.out, report(res))

@@ -1,7 +1,7 @@
 """Side-by-side speed choices of the per-frame path, measured in one run on the same frames.
 
 ``python -m bench.speed_ablation [--sequence ../shared/datasets/kitti/sequences/90]`` prints a Markdown table:
-the default detector against one change at a time (features in a parallel worker thread, geometric check on every
+the default detector against one change at a time (no feature worker thread, geometric check on every
 candidate), and the descriptor-matching GEMM in numpy/OpenBLAS against torch (what the detector uses).
 """
 
@@ -21,8 +21,8 @@ from verify.features import SIFT
 from verify.matching import match_ratio, match_ratio_many
 
 VARIANTS = {
-    "default (sequential, 2 threads, branch and bound)": {},
-    "features in a parallel worker thread (1 + 1 threads)": {"runtime": {"parallel": True}},
+    "default (feature worker thread, 1 thread a library, branch and bound)": {},
+    "no feature worker (features on the main thread)": {"runtime": {"feature_worker": False}},
     "geometric check on every candidate": {"policy": {"check_all": True}},
     "no F pre-check before E": {"geometry": {"prefilter": False}},
 }

@@ -4,7 +4,10 @@ pass) through one ``LoopDetector`` with a keyframe store, and reports ms a frame
 
 Writes ``runs/bench/stream/stream.json`` (one point per window: map size, median and p90 ms a frame, RSS), a plot
 ``stream.png`` and a Markdown table ``stream.md``. The target: ms a frame at 100k keyframes within 1.5x of that at
-1k. Features are read back from the store (``runtime.features: database``), so memory stays bounded.
+1k. The streamed detector has no sequence to calibrate on, so it whitens its codes with a whitening fitted on its
+own first 1024 keyframes (``whitening.stream_fit``), and its store keeps a small grey copy of each keyframe instead
+of its local features (``runtime.features: image``), which are extracted only for frames with a candidate that
+could pass, and for those candidates: what grows with the map is the index and the in-memory columns.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from core.conf import merge_conf
 from retrieval.detector import LoopDetector
 
 from .augment import augmented_frames, shared_frames
@@ -29,8 +33,10 @@ __all__ = ["stream", "stream_table", "main"]
 
 log = logging.getLogger(__name__)
 
-#: the streamed detector: fixed policy (a stream has no sequence to calibrate on), features from the store
-STREAM_CONF: dict[str, Any] = {"calibration": {"enabled": False}, "runtime": {"features": "database"}}
+#: the streamed detector: fixed policy (a stream has no sequence to calibrate on), whitened on its own first
+#: keyframes, a grey copy per keyframe in the store instead of its features
+STREAM_CONF: dict[str, Any] = {"calibration": {"enabled": False}, "whitening": {"stream_fit": 1024},
+                               "runtime": {"features": "image"}}
 
 
 def _rss_mb() -> float:
@@ -61,7 +67,7 @@ def stream(frames: int, out: str | Path = "runs/bench/stream", window: int = 0, 
     out.mkdir(parents=True)
     window = window or max(50, frames // 20)
     paths = shared_frames(kitti_only=True)
-    det = LoopDetector({**STREAM_CONF, **(conf or {})}, database=out / "keyframes.h5")
+    det = LoopDetector(merge_conf(STREAM_CONF, conf or {}, strict=False), database=out / "keyframes.h5")
     points, ms = [], []
     t0 = time.perf_counter()
     try:

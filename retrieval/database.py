@@ -13,9 +13,9 @@ per keyframe). Layout (``format_version`` 6)::
         edge_ratio    (n,)     float64
         loop          (n,)     int64 accepted match frame id, -1 if none
         source, fingerprint, message   (n,) variable-length strings (source as bytes: any file name survives)
-        code_end, feat_end, cand_end   (n,) int64: end offsets into the ragged arrays below (start = the previous
-                                        row's end; a skipped frame adds nothing)
-        feat_checksum (n,)     BLAKE2b-128 of the row's local features (verified when they are read)
+        code_end, feat_end, cand_end, image_end   (n,) int64: end offsets into the ragged arrays below (start = the
+                                        previous row's end; a skipped frame adds nothing)
+        feat_checksum (n,)     BLAKE2b-128 of the row's local features and grey copy (verified when they are read)
     /blocks/end, /blocks/checksum      per written block of rows (``flush_every`` frames): its end row and one
                                BLAKE2b-128 of its rows, codes and candidates (verified on the first read)
     /codes            (R, D)   the searched code, float16 (whitened and unit-norm: what the index holds), one row a
@@ -24,6 +24,8 @@ per keyframe). Layout (``format_version`` 6)::
     /features/descriptors (M, F) uint8 when lossless (SIFT), else the extractor's dtype; gzip-compressed
     /features/scales      (M,)   float16
     /candidates       (C, 6)   float64 rows (CANDIDATE_ROW) of every hypothesis judged
+    /images           (B,)     uint8: each keyframe's grey copy (``retrieval.feature_jobs.grey_copy``), where it
+                               keeps one instead of its features (a stream: ``runtime.features: image``)
 
 Local features are stored only where the detector cannot have them again (``LoopDetector``: offline, a keyframe's
 file gives them again; an empty span then). A frame goes first to the write-ahead log beside the file
@@ -62,8 +64,8 @@ __all__ = ["FORMAT_VERSION", "CANDIDATE_ROW", "SKIP_REASONS", "KINDS", "MIN_FREE
 
 log = logging.getLogger(__name__)
 
-FORMAT_VERSION = 6  #: 6: 5 (columnar, float16 searched codes, compact features) + write-ahead log, features
-#: only where a frame cannot be read again
+FORMAT_VERSION = 7  #: 7: 6 + a grey copy per keyframe (``images``); 6: 5 (columnar, float16 searched codes, compact
+#: features) + write-ahead log, features only where a frame cannot be read again
 CANDIDATE_ROW = ("frame_id", "score", "matches", "inliers", "seq_score", "confidence")  #: a stored candidate row
 SKIP_REASONS = ("gated", "unreadable")  #: why a frame is not a keyframe
 KINDS = ("keyframe",) + SKIP_REASONS  #: ``frames/kind`` values, by position
@@ -77,10 +79,11 @@ _COLUMNS: dict[str, tuple[Any, tuple[int, ...]]] = {
     "frame_id": (np.int64, ()), "kind": (np.uint8, ()), "timestamp": (np.float64, ()), "pose": (np.float64, (12,)),
     "edge_ratio": (np.float64, ()), "loop": (np.int64, ()), "source": (_BYTES, ()), "fingerprint": (_STR, ()),
     "message": (_STR, ()), "code_end": (np.int64, ()), "feat_end": (np.int64, ()), "cand_end": (np.int64, ()),
-    "feat_checksum": ("S32", ())}
+    "image_end": (np.int64, ()), "feat_checksum": ("S32", ())}
 _ROW_CHECKED = ("frame_id", "kind", "timestamp", "pose", "edge_ratio", "loop", "source", "fingerprint", "message",
-                "code_end", "feat_end", "cand_end")
+                "code_end", "feat_end", "cand_end", "image_end")
 _FEATURES = ("keypoints", "descriptors", "scales")
+_STORED = (*_FEATURES, "image")  # a keyframe's features and grey copy: one checksum (``feat_checksum``)
 _LOGGED = ("frame_id", "kind", "timestamp", "edge_ratio", "loop", "fingerprint", "message")  # as JSON in the log
 LOG_SUFFIX = ".log"  #: the write-ahead log is the store's path plus this (``keyframes.h5.log``)
 INDEX_SUFFIX = ".index"  #: the place index saved on close is the store's path plus this (``keyframes.h5.index``)
@@ -133,7 +136,8 @@ class FeatureStore:
 @dataclass
 class KeyframeRecord:
     frame_id: int
-    code: np.ndarray  #: (D,) the searched code (stored as float16), or (n, 32) uint8 binary descriptors
+    code: np.ndarray  #: (D,) the searched code (stored as float16; (r, D / r) float: as r rows), or (n, 32) uint8
+    #                    binary descriptors
     features: Features
     timestamp: float | None = None
     pose: np.ndarray | None = None  #: (3, 4) camera-to-world, when known
@@ -142,6 +146,7 @@ class KeyframeRecord:
     candidates: np.ndarray | None = None  #: (k, len(CANDIDATE_ROW)) rows in CANDIDATE_ROW order
     loop: int = -1  #: accepted match, -1 if none
     fingerprint: str = ""  #: "size:hash" of the source file (``core.images.fingerprint``), "" when unknown
+    image: bytes = b""  #: its grey copy (``retrieval.feature_jobs.grey_copy``) when it keeps one, else b""
 
 
 @dataclass(frozen=True)
@@ -157,7 +162,7 @@ class FrameEntry:
 #: the fixed-width part of a frame row, as its checksum reads it
 _FIXED = np.dtype([("frame_id", "<i8"), ("kind", "u1"), ("timestamp", "<f8"), ("pose", "<f8", (12,)),
                    ("edge_ratio", "<f8"), ("loop", "<i8"), ("code_end", "<i8"), ("feat_end", "<i8"),
-                   ("cand_end", "<i8")])
+                   ("cand_end", "<i8"), ("image_end", "<i8")])
 _TEXT = ("source", "fingerprint", "message")
 
 
@@ -212,11 +217,12 @@ def _file_size_limit() -> float:
     return float("inf") if soft == resource.RLIM_INFINITY else float(soft)
 
 
-def _pack_features(feats: Features) -> dict[str, np.ndarray]:
-    """Features (compacted) as stored: keypoints in 1/KEYPOINT_STEP pixel (uint16), float16 scales."""
+def _pack_features(feats: Features, image: bytes = b"") -> dict[str, np.ndarray]:
+    """Features (compacted) as stored: keypoints in 1/KEYPOINT_STEP pixel (uint16), float16 scales; and the grey
+    copy as uint8."""
     kp = np.clip(np.round(np.asarray(feats.keypoints, np.float64) * KEYPOINT_STEP), 0, 65535).astype(np.uint16)
     return {"keypoints": kp.reshape(-1, 2), "descriptors": feats.descriptors,
-            "scales": np.asarray(feats.scales, np.float16).reshape(-1)}
+            "scales": np.asarray(feats.scales, np.float16).reshape(-1), "image": np.frombuffer(image, np.uint8)}
 
 
 class KeyframeDatabase:
@@ -334,7 +340,7 @@ class KeyframeDatabase:
         the next append."""
         n = int(self.file.attrs["committed"])
         frames = self.file["frames"]
-        self._cols = {k: frames[k][:n] for k in ("frame_id", "kind", "code_end", "feat_end", "cand_end")}
+        self._cols = {k: frames[k][:n] for k in ("frame_id", "kind", "code_end", "feat_end", "cand_end", "image_end")}
         if len(self._cols["frame_id"]) != n:
             raise DatabaseError(f"{self.path} is damaged: {len(self._cols['frame_id'])} frame rows, {n} committed; "
                                 "move it away to start again")
@@ -423,8 +429,9 @@ class KeyframeDatabase:
         row["code_end"] = self._end("code_end") + len(ragged["codes"])
         row["cand_end"] = self._end("cand_end") + len(ragged["candidates"])
         row["feat_end"] = self._end("feat_end") + len(features["keypoints"])
+        row["image_end"] = self._end("image_end") + len(features["image"])
         n = len(self._cols["frame_id"])
-        for key in ("frame_id", "kind", "code_end", "feat_end", "cand_end"):
+        for key in ("frame_id", "kind", "code_end", "feat_end", "cand_end", "image_end"):
             self._cols[key] = _append_one(self._cols[key], row[key])
         if row["kind"] == 0:
             self._kf_rows = _append_one(self._kf_rows, n)
@@ -445,8 +452,9 @@ class KeyframeDatabase:
             self._extend_all("candidates", [p[1]["candidates"] for p in self._pending], "cand_end", n0)
             for key in _FEATURES:
                 self._extend_all(f"features/{key}", [p[2][key] for p in self._pending], "feat_end", n0)
+            self._extend_all("images", [p[2]["image"] for p in self._pending], "image_end", n0)
             for row, _, feats, _ in self._pending:
-                row["feat_checksum"] = _checksum(b"", [], [feats[k] for k in _FEATURES])
+                row["feat_checksum"] = _checksum(b"", [], [feats[k] for k in _STORED])
             self._write_block_checksum(rows, [p[1] for p in self._pending], n0 + m)
             for key in _COLUMNS:
                 ds = self._ds(f"frames/{key}")
@@ -491,7 +499,7 @@ class KeyframeDatabase:
             row = {k: meta[k] for k in _LOGGED}
             row.update({"source": bytes.fromhex(meta["source"]), "pose": arrays["pose"]})
             self._remember(row, {k: arrays[k] for k in ("codes", "candidates")},
-                           {k: arrays[k] for k in _FEATURES}, meta["attrs"])
+                           {k: arrays[k] for k in _STORED}, meta["attrs"])
             self.file.attrs.update({k: v for k, v in meta["attrs"].items() if k not in self.file.attrs})
             last, n = meta["frame_id"], n + 1
         if n:
@@ -517,10 +525,11 @@ class KeyframeDatabase:
             row["pose"] = np.asarray(rec.pose, np.float64).reshape(12)
         cands = (np.zeros((0, len(CANDIDATE_ROW))) if rec.candidates is None
                  else np.asarray(rec.candidates, np.float64)).reshape(-1, len(CANDIDATE_ROW))
-        ragged = {"codes": code if binary else code.astype(np.float16).reshape(1, -1), "candidates": cands}
+        rows = code.reshape(-1, code.shape[-1]) if code.ndim == 2 else code.reshape(1, -1)  # a code as rows of the width
+        ragged = {"codes": code if binary else rows.astype(np.float16), "candidates": cands}
         attrs = {"metric": feats.metric, "descriptor_dtype": np.dtype(rec.features.descriptors.dtype).name} \
             if len(feats) and "metric" not in self.file.attrs else {}
-        self._append_row(row, ragged, _pack_features(feats), attrs)
+        self._append_row(row, ragged, _pack_features(feats, rec.image), attrs)
 
     def add_skipped(self, frame_id: int, reason: str, source: str = "", fingerprint: str = "",
                     edge_ratio: float = float("nan"), message: str = "") -> None:
@@ -649,8 +658,8 @@ class KeyframeDatabase:
             yield rows, out
 
     def _code(self, raw: np.ndarray) -> np.ndarray:
-        """A stored code as given back: ``(D,)`` float32, or ``(n, 32)`` uint8 binary descriptors."""
-        return raw.astype(np.float32)[0] if raw.dtype == np.float16 else raw
+        """A stored code as given back: ``(D,)`` float32 (its rows joined), or ``(n, 32)`` uint8 binary descriptors."""
+        return raw.astype(np.float32).reshape(-1) if raw.dtype == np.float16 else raw
 
     def features(self, frame_id: int) -> Features:
         """One keyframe's local features (descriptors in the extractor's dtype), checksum verified.
@@ -659,28 +668,54 @@ class KeyframeDatabase:
             KeyError: no complete keyframe with that id.
             DatabaseError: it is damaged.
         """
+        return self._unpack(self._stored_at(self._keyframe_row(frame_id)))
+
+    def image(self, frame_id: int) -> bytes:
+        """One keyframe's grey copy (``retrieval.feature_jobs.grey_copy``; b"" when it keeps none), checksum verified.
+
+        Raises:
+            KeyError: no complete keyframe with that id.
+            DatabaseError: it is damaged.
+        """
+        return self._stored_at(self._keyframe_row(frame_id))["image"].tobytes()
+
+    def has_image(self, frame_id: int) -> bool:
+        """Whether keyframe ``frame_id`` keeps a grey copy (from the in-memory offsets: nothing is read)."""
+        try:
+            row = self._keyframe_row(frame_id)
+        except KeyError:
+            return False
+        span = self._span("image_end", row)
+        return span.stop > span.start
+
+    def _keyframe_row(self, frame_id: int) -> int:
         pos = int(np.searchsorted(self._cols["frame_id"], int(frame_id)))
         if pos >= len(self._cols["frame_id"]) or self._cols["frame_id"][pos] != frame_id \
                 or self._cols["kind"][pos] != 0:
             raise KeyError(frame_id)
-        return self._features_at(pos)
+        return pos
 
     def _features_at(self, row: int) -> Features:
+        return self._unpack(self._stored_at(row))
+
+    def _stored_at(self, row: int) -> dict[str, np.ndarray]:
+        """Row ``row``'s packed features and grey copy (``_pack_features``), checksum verified."""
         span = self._span("feat_end", row)
         try:
             if row >= self._h5_rows:  # still pending: as logged (checked when the log was read or written)
-                return self._unpack(self._pending[row - self._h5_rows][2])
+                return self._pending[row - self._h5_rows][2]
             packed = {"keypoints": self._read("features/keypoints", span, 2).astype(np.uint16).reshape(-1, 2),
                       "descriptors": self._read("features/descriptors", span, 1),
-                      "scales": self._read("features/scales", span).astype(np.float16)}
-            ok = _checksum(b"", [], [packed[k] for k in _FEATURES]) == bytes(self.file["frames/feat_checksum"][row])
+                      "scales": self._read("features/scales", span).astype(np.float16),
+                      "image": self._read("images", self._span("image_end", row)).astype(np.uint8)}
+            ok = _checksum(b"", [], [packed[k] for k in _STORED]) == bytes(self.file["frames/feat_checksum"][row])
         except _READ_ERRORS as err:
             raise self._damaged(err, f"features of frame {int(self._cols['frame_id'][row])}") from None
         if not ok:
             raise DatabaseError(f"{self.path} is damaged: the features of keyframe {int(self._cols['frame_id'][row])} "
                                 "fail their checksum; the files written from it are left as they were; move it "
                                 "away to start again")
-        return self._unpack(packed)
+        return packed
 
     def _unpack(self, packed: dict[str, np.ndarray]) -> Features:
         """Stored features (``_pack_features``) as the extractor gave them."""

@@ -23,13 +23,13 @@ from __future__ import annotations
 import functools
 import logging
 import math
+import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-import cv2
 import numpy as np
 import torch
 
@@ -38,8 +38,8 @@ from cae.whitening import DEFAULT_DIM, DEFAULT_SHRINK
 from core.checks import check_frame_id, check_intrinsics, check_pose, check_timestamp
 from core.conf import Bool, Choice, ConfigError, Float, Int, check_conf, merge_conf
 from core.images import check_image, to_gray_u8, to_uint8
-from core.threads import apply_thread_policy, cpu_count
-from verify.features import FEATURES, Features, create_extractor
+from core.threads import apply_thread_policy
+from verify.features import FEATURES, FeatureExtractor, Features, create_extractor
 from verify.gate import EdgeGate
 from verify.geometry import GeometricVerifier
 from verify.verifier import MATCHERS, Verification, create_verifier
@@ -47,6 +47,7 @@ from verify.verifier import MATCHERS, Verification, create_verifier
 from .database import CANDIDATE_ROW, FeatureStore, KeyframeDatabase, KeyframeRecord
 from .calibrate import Calibration
 from .descriptors import DESCRIPTORS, GlobalDescriptor, create_descriptor
+from .feature_jobs import FeatureJobs, grey_copy, read_grey_copy
 from .index import INDEXES
 from .places import create_places
 from .temporal import FILTERS, create_filter
@@ -69,6 +70,10 @@ default_conf: dict[str, Any] = {
         "shrink": DEFAULT_SHRINK,  # added to each component's variance, times their mean (regularises small sets)
         "skip_still": True,  # fitted on the sequence: leave out frames whose code did not change (camera still: one
         #                     place, weighed once, not as often as the robot waited there)
+        "stream_fit": None,  # uncalibrated and no whitening from the weights: fit one on the stream's own first
+        #                      this many keyframes (raw codes searched until then), then search the whitened codes
+        #                      (index and table rebuilt once): a long stream's cost and memory stay small; None: raw
+        #                      codes (the fleet compares its robots' entries in the raw space: leave it None there)
     },
     "index": {"name": "auto"},  # code index by registry name (auto, flat, fp16, sq8, hnsw, ivfpq) and its options
     "temporal": {"name": "sequence"},  # temporal-consistency filter by registry name (sequence, none, bayes)
@@ -104,18 +109,26 @@ default_conf: dict[str, Any] = {
     "runtime": {
         "threads": 1,  # threads of each library's pool (torch, OpenCV, faiss: ``core.threads``); 1 = the cores go to
         #                the pipeline's own workers (``detect`` reads and encodes ahead), which a busy neighbour
-        #                process slows but cannot stall; None = all cores (halved for each side when parallel)
-        "parallel": False,  # features in a worker thread while the encoder runs (cores split); slower on 2 cores
+        #                process slows but cannot stall; None = all cores
         "lazy_features": True,  # local features only for frames that verify a candidate (extracted when needed,
         #                         then cached); False: on every frame as it arrives (the same results, slower)
-        "features_ahead": False,  # lazy: a worker thread extracts local features beside the main thread (the query's
-        #                           while it is encoded when the previous frame needed its own, then while the
-        #                           candidates' are extracted): the same features; off by default (measured only
-        #                           one frame at a time through the API, quiet: median 36.6 -> 30.0 ms; offline
-        #                           not measured quietly, and no gain on 2 cores shared with other work)
+        "feature_worker": False,  # a worker thread extracts local features beside the main thread: a frame's own
+        #                           while it is encoded (every frame when not lazy; lazy, when the frame before
+        #                           needed its own: a revisit under way), and the keyframes after a frame's verified
+        #                           candidates (the next frames' likely candidates) once it has verified; the main
+        #                           thread runs a job itself when the worker has not started it. The same features
+        #                           either way. Off by default: on 2 cores shared with other work it lost (API
+        #                           median 58 -> 68-72 ms under load: BENCHMARKS.md, issue 18): for a machine with
+        #                           a core to spare beside the detector
         "flush_every": 256,  # frames moved from the database's write-ahead log into its columns at a time (each
         #                    frame is logged as it is stored: a killed run loses nothing whatever this is)
-        "features": "memory",  # keyframe features for verification: "memory" (all), "database" (bounded memory)
+        "features": "memory",  # keyframe features for verification: "memory" (all), "database" (bounded memory);
+        #                    "image": as "database", but a keyframe whose features were not needed when it came
+        #                    (lazy) keeps a small grey copy (at the extractor's resolution) in the store instead,
+        #                    and its features are extracted from it when a later query needs them: a stream's
+        #                    store stays small where it does not revisit (without a store: "memory")
+        "image_quality": 90,  # features "image": JPEG quality of the stored grey copy (the frame's own features are
+        #                       extracted from the same copy); None: lossless PNG (about twice the bytes)
         "feature_cache": 512,  # keyframes' features kept in memory (LRU): with features "database", and those
         #                        extracted late (lazy_features) in either mode
     },
@@ -128,13 +141,13 @@ conf_rules: dict[str, Any] = {
     "policy": {"verify": Bool(), "min_matches": Int(0), "min_inliers": Int(0),
                "min_seq_score": Float(-1e9, 1e9, optional=True), "check_all": Bool()},
     "whitening": {"enabled": Bool(), "source": Choice("auto", "sequence", "weights"), "dim": Int(1, 4096),
-                  "shrink": Float(0, 100), "skip_still": Bool()},
+                  "shrink": Float(0, 100), "skip_still": Bool(), "stream_fit": Int(32, optional=True)},
     "calibration": {"enabled": Bool(), "expected_false_loops": Float(0, 100, lo_open=True),
                     "null_pairs": Int(10, 100_000), "min_features": Int(0), "min_inliers": Int(8),
                     "verification": Choice("auto", "on", "off"), "max_frames": Int(100)},
-    "runtime": {"threads": Int(1, 1024, optional=True), "parallel": Bool(), "lazy_features": Bool(),
-                "features_ahead": Bool(), "flush_every": Int(1),
-                "features": Choice("memory", "database"), "feature_cache": Int(1)},
+    "runtime": {"threads": Int(1, 1024, optional=True), "lazy_features": Bool(), "feature_worker": Bool(),
+                "flush_every": Int(1), "features": Choice("memory", "database", "image"),
+                "image_quality": Int(1, 100, optional=True), "feature_cache": Int(1)},
 }
 
 _UNIT_SECTIONS = {"descriptor": DESCRIPTORS, "index": INDEXES, "features": FEATURES, "matcher": MATCHERS,
@@ -270,7 +283,9 @@ class LoopDetector:
         self.extractor = create_extractor(c["features"])
         self.verifier = create_verifier(c["matcher"], c["geometry"])
         self.verifier.geometry.model_for(self.K)  # fail now, not at the first loop, if E is asked without K
-        self.places = create_places(self.descriptor, self.whitening, c)
+        stream_fit = c["whitening"]["stream_fit"] if self.whitening is None and c["whitening"]["enabled"] \
+            and self.descriptor.searched_by == "cosine" else None
+        self.places = create_places(self.descriptor, self.whitening, c, stream_fit)
         self.filter = create_filter(c["temporal"])
         self._verify = bool(self.calibration.inlier_null) if self.calibration is not None else c["policy"]["verify"]
         self._min_inliers = c["policy"]["min_inliers"]
@@ -278,10 +293,7 @@ class LoopDetector:
         if self.calibration is not None:
             self.decision = self.calibration.decision(c["search"]["exclude_recent"], self.filter)
             self._min_inliers = int(self.decision.floor)  # weaker pairs still add fused evidence
-        threads = c["runtime"]["threads"]
-        if c["runtime"]["parallel"]:  # the feature worker and the encoder run at once: split the cores between them
-            threads = max(1, (threads or cpu_count()) // 2)
-        apply_thread_policy(threads)
+        apply_thread_policy(c["runtime"]["threads"])
         self._init_lazy(database is not None, frame_source, features)
         self._next_id = 0
         self._closed = False
@@ -291,14 +303,11 @@ class LoopDetector:
             identity = self.descriptor.identity + ("" if self.calibration is None else
                                                    " calibration " + self.calibration.identity())
             self.db = KeyframeDatabase(database, persisted, identity, c["runtime"]["flush_every"])
-        self._pool = ThreadPoolExecutor(1, thread_name_prefix="features") if c["runtime"]["parallel"] else None
-        self._ahead = ThreadPoolExecutor(1, thread_name_prefix="features-ahead") \
-            if self._lazy and self._verify and c["runtime"]["features_ahead"] else None
-        self._ahead_extractor = create_extractor(c["features"]) if self._ahead is not None else None  # its own
-        self._spec: tuple[int, Any] | None = None  # (frame id, future) of the query's features extracted ahead
+        self._jobs = FeatureJobs(functools.partial(create_extractor, c["features"]), c["runtime"]["feature_cache"]) \
+            if c["runtime"]["feature_worker"] and self._verify and not self.descriptor.needs_features else None
         self._wanted = False  # whether the previous frame's query needed its local features
-        self.features = FeatureStore(self.db if c["runtime"]["features"] == "database" else None,
-                                     c["runtime"]["feature_cache"])
+        self.features = FeatureStore(self.db if c["runtime"]["features"] in ("database", "image") else None,
+                                     c["runtime"]["feature_cache"])  # features kept (not ``_unextracted``)
         if self.db is not None:
             try:
                 self._load(self.db)
@@ -309,18 +318,22 @@ class LoopDetector:
     def _init_lazy(self, has_database: bool, frame_source: Callable[[int], np.ndarray] | None,
                    features: dict[int, Features] | None) -> None:
         """The state of late feature extraction (``runtime.lazy_features``)."""
-        c = self.conf
-        # lazy only where a frame can be had again after a restart: in memory, or with a frame_source
-        self._lazy = c["runtime"]["lazy_features"] and not c["runtime"]["parallel"] \
-            and not self.descriptor.needs_features and (not has_database or frame_source is not None)
+        c, rt = self.conf, self.conf["runtime"]
+        # a keyframe store keeps a grey copy of each keyframe whose features were not needed (runtime.features "image")
+        self._keep_image = has_database and frame_source is None and rt["features"] == "image" and \
+            rt["lazy_features"] and not self.descriptor.needs_features
+        # lazy only where a frame can be had again after a restart: in memory, with a frame_source or its stored copy
+        self._lazy = rt["lazy_features"] and not self.descriptor.needs_features \
+            and (not has_database or frame_source is not None or self._keep_image)
         self._frame_source = frame_source
         # local features go into the database only where they cannot be had again from the frame's source (or are
-        # read back from there: features "database"); offline, its files give them again (~40 kB a frame less)
-        self._store_features = frame_source is None or c["runtime"]["features"] == "database"
+        # read back from there: features "database", "image"); offline, its files give them again
+        self._store_features = frame_source is None or rt["features"] in ("database", "image")
         self._given: dict[int, Features] = dict(features or {})  # frame -> features extracted before (calibration)
-        self._unextracted: set[int] = set()  # keyframes whose features were not extracted when they were processed
-        self._copies: dict[int, tuple[bytes, float]] = {}  # without frame_source: their prepared grey image (PNG)
-        self._late = functools.lru_cache(maxsize=c["runtime"]["feature_cache"])(self._extract_late)
+        self._unextracted: set[int] = set()  # keyframes whose features are not kept: extracted again when needed
+        self._copies: dict[int, bytes] = {}  # no store, no frame_source: their lossless grey copy (``grey_copy``)
+        self._late: OrderedDict[int, Features] = OrderedDict()  # features of ``_unextracted`` keyframes (LRU)
+        self._late_size = rt["feature_cache"]
 
     def _load(self, db: KeyframeDatabase) -> None:
         """Rebuilds the place memory and the filter's history from the database, as the uninterrupted run had them:
@@ -332,7 +345,8 @@ class LoopDetector:
             restored = self.places.restore_index(db.index_path, db.keyframe_ids())
             if restored:
                 log.info("restored the place index of %d keyframes from %s", restored, db.index_path)
-        for fid, entry, timestamp, feats in db.search_entries(features=self.features.db is None):
+        read_features = self.features.db is None and not self._keep_image  # database / image mode: read when needed
+        for fid, entry, timestamp, feats in db.search_entries(features=read_features):
             try:
                 self.places.check(entry)  # the store keeps the searched entry itself
             except ConfigError as err:
@@ -349,7 +363,7 @@ class LoopDetector:
                                      np.where(rows[:, 2] >= self.conf["policy"]["min_matches"], rows[:, 3], -1))
             self.places.insert(fid, entry, timestamp)
             # database mode (feats None): read back from the database when needed
-            if feats is not None and not len(feats) and self._frame_source is not None:
+            if db.has_image(fid) or (feats is not None and not len(feats) and self._frame_source is not None):
                 self._unextracted.add(fid)  # not extracted then (or none found): again when needed
             elif feats is not None:  # memory mode: everything back in memory
                 self.features[fid] = feats
@@ -418,6 +432,9 @@ class LoopDetector:
         image8 = to_uint8(image)  # once: 16-bit and float frames are scanned and scaled here only
         gray = to_gray_u8(image8)
         net = to_network_u8(image8) if code is None else None  # the encoder's input
+        prep = self._prepare_once(gray)
+        if self._jobs is not None and fid not in self._given and (not self._lazy or self._wanted):
+            self._jobs.submit(fid, functools.partial(_own_features, prep), urgent=True)  # the worker starts now
         gate = self.gate(gray)
         ms["gate"] = (time.perf_counter() - t0) * 1e3
         if not gate.passed:
@@ -427,9 +444,9 @@ class LoopDetector:
             ms["total"] = (time.perf_counter() - t_start) * 1e3
             return FrameResult(fid, True, gate.edge_ratio, ms=ms)
 
-        feats, code, entry, candidates = self._describe_and_search(image, gray, net, fid, ts, ms, code)
+        feats, code, entry, candidates = self._describe_and_search(image, gray, prep, net, fid, ts, ms, code)
         try:
-            loop, best = self._verify_and_insert(fid, gate.edge_ratio, feats, code, entry, gray, candidates, ts,
+            loop, best = self._verify_and_insert(fid, gate.edge_ratio, feats, code, entry, prep, candidates, ts,
                                                  pose34, source, fingerprint, ms)
         except BaseException:
             self.places.undo(fid)  # the frame is not in the map: the state is as it was
@@ -440,12 +457,12 @@ class LoopDetector:
                            getattr(geo, "t", None), ms, entry, best)
 
     def _verify_and_insert(self, fid: int, edge_ratio: float, feats: Features | None, code: np.ndarray,
-                           entry: np.ndarray, gray: np.ndarray,
+                           entry: np.ndarray, prep: Callable[[], tuple[np.ndarray, float, bytes]],
                            candidates: list[Candidate], ts: float | None, pose34: np.ndarray | None, source: str,
                            fingerprint: str, ms: dict[str, float]) -> tuple[Candidate | None, Verification | None]:
         """Verifies the hypotheses, decides, and stores the keyframe (database first, then memory)."""
         t0, f0 = time.perf_counter(), ms["features"]
-        feats, checks = self._check(fid, feats, gray, candidates, ms)
+        feats, checks = self._check(fid, feats, prep, candidates, ms)
         if feats is None:
             feats = self._given.pop(fid, None)  # extracted before (calibration): kept, as if extracted now
         for cand, check in zip(candidates, checks):
@@ -467,8 +484,9 @@ class LoopDetector:
         if self.db is not None:  # first: if the disk refuses it, the in-memory state has not moved either
             rows = np.array([cd.as_row() for cd in candidates], np.float64).reshape(-1, len(CANDIDATE_ROW))
             stored = feats if feats is not None and self._store_features else self._no_features()
-            self.db.append(KeyframeRecord(fid, entry, stored, ts, pose34, source, edge_ratio, rows,
-                                          -1 if loop is None else loop.frame_id, fingerprint))
+            self.db.append(KeyframeRecord(fid, self.places.stored(entry), stored, ts, pose34, source, edge_ratio, rows,
+                                          -1 if loop is None else loop.frame_id, fingerprint,
+                                          prep()[2] if self._keep_image and feats is None else b""))
         self.places.insert(fid, entry, ts)
         self.filter.commit(fid, np.array([cd.frame_id for cd in candidates], np.int64))
         if self.decision is not None:
@@ -476,31 +494,32 @@ class LoopDetector:
                                  np.array([self._counted(cd) for cd in candidates], np.int64))
         if feats is not None:
             self.features[fid] = feats  # after the database has it: database mode may read it back from there
-        else:  # not needed yet: extracted later if a query needs it (frame_source, or a lossless copy kept here)
+        else:  # not kept: extracted (again) if a query needs it (frame_source, the stored copy, or one kept here)
             self._unextracted.add(fid)
-            if self._frame_source is None:
-                small, scale = self.extractor.prepare(gray)
-                self._copies[fid] = (cv2.imencode(".png", small, [cv2.IMWRITE_PNG_COMPRESSION, 1])[1].tobytes(), scale)
+            if feats is not None:
+                self._cache_late(fid, feats)
+            elif self._frame_source is None and not self._keep_image:
+                small, scale, _ = prep()
+                self._copies[fid] = grey_copy(small, scale)
         self._next_id = fid + 1
         ms["insert"] = (time.perf_counter() - t0) * 1e3
         return loop, best
 
-    def _describe_and_search(self, image: np.ndarray, gray: np.ndarray, net: np.ndarray | None, fid: int,
+    def _describe_and_search(self, image: np.ndarray, gray: np.ndarray,
+                             prep: Callable[[], tuple[np.ndarray, float, bytes]], net: np.ndarray | None, fid: int,
                              ts: float | None, ms: dict[str, float], code: np.ndarray | None = None
                              ) -> tuple[Features | None, np.ndarray, np.ndarray, list[Candidate]]:
         """Local features (None: lazy, not extracted yet), the raw code and the searched entry, and the top-k
         hypotheses of one frame (stage times into ``ms``). The search registered the frame in ``places.source``
         (``places.undo`` forgets it)."""
-        # local features: first when the descriptor needs them, else in the worker thread (parallel) or after search;
-        # none when nothing verifies with them; lazy: when a candidate needs them (``_check``)
-        feats, pending = None, None
+        # local features: first when the descriptor needs them, else (not lazy) after search, from the worker when it
+        # started them (``process``); none when nothing verifies with them; lazy: when a candidate needs them
+        feats = None
         ms["features"] = 0.0
         if self.descriptor.needs_features:
-            feats, ms["features"] = self._timed_extract(gray)
-        elif self._pool is not None and self._verify:
-            pending = self._pool.submit(self._timed_extract, gray)
-        if self._ahead is not None and self._wanted and fid not in self._given:  # a revisit under way: likely
-            self._spec = (fid, self._ahead.submit(self._ahead_extractor.extract, gray))
+            t0 = time.perf_counter()
+            feats = self.extractor.extract(gray)
+            ms["features"] = (time.perf_counter() - t0) * 1e3
         t0 = time.perf_counter()
         if code is None:
             code = self.descriptor(image, feats, network_image=net)
@@ -519,21 +538,34 @@ class LoopDetector:
         ms["filter"] = (time.perf_counter() - t0) * 1e3
         if feats is None and not self._lazy:
             t0 = time.perf_counter()
-            if pending is not None:
-                feats, ms["features"] = pending.result()
-            elif self._verify and fid in self._given:
+            if self._verify and fid in self._given:
                 feats = self._given.pop(fid)
-            elif self._verify:
-                feats, ms["features"] = self._timed_extract(gray)
             else:
-                feats = self._no_features()
-            ms["features_wait"] = (time.perf_counter() - t0) * 1e3  # what the frame waited for them
+                feats = self._own(fid, prep) if self._verify else self._no_features()
+            ms["features"] = ms["features_wait"] = (time.perf_counter() - t0) * 1e3  # what the frame waited
         return feats, code, entry, candidates
 
-    def _timed_extract(self, gray: np.ndarray) -> tuple[Features, float]:
-        t0 = time.perf_counter()
-        feats = self.extractor.extract(gray)
-        return feats, (time.perf_counter() - t0) * 1e3
+    def _prepare_once(self, gray: np.ndarray) -> Callable[[], tuple[np.ndarray, float, bytes]]:
+        """``() -> (image, scale, copy)``, computed once (by whichever thread asks first): the grey image a frame's
+        local features are extracted from and its scale (``FeatureExtractor.prepare``), and the grey copy a store
+        keeps of it (``runtime.features: image``; the image is then the copy decoded, so that the frame's features
+        are the ones its copy gives again later), else b""."""
+        box: list[tuple[np.ndarray, float, bytes]] = []
+        lock = threading.Lock()
+
+        def get() -> tuple[np.ndarray, float, bytes]:
+            with lock:
+                if not box:
+                    small, scale = self.extractor.prepare(gray)
+                    copy = grey_copy(small, scale, self.conf["runtime"]["image_quality"]) if self._keep_image else b""
+                    box.append((read_grey_copy(copy)[0] if copy else small, scale, copy))
+                return box[0]
+        return get
+
+    def _own(self, fid: int, prep: Callable[[], tuple[np.ndarray, float, bytes]]) -> Features:
+        """The frame's own local features: the worker's (waited for when it runs them), else extracted here."""
+        feats = self._jobs.take(fid, self.extractor) if self._jobs is not None else None
+        return feats if feats is not None else _own_features(prep, self.extractor)
 
     def _no_features(self) -> Features:
         return Features.empty(self.extractor.descriptor_dim, self.extractor.descriptor_dtype, self.extractor.metric)
@@ -562,31 +594,49 @@ class LoopDetector:
             return cand.seq_score >= median + z * sigma or cand.score >= median + z * sigma * math.sqrt(length)
         return cal is not None or floor is None or cand.seq_score >= floor
 
-    def _check(self, fid: int, feats: Features | None, gray: np.ndarray, candidates: list[Candidate],
-               ms: dict[str, float]) -> tuple[Features | None, list[Verification | None]]:
+    def _check(self, fid: int, feats: Features | None, prep: Callable[[], tuple[np.ndarray, float, bytes]],
+               candidates: list[Candidate], ms: dict[str, float]) -> tuple[Features | None, list[Verification | None]]:
         """Verifies the candidates that could pass (``_could_pass``); the query's features extracted here when
-        lazy and needed (time into ``ms["features"]``), the candidates' from memory, or extracted again."""
+        lazy and needed (time into ``ms["features"]``: the worker extracts the query's while this thread gets the
+        candidates'), the candidates' from memory, or extracted again."""
         c = self.conf
         todo = [i for i, cd in enumerate(candidates) if self._could_pass(cd)]
         checks: list[Verification | None] = [None] * len(candidates)
-        spec, self._spec, self._wanted = self._spec, None, bool(todo)
+        self._wanted = bool(todo)
         if not todo:
             return feats, checks
         t0 = time.perf_counter()
         if feats is None:
             feats = self._given.pop(fid, None)
-        if feats is None and self._ahead is not None:  # the worker extracts the query's, this thread the candidates'
-            spec = spec if spec is not None and spec[0] == fid else (fid, self._ahead.submit(
-                self._ahead_extractor.extract, gray))
+        if feats is None and self._jobs is not None:
+            self._jobs.submit(fid, functools.partial(_own_features, prep), urgent=True)  # unless started already
         refs = [self._features_of(candidates[i].frame_id) for i in todo]
         if feats is None:
-            feats = spec[1].result() if self._ahead is not None else self.extractor.extract(gray)
+            feats = self._own(fid, prep)
         ms["features"] += (time.perf_counter() - t0) * 1e3
+        self._prefetch([candidates[i].frame_id for i in todo])
         done = self.verifier.verify(feats, refs, self.K, c["policy"]["min_matches"], self._min_inliers,
                                     c["policy"]["check_all"])
         for i, check in zip(todo, done):
             checks[i] = check
         return feats, checks
+
+    def _prefetch(self, verified: list[int]) -> None:
+        """Queues in the worker the features of the keyframes just after ``verified`` ones (the next frames' likely
+        candidates on a revisit), where they are not kept and come from a grey copy (read here, in this thread)."""
+        if self._jobs is None or self._frame_source is not None:
+            return
+        for nxt in sorted({f + d for f in verified for d in (1, 2)}):
+            if nxt in self._unextracted and nxt not in self._late and nxt not in self._given and nxt not in self._jobs:
+                copy = self._copy_of(nxt)
+                if copy:
+                    self._jobs.submit(nxt, functools.partial(_copy_features, copy))
+
+    def _copy_of(self, fid: int) -> bytes:
+        """A keyframe's grey copy (``grey_copy``): kept here, or read from the store; b"" when there is none."""
+        if fid in self._copies:
+            return self._copies[fid]
+        return self.db.image(fid) if self.db is not None and self.db.has_image(fid) else b""
 
     def keyframe_features(self, frame_id: int) -> Features:
         """A processed keyframe's local features: kept, or extracted now from its image again and cached (the run
@@ -598,19 +648,34 @@ class LoopDetector:
         return self._features_of(int(frame_id))
 
     def _features_of(self, fid: int) -> Features:
-        """A keyframe's local features: kept, or extracted now (its image again) and cached (LRU)."""
+        """A keyframe's local features: kept, or extracted now (its image again: the worker's job when queued) and
+        cached (LRU)."""
         if fid not in self._unextracted:
             return self.features[fid]
         given = self._given.get(fid)
-        return given.compact() if given is not None else self._late(fid)
+        if given is not None:
+            return given.compact()
+        feats = self._late.get(fid)
+        if feats is not None:
+            self._late.move_to_end(fid)
+            return feats
+        feats = self._jobs.take(fid, self.extractor) if self._jobs is not None else None
+        if feats is None:
+            feats = self._extract_late(fid)
+        return self._cache_late(fid, feats)
+
+    def _cache_late(self, fid: int, feats: Features) -> Features:
+        """Keeps ``fid``'s features (compacted) among the late ones, the least recently used dropped; returns them."""
+        feats = self._late[fid] = feats.compact()
+        while len(self._late) > self._late_size:
+            self._late.popitem(last=False)
+        return feats
 
     def _extract_late(self, fid: int) -> Features:
-        """Extracts the features of a keyframe processed earlier without them (``_late`` caches this)."""
+        """Extracts here the features of a keyframe processed earlier without keeping them."""
         if self._frame_source is not None:
-            return self.extractor.extract(to_gray_u8(to_uint8(self._frame_source(fid)))).compact()
-        png, scale = self._copies[fid]
-        small = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_GRAYSCALE)
-        return self.extractor.extract_prepared(small, scale).compact()
+            return self.extractor.extract(to_gray_u8(to_uint8(self._frame_source(fid))))
+        return _copy_features(self._copy_of(fid), self.extractor)
 
     def _counted(self, cand: Candidate) -> int:
         """The inliers that count as evidence (-1 where the check did not run or the matches are too few)."""
@@ -654,10 +719,9 @@ class LoopDetector:
     def close(self) -> None:
         """Flushes and closes the database and stops the worker thread; ``process`` refuses to run afterwards."""
         self._closed = True
-        for pool in (self._pool, self._ahead):
-            if pool is not None:
-                pool.shutdown(wait=True)
-        self._pool = self._ahead = None
+        if self._jobs is not None:
+            self._jobs.close()
+            self._jobs = None
         if self.db is not None:
             self._save_index(self.db)
             self.db.close()
@@ -678,3 +742,12 @@ class LoopDetector:
         self.close()
 
 
+def _own_features(prep: Callable[[], tuple[np.ndarray, float, bytes]], extractor: FeatureExtractor) -> Features:
+    """A frame's local features from its prepared image (``LoopDetector._prepare_once``), with ``extractor``."""
+    small, scale, _ = prep()
+    return extractor.extract_prepared(small, scale)
+
+
+def _copy_features(copy: bytes, extractor: FeatureExtractor) -> Features:
+    """A keyframe's local features from its grey copy (``grey_copy``), with ``extractor``."""
+    return extractor.extract_prepared(*read_grey_copy(copy))

@@ -12,8 +12,9 @@ Index types, by registry name (``index.name``):
 - ``sq8``: 8-bit scalar quantisation, one byte per dimension (per-dimension range learned from the first codes).
 - ``ivfpq``: OPQ rotation, inverted file and product quantisation, re-ranked on float16 codes (learned from the
   first codes; exact brute force until then): a million codes in well under 2 GiB, ~1 ms a query.
-- ``auto``: picks by map size: exact (``flat``) while small, then rebuilds itself once as the ``large`` index
-  (``hnsw`` by default) when the map reaches ``switch_at`` codes.
+- ``auto``: picks by search cost: exact (``flat``) while small, then rebuilds itself once as the ``large`` index
+  (``hnsw`` by default) when exact search would scan ``switch_cost`` numbers a query (codes x dimension: ~30 k
+  whitened 256-d codes, ~2 k raw 4096-d ones), or at ``switch_at`` codes.
 
 Every index saves to and loads from a file (``CodeIndex.save`` / ``load_index``). ``KeyframeIndex.save`` writes its
 frame ids beside the faiss index, and a detector with a keyframe store saves it there on ``close`` (``keyframes.h5``
@@ -312,6 +313,20 @@ class KeyframeIndex:
         self.index, self.frame_ids = index, ids.tolist()
         return len(ids)
 
+    def mapped(self, fn: Any, dim: int, codes_of: Any) -> "KeyframeIndex":
+        """A copy in another code space: the same admitted and queued keyframes, each code ``fn(code)`` (``(n, D)``
+        -> ``(n, dim)``); ``codes_of(frame_ids) -> (n, D)`` gives the admitted ones' codes (a stream's whitening,
+        fitted once on its first keyframes: ``retrieval.places``)."""
+        out = KeyframeIndex.__new__(KeyframeIndex)
+        out.index = create_index(dim, self.index.conf)
+        out.frame_ids = list(self.frame_ids)
+        if out.frame_ids:
+            out.index.add(fn(codes_of(np.asarray(out.frame_ids, np.int64))))
+        out._queue = AdmissionQueue(self._queue.exclude_recent, self._queue.exclude_recent_s)
+        for fid, ts, code in self._queue._pending:
+            out._queue.push(fid, ts, fn(code[None])[0])
+        return out
+
     def search(self, code: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         """Top-``k`` among the admitted keyframes (call ``admit`` for the query frame first); changes nothing.
 
@@ -427,15 +442,20 @@ class IVFPQIndex(TrainedIndex):
 
 @INDEXES.register("auto")
 class AutoIndex(CodeIndex):
-    """Picks by map size: exact search (``flat``) while the map is small, then, once it holds ``switch_at`` codes,
-    rebuilds itself as the ``large`` index (its registry defaults) from the codes it holds, and stays that."""
+    """Picks by search cost: exact search (``flat``) while a query scans fewer than ``switch_cost`` numbers (codes x
+    dimension) and the map holds fewer than ``switch_at`` codes; then rebuilds itself as the ``large`` index (its
+    registry defaults) from the codes it holds, and stays that (the switch depends on the codes added only, so a
+    resumed run switches where the uninterrupted one did)."""
 
     default_conf: dict[str, Any] = {
         "name": "auto",
-        "switch_at": 100_000,  # codes at which exact search gives way to the large index
-        "large": "hnsw",  # the index used from switch_at on (registry name, with its defaults)
+        "switch_at": 100_000,  # codes at which exact search gives way to the large index whatever their dimension
+        "switch_cost": 1 << 23,  # codes x dimension at which it gives way (exact search then costs ~3 ms a query,
+        #                          linear in the map, against well under 1 ms for HNSW); None: by switch_at only
+        "large": "hnsw",  # the index used from the switch on (registry name, with its defaults)
     }
-    conf_rules: dict[str, Any] = {"switch_at": Int(1), "large": Choice("flat", "fp16", "sq8", "hnsw", "ivfpq")}
+    conf_rules: dict[str, Any] = {"switch_at": Int(1), "switch_cost": Int(1, optional=True),
+                                  "large": Choice("flat", "fp16", "sq8", "hnsw", "ivfpq")}
     factory = "Flat"
 
     def _configure(self) -> None:
@@ -471,7 +491,8 @@ class AutoIndex(CodeIndex):
             self.large.add(xb)
             return
         super().add(xb)
-        if self.index.ntotal >= self.conf["switch_at"]:
+        cost = self.conf.get("switch_cost")
+        if self.index.ntotal >= self.conf["switch_at"] or (cost is not None and self.index.ntotal * self.dim >= cost):
             large = create_index(self.dim, {"name": self.conf["large"]})
             large.add(self.index.reconstruct_n(0, self.index.ntotal))
             self.large, self.index = large, faiss.IndexFlatIP(self.dim)

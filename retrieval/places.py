@@ -4,6 +4,9 @@ What a descriptor gives decides how it is stored and compared (``GlobalDescripto
 
 - ``cosine`` (``CodePlaces``): a unit-norm code per frame (CAE, thumbnail, bovw), whitened when a whitening is
   given, searched by cosine top-k in a faiss index; the temporal filter reads similarities from a ``CodeTable``.
+  Without a whitening, a stream may fit its own (``stream_fit``): raw codes are searched for its first
+  ``stream_fit`` keyframes, then a whitening is fitted on them (``Whitening.fit``, as the calibration fits one) and
+  the memory re-indexed in the whitened space once: a long stream's index and table hold short codes.
 - ``hash`` (``HashPlaces``): a frame's binary descriptors (MILD), in multi-index hash tables; a query scores every
   admitted keyframe (MILD eq. 3), so the whole similarity row is returned (MILD's Bayesian filter needs it); the
   filter reads similarities from the rows of the recent queries (``RowTable``).
@@ -11,7 +14,8 @@ What a descriptor gives decides how it is stored and compared (``GlobalDescripto
 Both exclude keyframes too recent for the query with the same rule (``retrieval.index.AdmissionQueue``). The
 interface, shapes included::
 
-    entry = places.entry(code)                # what is searched (and stored): the normalised code / the descriptors
+    entry = places.entry(code)                # what is searched: the normalised code / the descriptors
+    places.stored(entry)                      # what the keyframe store keeps of it (rows); ``check`` takes it back
     places.check(entry)                       # a stored entry this memory cannot use -> ConfigError
     scores, ids = places.search(frame_id, entry, timestamp, k)   # (m,) float32 best first, (m,) int64
     places.register(frame_id, entry, timestamp)  # what search changes, without searching (resuming)
@@ -25,13 +29,14 @@ interface, shapes included::
 
 from __future__ import annotations
 
+import logging
 from collections import OrderedDict
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from cae.whitening import Whitening
+from cae.whitening import SAMPLES_PER_DIM, Whitening
 from core.conf import ConfigError, Registry
 
 from .descriptors import GlobalDescriptor
@@ -39,6 +44,8 @@ from .index import AdmissionQueue, KeyframeIndex
 from .temporal import CodeTable
 
 __all__ = ["Places", "CodePlaces", "HashPlaces", "RowTable", "PLACES", "create_places"]
+
+log = logging.getLogger(__name__)
 
 
 class Places:
@@ -51,6 +58,10 @@ class Places:
 
     def entry(self, code: np.ndarray) -> np.ndarray:
         return code
+
+    def stored(self, entry: np.ndarray) -> np.ndarray:
+        """What the keyframe store keeps of an entry (a resume gives ``check`` and ``insert`` its flat form)."""
+        return entry
 
     def search(self, frame_id: int, entry: np.ndarray, timestamp: float | None,
                k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -86,23 +97,37 @@ PLACES: Registry[Places] = Registry("place memory")
 class CodePlaces(Places):
     """Codes searched by cosine top-k (faiss), whitened first when a whitening is given."""
 
-    def __init__(self, descriptor: GlobalDescriptor, whitening: Whitening | None, conf: dict[str, Any]) -> None:
+    def __init__(self, descriptor: GlobalDescriptor, whitening: Whitening | None, conf: dict[str, Any],
+                 stream_fit: int | None = None) -> None:
         self.descriptor, self.whitening = descriptor, whitening
         self.dim = dim = descriptor.dim if whitening is None else whitening.dim
-        s = conf["search"]
+        s, w = conf["search"], conf["whitening"]
         self.index = KeyframeIndex(dim, conf["index"], s["exclude_recent"], s["exclude_recent_s"])
         self.source = CodeTable(dim, self._searchable, np.float16)  # entries are float16-rounded: kept exactly
         self._restored_to = -1  # keyframes up to this frame id came back in a saved index (restore_index)
+        self._fit_at = stream_fit if whitening is None else None  # keyframes after which a stream fits its own
+        self._fit_dim = min(w["dim"], (stream_fit or 0) // SAMPLES_PER_DIM, dim)
+        self._shrink = w["shrink"]
+        if self._fit_at is not None and (self._fit_dim < 1 or dim % self._fit_dim or self._fit_dim == dim):
+            raise ConfigError(f"whitening.stream_fit: a whitening of {self._fit_dim} dimensions fitted on "
+                              f"{stream_fit} codes cannot shorten {dim}-d codes (its length must divide theirs): "
+                              "change whitening.dim or whitening.stream_fit")
 
     def check(self, entry: np.ndarray) -> None:
+        fitting = self._fit_at is not None and self.whitening is None  # raw codes until the stream's fit
         if entry.shape != (self.dim,) or not np.isfinite(entry).all():
-            raise ConfigError(f"a stored code has shape {entry.shape} (expected ({self.dim},), finite)")
+            expected = f"({self.dim},)" + (" until the stream's whitening is fitted" if fitting else "")
+            raise ConfigError(f"a stored code has shape {entry.shape} (expected {expected}, finite)")
 
     def entry(self, code: np.ndarray) -> np.ndarray:
         """The searched code: whitened (when a whitening is given), unit norm, rounded to float16 precision, as the
         keyframe store keeps it (a resumed run searches exactly what the uninterrupted one did)."""
         x = code if self.whitening is None else self.whitening.transform(code)
         return np.asarray(x, np.float16).astype(np.float32)
+
+    def stored(self, entry: np.ndarray) -> np.ndarray:
+        """One row; before a stream's fit, the raw code as rows of the fitted length (the store's one width)."""
+        return entry.reshape(-1, self._fit_dim) if self._fit_at is not None and self.whitening is None else entry
 
     def _searchable(self, refs: np.ndarray) -> np.ndarray:
         """True for keyframes the current query may match (admitted to the index: old enough)."""
@@ -123,6 +148,21 @@ class CodePlaces(Places):
     def insert(self, frame_id: int, entry: np.ndarray, timestamp: float | None) -> None:
         if frame_id > self._restored_to:  # else already in the index restore_index took back
             self.index.add(frame_id, entry, timestamp)
+        if self._fit_at is not None and self.whitening is None and len(self.source) >= self._fit_at:
+            self._fit_stream()
+
+    def _fit_stream(self) -> None:
+        """Fits the stream's whitening on the codes of its keyframes so far (as searched: what the store keeps, so a
+        resumed run fits the same one) and moves the index and the table into the whitened space."""
+        ids, codes = self.source.items()
+        w = Whitening.fit(codes, self._fit_dim, self._shrink)
+        white = (lambda x: np.asarray(w.transform(x), np.float16).astype(np.float32))  # as ``entry`` rounds
+        table = CodeTable(w.dim, self._searchable, np.float16)
+        for fid, code in zip(ids.tolist(), white(codes)):
+            table.add(fid, code)
+        self.index = self.index.mapped(white, w.dim, lambda fids: codes[np.searchsorted(ids, fids)])
+        self.source, self.whitening, self.dim = table, w, w.dim
+        log.info("stream whitening fitted on %d keyframes: codes %d -> %d dimensions", len(ids), codes.shape[1], w.dim)
 
     def undo(self, frame_id: int) -> None:
         self.source.remove_last(frame_id)
@@ -131,6 +171,8 @@ class CodePlaces(Places):
         return self.index.save(path)
 
     def restore_index(self, path: str | Path, keyframe_ids: np.ndarray) -> int:
+        if self._fit_at is not None:  # a stream that fits its own whitening moves its index then: rebuilt as it was
+            return 0
         n = self.index.restore(path, keyframe_ids)
         self._restored_to = int(keyframe_ids[n - 1]) if n else -1
         return n
@@ -222,6 +264,9 @@ class HashPlaces(Places):
         return self.hash.n_images + len(self.queue)
 
 
-def create_places(descriptor: GlobalDescriptor, whitening: Whitening | None, conf: dict[str, Any]) -> Places:
-    """The place memory for ``descriptor`` (by its ``searched_by``), configured by the detector's resolved conf."""
-    return PLACES.get(descriptor.searched_by)(descriptor, whitening, conf)
+def create_places(descriptor: GlobalDescriptor, whitening: Whitening | None, conf: dict[str, Any],
+                  stream_fit: int | None = None) -> Places:
+    """The place memory for ``descriptor`` (by its ``searched_by``), configured by the detector's resolved conf;
+    ``stream_fit``: without a whitening, fit one on the first this many keyframes (codes compared by cosine only)."""
+    kind = PLACES.get(descriptor.searched_by)
+    return kind(descriptor, whitening, conf, stream_fit) if stream_fit is not None else kind(descriptor, whitening, conf)

@@ -86,6 +86,14 @@ class CodeTable:
     def __contains__(self, frame_id: int) -> bool:
         return int(frame_id) in self._rows
 
+    def __len__(self) -> int:
+        return len(self._rows)
+
+    def items(self) -> tuple[np.ndarray, np.ndarray]:
+        """Frame ids ``(n,)`` int64 ascending and their codes ``(n, dim)`` float32 (a copy)."""
+        ids = np.array(sorted(self._rows), np.int64)
+        return ids, self._codes[[self._rows[int(i)] for i in ids]].astype(np.float32)
+
     def pairs(self, queries: np.ndarray, refs: np.ndarray) -> np.ndarray:
         rq = np.array([self._rows.get(int(i), -1) for i in queries], np.int64)
         rr = np.array([self._rows.get(int(i), -1) for i in refs], np.int64)

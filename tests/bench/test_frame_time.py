@@ -1,5 +1,7 @@
 """The issue-18 speed benchmark's pieces (the measurement itself is ``python -m bench.frame_time``, not a test)."""
 
+import numpy as np
+
 from bench.frame_time import busy_neighbour, report, sift_yardstick, write_section
 
 
@@ -38,3 +40,27 @@ def test_yardstick_and_neighbour(sample_image):
     with busy_neighbour() as proc:
         assert proc.poll() is None  # running
     assert proc.poll() is not None  # stopped
+
+
+def test_report_lists_each_api_pass():
+    passes = {name: {"median": m, "p90": 2 * m, "first_half": 9.0, "second_half": m + 5, "loops": 100}
+              for name, m in (("back to back", 25.0), ("at the camera rate", 18.0))}
+    res = {"sequence": "kitti/90", "before_rev": "abc", "same_loops": True,
+           "system": {"cores": 2, "cpu": "cpu", "load_avg": (1, 1, 1)},
+           "quiet": {"sift_ms": 20.0, "new": _summary(10.0, 4.0, 0.5), "api": passes,
+                     "new_calibration_given": _summary(9.0, 3.6, 0.0)},
+           "busy": {"sift_ms": 30.0, "new": _summary(15.0, 6.0, 1.0)}}
+    text = report(res)
+    assert "back to back: median 25.0 ms (first half of the frames 9.0, second half, the revisits, 30.0)" in text
+    assert "at the camera rate: median 18.0 ms" in text
+
+
+def test_api_passes_interleaved(sample_seq, sample_image, monkeypatch):
+    import bench.frame_time as ft
+
+    monkeypatch.setattr(ft, "API_RUNS", {"back to back": ({}, False), "paced": ({}, True)})
+    images = [sample_image(i) for i in range(3)]
+    out = ft.api_per_frame(images, sample_seq.K, None, np.array([0.0, 0.05, 0.1]), rounds=2)
+    assert set(out) == {"back to back", "paced"}
+    assert all(a["median"] > 0 and a["loops"] == 0 and set(a) >= {"p90", "first_half", "second_half"}
+               for a in out.values())

@@ -86,7 +86,7 @@ class TestKeyframeDatabase:
 
     def test_storage_layout(self, db_path, records):
         with h5py.File(db_path, "r") as f:
-            assert int(f.attrs["format_version"]) == FORMAT_VERSION == 6
+            assert int(f.attrs["format_version"]) == FORMAT_VERSION == 7
             assert f.attrs["descriptor"] == ENCODER_ID and int(f.attrs["committed"]) == 5
             assert f["frames/frame_id"][:5].tolist() == [3, 7, 12, 13, 14]  # (room for growth past the commit)
             assert f["frames/kind"][:5].tolist() == [0, 0, 0, 1, 1]  # keyframes, then two gated frames
@@ -157,11 +157,14 @@ class TestKeyframeDatabase:
         with pytest.raises(ConfigError, match="not a keyframe database"):
             KeyframeDatabase(path, CONF)
 
-    def test_other_format_version_refused(self, db_path):
+    @pytest.mark.parametrize("version", [4, 6])  # the group-per-keyframe layout; the one before grey copies
+    def test_other_format_version_refused(self, db_path, version):
         with h5py.File(db_path, "a") as f:
-            f.attrs["format_version"] = 4  # the group-per-keyframe layout before this one
-        with pytest.raises(ConfigError, match="format_version 4; this software reads 6"):
+            f.attrs["format_version"] = version
+        before = db_path.read_bytes()
+        with pytest.raises(ConfigError, match=f"format_version {version}; this software reads 7") as err:
             KeyframeDatabase(db_path, CONF, ENCODER_ID)
+        assert "\n" not in str(err.value) and db_path.read_bytes() == before  # one line, the file as it was
 
     @staticmethod
     def _half_write(path, code):

@@ -128,14 +128,16 @@ class TestLoopDetector:
         with LoopDetector(encoder=encoder, database=tmp_path / "kf.h5") as det:
             assert det.next_frame_id == 1
 
-    def test_short_sequence_sequential_equals_parallel(self, encoder, sample_image, sample_K):
-        """Frames 0, 1, 2 then their revisits 50, 51, 52 (as ids 3, 4, 5), with a short exclusion window."""
+    def test_short_sequence_worker_equals_main_thread(self, encoder, sample_image, sample_K):
+        """Frames 0, 1, 2 then their revisits 50, 51, 52 (as ids 3, 4, 5), with a short exclusion window; features of
+        every frame (not lazy), from the worker thread or the main thread."""
         frames = [0, 1, 2, 50, 51, 52]
         conf = {"search": {"exclude_recent": 3}}
         out = {}
-        for parallel in (True, False):
-            with LoopDetector({**conf, "runtime": {"parallel": parallel}}, K=sample_K, encoder=encoder) as det:
-                out[parallel] = [det.process(sample_image(i)) for i in frames]
+        for worker in (True, False):
+            with LoopDetector({**conf, "runtime": {"feature_worker": worker, "lazy_features": False}}, K=sample_K,
+                              encoder=encoder) as det:
+                out[worker] = [det.process(sample_image(i)) for i in frames]
         for a, b in zip(out[True], out[False]):
             assert [c.as_row() for c in a.candidates] == [c.as_row() for c in b.candidates]
         loops = {(r.frame_id, r.loop.frame_id) for r in out[True] if r.loop is not None}
@@ -442,7 +444,7 @@ class TestLazyFeatures:
             return sample_image(fid)
 
         source = self.run({}, encoder, sample_seq, sample_image, frame_source=again)
-        alone = self.run({"runtime": {"features_ahead": True}}, encoder, sample_seq, sample_image)  # the worker
+        alone = self.run({"runtime": {"feature_worker": True}}, encoder, sample_seq, sample_image)  # the worker
         rows = [[c.as_row() for c in r.candidates] for r in eager]
         assert sum(len(r) for r in rows) > 50 and len(loops_of(eager)) >= 15
         for lazy in (copies, source, alone):
@@ -482,3 +484,43 @@ class TestLazyFeatures:
         with open(out / "candidates.csv") as f:
             skipped = sum(int(r["inliers"]) == -1 and int(r["matches"]) == 0 for r in csv.DictReader(f))
         assert skipped > 100  # the gate left most non-loop candidates unverified
+
+
+class TestStreamStore:
+    """A stream (no calibration) into a store: its own whitening fitted on its first keyframes, a grey copy of each
+    keyframe whose features were not needed when it came (``runtime.features: image``), a bounded memory; resumed,
+    the same tables as uninterrupted."""
+
+    CONF = {"calibration": {"enabled": False}, "whitening": {"stream_fit": 32},
+            "runtime": {"features": "image", "feature_cache": 16, "feature_worker": True}}
+
+    def run(self, path, encoder, sample_seq, sample_image, frames, conf=None):
+        with LoopDetector(conf or self.CONF, K=sample_seq.K, database=path, encoder=encoder) as det:
+            out = [det.process(sample_image(i), i) for i in frames]
+            state = {"dim": det.places.dim, "copies": len(det._copies), "kept": len(det.features)}
+        return out, state
+
+    def test_resumed_equals_uninterrupted_and_stays_small(self, tmp_path, encoder, sample_seq, sample_image):
+        whole, state = self.run(tmp_path / "a.h5", encoder, sample_seq, sample_image, range(100))
+        first, _ = self.run(tmp_path / "b.h5", encoder, sample_seq, sample_image, range(RESUME_AT))
+        rest, _ = self.run(tmp_path / "b.h5", encoder, sample_seq, sample_image, range(RESUME_AT, 100))
+        rows = [[c.as_row() for c in r.candidates] for r in whole]
+        assert [[c.as_row() for c in r.candidates] for r in first + rest] == rows
+        assert loops_of(first + rest).tolist() == loops_of(whole).tolist()
+        pr = precision_recall(loops_of(whole), read_loop_pairs(sample_seq.ground_truth))
+        assert pr.precision == 1.0 and pr.detections >= 40
+        assert state == {"dim": 8, "copies": 0, "kept": 16}  # whitened (32 codes // 4); features: feature_cache
+        with KeyframeDatabase(tmp_path / "b.h5", mode="r") as db:
+            assert len(db.features(10)) == 0 and db.has_image(10) and 1000 < len(db.image(10)) < 24 * 1024  # a copy
+            assert len(db.features(70)) > 100 and not db.has_image(70) and db.image(70) == b""  # a revisit: features
+            codes = dict((fid, code) for fid, code, _, _ in db.search_entries(features=False))
+        assert len(codes[0]) == 4096 and len(codes[99]) == 8  # raw until the fit, then whitened
+
+    def test_features_from_the_copy_verify_as_the_frames_do(self, tmp_path, encoder, sample_seq, sample_image):
+        """Lossless copies (PNG) give the features of the frames themselves: the candidates of the in-memory stream."""
+        conf = merge_conf(self.CONF, {"runtime": {"image_quality": None}}, strict=False)
+        stored, _ = self.run(tmp_path / "c.h5", encoder, sample_seq, sample_image, range(70), conf)
+        with LoopDetector({**self.CONF, "runtime": {}}, K=sample_seq.K, encoder=encoder) as det:
+            memory = [det.process(sample_image(i), i) for i in range(70)]
+        assert [[c.as_row() for c in r.candidates] for r in stored] == \
+            [[c.as_row() for c in r.candidates] for r in memory]

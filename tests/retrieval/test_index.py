@@ -190,6 +190,19 @@ class TestAutoIndex:
         _, I = index.search(xq, 10)
         assert recall_at_k(I, brute_force_search(xq, xb, 10)[1]) >= 0.95
 
+    def test_switches_by_search_cost(self, data):
+        """codes x dimension: the same count of longer codes switches sooner."""
+        xb, xq = data
+        index = create_index(D, {"name": "auto", "switch_cost": 300 * D})
+        index.add(xb[:299])
+        assert index.chosen == "flat"
+        index.add(xb[299:400])
+        assert index.chosen == "hnsw" and index.ntotal == 400
+        wide = create_index(2 * D, {"name": "auto", "switch_cost": 300 * D})
+        wide.add(np.hstack([xb[:150], xb[:150]]) / np.sqrt(2))
+        assert wide.chosen == "hnsw"
+        assert create_index(D, {"name": "auto", "switch_cost": None}).conf["switch_cost"] is None  # by count only
+
     def test_options_checked(self):
         with pytest.raises(ConfigError, match="index.large"):
             create_index(D, {"name": "auto", "large": "ivf"})
