@@ -112,14 +112,14 @@ default_conf: dict[str, Any] = {
         #                process slows but cannot stall; None = all cores
         "lazy_features": True,  # local features only for frames that verify a candidate (extracted when needed,
         #                         then cached); False: on every frame as it arrives (the same results, slower)
-        "feature_worker": False,  # a worker thread extracts local features beside the main thread: a frame's own
-        #                           while it is encoded (every frame when not lazy; lazy, when the frame before
-        #                           needed its own: a revisit under way), and the keyframes after a frame's verified
-        #                           candidates (the next frames' likely candidates) once it has verified; the main
-        #                           thread runs a job itself when the worker has not started it. The same features
-        #                           either way. Off by default: on 2 cores shared with other work it lost (API
-        #                           median 58 -> 68-72 ms under load: BENCHMARKS.md, issue 18): for a machine with
-        #                           a core to spare beside the detector
+        "feature_worker": True,  # a worker thread extracts local features beside the main thread: a frame's own
+        #                          while it is encoded (every frame when not lazy; lazy, when the frame before
+        #                          needed its own: a revisit under way), and the keyframes after a frame's verified
+        #                          candidates (the next frames' likely candidates) once it has verified; the main
+        #                          thread runs a job itself when the worker has not started it. The same features
+        #                          either way. On a quiet 2-core machine one frame at a time through the API takes
+        #                          27 ms with it, 37 without; on 2 cores fully taken by other work it lost
+        #                          (BENCHMARKS.md, issue 18): off there
         "flush_every": 256,  # frames moved from the database's write-ahead log into its columns at a time (each
         #                    frame is logged as it is stored: a killed run loses nothing whatever this is)
         "features": "memory",  # keyframe features for verification: "memory" (all), "database" (bounded memory);
