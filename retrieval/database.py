@@ -1,7 +1,7 @@
 """The keyframe store, persisted in one HDF5 file: what a detector has seen, so a run can resume or be inspected.
 
 Built for millions of keyframes: append-only and columnar, every column one chunked, resizable dataset (no group
-per keyframe). Layout (``format_version`` 6)::
+per keyframe). Layout (``format_version`` 7)::
 
     /                 attrs: format_version, conf (JSON), descriptor (weights identity), software, created,
                       committed (frames visible: the commit point, written last)
@@ -26,6 +26,9 @@ per keyframe). Layout (``format_version`` 6)::
     /candidates       (C, 6)   float64 rows (CANDIDATE_ROW) of every hypothesis judged
     /images           (B,)     uint8: each keyframe's grey copy (``retrieval.feature_jobs.grey_copy``), where it
                                keeps one instead of its features (a stream: ``runtime.features: image``)
+
+Beside the file: the write-ahead log (``keyframes.h5.log``) and, where the detector's place index is costly to
+rebuild, a copy of it saved on close (``keyframes.h5.index``, ``INDEX_SUFFIX``; ``retrieval.index.KeyframeIndex.save``).
 
 Local features are stored only where the detector cannot have them again (``LoopDetector``: offline, a keyframe's
 file gives them again; an empty span then). A frame goes first to the write-ahead log beside the file
