@@ -66,6 +66,7 @@ def time_index(path: Path, index: str) -> dict[str, float]:
     and to take the saved copy back as a resume does; the saved file's size."""
     with KeyframeDatabase(path, {}, "bench", mode="r") as db:
         codes, ids = db.codes()
+        saved = db.index_path  # where a detector saves its index beside this store
     t0 = time.perf_counter()
     built = KeyframeIndex(codes.shape[1], {"name": index})
     for fid, code in zip(ids.tolist(), codes):
@@ -73,16 +74,16 @@ def time_index(path: Path, index: str) -> dict[str, float]:
     built.admit(int(ids[-1]) + 1)
     t_build = time.perf_counter() - t0
     t0 = time.perf_counter()
-    built.save(path.with_name(path.name + ".index"))
+    built.save(saved)
     t_save = time.perf_counter() - t0
     t0 = time.perf_counter()
     back = KeyframeIndex(codes.shape[1], {"name": index})
-    n = back.restore(path.with_name(path.name + ".index"), ids)
+    n = back.restore(saved, ids)
     t_restore = time.perf_counter() - t0
     if n != len(ids):
         raise RuntimeError(f"restored {n} of {len(ids)} keyframes")
     return {"index_build_s": t_build, "index_save_s": t_save, "index_restore_s": t_restore,
-            "index_bytes": float(path.with_name(path.name + ".index").stat().st_size)}
+            "index_bytes": float(saved.stat().st_size)}
 
 
 def main(keyframes: int = 100_000, out: str | Path = "runs/bench/store_open", features: int = 50,

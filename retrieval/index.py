@@ -317,12 +317,10 @@ class KeyframeIndex:
         """A copy in another code space: the same admitted and queued keyframes, each code ``fn(code)`` (``(n, D)``
         -> ``(n, dim)``); ``codes_of(frame_ids) -> (n, D)`` gives the admitted ones' codes (a stream's whitening,
         fitted once on its first keyframes: ``retrieval.places``)."""
-        out = KeyframeIndex.__new__(KeyframeIndex)
-        out.index = create_index(dim, self.index.conf)
+        out = KeyframeIndex(dim, self.index.conf, self._queue.exclude_recent, self._queue.exclude_recent_s)
         out.frame_ids = list(self.frame_ids)
         if out.frame_ids:
             out.index.add(fn(codes_of(np.asarray(out.frame_ids, np.int64))))
-        out._queue = AdmissionQueue(self._queue.exclude_recent, self._queue.exclude_recent_s)
         for fid, ts, code in self._queue._pending:
             out._queue.push(fid, ts, fn(code[None])[0])
         return out
