@@ -22,7 +22,7 @@ from typing import Any, Callable, Sequence
 
 from core.files import prepare_out_dir, write_text_atomic
 from core.images import read_image
-from core.threads import reexec_with_capped_arenas
+from core.threads import reexec_with_server_malloc
 from fleet.demo import kitti_stream
 from fleet.recognition import FleetRecognizer
 from fleet.service import FleetService
@@ -103,12 +103,12 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap.add_argument("--features", choices=("database", "memory"), default="database",
                     help="the detectors' runtime.features (the fleet's default: database)")
     ap.add_argument("--bare", action="store_true", help="one LoopDetector with the fleet's detector conf, no fleet")
-    ap.add_argument("--malloc-arenas", action=argparse.BooleanOptionalAction, default=True,
-                    help="cap glibc's malloc arenas as `cae-lcd serve` does (core.threads)")
+    ap.add_argument("--server-malloc", action=argparse.BooleanOptionalAction, default=True,
+                    help="glibc's malloc as `cae-lcd serve` sets it: arenas capped, mmap threshold fixed (core.threads)")
     ap.add_argument("--out", type=Path, default=REPO / "runs" / "bench" / "fleet_memory")
     args = ap.parse_args(argv)
-    if args.malloc_arenas:
-        reexec_with_capped_arenas()
+    if args.server_malloc:
+        reexec_with_server_malloc()
     if not 1 <= args.keyframes <= 4000:
         ap.error("--keyframes must be in 1..4000")
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
@@ -116,7 +116,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     shutil.rmtree(out / "state", ignore_errors=True)
     r = stream_memory(args.kitti, out / "state", args.keyframes,
                       {"detector": {"runtime": {"features": args.features}}}, args.bare)
-    r["features"], r["bare"], r["malloc_arenas"] = args.features, args.bare, args.malloc_arenas
+    r["features"], r["bare"], r["server_malloc"] = args.features, args.bare, args.server_malloc
     write_text_atomic(out / "fleet_memory.json", json.dumps(r, indent=2))
     print(md_table(["keyframes", "RSS MiB", "elapsed s"],
                    [[n, f"{r['rss_mb'][n]:.0f}", f"{r['seconds'][n]:.0f}"] for n in r["rss_mb"]]))

@@ -51,7 +51,7 @@ def serve(state: str, host: str = "127.0.0.1", port: int = 8765, admin: str | No
         ConfigError: a bad config, port or state folder.
     """
     import uvicorn  # here: the CLI's other commands do not load the fleet's dependencies (the [fleet] extra)
-    from core.threads import reexec_with_capped_arenas
+    from core.threads import reexec_with_server_malloc
     from fleet.runner import server_config
     from fleet.server import create_app
 
@@ -61,7 +61,7 @@ def serve(state: str, host: str = "127.0.0.1", port: int = 8765, admin: str | No
     unknown = set(conf) - {"service", "recognition"}
     if unknown:
         raise ConfigError(f"{config}: unknown sections {sorted(unknown)}; allowed: service, recognition")
-    reexec_with_capped_arenas()  # once the arguments are checked, before anything starts or is written (core.threads)
+    reexec_with_server_malloc()  # once the arguments are checked, before anything starts or is written (core.threads)
     token, generated = admin_token(admin)
     app = create_app(state, token, conf.get("service"), conf.get("recognition"), store=store, workers=workers,
                      ray_address=ray_address)

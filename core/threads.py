@@ -18,20 +18,25 @@ on Ray).
 
 from __future__ import annotations
 
+import ctypes
+import functools
 import logging
 import os
 import platform
 import sys
+from typing import Any
 
 import cv2
 import torch
 from threadpoolctl import threadpool_limits
 
-__all__ = ["apply_thread_policy", "cpu_count", "reexec_with_capped_arenas", "MALLOC_ARENAS"]
+__all__ = ["apply_thread_policy", "cpu_count", "reexec_with_server_malloc", "release_free_memory", "MALLOC_ARENAS",
+           "MMAP_THRESHOLD"]
 
 log = logging.getLogger(__name__)
 
-MALLOC_ARENAS = 2  #: glibc malloc arenas a long-running server keeps (``reexec_with_capped_arenas``)
+MALLOC_ARENAS = 2  #: glibc malloc arenas a long-running server keeps (``reexec_with_server_malloc``)
+MMAP_THRESHOLD = 128 * 1024  #: bytes from which a server's malloc maps each block on its own (glibc's initial value)
 
 
 def cpu_count() -> int:
@@ -66,17 +71,50 @@ def apply_thread_policy(threads: int | None = 1) -> int:
     return n
 
 
-def reexec_with_capped_arenas(arenas: int = MALLOC_ARENAS) -> None:
-    """Restarts this process (same pid, same command line) with ``MALLOC_ARENA_MAX=arenas`` in its environment, for a
-    long-running server: each of its threads (uvicorn's, the optimiser's, robots processed in parallel) otherwise
-    grows a glibc malloc arena of its own, and its RSS keeps growing with the keyframes streamed although nothing is
-    kept. ``mallopt(M_ARENA_MAX)`` at run time cannot undo the arenas the imports already made, hence the restart
-    (both measured with ``python -m bench.fleet_memory``: BENCHMARKS.md, issue 19). Returns at once where the
-    environment already says (a user's own ``MALLOC_ARENA_MAX`` wins) or elsewhere than glibc; call it in a command's
-    entry point once its arguments are checked, before anything is started or written.
+def reexec_with_server_malloc(arenas: int = MALLOC_ARENAS, mmap_threshold: int = MMAP_THRESHOLD) -> None:
+    """Restarts this process (same pid, same command line) with glibc's malloc set for a long-running server:
+    ``MALLOC_ARENA_MAX=arenas`` and ``MALLOC_MMAP_THRESHOLD_=mmap_threshold`` in its environment.
+
+    - Arenas: each of a server's threads (uvicorn's, the optimiser's, robots processed in parallel) otherwise grows
+      an arena of its own, and RSS keeps growing with the keyframes streamed although nothing is kept.
+    - A fixed mmap threshold: by default glibc raises the threshold to the size of each large block freed (up to
+      32 MiB), so that blocks which grow with the map (a column, an index's storage, a similarity row) come from the
+      heap once the first of them is freed; each larger one then leaves the smaller one's hole behind it, and the
+      heap holds hundreds of MiB it cannot give back (one robot, 200 keyframes: 404 MiB free inside a 550 MiB heap,
+      2 MiB with the threshold fixed at 128 KiB). Fixed, every block of at least ``mmap_threshold`` bytes is mapped
+      on its own and returned to the system when freed.
+
+    ``mallopt`` at run time cannot undo the arenas the imports already made, hence the restart (both measured with
+    ``python -m bench.fleet_memory``: BENCHMARKS.md, issue 19). Returns at once where the environment already sets
+    both (a user's own values win) or elsewhere than glibc; call it in a command's entry point once its arguments
+    are checked, before anything is started or written.
     """
-    if os.environ.get("MALLOC_ARENA_MAX") or platform.libc_ver()[0] != "glibc":
+    wanted = {"MALLOC_ARENA_MAX": str(int(arenas)), "MALLOC_MMAP_THRESHOLD_": str(int(mmap_threshold))}
+    missing = {k: v for k, v in wanted.items() if not os.environ.get(k)}
+    if not missing or platform.libc_ver()[0] != "glibc":
         return
-    os.environ["MALLOC_ARENA_MAX"] = str(int(arenas))
+    os.environ.update(missing)
     os.execv(sys.executable, [sys.executable, *sys.orig_argv[1:]])
 
+
+@functools.lru_cache(maxsize=1)
+def _malloc_trim() -> Any:
+    """glibc's ``malloc_trim`` (None elsewhere)."""
+    if platform.libc_ver()[0] != "glibc":
+        return None
+    try:
+        return ctypes.CDLL("libc.so.6").malloc_trim
+    except (OSError, AttributeError):
+        return None
+
+
+def release_free_memory() -> bool:
+    """Gives the pages of freed heap memory back to the system (glibc ``malloc_trim(0)``: every arena, holes in
+    the middle included, not only the top). A server calls it after work that allocates and frees much (a pose
+    graph solved on a copy of the graph): the freed pages otherwise stay resident until malloc reuses them.
+
+    Returns:
+        True where memory was released, False where nothing was (or elsewhere than glibc).
+    """
+    trim = _malloc_trim()
+    return bool(trim(0)) if trim is not None else False

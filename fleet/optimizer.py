@@ -11,6 +11,7 @@ import time
 from typing import Any, Callable
 
 from core.conf import Bool, Float, configure
+from core.threads import release_free_memory
 
 from .graph import GraphResult, PoseGraph
 
@@ -78,6 +79,7 @@ class BackgroundOptimizer:
             result = self._snapshot().optimize()
             if self._publish is not None:
                 self._publish(result)
+            release_free_memory()  # the solve freed its copy of the graph: those pages go back to the system
             with self._cond:
                 self._latest, self._done = result, max(self._done, generation)
                 self._cond.notify_all()

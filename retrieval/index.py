@@ -12,9 +12,9 @@ Index types, by registry name (``index.name``):
 - ``sq8``: 8-bit scalar quantisation, one byte per dimension (per-dimension range learned from the first codes).
 - ``ivfpq``: OPQ rotation, inverted file and product quantisation, re-ranked on float16 codes (learned from the
   first codes; exact brute force until then): a million codes in well under 2 GiB, ~1 ms a query.
-- ``auto``: picks by search cost: exact (``flat``) while small, then rebuilds itself once as the ``large`` index
-  (``hnsw`` by default) when exact search would scan ``switch_cost`` numbers a query (codes x dimension: ~30 k
-  whitened 256-d codes, ~2 k raw 4096-d ones), or at ``switch_at`` codes.
+- ``auto``: picks by search cost: exact (``small``: ``fp16`` by default) while small, then rebuilds itself once as
+  the ``large`` index (``hnsw`` by default) when exact search would scan ``switch_cost`` numbers a query (codes x
+  dimension: ~30 k whitened 256-d codes, ~2 k raw 4096-d ones), or at ``switch_at`` codes.
 
 Every index saves to and loads from a file (``CodeIndex.save`` / ``load_index``). ``KeyframeIndex.save`` writes its
 frame ids beside the faiss index, and a detector with a keyframe store saves it there on ``close`` (``keyframes.h5``
@@ -35,7 +35,7 @@ from typing import Any, Mapping
 import faiss
 import numpy as np
 
-from core.conf import Choice, Float, Int, Registry, configure, merge_conf
+from core.conf import Choice, Float, Int, Registry, configure
 from core.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -74,8 +74,12 @@ class CodeIndex:
     def __init__(self, dim: int, conf: dict[str, Any] | None = None) -> None:
         self.conf = configure(self, conf, "index")
         self.dim = dim
-        self.index = faiss.index_factory(dim, self.factory, faiss.METRIC_INNER_PRODUCT)
+        self.index = faiss.index_factory(dim, self._factory(), faiss.METRIC_INNER_PRODUCT)
         self._configure()
+
+    def _factory(self) -> str:
+        """The faiss factory string of ``self.index`` (``factory``; subclasses may choose it by their conf)."""
+        return self.factory
 
     def _configure(self) -> None:
         """Hook for subclasses to set search parameters."""
@@ -202,9 +206,8 @@ class HNSWIndex(CodeIndex):
     }
     conf_rules: dict[str, Any] = {"m": Int(2, 512), "ef_search": Int(1, 100_000), "ef_construction": Int(1, 100_000)}
 
-    def __init__(self, dim: int, conf: dict[str, Any] | None = None) -> None:
-        self.factory = f"HNSW{merge_conf(self.default_conf, conf, 'index')['m']}"
-        super().__init__(dim, conf)
+    def _factory(self) -> str:
+        return f"HNSW{self.conf['m']}"
 
     def _configure(self) -> None:
         self.index.hnsw.efSearch = self.conf["ef_search"]
@@ -425,13 +428,12 @@ class IVFPQIndex(TrainedIndex):
     conf_rules: dict[str, Any] = {"nlist": Int(1, 1 << 20), "m": Int(1, 512), "opq": Choice(True, False),
                                   "nprobe": Int(1, 1 << 20), "k_factor": Int(1, 1000), "train_size": Int(1)}
 
-    def __init__(self, dim: int, conf: dict[str, Any] | None = None) -> None:
-        c = merge_conf(self.default_conf, conf, "index")
-        if dim % int(c["m"]):
-            raise ConfigError(f"index.m ({c['m']}) must divide the code dimension ({dim})")
+    def _factory(self) -> str:
+        c = self.conf
+        if self.dim % int(c["m"]):
+            raise ConfigError(f"index.m ({c['m']}) must divide the code dimension ({self.dim})")
         opq = f"OPQ{c['m']}," if c["opq"] else ""
-        self.factory = f"{opq}IVF{c['nlist']},PQ{c['m']},Refine(SQfp16)"
-        super().__init__(dim, conf)
+        return f"{opq}IVF{c['nlist']},PQ{c['m']},Refine(SQfp16)"
 
     def _configure(self) -> None:
         faiss.extract_index_ivf(self.index).nprobe = int(self.conf["nprobe"])
@@ -440,21 +442,27 @@ class IVFPQIndex(TrainedIndex):
 
 @INDEXES.register("auto")
 class AutoIndex(CodeIndex):
-    """Picks by search cost: exact search (``flat``) while a query scans fewer than ``switch_cost`` numbers (codes x
-    dimension) and the map holds fewer than ``switch_at`` codes; then rebuilds itself as the ``large`` index (its
-    registry defaults) from the codes it holds, and stays that (the switch depends on the codes added only, so a
-    resumed run switches where the uninterrupted one did)."""
+    """Picks by search cost: exact search (the ``small`` index) while a query scans fewer than ``switch_cost``
+    numbers (codes x dimension) and the map holds fewer than ``switch_at`` codes; then rebuilds itself as the
+    ``large`` index (its registry defaults) from the codes it holds, and stays that (the switch depends on the codes
+    added only, so a resumed run switches where the uninterrupted one did)."""
 
     default_conf: dict[str, Any] = {
         "name": "auto",
+        "small": "fp16",  # the exact index until the switch: fp16 holds the detector's entries exactly (they are
+        #                   float16-rounded: places.CodePlaces.entry) in half of flat's memory, and scans faster;
+        #                   "flat" for codes that are not rounded
         "switch_at": 100_000,  # codes at which exact search gives way to the large index whatever their dimension
         "switch_cost": 1 << 23,  # codes x dimension at which it gives way (exact search then costs ~3 ms a query,
         #                          linear in the map, against well under 1 ms for HNSW); None: by switch_at only
         "large": "hnsw",  # the index used from the switch on (registry name, with its defaults)
     }
     conf_rules: dict[str, Any] = {"switch_at": Int(1), "switch_cost": Int(1, optional=True),
+                                  "small": Choice("flat", "fp16"),
                                   "large": Choice("flat", "fp16", "sq8", "hnsw", "ivfpq")}
-    factory = "Flat"
+
+    def _factory(self) -> str:
+        return INDEXES.get(self.conf["small"]).factory
 
     def _configure(self) -> None:
         self.large: CodeIndex | None = getattr(self, "large", None)
@@ -477,8 +485,8 @@ class AutoIndex(CodeIndex):
 
     @property
     def chosen(self) -> str:
-        """The index in use now: ``"flat"`` or the ``large`` one's name."""
-        return "flat" if self.large is None else self.conf["large"]
+        """The index in use now: the ``small`` one's name or the ``large`` one's."""
+        return self.conf["small"] if self.large is None else self.conf["large"]
 
     @property
     def ntotal(self) -> int:
@@ -493,7 +501,7 @@ class AutoIndex(CodeIndex):
         if self.index.ntotal >= self.conf["switch_at"] or (cost is not None and self.index.ntotal * self.dim >= cost):
             large = create_index(self.dim, {"name": self.conf["large"]})
             large.add(self.index.reconstruct_n(0, self.index.ntotal))
-            self.large, self.index = large, faiss.IndexFlatIP(self.dim)
+            self.large, self.index = large, faiss.index_factory(self.dim, self._factory(), faiss.METRIC_INNER_PRODUCT)
 
     def search(self, xq: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         return super().search(xq, k) if self.large is None else self.large.search(xq, k)

@@ -49,8 +49,8 @@ def test_detector_applies_its_runtime_threads(restore_threads, encoder):
 _ARENAS_SCRIPT = """
 import ctypes, sys, tempfile, threading
 if sys.argv[1] == "cap":
-    from core.threads import reexec_with_capped_arenas
-    reexec_with_capped_arenas(1)  # runs this script again with MALLOC_ARENA_MAX=1
+    from core.threads import reexec_with_server_malloc
+    reexec_with_server_malloc(1)  # runs this script again with MALLOC_ARENA_MAX=1 (and the mmap threshold fixed)
 keep, together = [], threading.Barrier(4)
 def work():  # four threads alive at once, each allocating: glibc gives each its own arena unless capped
     keep.append([bytearray(1000) for _ in range(100)])
@@ -68,20 +68,78 @@ print(open(path).read().count("<heap nr="))
 """
 
 
+_THRESHOLD_SCRIPT = """
+import ctypes, sys
+if sys.argv[1] == "cap":
+    from core.threads import reexec_with_server_malloc
+    reexec_with_server_malloc()
+class Info(ctypes.Structure):
+    _fields_ = [(n, ctypes.c_size_t) for n in "arena ordblks smblks hblks hblkhd usmblks fsmblks uordblks fordblks keepcost".split()]
+libc = ctypes.CDLL("libc.so.6")
+libc.mallinfo2.restype = Info
+libc.malloc.restype = ctypes.c_void_p
+libc.free(ctypes.c_void_p(libc.malloc(4 << 20)))
+before = libc.mallinfo2().hblkhd
+block = libc.malloc(1 << 20)
+print(int(libc.mallinfo2().hblkhd - before >= 1 << 20))  # 1: the 1 MiB block was mapped on its own
+"""
+
+
 @pytest.mark.skipif(sys.platform != "linux" or platform.libc_ver()[0] != "glibc", reason="glibc's mallopt")
-class TestMallocArenas:
-    def _heaps(self, mode: str) -> int:
-        env = {k: v for k, v in os.environ.items() if k != "MALLOC_ARENA_MAX"}
-        out = subprocess.run([sys.executable, "-c", _ARENAS_SCRIPT, mode], env=env, cwd=REPO, check=True,
+class TestServerMalloc:
+    def _run(self, script: str, mode: str) -> int:
+        env = {k: v for k, v in os.environ.items() if k not in ("MALLOC_ARENA_MAX", "MALLOC_MMAP_THRESHOLD_")}
+        out = subprocess.run([sys.executable, "-c", script, mode], env=env, cwd=REPO, check=True,
                              capture_output=True, text=True).stdout
         return int(out.split()[-1])
+
+    def _heaps(self, mode: str) -> int:
+        return self._run(_ARENAS_SCRIPT, mode)
+
+    def test_a_freed_large_block_does_not_move_the_threshold(self):
+        # glibc's default: freeing a 4 MiB mapped block raises the threshold, and the next 1 MiB block comes from
+        # the heap (where blocks that grow with the map leave holes); with the server's malloc it is mapped
+        assert self._run(_THRESHOLD_SCRIPT, "no") == 0
+        assert self._run(_THRESHOLD_SCRIPT, "cap") == 1
 
     def test_threads_share_the_capped_arenas(self):
         assert self._heaps("no") > 1  # without the cap, threads grow arenas of their own
         assert self._heaps("cap") == 1
 
     def test_the_environment_wins(self, monkeypatch):
-        from core.threads import reexec_with_capped_arenas
+        from core.threads import reexec_with_server_malloc
 
         monkeypatch.setenv("MALLOC_ARENA_MAX", "4")
-        assert reexec_with_capped_arenas() is None  # returned: no restart (the test process would be replaced)
+        monkeypatch.setenv("MALLOC_MMAP_THRESHOLD_", "65536")
+        assert reexec_with_server_malloc() is None  # returned: no restart (the test process would be replaced)
+
+
+_TRIM_SCRIPT = """
+import ctypes, sys
+from core.threads import release_free_memory
+libc = ctypes.CDLL("libc.so.6")
+libc.malloc.restype = ctypes.c_void_p
+def rss():
+    return int(open("/proc/self/statm").read().split()[1]) * 4096
+blocks = [libc.malloc(4000) for _ in range(50_000)]  # 200 MB of small blocks on the heap
+for b in blocks:
+    ctypes.memset(b, 1, 4000)
+keep = libc.malloc(4000)  # a live block above them: the heap's top cannot shrink
+for b in blocks:
+    libc.free(ctypes.c_void_p(b))
+before = rss()
+released = release_free_memory() if sys.argv[1] == "trim" else False
+print(int(released), (before - rss()) // 2**20)
+"""
+
+
+@pytest.mark.skipif(sys.platform != "linux" or platform.libc_ver()[0] != "glibc", reason="glibc's malloc_trim")
+def test_release_free_memory_returns_freed_pages():
+    def run(mode: str) -> tuple[int, int]:
+        out = subprocess.run([sys.executable, "-c", _TRIM_SCRIPT, mode], cwd=REPO, check=True, capture_output=True,
+                             text=True).stdout.split()
+        return int(out[-2]), int(out[-1])
+
+    assert run("no") == (0, 0)  # freed, yet resident: the hole below a live block stays
+    released, mib = run("trim")
+    assert released == 1 and mib > 150

@@ -182,8 +182,9 @@ class TestAutoIndex:
         index = create_index(D, {"name": "auto", "switch_at": 1000})
         assert isinstance(index, AutoIndex)
         index.add(xb[:999])
-        assert index.chosen == "flat"
-        np.testing.assert_array_equal(index.search(xq, 10)[1], brute_force_search(xq, xb[:999], 10)[1])
+        assert index.chosen == "fp16"
+        half = np.asarray(xb[:999], np.float16).astype(np.float32)  # what fp16 holds: float16-rounded codes
+        np.testing.assert_array_equal(index.search(xq, 10)[1], brute_force_search(xq, half, 10)[1])
         index.add(xb[999:1500])  # crosses switch_at: rebuilt as HNSW from the codes held, positions kept
         index.add(xb[1500:])
         assert index.chosen == "hnsw" and index.ntotal == 2000 and index.index.ntotal == 0
@@ -195,7 +196,7 @@ class TestAutoIndex:
         xb, xq = data
         index = create_index(D, {"name": "auto", "switch_cost": 300 * D})
         index.add(xb[:299])
-        assert index.chosen == "flat"
+        assert index.chosen == "fp16"
         index.add(xb[299:400])
         assert index.chosen == "hnsw" and index.ntotal == 400
         wide = create_index(2 * D, {"name": "auto", "switch_cost": 300 * D})
@@ -206,6 +207,22 @@ class TestAutoIndex:
     def test_options_checked(self):
         with pytest.raises(ConfigError, match="index.large"):
             create_index(D, {"name": "auto", "large": "ivf"})
+        with pytest.raises(ConfigError, match="index.small"):
+            create_index(D, {"name": "auto", "small": "hnsw"})
+
+    @pytest.mark.parametrize("small, nbytes", [("flat", 4), ("fp16", 2)])
+    def test_small_index_exact_for_rounded_entries(self, data, small, nbytes):
+        """The detector's entries are float16-rounded: the fp16 stage finds exactly what flat does, in half the
+        memory."""
+        xb, xq = (np.asarray(x, np.float16).astype(np.float32) for x in data)
+        index = create_index(D, {"name": "auto", "small": small})
+        index.add(xb[:500])
+        assert index.chosen == small
+        D_, I = index.search(xq, 10)
+        want_D, want_I = brute_force_search(xq, xb[:500], 10)
+        np.testing.assert_array_equal(I, want_I)
+        np.testing.assert_allclose(D_, want_D, rtol=0, atol=1e-5)
+        assert index.bytes_per_code() < nbytes * D + 64
 
 
 @pytest.mark.parametrize("conf, n", [({"name": "flat"}, 2000), ({"name": "fp16"}, 2000), ({"name": "hnsw"}, 2000),
@@ -213,6 +230,7 @@ class TestAutoIndex:
                                      ({"name": "sq8", "train_size": 500}, 2000),
                                      ({"name": "ivfpq", "m": 8, "nlist": 16}, 300),
                                      ({"name": "auto", "switch_at": 1000}, 500),
+                                     ({"name": "auto", "switch_at": 1000, "small": "flat"}, 500),
                                      ({"name": "auto", "switch_at": 1000}, 2000)])
 def test_save_and_load_give_the_same_search(tmp_path, data, conf, n):
     xb, xq = data
