@@ -8,7 +8,8 @@ inter-robot overlaps, each turned into a pose-graph edge (a similarity from 3D-3
   (``fleet.places``: every robot's entries keyed by robot and keyframe, ``local`` in this process or one ``milvus``
   collection shared by every worker; no recency exclusion: another robot's frame is never "recent"): the
   top-``cross.search_k`` of the other robots (of the keyframes this recognizer has: a shared memory may hold another
-  worker's newest one before the service stored it), of each other robot at most ``cross.k``, at most ``cross.budget`` in all (the most similar: ``fleet.budget``), verified by the robot's
+  worker's newest one before the service stored it), of each other robot at most ``cross.k``, at most
+  ``cross.budget`` in all (the most similar: ``fleet.budget``), verified by the robot's
   detector's verifier (SIFT + geometry, fixed inlier threshold ``cross.min_inliers``). Each robot pair's matches feed ``OverlapTracker``: an overlap is accepted
   after ``overlap.required`` consecutive matching keyframes; from then on every verified match becomes an edge (at
   most ``max_edges_per_pair``).

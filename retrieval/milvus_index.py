@@ -78,7 +78,7 @@ class MilvusIndex(CodeIndex):
 
     default_conf: dict[str, Any] = {
         "name": "milvus",
-        "uri": "",  # a milvus-lite file (e.g. state/places.db), http://host:19530 for a server; "": a private file
+        "uri": "",  # a milvus-lite folder (e.g. state/codes.db), http://host:19530 for a server; "": a private one
         "collection": "",  # collection name (letters, digits, _); "": a new unique one
         "batch": 1000,  # codes per insert request
         "lite_buffer_kb": LITE_BUFFER_KB,  # milvus-lite only: inserted rows buffered before they become a segment
@@ -154,9 +154,12 @@ class MilvusIndex(CodeIndex):
         return 4.0 * self.dim
 
     def close(self) -> None:
-        """Closes the client; a private temporary file is deleted."""
+        """Closes the client; a private temporary folder is no longer served, and deleted."""
         self.client.close()
         if self._tmp is not None:
+            from milvus_lite.server_manager import server_manager_instance
+
+            server_manager_instance.release_server(str(self._tmp / "codes.db"))
             shutil.rmtree(self._tmp, ignore_errors=True)
 
 
