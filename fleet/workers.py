@@ -20,7 +20,9 @@ only.
 
 Several front-end replicas on one Ray cluster share the workers (named after the state folder). A worker that dies
 is started again on its next request, and its robots continue there: the new actor reopens their
-keyframe databases from the state folder and the surviving actors copy their robots' keyframes to it.
+keyframe databases from the state folder (adding their entries to a shared place memory again: upserts) and the
+surviving actors copy their robots' keyframes to it. The actor serving milvus-lite is not started again: if it dies,
+the place memory is unreachable until the front ends and their workers restart (its folder keeps what it held).
 """
 
 from __future__ import annotations
