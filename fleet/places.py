@@ -71,15 +71,31 @@ class FleetPlaces:
         return None
 
     def add(self, robot: str, keyframes: Any, entries: Any) -> None:
+        """Holds the robot's ``keyframes (n,)`` with their searched ``entries`` (``(n, d)``, one per keyframe); a key
+        already held is held once.
+
+        Raises:
+            ConfigError: a name that is not a robot's (``fleet.store.ROBOT_NAME``), counts that differ.
+        """
         raise NotImplementedError
 
     def search(self, robot: str, entry: np.ndarray, k: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """The ``k`` entries most similar to ``entry (d,)`` of the robots other than ``robot``.
+
+        Returns:
+            ``{other robot: (keyframes (m,) int64, scores (m,) float32)}``, best first.
+
+        Raises:
+            ConfigError: a name that is not a robot's.
+        """
         raise NotImplementedError
 
     def __contains__(self, key: object) -> bool:
+        """True when ``(robot, keyframe)`` is held."""
         raise NotImplementedError
 
     def __len__(self) -> int:
+        """Entries held (all robots')."""
         raise NotImplementedError
 
     def close(self) -> None:
