@@ -39,7 +39,7 @@ log = logging.getLogger(__name__)
 
 LOAD_FORMAT_VERSION = 1  #: format of ``fleet_load.json``
 _LOOPBACK_RAY = {"RAY_AUTH_MODE": "disabled"}  #: the bench's Ray cluster lives on loopback for one run
-_MILVUS = {"places": {"index": {"name": "milvus"}}}  #: the scale-out run's place memory: milvus-lite (each worker's)
+_MILVUS = {"places": {"name": "milvus"}}  #: the scale-out run's place memory: one milvus-lite all workers share
 
 
 def _serve(state: str, port: int) -> None:

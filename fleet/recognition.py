@@ -5,9 +5,11 @@ inter-robot overlaps, each turned into a pose-graph edge (a similarity from 3D-3
   all sharing one global descriptor (the CAE encoder is loaded once per server). It reports the robot's own loops,
   with its usual recent-frame exclusion and its fixed acceptance policy (``policy.min_inliers``).
 - Inter-robot: the query's searched entry (``FrameResult.entry``) is searched in the fleet's one place memory
-  (``fleet.places.FleetPlaces``: a ``retrieval.places`` memory holding every robot's entries, faiss or Milvus; no
-  recency exclusion: another robot's frame is never "recent"): its top-``cross.search_k``, of each other robot at
-  most ``cross.k``, at most ``cross.budget`` in all (the most similar: ``fleet.budget``), verified by the robot's
+  (``fleet.places``: every robot's entries keyed by robot and keyframe, ``local`` in this process or one ``milvus``
+  collection shared by every worker; no recency exclusion: another robot's frame is never "recent"): the
+  top-``cross.search_k`` of the other robots (of the keyframes this recognizer has: a shared memory may hold another
+  worker's newest one before the service stored it), of each other robot at most ``cross.k``, at most
+  ``cross.budget`` in all (the most similar: ``fleet.budget``), verified by the robot's
   detector's verifier (SIFT + geometry, fixed inlier threshold ``cross.min_inliers``). Each robot pair's matches feed ``OverlapTracker``: an overlap is accepted
   after ``overlap.required`` consecutive matching keyframes; from then on every verified match becomes an edge (at
   most ``max_edges_per_pair``).
@@ -48,7 +50,7 @@ from retrieval.detector import LoopDetector, resolve_conf, weights_whitening
 from verify.verifier import Verification
 
 from .budget import shortlist
-from .places import FleetPlaces
+from .places import create_fleet_places, resolve_places
 from .overlap import OverlapTracker, PointTriangulator, estimate_overlap, points_from_depth
 from .sim3 import Sim3, Sim3Ransac
 from .store import EdgeRecord, OverlapRecord
@@ -73,7 +75,7 @@ class Recognition:
 class SharedKeyframe:
     """What another recognizer needs of a keyframe to match it across robots (``export`` -> ``adopt``)."""
 
-    entry: np.ndarray  #: ``(d,)`` the searched code
+    entry: np.ndarray | None  #: ``(d,)`` the searched code (None: the place memory is shared, it is there already)
     features: Any  #: ``verify.features.Features`` of the keyframe (None: fetched from its owner when needed)
     pose: np.ndarray  #: ``(4, 4)`` local pose
     K: np.ndarray | None  #: ``(3, 3)`` the robot's intrinsics
@@ -120,7 +122,7 @@ def _image_fingerprint(image: np.ndarray) -> str:
 
 
 class _Robot:
-    """One robot's detector, intrinsics, local poses and keyframe ids (its entries are in ``FleetPlaces``)."""
+    """One robot's detector, intrinsics, local poses and keyframe ids (its entries are in the fleet's place memory)."""
 
     def __init__(self, detector: LoopDetector, K: np.ndarray | None, points_cache: int = 256) -> None:
         self.detector, self.K, self.points_cache = detector, K, points_cache
@@ -170,15 +172,15 @@ class FleetRecognizer:
                      "runtime": {"features": "database",  # features read back from its database when needed,
                                  "feature_cache": 64}},  # at most this many kept per robot (~64 kB each)
         "cross": {
-            "search_k": 64,  # entries searched in the fleet's place memory per query (the robot's own among them)
+            "search_k": 64,  # entries of other robots searched in the fleet's place memory per query
             "k": 3,  # candidates of each other robot verified per query
             "budget": 8,  # candidates verified per query over all other robots, the most similar (0: no bound)
             "min_score": 0.0,  # candidates under this cosine similarity are not verified
             "min_matches": 5,  # putative matches a candidate needs
             "min_inliers": 50,  # geometric inliers a cross-robot match needs (the detector's fixed policy)
         },
-        "places": {"index": {"name": "fp16"}},  # the place memory across robots: its code index (retrieval.index;
-        #   fp16: exact for the float16-rounded entries, half of flat's memory; {"name": "milvus", "uri": ...}: Milvus)
+        "places": {"name": "local",  # the place memory across robots (fleet.places): local (in each process)
+                   "index": {"name": "fp16"}},  # or milvus (one collection every worker shares: uri, collection, ...)
         "overlap": OverlapTracker.default_conf,  # n-consecutive-match acceptance of an overlap
         "triangulation": PointTriangulator.default_conf,  # 3D points from a robot's neighbouring keyframe
         "sim3": Sim3Ransac.default_conf,  # RANSAC of an edge's similarity from 3D-3D matches
@@ -203,8 +205,8 @@ class FleetRecognizer:
         self.detector_conf = self.conf["detector"]
         self.root = Path(state_dir) / "robots"
         self.descriptor = descriptor or create_descriptor(self.detector_conf["descriptor"])
-        self.places = FleetPlaces(self.descriptor, weights_whitening(self.detector_conf, self.descriptor),
-                                  self.detector_conf, self.conf["places"]["index"])
+        self.places = create_fleet_places(self.descriptor, weights_whitening(self.detector_conf, self.descriptor),
+                                          self.detector_conf, self.conf["places"], state_dir)
         self.tracker = OverlapTracker(self.conf["overlap"])
         self.triangulator = PointTriangulator(self.conf["triangulation"])
         self.robots: dict[str, _Robot] = {}
@@ -225,15 +227,12 @@ class FleetRecognizer:
         """
         conf = dict(conf or {})
         user_detector = conf.pop("detector", None)  # checked by the detector's own rules (its units' sections)
-        user_places = conf.pop("places", None)  # its index: by the index's own rules, as a detector's
+        user_places = conf.pop("places", None)  # by its kind's rules (fleet.places)
         out = merge_conf({k: v for k, v in cls.default_conf.items() if k not in ("detector", "places")}, conf,
                          "recognition")
         check_conf(out, cls.conf_rules, "recognition")
         out["detector"] = resolve_conf(merge_conf(cls.default_conf["detector"], user_detector, strict=False))
-        places = merge_conf(cls.default_conf["places"], user_places, "recognition.places", strict=False)
-        if set(places) != {"index"}:
-            raise ConfigError(f"recognition.places has only 'index'; got {sorted(places)}")
-        out["places"] = {"index": resolve_conf({"index": places["index"]})["index"]}
+        out["places"] = resolve_places(user_places)
         return out
 
     def _open(self, name: str, K: np.ndarray | None) -> _Robot:
@@ -252,9 +251,10 @@ class FleetRecognizer:
         robot = self.robots[name] = _Robot(det, K, self.conf["points_cache"])
         if det.db is None:
             return robot
-        for fid, entry, _, _ in det.db.search_entries(features=False):  # the store keeps the searched entry
-            self.places.add(name, fid, entry)
-            robot.ids.append(fid)
+        stored = [(fid, entry) for fid, entry, _, _ in det.db.search_entries(features=False)]  # searched entries
+        robot.ids = [fid for fid, _ in stored]
+        if stored:  # a shared memory may hold them already (another replica, a previous run): an upsert
+            self.places.add(name, robot.ids, [entry for _, entry in stored])
         for fid, pose in zip(robot.ids, det.db.poses()):
             if np.isfinite(pose).all():
                 robot.poses[fid] = Sim3.from_pose(pose).matrix()
@@ -278,21 +278,25 @@ class FleetRecognizer:
             raise ConflictError(f"robot {robot!r} sent keyframe {keyframe} before, with another image")
 
     def export(self, robot: str, keyframes: list[int] | None = None) -> list[tuple[int, SharedKeyframe]]:
-        """The robot's keyframes (all, or those of ``keyframes`` in its place memory) as ``adopt`` takes them: the
-        local features of the latest ``adopted_features`` only (``None`` for the others: ``features`` on demand)."""
+        """The robot's keyframes (all, or those of ``keyframes`` in the place memory) as ``adopt`` takes them: the
+        local features of the latest ``adopted_features`` only (``None`` for the others: ``features`` on demand), the
+        searched entries only when the place memory is not shared (``None``: every worker searches them there)."""
         r = self.robots[robot]
-        if keyframes is not None and r.last is not None and list(keyframes) == [r.last[0]]:
-            entries = dict([r.last])  # the keyframe just processed (``process``): not read back
-        elif r.detector.db is not None:
-            wanted = None if keyframes is None else set(keyframes)
-            entries = {fid: e for fid, e, _, _ in r.detector.db.search_entries(features=False)
-                       if wanted is None or fid in wanted}
-        else:
-            entries = {}
-        ids = [k for k in sorted(entries) if k in r.poses]
+        ids = sorted(k for k in (r.ids if keyframes is None else set(keyframes) & set(r.ids)) if k in r.poses)
+        entries = {} if self.places.shared else self._entries(r, ids)
         with_features = set(ids[-self.conf["adopted_features"]:])
-        return [(k, SharedKeyframe(entries[k], r.detector.keyframe_features(k) if k in with_features else None,
+        return [(k, SharedKeyframe(entries.get(k), r.detector.keyframe_features(k) if k in with_features else None,
                                    r.poses[k], r.K)) for k in ids]
+
+    @staticmethod
+    def _entries(r: _Robot, ids: list[int]) -> dict[int, np.ndarray]:
+        """The searched entries of the robot's keyframes ``ids``: the one just processed kept, the others read back
+        from its database."""
+        if r.last is not None and ids == [r.last[0]]:
+            return dict([r.last])
+        wanted = set(ids)
+        return {} if r.detector.db is None else {fid: e for fid, e, _, _ in r.detector.db.search_entries(
+            features=False) if fid in wanted}
 
     def features(self, robot: str, keyframes: list[int]) -> list[Any]:
         """The local features of keyframes of a robot this recognizer owns (another one's ``fetch``)."""
@@ -318,7 +322,8 @@ class FleetRecognizer:
                     r.detector.remember(keyframe, kf.features)
                 r.poses[keyframe] = kf.pose
                 r.ids.append(keyframe)
-                self.places.add(robot, keyframe, kf.entry)
+                if kf.entry is not None:  # a memory of this process (a shared one holds it already)
+                    self.places.add(robot, [keyframe], [kf.entry])
 
     parallel_robots = True  #: keyframes of different robots may be processed at the same time (see the class doc)
 
@@ -369,7 +374,7 @@ class FleetRecognizer:
                 r.remember_points(keyframe, points_from_depth(self._features(robot, [keyframe])[0].keypoints,
                                                               depth, r.K))
             c = self.conf["cross"]
-            found = self.places.search(robot, res.entry, c["search_k"])  # {other: (keyframes, scores)}, best first
+            found = self._known(self.places.search(robot, res.entry, c["search_k"]))  # {other: (keyframes, scores)}
             chosen = shortlist({o: s for o, (_, s) in found.items()}, c["k"], c["min_score"], c["budget"])
         matches = {o: m for o, top in chosen.items() if (m := self._best_match(robot, keyframe, o, found[o][0][top]))}
         out = Recognition()
@@ -377,7 +382,18 @@ class FleetRecognizer:
             if res.loop is not None:  # the detector's verification of the pair: not checked again
                 self._add_edge(out, "loop", (robot, res.loop.frame_id), (robot, keyframe), res.verification)
             self._cross(out, robot, keyframe, matches)
-            self.places.add(robot, keyframe, res.entry)
+            self.places.add(robot, [keyframe], [res.entry])
+        return out
+
+    def _known(self, found: dict[str, tuple[np.ndarray, np.ndarray]]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """The search results of keyframes this recognizer has (a shared place memory may hold another worker's
+        newest keyframe before the service stored it and this recognizer adopted it), best first."""
+        out = {}
+        for other, (keyframes, scores) in found.items():
+            r = self.robots.get(other)
+            keep = np.array([r is not None and k in r.poses for k in keyframes.tolist()], bool)
+            if keep.any():
+                out[other] = (keyframes[keep], scores[keep])
         return out
 
     def _cross(self, out: Recognition, robot: str, keyframe: int,

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import hashlib
 import logging
-import re
 import secrets
 import threading
 from typing import Any
@@ -22,13 +21,11 @@ from .graph import GraphResult, Node, PoseGraph
 from .optimizer import BackgroundOptimizer
 from .recognition import FleetRecognizer, Recognition
 from .sim3 import Sim3
-from .store import EdgeRecord, FleetStore, KeyframeAck
+from .store import ROBOT_NAME, EdgeRecord, FleetStore, KeyframeAck, check_robot_name
 
 __all__ = ["FleetService", "ROBOT_NAME"]
 
 log = logging.getLogger(__name__)
-
-ROBOT_NAME = r"[A-Za-z0-9_-]{1,64}"  #: what a robot's name may be
 
 
 class FleetService:
@@ -125,8 +122,7 @@ class FleetService:
         Raises:
             ConfigError: a bad or taken name.
         """
-        if not isinstance(name, str) or not re.fullmatch(ROBOT_NAME, name):
-            raise ConfigError(f"a robot name must match {ROBOT_NAME}; got {name!r}")
+        check_robot_name(name)
         token = f"{name}.{secrets.token_urlsafe(32)}"
         self.store.add_robot(name, token)
         return token

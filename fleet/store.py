@@ -27,6 +27,7 @@ import hmac
 import json
 import logging
 import os
+import re
 import sqlite3
 import threading
 import time
@@ -45,11 +46,23 @@ from .graph import EDGE_KINDS
 from .sim3 import Sim3
 
 __all__ = ["FORMAT_VERSION", "KeyframeAck", "EdgeRecord", "OverlapRecord", "FleetStore", "SQLStore", "SQLiteStore",
-           "hash_token", "pose_json", "sim3_json", "sim3_from_json"]
+           "hash_token", "pose_json", "sim3_json", "sim3_from_json", "ROBOT_NAME", "check_robot_name"]
 
 log = logging.getLogger(__name__)
 
 FORMAT_VERSION = 1  #: version of the SQLite layout; a file of another version is refused
+ROBOT_NAME = r"[A-Za-z0-9_-]{1,64}"  #: what a robot's name may be
+
+
+def check_robot_name(name: Any) -> str:
+    """``name`` when it is a robot name (``ROBOT_NAME``, in full).
+
+    Raises:
+        ConfigError: anything else (one line, the value quoted).
+    """
+    if not isinstance(name, str) or not re.fullmatch(ROBOT_NAME, name):
+        raise ConfigError(f"a robot name must match {ROBOT_NAME}; got {name!r}")
+    return name
 
 
 @dataclass(frozen=True)

@@ -5,9 +5,14 @@ The service calls a recognizer through five methods (``has``, ``check``, ``proce
 ``FleetRecognizer`` is the in-process one, ``RayRecognizer`` the same interface over ``workers`` Ray actors (a local
 Ray started with that many CPUs, or a cluster at ``ray_address``). Robot ``NAME`` belongs to shard
 ``crc32(NAME) % workers``: that actor decodes, gates, encodes, extracts features, searches and verifies its
-keyframes, and keeps its keyframe database under the shared state folder. Each keyframe's code, features and pose
-are copied to the other actors (``FleetRecognizer.export`` -> ``adopt``) once the service has stored it
-(``committed``), so every robot is matched against every other one; of another worker's robot an actor keeps the
+keyframes, and keeps its keyframe database under the shared state folder. Each keyframe's pose and features are
+copied to the other actors (``FleetRecognizer.export`` -> ``adopt``) once the service has stored it (``committed``),
+so every robot is matched against every other one; its searched code too when the place memory is ``local`` (each
+worker's own), not when it is ``milvus`` (``fleet.places.MilvusPlaces``): then every worker inserts its own robots'
+entries in one collection and searches everyone's. With ``milvus`` and no ``uri``, the milvus-lite folder
+``STATE/places.db`` is served by one more named actor (``_PlacesHost``, started once per state folder like the
+shards, on loopback: the workers of one machine; give ``uri: http://HOST:19530``, a Milvus server, for a cluster of
+machines), and every worker connects to it. Of another worker's robot an actor keeps the
 features of the ``adopted_features`` (64) most recently used keyframes and asks the owner for the others when a match
 needs them (``FETCH``): a worker's memory does not grow by every other robot's features. Keyframes of robots on
 different shards are processed at the same time (``parallel_robots``): the service then serialises keyframes per robot
@@ -15,7 +20,9 @@ only.
 
 Several front-end replicas on one Ray cluster share the workers (named after the state folder). A worker that dies
 is started again on its next request, and its robots continue there: the new actor reopens their
-keyframe databases from the state folder and the surviving actors copy their robots' keyframes to it.
+keyframe databases from the state folder (adding their entries to a shared place memory again: upserts) and the
+surviving actors copy their robots' keyframes to it. The actor serving milvus-lite is not started again: if it dies,
+the place memory is unreachable until the front ends and their workers restart (its folder keeps what it held).
 """
 
 from __future__ import annotations
@@ -30,10 +37,11 @@ import numpy as np
 
 from core.errors import ConfigError
 
+from .places import FLEET_PLACES
 from .recognition import FleetRecognizer, Recognition
 from .store import EdgeRecord, OverlapRecord
 
-__all__ = ["RayRecognizer", "shard_of", "shard_name", "create_recognizer"]
+__all__ = ["RayRecognizer", "shard_of", "shard_name", "host_name", "create_recognizer"]
 
 log = logging.getLogger(__name__)
 
@@ -51,6 +59,25 @@ def shard_name(state_dir: str, index: int, workers: int) -> str:
     """The Ray actor name of shard ``index``: named after the state folder, so that front-end replicas on one Ray
     cluster share it (the first replica starts it, the others attach) and workers find each other."""
     return f"fleet-{zlib.crc32(state_dir.encode()):08x}-{index}-of-{workers}"
+
+
+def host_name(state_dir: str) -> str:
+    """The Ray actor name of the state folder's milvus-lite server (``_PlacesHost``): replicas share it as the
+    shards."""
+    return f"fleet-{zlib.crc32(state_dir.encode()):08x}-places"
+
+
+class _PlacesHost:
+    """The body of the Ray actor that serves a milvus-lite folder to every worker (``serve_lite``, in its threads)."""
+
+    def __init__(self, path: str, lite_buffer_kb: int) -> None:
+        from retrieval.milvus_index import serve_lite
+
+        self.uri = serve_lite(path, lite_buffer_kb)
+
+    def address(self) -> str:
+        """``http://127.0.0.1:PORT``: where the workers connect."""
+        return self.uri
 
 
 class _Shard:
@@ -137,13 +164,15 @@ class RayRecognizer:
 
         if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
             raise ConfigError(f"workers must be an integer >= 1; got {workers!r}")
-        FleetRecognizer.resolve(conf)  # a bad conf is refused here, before any worker starts
+        places = FleetRecognizer.resolve(conf)["places"]  # a bad conf is refused here, before any worker starts
         self._ray = ray
         if not ray.is_initialized():
             # "local": a new Ray of our own, never another program's cluster found on this machine
             ray.init(address=ray_address or "local", num_cpus=None if ray_address else workers, include_dashboard=False,
                      log_to_driver=False, configure_logging=False)
         self.state_dir, self.conf, self.workers = str(Path(state_dir).resolve()), conf, workers
+        self._host = None
+        self.conf = self._host_places(places)
         self._actor = ray.remote(num_cpus=1, max_restarts=0, concurrency_groups={FETCH: 1})(_Shard)
         self._shards = [self._start(i) for i in range(workers)]
         self._resumed: tuple[list[OverlapRecord], list[EdgeRecord]] | None = None
@@ -151,6 +180,20 @@ class RayRecognizer:
         self._pending: dict[str, list] = {}  # robot -> its latest keyframe, copied to the others with its next one
         self._lock = threading.Lock()
         self._share_all()
+
+    def _host_places(self, places: dict[str, Any]) -> dict[str, Any] | None:
+        """The workers' conf: with a milvus-lite place memory (no server ``uri``), its folder served once by a named
+        actor (``host_name``; no CPU reserved: the workers' calls keep it busy) and its URI given to every worker."""
+        path = FLEET_PLACES.get(places["name"]).lite_path(places, self.state_dir)
+        if path is None:
+            return self.conf
+        self._host = self._ray.remote(num_cpus=0, max_restarts=0)(_PlacesHost).options(
+            name=host_name(self.state_dir), namespace=NAMESPACE, get_if_exists=True).remote(str(path),
+                                                                                            places["lite_buffer_kb"])
+        uri = self._ray.get(self._host.address.remote())
+        log.info("fleet place memory: milvus-lite %s served on %s to every worker", path, uri)
+        conf = dict(self.conf or {})
+        return {**conf, "places": {**(conf.get("places") or {}), "uri": uri}}
 
     def _start(self, index: int) -> Any:
         """Shard ``index``'s actor (``shard_name``: replicas on one Ray cluster share it)."""
@@ -232,6 +275,8 @@ class RayRecognizer:
             except self._ray.exceptions.RayActorError:
                 log.debug("a fleet worker was already gone at close (stopped by another replica)")
             self._ray.kill(s)
+        if self._host is not None:  # after the workers: they close their connections first
+            self._ray.kill(self._host)
 
 
 def create_recognizer(state_dir: str | Path, conf: dict[str, Any] | None = None, descriptor: Any = None,

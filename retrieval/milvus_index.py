@@ -1,4 +1,5 @@
-"""A code index on Milvus (``index.name: milvus``): the place index shared by the fleet's workers and replicas.
+"""A code index on Milvus (``index.name: milvus``), and the one home of the Milvus client's setup (``milvus_client``,
+``serve_lite``: also used by the fleet's shared place memory, ``fleet.places.MilvusPlaces``).
 
 The same ``CodeIndex`` interface as the faiss indexes (``retrieval.index``): ``add`` appends codes whose positions
 continue from ``ntotal``, ``search`` returns ``D (nq, k)`` inner products and ``I (nq, k)`` positions with ``-1``
@@ -24,12 +25,51 @@ from core.conf import ConfigError, Int, Text, configure
 
 from .index import INDEXES, CodeIndex
 
-__all__ = ["MilvusIndex"]
+__all__ = ["MilvusIndex", "milvus_client", "serve_lite", "is_server_uri", "LITE_BUFFER_KB", "COLLECTION_NAME"]
 
 log = logging.getLogger(__name__)
 
 _LITE_BUFFER = "MILVUS_LITE_MEMTABLE_MEMORY_LIMIT_BYTES"  #: milvus-lite's buffer size (bytes), from the environment
-_NAME = r"([A-Za-z_][A-Za-z0-9_]{0,254})?"  #: what Milvus accepts as a collection name (or "": a new one)
+COLLECTION_NAME = r"[A-Za-z_][A-Za-z0-9_]{0,254}"  #: what Milvus accepts as a collection name
+LITE_BUFFER_KB = 256  #: milvus-lite's insert buffer by default (see ``MilvusIndex.default_conf``)
+
+
+def _set_lite_buffer(lite_buffer_kb: int) -> None:
+    """milvus-lite reads its buffer size from the environment when imported (a user's own setting wins)."""
+    os.environ.setdefault(_LITE_BUFFER, str(int(lite_buffer_kb) * 1024))
+
+
+def is_server_uri(uri: str) -> bool:
+    """True for a URI a Milvus server (or a hosted milvus-lite) answers on (``http://``, ``https://``, ...), False for
+    a milvus-lite folder path."""
+    return "://" in uri
+
+
+def milvus_client(uri: str, lite_buffer_kb: int = LITE_BUFFER_KB) -> Any:
+    """A ``pymilvus.MilvusClient`` on ``uri``: a Milvus server (``http://HOST:19530``, or a milvus-lite another process
+    serves), or a milvus-lite folder, then served by this process (``serve_lite``; ``lite_buffer_kb`` its insert
+    buffer, taken by the first milvus-lite of the process)."""
+    from pymilvus import MilvusClient  # here: only Milvus users need it
+
+    return MilvusClient(uri if is_server_uri(uri) else serve_lite(uri, lite_buffer_kb))
+
+
+def serve_lite(path: str | Path, lite_buffer_kb: int = LITE_BUFFER_KB) -> str:
+    """Serves the milvus-lite folder ``path`` from this process (a gRPC server in background threads, on loopback)
+    and returns its URI ``http://127.0.0.1:PORT``: every process of this machine reaches it with the
+    ``milvus_client`` it would use for a Milvus server. Serving the same folder again returns the same URI.
+
+    Raises:
+        ConfigError: milvus-lite could not serve it (its log says why).
+    """
+    _set_lite_buffer(lite_buffer_kb)
+    from milvus_lite.server_manager import server_manager_instance
+
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    uri = server_manager_instance.start_and_get_uri(str(path))
+    if not uri:
+        raise ConfigError(f"milvus-lite could not serve {path}")
+    return uri
 
 
 @INDEXES.register("milvus")
@@ -38,30 +78,23 @@ class MilvusIndex(CodeIndex):
 
     default_conf: dict[str, Any] = {
         "name": "milvus",
-        "uri": "",  # a milvus-lite file (e.g. state/places.db), http://host:19530 for a server; "": a private file
+        "uri": "",  # a milvus-lite folder (e.g. state/codes.db), http://host:19530 for a server; "": a private one
         "collection": "",  # collection name (letters, digits, _); "": a new unique one
         "batch": 1000,  # codes per insert request
-        "lite_buffer_kb": 256,  # milvus-lite only: inserted rows buffered before they become a segment (it searches
-        #                        its buffer row by row in Python: 72 ms a query at 300 4096-d rows with its default
-        #                        128 MB, 19 ms with 256 kB; read once per process, by the first milvus-lite index)
+        "lite_buffer_kb": LITE_BUFFER_KB,  # milvus-lite only: inserted rows buffered before they become a segment
+        #   (it searches its buffer row by row in Python: 72 ms a query at 300 4096-d rows with its default 128 MB,
+        #   19 ms with 256 kB; read once per process, by the first milvus-lite index)
     }
-    conf_rules: dict[str, Any] = {"uri": Text(), "collection": Text(_NAME), "batch": Int(1, 100_000),
-                                  "lite_buffer_kb": Int(16, 1_048_576)}
+    conf_rules: dict[str, Any] = {"uri": Text(), "collection": Text(f"({COLLECTION_NAME})?"),
+                                  "batch": Int(1, 100_000), "lite_buffer_kb": Int(16, 1_048_576)}
     save_with_store = False  # the collection lives in Milvus; a keyframe store's resume adds its codes again
 
     def __init__(self, dim: int, conf: dict[str, Any] | None = None) -> None:
         self.conf = configure(self, conf, "index")
-        # milvus-lite reads its buffer size when imported (a user's own setting wins)
-        os.environ.setdefault(_LITE_BUFFER, str(self.conf["lite_buffer_kb"] * 1024))
-        from pymilvus import MilvusClient  # here: only this index needs it
-
         self.dim = int(dim)
         self.collection = self.conf["collection"] or f"codes_{uuid.uuid4().hex}"
         self._tmp = None if self.conf["uri"] else Path(tempfile.mkdtemp(prefix="milvus-"))
-        uri = self.conf["uri"] or str(self._tmp / "codes.db")
-        if "://" not in uri:
-            Path(uri).parent.mkdir(parents=True, exist_ok=True)
-        self.client = MilvusClient(uri)
+        self.client = milvus_client(self.conf["uri"] or str(self._tmp / "codes.db"), self.conf["lite_buffer_kb"])
         try:
             self._open()
         except BaseException:
@@ -121,13 +154,17 @@ class MilvusIndex(CodeIndex):
         return 4.0 * self.dim
 
     def close(self) -> None:
-        """Closes the client; a private temporary file is deleted."""
+        """Closes the client; a private temporary folder is no longer served, and deleted."""
         self.client.close()
         if self._tmp is not None:
+            from milvus_lite.server_manager import server_manager_instance
+
+            server_manager_instance.release_server(str(self._tmp / "codes.db"))
             shutil.rmtree(self._tmp, ignore_errors=True)
 
 
 def _datatype() -> Any:
+    """pymilvus's ``DataType`` (imported on first use)."""
     from pymilvus import DataType
 
     return DataType

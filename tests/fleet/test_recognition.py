@@ -12,7 +12,6 @@ import numpy as np
 import pytest
 
 from core.conf import ConfigError
-from fleet.places import FleetPlaces
 from fleet.recognition import FleetRecognizer
 from fleet.sim3 import Sim3
 
@@ -76,23 +75,6 @@ class TestSeam:
         fleet = Path(__file__).resolve().parents[2] / "fleet"
         found = {p.name: bad for p in sorted(fleet.glob("*.py")) if (bad := private_detector_reads(p.read_text()))}
         assert not found
-
-    @pytest.mark.parametrize("index", ["flat", "fp16", "milvus"])
-    def test_the_place_memory_groups_other_robots_best_first(self, cae_descriptor, kitti, index):
-        from retrieval.detector import resolve_conf
-
-        places = FleetPlaces(cae_descriptor, None, resolve_conf(), resolve_conf({"index": {"name": index}})["index"])
-        codes = {i: cae_descriptor(kitti("00", i)[0]) for i in (0, 2, 100, 102)}
-        for robot, i in (("A", 0), ("A", 100), ("B", 2), ("B", 102)):
-            places.add(robot, i, codes[i] / np.linalg.norm(codes[i]))
-        places.add("A", 0, codes[0])  # a known key is not added twice
-        assert len(places) == 4 and ("B", 102) in places
-        found = places.search("A", codes[2] / np.linalg.norm(codes[2]), 10)
-        assert sorted(found) == ["B"] and found["B"][0].tolist() == [2, 102]  # A's own left out; 2 itself first
-        assert found["B"][1][0] > found["B"][1][1]
-        assert list(places.search("A", codes[2] / np.linalg.norm(codes[2]), 1)) == ["B"]  # its top-1 only
-        assert len(places) == 4 and len(places.places) == 4  # searching added nothing
-        places.close()
 
 
 class TestFleetRecognizer:

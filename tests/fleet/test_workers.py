@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fleet.workers import RayRecognizer, create_recognizer, shard_of
+from fleet.workers import NAMESPACE, RayRecognizer, create_recognizer, host_name, shard_of
 
 ray = pytest.importorskip("ray")
 
@@ -47,23 +47,61 @@ def test_robots_are_sharded_by_name():
     assert {shard_of(f"robot{i:02d}", 4) for i in range(32)} == {0, 1, 2, 3}
 
 
-def test_overlap_across_workers_and_a_killed_worker(local_ray, tmp_path, kitti_sequences, kitti_poses):
+class Spy:
+    """What the shards copy to each other (``adopt``), seen from the driver: the searched entries among it."""
+
+    def __init__(self, rec: RayRecognizer) -> None:
+        self.entries = 0
+        self.keyframes = 0
+        real = rec.committed
+
+        def committed(robot: str) -> None:
+            for _, kf in rec._pending.get(robot, []):
+                self.keyframes += 1
+                self.entries += kf.entry is not None
+            real(robot)
+
+        rec.committed = committed
+
+
+@pytest.mark.parametrize("places", ["local", "milvus"])
+def test_overlap_across_workers_and_a_killed_worker(local_ray, tmp_path, kitti_sequences, kitti_poses, places):
+    """With ``milvus`` both workers search one collection (milvus-lite served by one more actor): each inserts its own
+    robot's entries only, and nothing searched is copied between them; ``local``: each worker's own memory, every
+    entry copied."""
     # one adopted keyframe's features kept per robot: the others' are fetched from their worker (fleet.workers FETCH)
-    rec = create_recognizer(tmp_path, {"adopted_features": 1}, workers=2)
+    rec = create_recognizer(tmp_path, {"adopted_features": 1, "places": {"name": places}}, workers=2)
     assert isinstance(rec, RayRecognizer) and rec.parallel_robots
+    spy = Spy(rec)
     found = [process(rec, robot, i, pose, image, K)
              for robot, i, pose, image, K in frames(kitti_sequences, kitti_poses, range(100, 110))]
     overlaps = [o for r in found for o in r.overlaps]
     assert len(overlaps) == 1 and {overlaps[0].robot_a, overlaps[0].robot_b} == {A, B}
     edges = [e for r in found for e in r.edges if e.kind == "overlap"]
     assert edges and all({e.robot_a, e.robot_b} == {A, B} for e in edges)
+    assert spy.keyframes >= 8 and spy.entries == (spy.keyframes if places == "local" else 0)
 
     ray.kill(rec._shards[shard_of(B, 2)])  # B's worker dies
     assert rec.has(B, 109) and not rec.has(B, 111)  # restarted: B's database reopened from the state folder
     later = [process(rec, robot, i, pose, image, K)
              for robot, i, pose, image, K in frames(kitti_sequences, kitti_poses, range(110, 116))]
     assert any(e.kind == "overlap" and e.robot_b == B for r in later for e in r.edges)  # B still matched with A
+    if places == "milvus":  # one collection: every keyframe once, though B's restarted worker added B's again
+        shared = connect(rec)
+        assert len(shared) == spy.keyframes and (A, 100) in shared and (B, 115) in shared
+        assert ray.get_actor(host_name(rec.state_dir), namespace=NAMESPACE)
+        shared.close()
     rec.close()
+
+
+def connect(rec: RayRecognizer):
+    """The workers' Milvus place memory, from this process (the URI the host actor gave them)."""
+    from fleet.places import create_fleet_places, resolve_places
+    from retrieval.descriptors import create_descriptor
+    from retrieval.detector import resolve_conf
+
+    return create_fleet_places(create_descriptor({"name": "cae"}), None, resolve_conf(),
+                               resolve_places(rec.conf["places"]), rec.state_dir)
 
 
 def test_two_replicas_over_http_on_postgresql_milvus_and_ray(local_ray, local_postgres, tmp_path, kitti_sequences,
@@ -77,7 +115,7 @@ def test_two_replicas_over_http_on_postgresql_milvus_and_ray(local_ray, local_po
     from fleet.server import create_app
 
     url = local_postgres.create_database("replicas")
-    apps = [create_app(tmp_path, "admin", store=url, workers=2, recognition={"places": {"index": {"name": "milvus"}}})
+    apps = [create_app(tmp_path, "admin", store=url, workers=2, recognition={"places": {"name": "milvus"}})
             for _ in range(2)]
     with ServerThread(apps[0]) as one, ServerThread(apps[1]) as two:
         tokens = {r: FleetClient(one.url, "admin").register(r) for r in (A, B)}
