@@ -26,6 +26,7 @@ keyframe)``, searched for the most similar entries of the *other* robots. Two ki
 from __future__ import annotations
 
 import logging
+import time
 from collections import Counter
 from pathlib import Path
 from typing import Any, Mapping
@@ -47,6 +48,17 @@ log = logging.getLogger(__name__)
 
 LITE_FOLDER = "places.db"  #: the milvus-lite folder of ``MilvusPlaces`` in the state folder (``uri`` empty)
 MAX_LIMIT = 16_384  #: the most hits one Milvus search returns (Milvus's topk limit)
+
+
+def _appears(check: Any, seconds: float = 10.0) -> bool:
+    """Polls ``check()`` until it is true (another worker creating the same collection: milvus-lite makes its folder
+    before the collection is listed) or ``seconds`` pass."""
+    deadline = time.monotonic() + seconds
+    while not check():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.1)
+    return True
 
 
 class FleetPlaces:
@@ -261,7 +273,7 @@ class MilvusPlaces(FleetPlaces):
                 c.create_collection(name, schema=schema, index_params=index, consistency_level="Strong")
                 return
             except MilvusException:
-                if not c.has_collection(name):  # not a creation raced by another worker
+                if not _appears(lambda: c.has_collection(name)):  # not a creation raced by another worker
                     raise
         fields = {f["name"]: f for f in c.describe_collection(name)["fields"]}
         if tuple(sorted(fields)) != tuple(sorted(self.FIELDS)):

@@ -24,6 +24,7 @@ frame ids beside the faiss index, and a detector with a keyframe store saves it 
 
 from __future__ import annotations
 
+import bisect
 import json
 import logging
 import os
@@ -70,6 +71,9 @@ class CodeIndex:
     #: costs minutes at a million); an exact one (flat, fp16) is rebuilt from the store's codes as fast as a saved
     #: copy would load
     save_with_store = True
+    #: ``reconstruct`` gives back exactly the codes added (flat, fp16 for float16-rounded codes, HNSW's flat storage):
+    #: a place memory then reads its stored codes from the index instead of keeping a second copy
+    exact_codes = True
 
     def __init__(self, dim: int, conf: dict[str, Any] | None = None) -> None:
         self.conf = configure(self, conf, "index")
@@ -102,6 +106,13 @@ class CodeIndex:
         D, I = self.index.search(xq, k)
         D[I < 0] = -np.inf
         return D, I.astype(np.int64)
+
+    def reconstruct(self, positions: np.ndarray) -> np.ndarray:
+        """The stored codes at ``positions`` ``(n,)``: ``(n, d)`` float32 (exact where ``exact_codes``)."""
+        positions = np.asarray(positions, np.int64).reshape(-1)
+        if not len(positions):
+            return np.zeros((0, self.dim), np.float32)
+        return np.asarray(self.index.reconstruct_batch(positions), np.float32).reshape(len(positions), self.dim)
 
     def bytes_per_code(self) -> float:
         """Memory of the stored codes per vector (serialised index size / ntotal, at least one code)."""
@@ -336,8 +347,41 @@ class KeyframeIndex:
         """
         D, I = self.index.search(np.asarray(code, np.float32).reshape(1, -1), k)
         keep = I[0] >= 0
-        ids = np.asarray(self.frame_ids, np.int64)
-        return D[0][keep], ids[I[0][keep]] if len(ids) else np.zeros(0, np.int64)
+        return D[0][keep], np.array([self.frame_ids[i] for i in I[0][keep].tolist()], np.int64)  # O(k), not O(map)
+
+    def queued_ids(self) -> list[int]:
+        """Frame ids of the keyframes still queued (not searchable yet), oldest first."""
+        return [fid for fid, _, _ in self._queue._pending]
+
+    def _position(self, frame_id: int) -> int:
+        """The admitted keyframe's position in the index, -1 if not admitted (admitted in increasing frame order)."""
+        pos = bisect.bisect_left(self.frame_ids, frame_id)
+        return pos if pos < len(self.frame_ids) and self.frame_ids[pos] == frame_id else -1
+
+    def holds(self, frame_id: int) -> bool:
+        """True when the keyframe is queued or admitted."""
+        fid = int(frame_id)
+        return self._position(fid) >= 0 or any(q == fid for q, _, _ in self._queue._pending)
+
+    def codes(self, frame_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The codes of keyframes this index holds (queued or admitted; exact where ``CodeIndex.exact_codes``).
+
+        Returns:
+            ``found (n,)`` bool and ``codes (n, d)`` float32 (zeros where not found).
+        """
+        fids = np.asarray(frame_ids, np.int64).reshape(-1)
+        found, out = np.zeros(len(fids), bool), np.zeros((len(fids), self.index.dim), np.float32)
+        queued = {fid: code for fid, _, code in self._queue._pending} if len(self._queue) else {}
+        positions, rows = [], []
+        for row, fid in enumerate(fids.tolist()):
+            if fid in queued:
+                out[row], found[row] = queued[fid], True
+            elif (pos := self._position(fid)) >= 0:
+                positions.append(pos)
+                rows.append(row)
+        if rows:
+            out[rows], found[rows] = self.index.reconstruct(np.asarray(positions, np.int64)), True
+        return found, out
 
 
 class TrainedIndex(CodeIndex):
@@ -346,6 +390,7 @@ class TrainedIndex(CodeIndex):
     added to it from then on."""
 
     default_conf: dict[str, Any] = {"name": "trained", "train_size": 1000}
+    exact_codes = False  # quantised once trained
 
     def __init__(self, dim: int, conf: dict[str, Any] | None = None) -> None:
         self.exact = faiss.IndexFlatIP(dim)  # the codes stored before training
@@ -482,6 +527,14 @@ class AutoIndex(CodeIndex):
     @property
     def save_with_store(self) -> bool:  # type: ignore[override]
         return self.large is not None and self.large.save_with_store
+
+    @property
+    def exact_codes(self) -> bool:  # type: ignore[override]
+        """Both stages give back the codes exactly (decided before the switch: a memory relies on it all along)."""
+        return INDEXES.get(self.conf["small"]).exact_codes and INDEXES.get(self.conf["large"]).exact_codes
+
+    def reconstruct(self, positions: np.ndarray) -> np.ndarray:
+        return super().reconstruct(positions) if self.large is None else self.large.reconstruct(positions)
 
     @property
     def chosen(self) -> str:

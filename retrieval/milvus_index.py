@@ -88,6 +88,7 @@ class MilvusIndex(CodeIndex):
     conf_rules: dict[str, Any] = {"uri": Text(), "collection": Text(f"({COLLECTION_NAME})?"),
                                   "batch": Int(1, 100_000), "lite_buffer_kb": Int(16, 1_048_576)}
     save_with_store = False  # the collection lives in Milvus; a keyframe store's resume adds its codes again
+    exact_codes = False  # not read back from Milvus: a place memory keeps its own copy
 
     def __init__(self, dim: int, conf: dict[str, Any] | None = None) -> None:
         self.conf = configure(self, conf, "index")

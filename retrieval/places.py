@@ -103,7 +103,7 @@ class CodePlaces(Places):
         self.dim = dim = descriptor.dim if whitening is None else whitening.dim
         s, w = conf["search"], conf["whitening"]
         self.index = KeyframeIndex(dim, conf["index"], s["exclude_recent"], s["exclude_recent_s"])
-        self.source = CodeTable(dim, self._searchable, np.float16)  # entries are float16-rounded: kept exactly
+        self.source = self._table(dim)
         self._restored_to = -1  # keyframes up to this frame id came back in a saved index (restore_index)
         self._fit_at = stream_fit if whitening is None else None  # keyframes after which a stream fits its own
         self._fit_dim = min(w["dim"], (stream_fit or 0) // SAMPLES_PER_DIM, dim)
@@ -112,6 +112,13 @@ class CodePlaces(Places):
             raise ConfigError(f"whitening.stream_fit: a whitening of {self._fit_dim} dimensions fitted on "
                               f"{stream_fit} codes cannot shorten {dim}-d codes (its length must divide theirs): "
                               "change whitening.dim or whitening.stream_fit")
+
+    def _table(self, dim: int) -> "CodeTable | IndexedCodes":
+        """The similarity source: the index's own codes where it gives them back exactly (no second copy of every
+        code), else a table of its own (float16: the entries are float16-rounded, kept exactly)."""
+        if self.index.index.exact_codes:
+            return IndexedCodes(lambda: self.index, dim, self._searchable)
+        return CodeTable(dim, self._searchable, np.float16)
 
     def check(self, entry: np.ndarray) -> None:
         fitting = self._fit_at is not None and self.whitening is None  # raw codes until the stream's fit
@@ -148,6 +155,8 @@ class CodePlaces(Places):
     def insert(self, frame_id: int, entry: np.ndarray, timestamp: float | None) -> None:
         if frame_id > self._restored_to:  # else already in the index restore_index took back
             self.index.add(frame_id, entry, timestamp)
+        if isinstance(self.source, IndexedCodes):
+            self.source.inserted(frame_id)
         if self._fit_at is not None and self.whitening is None and len(self.source) >= self._fit_at:
             self._fit_stream()
 
@@ -157,10 +166,15 @@ class CodePlaces(Places):
         ids, codes = self.source.items()
         w = Whitening.fit(codes, self._fit_dim, self._shrink)
         white = (lambda x: np.asarray(w.transform(x), np.float16).astype(np.float32))  # as ``entry`` rounds
-        table = CodeTable(w.dim, self._searchable, np.float16)
-        for fid, code in zip(ids.tolist(), white(codes)):
-            table.add(fid, code)
+        recent = self.source.recent() if isinstance(self.source, IndexedCodes) else {}
         self.index = self.index.mapped(white, w.dim, lambda fids: codes[np.searchsorted(ids, fids)])
+        table = self._table(w.dim)
+        if isinstance(table, IndexedCodes):
+            for fid, code in recent.items():
+                table.add(fid, white(code[None])[0])
+        else:
+            for fid, code in zip(ids.tolist(), white(codes)):
+                table.add(fid, code)
         self.source, self.whitening, self.dim = table, w, w.dim
         log.info("stream whitening fitted on %d keyframes: codes %d -> %d dimensions", len(ids), codes.shape[1], w.dim)
 
@@ -179,6 +193,74 @@ class CodePlaces(Places):
 
     def __len__(self) -> int:
         return len(self.index)
+
+
+class IndexedCodes:
+    """A ``temporal.SimilaritySource`` over the codes a ``KeyframeIndex`` holds (queued or admitted: given back
+    exactly, ``CodeIndex.exact_codes``), plus the frames searched and not inserted yet: what a ``CodeTable`` gives,
+    without keeping every code a second time (a 4096-d float16 code is 8 kB a keyframe).
+
+    Args:
+        index: returns the memory's ``KeyframeIndex`` (it may replace it: a stream's whitening).
+        dim: code length.
+        searchable: which keyframes the current query may match.
+    """
+
+    def __init__(self, index: Any, dim: int, searchable: Any) -> None:
+        self.dim, self._index, self._searchable = dim, index, searchable
+        self._recent: OrderedDict[int, np.ndarray] = OrderedDict()  # searched, not inserted (yet): frame -> code
+
+    def add(self, frame_id: int, code: np.ndarray) -> None:
+        self._recent[int(frame_id)] = np.asarray(code, np.float32).reshape(-1)
+
+    def inserted(self, frame_id: int) -> None:
+        """The frame went into the index (queued): its code is read from there now."""
+        self._recent.pop(int(frame_id), None)
+
+    def remove_last(self, frame_id: int) -> None:
+        """Undoes the last ``add`` (of ``frame_id``), e.g. when the database refused the frame."""
+        if next(reversed(self._recent), None) == int(frame_id):
+            del self._recent[int(frame_id)]
+
+    def recent(self) -> dict[int, np.ndarray]:
+        """The frames searched and not inserted: ``{frame id: (dim,) code}``."""
+        return dict(self._recent)
+
+    def __len__(self) -> int:
+        return len(self._index()) + len(self._recent)
+
+    def __contains__(self, frame_id: int) -> bool:
+        return int(frame_id) in self._recent or self._index().holds(frame_id)
+
+    def _codes(self, frame_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``found (n,)`` and ``codes (n, dim)`` of ``frame_ids`` (the recent ones, then the index's)."""
+        fids = np.asarray(frame_ids, np.int64).reshape(-1)
+        uniq, back = np.unique(fids, return_inverse=True)
+        found, codes = self._index().codes(uniq)
+        for i, fid in enumerate(uniq.tolist()):
+            if fid in self._recent:
+                found[i], codes[i] = True, self._recent[fid]
+        return found[back], codes[back]
+
+    def items(self) -> tuple[np.ndarray, np.ndarray]:
+        """Frame ids ``(n,)`` int64 ascending and their codes ``(n, dim)`` float32."""
+        index = self._index()
+        ids = np.unique(np.asarray([*index.frame_ids, *index.queued_ids(), *self._recent], np.int64))
+        return ids, self._codes(ids)[1]
+
+    def pairs(self, queries: np.ndarray, refs: np.ndarray) -> np.ndarray:
+        q, r = np.asarray(queries, np.int64).reshape(-1), np.asarray(refs, np.int64).reshape(-1)
+        out = np.full(len(q), np.nan, np.float32)
+        if not len(q):
+            return out
+        found, codes = self._codes(np.concatenate([q, r]))
+        ok = found[:len(q)] & found[len(q):]
+        if ok.any():
+            out[ok] = np.einsum("ij,ij->i", codes[:len(q)][ok], codes[len(q):][ok])
+        return out
+
+    def searchable(self, refs: np.ndarray) -> np.ndarray:
+        return self._searchable(np.asarray(refs, np.int64))
 
 
 class RowTable:

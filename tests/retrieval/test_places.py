@@ -79,6 +79,39 @@ class TestCodePlaces:
             places.check(np.zeros((3, 32), np.uint8))
 
 
+    @pytest.mark.parametrize("index", [{"name": "auto"}, {"name": "flat"}, {"name": "hnsw"},
+                                       {"name": "auto", "switch_at": 8}])
+    def test_codes_read_back_from_the_index_as_a_table_keeps_them(self, encoder, sample_image, index):
+        """An index that gives its codes back exactly serves the similarities itself (no second copy): the same
+        pairs, membership and items as a memory that keeps a table (sq8), through searches, inserts and an undo."""
+        from retrieval.descriptors import CAEDescriptor
+        from retrieval.places import IndexedCodes
+        from retrieval.temporal import CodeTable
+
+        descriptor = CAEDescriptor(encoder=encoder)
+        codes = [descriptor(sample_image(i)) for i in range(0, 100, 5)]
+        memories = [create_places(descriptor, None, resolve_conf({"search": {"exclude_recent": 3}, "index": conf}))
+                    for conf in (index, {"name": "sq8"})]
+        assert isinstance(memories[0].source, IndexedCodes) and isinstance(memories[1].source, CodeTable)
+        for places in memories:
+            for n, code in enumerate(codes):
+                places.search(n, places.entry(code), None, k=3)
+                if n == 7:
+                    places.undo(n)  # searched, then not inserted after all
+                else:
+                    places.insert(n, places.entry(code), None)
+            places.search(len(codes), places.entry(codes[2]), None, k=3)  # a query not inserted (yet)
+        q, r = np.meshgrid(np.arange(-1, len(codes) + 2), np.arange(-1, len(codes) + 2))
+        got, want = (m.source.pairs(q.ravel(), r.ravel()) for m in memories)
+        np.testing.assert_array_equal(got, want)  # NaN where either frame is not held (7, -1, past the end)
+        assert np.isnan(got).sum() > 0 and np.isfinite(got).sum() > 100
+        assert [i in memories[0].source for i in range(-1, 23)] == [i in memories[1].source for i in range(-1, 23)]
+        assert len(memories[0].source) == len(memories[1].source) == len(codes)
+        for a, b in zip(memories[0].source.items(), memories[1].source.items()):
+            np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(memories[0].source.searchable(np.arange(22)),
+                                      memories[1].source.searchable(np.arange(22)))
+
     def test_a_milvus_memory_answers_like_faiss(self, encoder, sample_image, tmp_path):
         """The place memory on a Milvus index (milvus-lite file): the same candidates and scores as on faiss."""
         from retrieval.descriptors import CAEDescriptor

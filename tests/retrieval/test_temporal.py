@@ -171,4 +171,5 @@ class TestCodeTable:
         q, r = np.array([5, 5, 4, 1]), np.array([0, 1, 2, 3])
         np.testing.assert_array_equal(tables[np.float16].pairs(q, r), tables[np.float32].pairs(q, r))
         assert tables[np.float16]._codes.nbytes * 2 == tables[np.float32]._codes.nbytes
-        assert places.source._codes.dtype == np.float16  # the detector's place memory keeps them so
+        sq8 = create_places(descriptor, None, resolve_conf({"index": {"name": "sq8"}}))
+        assert sq8.source._codes.dtype == np.float16  # a memory whose index cannot give them back keeps them so
