@@ -26,6 +26,7 @@ import math
 import threading
 import time
 from collections import OrderedDict
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -120,6 +121,9 @@ default_conf: dict[str, Any] = {
         #                          either way. On a quiet 2-core machine one frame at a time through the API takes
         #                          27 ms with it, 37 without; on 2 cores fully taken by other work it lost
         #                          (BENCHMARKS.md, issue 18): off there
+        "verify_worker": True,  # a second thread verifies beside the main one: half of a frame's matching, and the
+        #                         geometric checks of its candidates taken in turn (OpenCV and torch release the GIL;
+        #                         the same results: ``Verifier.verify``)
         "flush_every": 256,  # frames moved from the database's write-ahead log into its columns at a time (each
         #                    frame is logged as it is stored: a killed run loses nothing whatever this is)
         "features": "memory",  # keyframe features for verification: "memory" (all), "database" (bounded memory);
@@ -146,7 +150,7 @@ conf_rules: dict[str, Any] = {
                     "null_pairs": Int(10, 100_000), "min_features": Int(0), "min_inliers": Int(8),
                     "verification": Choice("auto", "on", "off"), "max_frames": Int(100)},
     "runtime": {"threads": Int(1, 1024, optional=True), "lazy_features": Bool(), "feature_worker": Bool(),
-                "flush_every": Int(1), "features": Choice("memory", "database", "image"),
+                "verify_worker": Bool(), "flush_every": Int(1), "features": Choice("memory", "database", "image"),
                 "image_quality": Int(1, 100, optional=True), "feature_cache": Int(1)},
 }
 
@@ -305,6 +309,8 @@ class LoopDetector:
             self.db = KeyframeDatabase(database, persisted, identity, c["runtime"]["flush_every"])
         self._jobs = FeatureJobs(functools.partial(create_extractor, c["features"]), c["runtime"]["feature_cache"]) \
             if c["runtime"]["feature_worker"] and self._verify and not self.descriptor.needs_features else None
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="verify") \
+            if c["runtime"]["verify_worker"] and self._verify else None
         self._wanted = False  # whether the previous frame's query needed its local features
         self.features = FeatureStore(self.db if c["runtime"]["features"] in ("database", "image") else None,
                                      c["runtime"]["feature_cache"])  # features kept (not ``_unextracted``)
@@ -610,23 +616,29 @@ class LoopDetector:
             feats = self._given.pop(fid, None)
         if feats is None and self._jobs is not None:
             self._jobs.submit(fid, functools.partial(_own_features, prep), urgent=True)  # unless started already
+        self._queue_copies([candidates[i].frame_id for i in todo])  # the worker takes the next one, after the query
         refs = [self._features_of(candidates[i].frame_id) for i in todo]
         if feats is None:
             feats = self._own(fid, prep)
         ms["features"] += (time.perf_counter() - t0) * 1e3
         self._prefetch([candidates[i].frame_id for i in todo])
         done = self.verifier.verify(feats, refs, self.K, c["policy"]["min_matches"], self._min_inliers,
-                                    c["policy"]["check_all"])
+                                    c["policy"]["check_all"], self._pool)
         for i, check in zip(todo, done):
             checks[i] = check
         return feats, checks
 
     def _prefetch(self, verified: list[int]) -> None:
         """Queues in the worker the features of the keyframes just after ``verified`` ones (the next frames' likely
-        candidates on a revisit), where they are not kept and come from a grey copy (read here, in this thread)."""
+        candidates on a revisit)."""
+        self._queue_copies(sorted({f + d for f in verified for d in (1, 2)}))
+
+    def _queue_copies(self, fids: list[int]) -> None:
+        """Queues in the worker, in this order, the features of the keyframes ``fids`` that are not kept and come
+        from a grey copy (read here, in this thread); a job this thread takes first it runs itself (``take``)."""
         if self._jobs is None or self._frame_source is not None:
             return
-        for nxt in sorted({f + d for f in verified for d in (1, 2)}):
+        for nxt in fids:
             if nxt in self._unextracted and nxt not in self._late and nxt not in self._given and nxt not in self._jobs:
                 copy = self._copy_of(nxt)
                 if copy:
@@ -722,6 +734,9 @@ class LoopDetector:
         if self._jobs is not None:
             self._jobs.close()
             self._jobs = None
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None
         if self.db is not None:
             self._save_index(self.db)
             self.db.close()
