@@ -7,9 +7,9 @@ before this change, quiet and beside a busy neighbour, all side by side in one r
 1. quiet: one SIFT extraction at 512 px on every frame (the yardstick); ``cae-lcd detect`` with this code and with
    the code at ``--before`` (a ``git archive`` of that revision, run from a temporary folder), each in a fresh
    process (peak RSS is that process's own); the one-frame-at-a-time Python API (``LoopDetector.process``, the
-   run's calibration, frames read beforehand): with and without the feature worker thread
-   (``runtime.feature_worker``), back to back and fed at the sequence's camera rate (the latency a SLAM system sees:
-   the next frame comes when its timestamp says, gaps capped at 1 s);
+   run's calibration, frames read beforehand): with the worker threads (``runtime.feature_worker`` and
+   ``runtime.verify_worker``, the defaults) and without either, back to back and fed at the sequence's camera rate
+   (the latency a SLAM system sees: the next frame comes when its timestamp says, gaps capped at 1 s);
 2. beside a busy neighbour (a process multiplying matrices with 2 torch threads, as a SLAM system's threads
    would): the yardstick and ``detect`` again (``--before-under-load`` also runs the old code there: slow).
 
@@ -50,6 +50,7 @@ log = logging.getLogger(__name__)
 
 REPO = Path(__file__).resolve().parents[1]
 MARK = "frame_time"
+YARDSTICK_PX = 512  #: the yardstick's SIFT: the longer side in pixels (the default before issue 18's fifth round)
 
 _CHILD = """
 import json, resource, sys, time
@@ -74,8 +75,9 @@ while True:
 
 
 def sift_yardstick(images: list[np.ndarray]) -> float:
-    """Median ms of one default SIFT extraction (512 px) over ``images`` (one warm-up first)."""
-    sift = SIFT()
+    """Median ms of one SIFT extraction at 512 px (the issue's yardstick; the default now runs at 384) over ``images``
+    (one warm-up first)."""
+    sift = SIFT({"resize_max": YARDSTICK_PX})
     sift.extract(images[0])
     times = []
     for image in images:
@@ -98,12 +100,15 @@ def detect_in_process(code_root: Path, sequence: Path, out: Path, conf: dict[str
     return summary
 
 
+_WORKERS = {"runtime": {"feature_worker": True, "verify_worker": True}}  # the defaults
+_NO_WORKER = {"runtime": {"feature_worker": False, "verify_worker": False}}
 API_RUNS = {  #: the API passes, by name: detector conf and whether frames come at the camera rate
-    "back to back, feature worker": ({"runtime": {"feature_worker": True}}, False),
-    "back to back, no feature worker": ({"runtime": {"feature_worker": False}}, False),
-    "at the camera rate, feature worker": ({"runtime": {"feature_worker": True}}, True),
-    "at the camera rate, no feature worker": ({"runtime": {"feature_worker": False}}, True),
+    "back to back, workers": (_WORKERS, False),
+    "back to back, no worker": (_NO_WORKER, False),
+    "at the camera rate, workers": (_WORKERS, True),
+    "at the camera rate, no worker": (_NO_WORKER, True),
 }
+REVISIT_STAGES = ("gate", "encode", "features", "verify")  #: stages whose median over the second half is reported
 
 
 def api_per_frame(images: list[np.ndarray], K: np.ndarray, calibration: Calibration | None,
@@ -137,7 +142,9 @@ def _api_pass(images: list[np.ndarray], K: np.ndarray, calibration: Calibration 
     half = len(total) // 2
     return {"median": float(np.median(total)), "p90": float(np.percentile(total, 90)),
             "first_half": float(np.median(total[:half])), "second_half": float(np.median(total[half:])),
-            "loops": float(sum(r.loop is not None for r in results))}
+            "loops": float(sum(r.loop is not None for r in results)),
+            **{f"second_half_{stage}": float(np.median([r.ms.get(stage, 0.0) for r in results[half:]]))
+               for stage in REVISIT_STAGES}}
 
 
 def api_only(sequence: Path, calibration: Path | None, rounds: int, out: Path) -> dict[str, Any]:
@@ -155,8 +162,8 @@ def api_only(sequence: Path, calibration: Path | None, rounds: int, out: Path) -
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(res, indent=1, default=str))
     for name, a in res["api"].items():
-        log.info("%s: median %.1f ms (first half %.1f, second half %.1f), p90 %.1f, %d loops", name, a["median"],
-                 a["first_half"], a["second_half"], a["p90"], a["loops"])
+        log.info("%s: median %.1f ms (first half %.1f, second half %.1f%s), p90 %.1f, %d loops", name, a["median"],
+                 a["first_half"], a["second_half"], _stages(a), a["p90"], a["loops"])
     return res
 
 
@@ -236,7 +243,7 @@ def report(res: dict[str, Any]) -> str:
              "- One frame at a time through the Python API (`LoopDetector.process`, the run's calibration, frames "
              "already in memory): " + "; ".join(
                  f"{name}: median {a['median']:.1f} ms (first half of the frames {a['first_half']:.1f}, second half, "
-                 f"the revisits, {a['second_half']:.1f}), p90 {a['p90']:.1f} ms, {a['loops']:.0f} loops"
+                 f"the revisits, {a['second_half']:.1f}{_stages(a)}), p90 {a['p90']:.1f} ms, {a['loops']:.0f} loops"
                  for name, a in _api_runs(q["api"]).items()) + ".",
              "- What the per-frame median counts: the frame's own stages (gate to insert) once the calibration has "
              "run; the work the calibration did on the run's behalf (every frame decoded and encoded in batches, "
@@ -259,6 +266,12 @@ def report(res: dict[str, Any]) -> str:
                      f"{old_q['ms_per_frame']['total']['median'] / new_q:.1f}x, wall time "
                      f"{old_q['wall_s'] / q['new']['wall_s']:.1f}x; loops.csv identical: {res['same_loops']}.")
     return table + "\n\n" + "\n".join(lines)
+
+
+def _stages(a: dict[str, float]) -> str:
+    """``": gate 1.9, encode 6.8, ..."``: the second half's stage medians of an API pass ("" in an older JSON)."""
+    stages = [f"{stage} {a[f'second_half_{stage}']:.1f}" for stage in REVISIT_STAGES if f"second_half_{stage}" in a]
+    return ": " + ", ".join(stages) if stages else ""
 
 
 def _api_runs(api: dict[str, Any]) -> dict[str, dict[str, float]]:

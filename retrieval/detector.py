@@ -46,7 +46,7 @@ from verify.geometry import GeometricVerifier
 from verify.verifier import MATCHERS, Verification, create_verifier
 
 from .database import CANDIDATE_ROW, FeatureStore, KeyframeDatabase, KeyframeRecord
-from .calibrate import Calibration
+from .calibrate import Calibration, calibrated_features
 from .descriptors import DESCRIPTORS, GlobalDescriptor, create_descriptor
 from .feature_jobs import FeatureJobs, grey_copy, read_grey_copy
 from .index import INDEXES
@@ -99,6 +99,11 @@ default_conf: dict[str, Any] = {
         "min_inliers": 12,  # floor of the calibrated inlier threshold (a 7-point model always fits 7)
         "verification": "auto",  # "auto": used when features suffice; "on": always; "off": global + temporal only
         "max_frames": 2000,  # frames the calibration reads at most (blocks spread over longer sequences)
+        "features_px": 384,  # calibrated: local features downscaled to this longer side (px) instead of
+        #                      features.resize_max (which the fixed policy keeps: its min_inliers was chosen at 512;
+        #                      an extractor at full resolution stays so), the calibration's and the run's: 0.6x the
+        #                      time of 512 px with the same precision and recall on every shared set (BENCHMARKS.md,
+        #                      issue 18); None: features.resize_max
     },
     "policy": {  # the acceptance rule when not calibrated (calibration.enabled: false, or no calibration given)
         "verify": True,  # check candidates with local features and geometry; False: the scores alone decide (MILD)
@@ -148,7 +153,8 @@ conf_rules: dict[str, Any] = {
                   "shrink": Float(0, 100), "skip_still": Bool(), "stream_fit": Int(32, optional=True)},
     "calibration": {"enabled": Bool(), "expected_false_loops": Float(0, 100, lo_open=True),
                     "null_pairs": Int(10, 100_000), "min_features": Int(0), "min_inliers": Int(8),
-                    "verification": Choice("auto", "on", "off"), "max_frames": Int(100)},
+                    "verification": Choice("auto", "on", "off"), "max_frames": Int(100),
+                    "features_px": Int(16, optional=True)},
     "runtime": {"threads": Int(1, 1024, optional=True), "lazy_features": Bool(), "feature_worker": Bool(),
                 "verify_worker": Bool(), "flush_every": Int(1), "features": Choice("memory", "database", "image"),
                 "image_quality": Int(1, 100, optional=True), "feature_cache": Int(1)},
@@ -284,7 +290,11 @@ class LoopDetector:
         if self.whitening is not None and self.whitening.input_dim != self.descriptor.dim:
             raise ConfigError(f"the whitening expects {self.whitening.input_dim}-d codes; the descriptor gives "
                               f"{self.descriptor.dim}-d ones")
-        self.extractor = create_extractor(c["features"])
+        fconf = c["features"] if self.calibration is None else calibrated_features(c)
+        if self.calibration is not None and self.calibration.features and self.calibration.features != fconf:
+            raise ConfigError(f"the calibration was made on local features {self.calibration.features}; this run "
+                              f"extracts {fconf} (features, calibration.features_px): calibrate again")
+        self.extractor = create_extractor(fconf)
         self.verifier = create_verifier(c["matcher"], c["geometry"])
         self.verifier.geometry.model_for(self.K)  # fail now, not at the first loop, if E is asked without K
         stream_fit = c["whitening"]["stream_fit"] if self.whitening is None and c["whitening"]["enabled"] \
@@ -307,7 +317,7 @@ class LoopDetector:
             identity = self.descriptor.identity + ("" if self.calibration is None else
                                                    " calibration " + self.calibration.identity())
             self.db = KeyframeDatabase(database, persisted, identity, c["runtime"]["flush_every"])
-        self._jobs = FeatureJobs(functools.partial(create_extractor, c["features"]), c["runtime"]["feature_cache"]) \
+        self._jobs = FeatureJobs(functools.partial(create_extractor, fconf), c["runtime"]["feature_cache"]) \
             if c["runtime"]["feature_worker"] and self._verify and not self.descriptor.needs_features else None
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="verify") \
             if c["runtime"]["verify_worker"] and self._verify else None
