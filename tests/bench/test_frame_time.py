@@ -63,7 +63,8 @@ def test_api_passes_interleaved(sample_seq, sample_image, monkeypatch):
 
     monkeypatch.setattr(ft, "API_RUNS", {"back to back": ({}, False), "paced": ({}, True)})
     images = [sample_image(i) for i in range(3)]
-    out = ft.api_per_frame(images, sample_seq.K, None, np.array([0.0, 0.05, 0.1]), rounds=2)
-    assert set(out) == {"back to back", "paced"}
+    out = ft.api_per_frame(images, sample_seq.K, None, np.array([0.0, 0.05, 0.1]), rounds=2,
+                           extra={"512 px": ({"calibration": {"features_px": None}}, False, None)})
+    assert set(out) == {"back to back", "paced", "512 px"}
     assert all(a["median"] > 0 and a["loops"] == 0 and set(a) >= {"p90", "first_half", "second_half"}
                and a["second_half_encode"] > 0 for a in out.values())
