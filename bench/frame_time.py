@@ -161,8 +161,8 @@ def api_only(sequence: Path, calibration: Path | None, rounds: int, out: Path,
              calibration_512: Path | None = None) -> dict[str, Any]:
     """The API passes alone (``--api-only``): with the calibration given, else one made by ``detect`` first; the
     passes and the system into ``out`` (JSON), one line a pass in the log; BENCHMARKS.md is not touched.
-    ``calibration_512``: a calibration made on 512-px features (``calibration.features_px: null``, or by the code
-    before issue 18's fifth round), for the passes of ``BEFORE_RUNS`` beside the others."""
+    ``calibration_512``: a calibration made on 512-px features (``detect`` with ``calibration.features_px: null``),
+    for the passes of ``BEFORE_RUNS`` beside the others."""
     seq = open_sequence(sequence)
     images = [read_image(p) for p in seq.frames]
     with tempfile.TemporaryDirectory(prefix="frame_time_api_") as tmp:

@@ -89,7 +89,7 @@ __all__ = ["Calibration", "TooFewFrames", "CALIBRATION_FORMAT", "calibrate", "ca
 
 log = logging.getLogger(__name__)
 
-CALIBRATION_FORMAT = 2  #: ``format_version`` of calibration.h5
+CALIBRATION_FORMAT = 3  #: ``format_version`` of calibration.h5 (3: the local features it was made on recorded)
 STILL_COS = 0.999  #: raw codes of adjacent frames this alike: the camera stood still (one place: not a null pair,
 #                     weighed once by the whitening, matched only to a stop as long)
 PROBE = 4  #: one sampled query in this many is looked at first: are there local features enough to verify?
@@ -140,7 +140,7 @@ class Calibration:
     seconds: dict[str, float] = field(default_factory=dict)
     spans: dict[str, Any] = field(default_factory=dict)
     features: dict[str, Any] = field(default_factory=dict)  #: the local features' conf it was made with (empty:
-    #                                                          an older calibration.h5, not recorded)
+    #                                                          not recorded: made in memory by hand)
 
     @property
     def path(self) -> str:

@@ -95,6 +95,16 @@ class TestCalibrationMath:
         again = Calibration.load(tmp_path / "c.h5")
         assert again.features == cal.features and again.identity() == cal.identity() != back.identity()
 
+    def test_older_format_refused(self, tmp_path):
+        """A calibration.h5 of format 2 does not say which local features its thresholds were calibrated on."""
+        import h5py
+
+        self.cal().save(tmp_path / "c.h5")
+        with h5py.File(tmp_path / "c.h5", "a") as h5:
+            h5.attrs["format_version"] = 2
+        with pytest.raises(ConfigError, match="format_version 2.*calibrate again"):
+            Calibration.load(tmp_path / "c.h5")
+
     def test_damaged_file(self, tmp_path):
         (tmp_path / "c.h5").write_bytes(b"not hdf5")
         with pytest.raises(DatabaseError, match="damaged"):
