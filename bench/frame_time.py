@@ -2,14 +2,15 @@
 before this change, quiet and beside a busy neighbour, all side by side in one run.
 
 ``python -m bench.frame_time [--sequence ../shared/datasets/kitti/sequences/90] [--before REV]`` runs, in this order
-(``--api-only [--rounds 2] [--calibration PATH]``: the API passes alone, interleaved):
+(``--api-only [--rounds 2] [--calibration PATH] [--calibration-512 PATH]``: the API passes alone, interleaved; with
+a calibration made on 512-px SIFT also the passes at 512 px, ``BEFORE_RUNS``):
 
 1. quiet: one SIFT extraction at 512 px on every frame (the yardstick); ``cae-lcd detect`` with this code and with
    the code at ``--before`` (a ``git archive`` of that revision, run from a temporary folder), each in a fresh
    process (peak RSS is that process's own); the one-frame-at-a-time Python API (``LoopDetector.process``, the
-   run's calibration, frames read beforehand): with and without the feature worker thread
-   (``runtime.feature_worker``), back to back and fed at the sequence's camera rate (the latency a SLAM system sees:
-   the next frame comes when its timestamp says, gaps capped at 1 s);
+   run's calibration, frames read beforehand): with the worker threads (``runtime.feature_worker`` and
+   ``runtime.verify_worker``, the defaults) and without either, back to back and fed at the sequence's camera rate
+   (the latency a SLAM system sees: the next frame comes when its timestamp says, gaps capped at 1 s);
 2. beside a busy neighbour (a process multiplying matrices with 2 torch threads, as a SLAM system's threads
    would): the yardstick and ``detect`` again (``--before-under-load`` also runs the old code there: slow).
 
@@ -50,6 +51,7 @@ log = logging.getLogger(__name__)
 
 REPO = Path(__file__).resolve().parents[1]
 MARK = "frame_time"
+YARDSTICK_PX = 512  #: the yardstick's SIFT: the longer side in pixels (the default before issue 18's fifth round)
 
 _CHILD = """
 import json, resource, sys, time
@@ -74,8 +76,9 @@ while True:
 
 
 def sift_yardstick(images: list[np.ndarray]) -> float:
-    """Median ms of one default SIFT extraction (512 px) over ``images`` (one warm-up first)."""
-    sift = SIFT()
+    """Median ms of one SIFT extraction at 512 px (the issue's yardstick; the default now runs at 384) over ``images``
+    (one warm-up first)."""
+    sift = SIFT({"resize_max": YARDSTICK_PX})
     sift.extract(images[0])
     times = []
     for image in images:
@@ -98,27 +101,39 @@ def detect_in_process(code_root: Path, sequence: Path, out: Path, conf: dict[str
     return summary
 
 
+_WORKERS = {"runtime": {"feature_worker": True, "verify_worker": True}}  # the defaults
+_NO_WORKER = {"runtime": {"feature_worker": False, "verify_worker": False}}
 API_RUNS = {  #: the API passes, by name: detector conf and whether frames come at the camera rate
-    "back to back, feature worker": ({"runtime": {"feature_worker": True}}, False),
-    "back to back, no feature worker": ({"runtime": {"feature_worker": False}}, False),
-    "at the camera rate, feature worker": ({"runtime": {"feature_worker": True}}, True),
-    "at the camera rate, no feature worker": ({"runtime": {"feature_worker": False}}, True),
+    "back to back, workers": (_WORKERS, False),
+    "back to back, no worker": (_NO_WORKER, False),
+    "at the camera rate, workers": (_WORKERS, True),
+    "at the camera rate, no worker": (_NO_WORKER, True),
 }
+BEFORE_RUNS = {  #: ``--calibration-512``: SIFT at 512 px, with both workers and as the fourth round's default
+    "back to back, 512 px, workers": ({"calibration": {"features_px": None}, "runtime": _WORKERS["runtime"]}, False),
+    "back to back, 512 px, feature worker only (the fourth round's default)": (
+        {"calibration": {"features_px": None}, "runtime": {"feature_worker": True, "verify_worker": False}}, False),
+}
+REVISIT_STAGES = ("gate", "encode", "features", "verify")  #: stages whose median over the second half is reported
 
 
 def api_per_frame(images: list[np.ndarray], K: np.ndarray, calibration: Calibration | None,
-                  timestamps: np.ndarray | None = None, rounds: int = 1) -> dict[str, dict[str, float]]:
+                  timestamps: np.ndarray | None = None, rounds: int = 1,
+                  extra: dict[str, tuple[dict[str, Any], bool, Calibration]] | None = None
+                  ) -> dict[str, dict[str, float]]:
     """``LoopDetector.process`` one frame at a time (in memory, lazy features kept as lossless copies), each pass of
     ``API_RUNS``, the passes interleaved ``rounds`` times (a loaded machine drifts): per pass, the median over the
     rounds of its median and p90 ms of ``ms["total"]``, of the medians of the first and second halves of the
     frames, and the loops found. At the camera rate frame ``i`` is given ``timestamps[i] - timestamps[i - 1]``
-    seconds (at most 1) after frame ``i - 1`` was (a pass without timestamps: 0.1 s)."""
+    seconds (at most 1) after frame ``i - 1`` was (a pass without timestamps: 0.1 s). ``extra``: more passes, by
+    name, interleaved with them, each ``(conf, paced, its own calibration)``."""
+    passes = {name: (conf, paced, calibration) for name, (conf, paced) in API_RUNS.items()} | (extra or {})
     gaps = np.minimum(np.diff(timestamps), 1.0) if timestamps is not None and len(timestamps) == len(images) \
         else np.full(max(len(images) - 1, 0), 0.1)
-    runs: dict[str, list[dict[str, float]]] = {name: [] for name in API_RUNS}
+    runs: dict[str, list[dict[str, float]]] = {name: [] for name in passes}
     for _ in range(max(1, rounds)):
-        for name, (conf, paced) in API_RUNS.items():
-            runs[name].append(_api_pass(images, K, calibration, conf, gaps if paced else None))
+        for name, (conf, paced, cal) in passes.items():
+            runs[name].append(_api_pass(images, K, cal, conf, gaps if paced else None))
     return {name: {key: float(np.median([r[key] for r in done])) for key in done[0]} for name, done in runs.items()}
 
 
@@ -137,12 +152,17 @@ def _api_pass(images: list[np.ndarray], K: np.ndarray, calibration: Calibration 
     half = len(total) // 2
     return {"median": float(np.median(total)), "p90": float(np.percentile(total, 90)),
             "first_half": float(np.median(total[:half])), "second_half": float(np.median(total[half:])),
-            "loops": float(sum(r.loop is not None for r in results))}
+            "loops": float(sum(r.loop is not None for r in results)),
+            **{f"second_half_{stage}": float(np.median([r.ms.get(stage, 0.0) for r in results[half:]]))
+               for stage in REVISIT_STAGES}}
 
 
-def api_only(sequence: Path, calibration: Path | None, rounds: int, out: Path) -> dict[str, Any]:
+def api_only(sequence: Path, calibration: Path | None, rounds: int, out: Path,
+             calibration_512: Path | None = None) -> dict[str, Any]:
     """The API passes alone (``--api-only``): with the calibration given, else one made by ``detect`` first; the
-    passes and the system into ``out`` (JSON), one line a pass in the log; BENCHMARKS.md is not touched."""
+    passes and the system into ``out`` (JSON), one line a pass in the log; BENCHMARKS.md is not touched.
+    ``calibration_512``: a calibration made on 512-px features (``detect`` with ``calibration.features_px: null``),
+    for the passes of ``BEFORE_RUNS`` beside the others."""
     seq = open_sequence(sequence)
     images = [read_image(p) for p in seq.frames]
     with tempfile.TemporaryDirectory(prefix="frame_time_api_") as tmp:
@@ -150,13 +170,15 @@ def api_only(sequence: Path, calibration: Path | None, rounds: int, out: Path) -
             detect_in_process(REPO, sequence, Path(tmp) / "run")
             calibration = Path(tmp) / "run" / "calibration.h5"
         cal = Calibration.load(calibration)
+    extra = {} if calibration_512 is None else \
+        {name: (conf, paced, Calibration.load(calibration_512)) for name, (conf, paced) in BEFORE_RUNS.items()}
     res = {"sequence": str(sequence), "system": system_info(), "rounds": rounds,
-           "api": api_per_frame(images, seq.K, cal, getattr(seq, "timestamps", None), rounds)}
+           "api": api_per_frame(images, seq.K, cal, getattr(seq, "timestamps", None), rounds, extra)}
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(res, indent=1, default=str))
     for name, a in res["api"].items():
-        log.info("%s: median %.1f ms (first half %.1f, second half %.1f), p90 %.1f, %d loops", name, a["median"],
-                 a["first_half"], a["second_half"], a["p90"], a["loops"])
+        log.info("%s: median %.1f ms (first half %.1f, second half %.1f%s), p90 %.1f, %d loops", name, a["median"],
+                 a["first_half"], a["second_half"], _stages(a), a["p90"], a["loops"])
     return res
 
 
@@ -236,7 +258,7 @@ def report(res: dict[str, Any]) -> str:
              "- One frame at a time through the Python API (`LoopDetector.process`, the run's calibration, frames "
              "already in memory): " + "; ".join(
                  f"{name}: median {a['median']:.1f} ms (first half of the frames {a['first_half']:.1f}, second half, "
-                 f"the revisits, {a['second_half']:.1f}), p90 {a['p90']:.1f} ms, {a['loops']:.0f} loops"
+                 f"the revisits, {a['second_half']:.1f}{_stages(a)}), p90 {a['p90']:.1f} ms, {a['loops']:.0f} loops"
                  for name, a in _api_runs(q["api"]).items()) + ".",
              "- What the per-frame median counts: the frame's own stages (gate to insert) once the calibration has "
              "run; the work the calibration did on the run's behalf (every frame decoded and encoded in batches, "
@@ -259,6 +281,12 @@ def report(res: dict[str, Any]) -> str:
                      f"{old_q['ms_per_frame']['total']['median'] / new_q:.1f}x, wall time "
                      f"{old_q['wall_s'] / q['new']['wall_s']:.1f}x; loops.csv identical: {res['same_loops']}.")
     return table + "\n\n" + "\n".join(lines)
+
+
+def _stages(a: dict[str, float]) -> str:
+    """``": gate 1.9, encode 6.8, ..."``: the second half's stage medians of an API pass ("" in an older JSON)."""
+    stages = [f"{stage} {a[f'second_half_{stage}']:.1f}" for stage in REVISIT_STAGES if f"second_half_{stage}" in a]
+    return ": " + ", ".join(stages) if stages else ""
 
 
 def _api_runs(api: dict[str, Any]) -> dict[str, dict[str, float]]:
@@ -292,10 +320,13 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                    "runs/bench/frame_time_api.json; BENCHMARKS.md untouched)")
     p.add_argument("--rounds", type=int, default=2, help="--api-only: rounds of the interleaved API passes")
     p.add_argument("--calibration", type=Path, help="--api-only: a calibration.h5 for the sequence (else made first)")
+    p.add_argument("--calibration-512", type=Path, help="--api-only: a calibration.h5 made on 512-px SIFT "
+                   "(detect with calibration.features_px null): adds the passes at 512 px beside the others")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     if args.api_only:
-        return api_only(args.sequence, args.calibration, args.rounds, REPO / "runs/bench/frame_time_api.json")
+        return api_only(args.sequence, args.calibration, args.rounds, REPO / "runs/bench/frame_time_api.json",
+                        args.calibration_512)
     if args.from_json:
         res = json.loads(args.json.read_text())
         write_section(args.out, report(res))

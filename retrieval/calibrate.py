@@ -84,11 +84,12 @@ from .decision import SPAN, TOL, Decision, Horizon, ScoreSpans, Stops, TailModel
 from .descriptors import GlobalDescriptor
 from .temporal import CodeTable, NoFilter, SequenceFilter, TemporalFilter
 
-__all__ = ["Calibration", "TooFewFrames", "CALIBRATION_FORMAT", "calibrate", "calibration_frames"]
+__all__ = ["Calibration", "TooFewFrames", "CALIBRATION_FORMAT", "calibrate", "calibrated_features",
+           "calibration_frames"]
 
 log = logging.getLogger(__name__)
 
-CALIBRATION_FORMAT = 2  #: ``format_version`` of calibration.h5
+CALIBRATION_FORMAT = 3  #: ``format_version`` of calibration.h5 (3: the local features it was made on recorded)
 STILL_COS = 0.999  #: raw codes of adjacent frames this alike: the camera stood still (one place: not a null pair,
 #                     weighed once by the whitening, matched only to a stop as long)
 PROBE = 4  #: one sampled query in this many is looked at first: are there local features enough to verify?
@@ -117,6 +118,8 @@ class Calibration:
             camera stood still (``retrieval.decision``; a calibration.h5 without it: no stop rule).
         samples: the measured distributions, by name (``random_inliers``, ``hard_inliers``, ``positive_inliers``,
             ``hard_fused``, ``positive_fused``, ``adjacent_cos``): saved in ``calibration.h5`` under ``samples/``.
+        features: the conf of the local features its inlier thresholds were calibrated on
+            (``calibrated_features``); a run extracting other ones refuses it (empty: not recorded).
         spans: the score path's fused windows, ``{"window": frames, "nulls": [[median, sigma], ...]}`` (one null per
             number of windows fused, ``retrieval.decision.ScoreSpans``); empty = one window decides.
         seconds: wall time of a fresh calibration, ``{"own": s, "shared": s}``: its own work (edge ratios, whitening,
@@ -136,6 +139,8 @@ class Calibration:
     samples: dict[str, np.ndarray] = field(default_factory=dict)
     seconds: dict[str, float] = field(default_factory=dict)
     spans: dict[str, Any] = field(default_factory=dict)
+    features: dict[str, Any] = field(default_factory=dict)  #: the local features' conf it was made with (empty:
+    #                                                          not recorded: made in memory by hand)
 
     @property
     def path(self) -> str:
@@ -209,8 +214,9 @@ class Calibration:
     def identity(self) -> str:
         """A short text that changes when any choice changes (stored in the keyframe database)."""
         body = json.dumps([self.edge_reference, self.score_null, self.inlier_null, self.tests,
-                           self.expected_false_loops, self.fused] + ([self.spans] if self.spans else []),
-                          sort_keys=True)  # without spans: the identity an earlier calibration.h5 had
+                           self.expected_false_loops, self.fused] + ([self.spans] if self.spans else [])
+                          + ([self.features] if self.features else []),
+                          sort_keys=True)  # without spans or features: the identity an earlier calibration.h5 had
         h = hashlib.sha256(body.encode() + (self.whitening.identity().encode() if self.whitening else b""))
         return h.hexdigest()[:16]
 
@@ -219,7 +225,7 @@ class Calibration:
         meta = {"edge_reference": self.edge_reference, "score_null": self.score_null,
                 "inlier_null": self.inlier_null, "tests": self.tests,
                 "expected_false_loops": self.expected_false_loops, "notes": self.notes, "descriptor": self.descriptor,
-                "fused": self.fused, "spans": self.spans}
+                "fused": self.fused, "spans": self.spans, "features": self.features}
         with atomic_write(path, "wb") as f:
             with h5py.File(f, "w") as h5:
                 h5.attrs["format_version"] = CALIBRATION_FORMAT
@@ -257,7 +263,8 @@ class Calibration:
                                 "move it away to calibrate again") from None
         return cls(meta["edge_reference"], white, meta["score_null"], meta["inlier_null"], meta["tests"],
                    meta["expected_false_loops"], list(meta["notes"]), str(meta.get("descriptor", "")),
-                   dict(meta.get("fused", {})), samples, spans=dict(meta.get("spans", {})))
+                   dict(meta.get("fused", {})), samples, spans=dict(meta.get("spans", {})),
+                   features=dict(meta.get("features", {})))
 
 
 class TooFewFrames(ConfigError):
@@ -334,6 +341,15 @@ def _tail_fit(values: np.ndarray) -> tuple[float, float, float]:
     return float(q50), float(q90), float(q90 - q50)
 
 
+def calibrated_features(conf: dict[str, Any]) -> dict[str, Any]:
+    """The local features' conf of a calibrated run (the calibration's and the run's, whose inlier thresholds are
+    calibrated on them): ``features`` with its longer side ``calibration.features_px``; ``features`` as they are
+    where that is None or the extractor does not downscale (``resize_max`` None or absent: full resolution stays
+    so). A run with the fixed policy uses ``features``."""
+    px, features = conf["calibration"]["features_px"], conf["features"]
+    return features if px is None or features.get("resize_max") is None else {**features, "resize_max": px}
+
+
 def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dict[str, Any],
               descriptor: GlobalDescriptor, filt: TemporalFilter, K: np.ndarray | None = None,
               progress: bool = True, codes: dict[int, np.ndarray] | None = None,
@@ -366,7 +382,8 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
     if len(raw) < max(MIN_FIT_CODES, window):
         raise TooFewFrames(f"calibration needs at least {max(MIN_FIT_CODES, window)} frames that pass the gate; "
                            f"got {len(raw)} of {len(images)}")
-    cal = Calibration(expected_false_loops=cc["expected_false_loops"], descriptor=descriptor.identity)
+    cal = Calibration(expected_false_loops=cc["expected_false_loops"], descriptor=descriptor.identity,
+                      features=calibrated_features(conf))
     if gate.conf["mode"] == "relative":
         cal.edge_reference = reference
         cal.notes.append(f"gate: median edge ratio {reference:.3f}; frames under {gate.threshold:.3f} "
@@ -521,7 +538,7 @@ class _Verify:
 
     def __init__(self, conf: dict[str, Any], images: dict[int, np.ndarray], K: np.ndarray | None,
                  feats: dict[int, Any]) -> None:
-        self.conf, self.fconf = conf, conf["features"]
+        self.conf, self.fconf = conf, calibrated_features(conf)
         self.min_matches = conf["policy"]["min_matches"]
         self.images, self.K, self.feats = images, K, feats
         self._local = threading.local()

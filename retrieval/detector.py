@@ -26,6 +26,7 @@ import math
 import threading
 import time
 from collections import OrderedDict
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -45,7 +46,7 @@ from verify.geometry import GeometricVerifier
 from verify.verifier import MATCHERS, Verification, create_verifier
 
 from .database import CANDIDATE_ROW, FeatureStore, KeyframeDatabase, KeyframeRecord
-from .calibrate import Calibration
+from .calibrate import Calibration, calibrated_features
 from .descriptors import DESCRIPTORS, GlobalDescriptor, create_descriptor
 from .feature_jobs import FeatureJobs, grey_copy, read_grey_copy
 from .index import INDEXES
@@ -98,6 +99,11 @@ default_conf: dict[str, Any] = {
         "min_inliers": 12,  # floor of the calibrated inlier threshold (a 7-point model always fits 7)
         "verification": "auto",  # "auto": used when features suffice; "on": always; "off": global + temporal only
         "max_frames": 2000,  # frames the calibration reads at most (blocks spread over longer sequences)
+        "features_px": 384,  # calibrated: local features downscaled to this longer side (px) instead of
+        #                      features.resize_max (which the fixed policy keeps: its min_inliers was chosen at 512;
+        #                      an extractor at full resolution stays so), the calibration's and the run's: 0.6x the
+        #                      time of 512 px with the same precision and recall on every shared set (BENCHMARKS.md,
+        #                      issue 18); None: features.resize_max
     },
     "policy": {  # the acceptance rule when not calibrated (calibration.enabled: false, or no calibration given)
         "verify": True,  # check candidates with local features and geometry; False: the scores alone decide (MILD)
@@ -120,6 +126,9 @@ default_conf: dict[str, Any] = {
         #                          either way. On a quiet 2-core machine one frame at a time through the API takes
         #                          27 ms with it, 37 without; on 2 cores fully taken by other work it lost
         #                          (BENCHMARKS.md, issue 18): off there
+        "verify_worker": True,  # a second thread verifies beside the main one: half of a frame's matching, and the
+        #                         geometric checks of its candidates taken in turn (OpenCV and torch release the GIL;
+        #                         the same results: ``Verifier.verify``)
         "flush_every": 256,  # frames moved from the database's write-ahead log into its columns at a time (each
         #                    frame is logged as it is stored: a killed run loses nothing whatever this is)
         "features": "memory",  # keyframe features for verification: "memory" (all), "database" (bounded memory);
@@ -144,9 +153,10 @@ conf_rules: dict[str, Any] = {
                   "shrink": Float(0, 100), "skip_still": Bool(), "stream_fit": Int(32, optional=True)},
     "calibration": {"enabled": Bool(), "expected_false_loops": Float(0, 100, lo_open=True),
                     "null_pairs": Int(10, 100_000), "min_features": Int(0), "min_inliers": Int(8),
-                    "verification": Choice("auto", "on", "off"), "max_frames": Int(100)},
+                    "verification": Choice("auto", "on", "off"), "max_frames": Int(100),
+                    "features_px": Int(16, optional=True)},
     "runtime": {"threads": Int(1, 1024, optional=True), "lazy_features": Bool(), "feature_worker": Bool(),
-                "flush_every": Int(1), "features": Choice("memory", "database", "image"),
+                "verify_worker": Bool(), "flush_every": Int(1), "features": Choice("memory", "database", "image"),
                 "image_quality": Int(1, 100, optional=True), "feature_cache": Int(1)},
 }
 
@@ -280,7 +290,11 @@ class LoopDetector:
         if self.whitening is not None and self.whitening.input_dim != self.descriptor.dim:
             raise ConfigError(f"the whitening expects {self.whitening.input_dim}-d codes; the descriptor gives "
                               f"{self.descriptor.dim}-d ones")
-        self.extractor = create_extractor(c["features"])
+        fconf = c["features"] if self.calibration is None else calibrated_features(c)
+        if self.calibration is not None and self.calibration.features and self.calibration.features != fconf:
+            raise ConfigError(f"the calibration was made on local features {self.calibration.features}; this run "
+                              f"extracts {fconf} (features, calibration.features_px): calibrate again")
+        self.extractor = create_extractor(fconf)
         self.verifier = create_verifier(c["matcher"], c["geometry"])
         self.verifier.geometry.model_for(self.K)  # fail now, not at the first loop, if E is asked without K
         stream_fit = c["whitening"]["stream_fit"] if self.whitening is None and c["whitening"]["enabled"] \
@@ -303,8 +317,10 @@ class LoopDetector:
             identity = self.descriptor.identity + ("" if self.calibration is None else
                                                    " calibration " + self.calibration.identity())
             self.db = KeyframeDatabase(database, persisted, identity, c["runtime"]["flush_every"])
-        self._jobs = FeatureJobs(functools.partial(create_extractor, c["features"]), c["runtime"]["feature_cache"]) \
+        self._jobs = FeatureJobs(functools.partial(create_extractor, fconf), c["runtime"]["feature_cache"]) \
             if c["runtime"]["feature_worker"] and self._verify and not self.descriptor.needs_features else None
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="verify") \
+            if c["runtime"]["verify_worker"] and self._verify else None
         self._wanted = False  # whether the previous frame's query needed its local features
         self.features = FeatureStore(self.db if c["runtime"]["features"] in ("database", "image") else None,
                                      c["runtime"]["feature_cache"])  # features kept (not ``_unextracted``)
@@ -610,23 +626,29 @@ class LoopDetector:
             feats = self._given.pop(fid, None)
         if feats is None and self._jobs is not None:
             self._jobs.submit(fid, functools.partial(_own_features, prep), urgent=True)  # unless started already
+        self._queue_copies([candidates[i].frame_id for i in todo])  # the worker takes the next one, after the query
         refs = [self._features_of(candidates[i].frame_id) for i in todo]
         if feats is None:
             feats = self._own(fid, prep)
         ms["features"] += (time.perf_counter() - t0) * 1e3
         self._prefetch([candidates[i].frame_id for i in todo])
         done = self.verifier.verify(feats, refs, self.K, c["policy"]["min_matches"], self._min_inliers,
-                                    c["policy"]["check_all"])
+                                    c["policy"]["check_all"], self._pool)
         for i, check in zip(todo, done):
             checks[i] = check
         return feats, checks
 
     def _prefetch(self, verified: list[int]) -> None:
         """Queues in the worker the features of the keyframes just after ``verified`` ones (the next frames' likely
-        candidates on a revisit), where they are not kept and come from a grey copy (read here, in this thread)."""
+        candidates on a revisit)."""
+        self._queue_copies(sorted({f + d for f in verified for d in (1, 2)}))
+
+    def _queue_copies(self, fids: list[int]) -> None:
+        """Queues in the worker, in this order, the features of the keyframes ``fids`` that are not kept and come
+        from a grey copy (read here, in this thread); a job this thread takes first it runs itself (``take``)."""
         if self._jobs is None or self._frame_source is not None:
             return
-        for nxt in sorted({f + d for f in verified for d in (1, 2)}):
+        for nxt in fids:
             if nxt in self._unextracted and nxt not in self._late and nxt not in self._given and nxt not in self._jobs:
                 copy = self._copy_of(nxt)
                 if copy:
@@ -722,6 +744,9 @@ class LoopDetector:
         if self._jobs is not None:
             self._jobs.close()
             self._jobs = None
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None
         if self.db is not None:
             self._save_index(self.db)
             self.db.close()

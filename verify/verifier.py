@@ -8,8 +8,10 @@ matcher name in ``MATCHERS`` and selected by the ``matcher`` section of the conf
 
 from __future__ import annotations
 
+import threading
+from concurrent.futures import Executor
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -48,7 +50,8 @@ class Verifier:
         raise NotImplementedError
 
     def verify(self, query: Features, candidates: Sequence[Features], K: np.ndarray | None = None,
-               min_matches: int = 0, min_inliers: int = 0, check_all: bool = True) -> list[Verification]:
+               min_matches: int = 0, min_inliers: int = 0, check_all: bool = True,
+               pool: Executor | None = None) -> list[Verification]:
         """Matches, then checks geometry for each candidate that could still matter.
 
         Args:
@@ -60,6 +63,9 @@ class Verifier:
             check_all: False = branch and bound: candidates are checked in decreasing match count, and one whose
                 matches are fewer than the best inlier count so far is not checked (inliers <= matches, so it
                 cannot win). The best candidate, and so the accepted loop, is the same either way.
+            pool: an executor whose one thread works beside the caller's (OpenCV and torch release the GIL): half
+                of the matching, and the geometric checks taken in turn (``_checked_in_turn``). The same result as
+                without it.
 
         Returns:
             One ``Verification`` per candidate, in the input order; ``inliers == NOT_CHECKED`` (-1) where no
@@ -67,20 +73,72 @@ class Verifier:
         """
         if not candidates:
             return []
-        all_pairs = self.match_many(query, candidates)
-        out: list[Verification | None] = [None] * len(candidates)
-        order = np.argsort([-len(p) for p in all_pairs], kind="stable")
-        best = -1
-        for i in order:
+        all_pairs = self._match_split(query, candidates, pool)
+        order = [int(i) for i in np.argsort([-len(p) for p in all_pairs], kind="stable")]
+        needed = max(min_matches, min_inliers, 1)
+        todo = [i for i in order if len(all_pairs[i]) >= needed]
+
+        def check(i: int) -> GeometryResult:
             pairs = all_pairs[i]
-            if len(pairs) < max(min_matches, min_inliers, 1) or (not check_all and best > len(pairs)):
+            return self.geometry(query.keypoints[pairs[:, 0]], candidates[i].keypoints[pairs[:, 1]], K, min_inliers)
+
+        geos = _checked_in_turn(todo, [len(all_pairs[i]) for i in todo], check, check_all, pool)
+        out: list[Verification | None] = [None] * len(candidates)
+        best = -1
+        for i in order:  # the branch and bound, in order, on the checks made (a check made ahead is dropped here)
+            pairs = all_pairs[i]
+            geo = geos.get(i)
+            if geo is None or len(pairs) < needed or (not check_all and best > len(pairs)):
                 geo = GeometryResult(NOT_CHECKED, np.zeros(len(pairs), bool), "not checked")
             else:
-                geo = self.geometry(query.keypoints[pairs[:, 0]], candidates[i].keypoints[pairs[:, 1]], K,
-                                    min_inliers)
                 best = max(best, geo.inliers)
             out[i] = Verification(len(pairs), geo.inliers, geo, pairs)
         return out  # type: ignore[return-value]
+
+    def _match_split(self, query: Features, candidates: Sequence[Features],
+                     pool: Executor | None) -> list[np.ndarray]:
+        """``match_many``; with ``pool``, its thread matches the first half of the candidates meanwhile."""
+        half = len(candidates) // 2
+        if pool is None or half == 0:
+            return self.match_many(query, candidates)
+        first = pool.submit(self.match_many, query, candidates[:half])
+        rest = self.match_many(query, candidates[half:])
+        return first.result() + rest
+
+
+def _checked_in_turn(todo: list[int], matches: list[int], check: Callable[[int], GeometryResult], check_all: bool,
+                     pool: Executor | None) -> dict[int, GeometryResult]:
+    """``check(i)`` for the candidates ``todo`` (in decreasing match count ``matches``), by the caller and ``pool``'s
+    thread, each taking the next one in turn; one is not checked when an inlier count already found exceeds its
+    matches (``check_all`` False). Every check the sequential branch and bound makes is made: the counts found
+    when a candidate is taken come from earlier candidates only, and any of them that the sequential order skips
+    has fewer inliers than its best so far, so a candidate skipped here is skipped there. A check made here that
+    the sequential order would skip is dropped by the caller."""
+    done: dict[int, GeometryResult] = {}
+    state = {"next": 0, "best": -1}
+    lock = threading.Lock()
+
+    def lane() -> None:
+        while True:
+            with lock:
+                k = state["next"]
+                if k >= len(todo):
+                    return
+                state["next"] = k + 1
+                if not check_all and state["best"] > matches[k]:
+                    continue
+            geo = check(todo[k])
+            with lock:
+                done[todo[k]] = geo
+                state["best"] = max(state["best"], geo.inliers)
+
+    helper = pool.submit(lane) if pool is not None and len(todo) > 1 else None
+    try:
+        lane()
+    finally:
+        if helper is not None:
+            helper.result()
+    return done
 
 
 MATCHERS: Registry[Verifier] = Registry("matcher")  #: verifiers by the matcher they use (conf section ``matcher``)

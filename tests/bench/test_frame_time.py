@@ -53,6 +53,9 @@ def test_report_lists_each_api_pass():
     text = report(res)
     assert "back to back: median 25.0 ms (first half of the frames 9.0, second half, the revisits, 30.0)" in text
     assert "at the camera rate: median 18.0 ms" in text
+    passes["back to back"].update(second_half_gate=1.5, second_half_encode=6.0, second_half_features=2.0,
+                                  second_half_verify=5.0)
+    assert "the revisits, 30.0: gate 1.5, encode 6.0, features 2.0, verify 5.0)" in report(res)
 
 
 def test_api_passes_interleaved(sample_seq, sample_image, monkeypatch):
@@ -60,7 +63,8 @@ def test_api_passes_interleaved(sample_seq, sample_image, monkeypatch):
 
     monkeypatch.setattr(ft, "API_RUNS", {"back to back": ({}, False), "paced": ({}, True)})
     images = [sample_image(i) for i in range(3)]
-    out = ft.api_per_frame(images, sample_seq.K, None, np.array([0.0, 0.05, 0.1]), rounds=2)
-    assert set(out) == {"back to back", "paced"}
+    out = ft.api_per_frame(images, sample_seq.K, None, np.array([0.0, 0.05, 0.1]), rounds=2,
+                           extra={"512 px": ({"calibration": {"features_px": None}}, False, None)})
+    assert set(out) == {"back to back", "paced", "512 px"}
     assert all(a["median"] > 0 and a["loops"] == 0 and set(a) >= {"p90", "first_half", "second_half"}
-               for a in out.values())
+               and a["second_half_encode"] > 0 for a in out.values())

@@ -10,7 +10,7 @@ import pytest
 from core.errors import ConfigError, DatabaseError
 from evaluation.ground_truth import load_ground_truth
 from evaluation.metrics import precision_recall
-from retrieval.calibrate import Calibration, calibration_frames
+from retrieval.calibrate import Calibration, calibrated_features, calibration_frames
 from retrieval.detect import main as detect
 from retrieval.run_folder import RunFolder
 
@@ -89,12 +89,52 @@ class TestCalibrationMath:
         cal.notes = ["a", "b"]
         cal.save(tmp_path / "c.h5")
         back = Calibration.load(tmp_path / "c.h5")
-        assert back.identity() == cal.identity() and back.notes == ["a", "b"]
+        assert back.identity() == cal.identity() and back.notes == ["a", "b"] and back.features == {}
+        cal.features = {"name": "sift", "resize_max": 384}
+        cal.save(tmp_path / "c.h5")
+        again = Calibration.load(tmp_path / "c.h5")
+        assert again.features == cal.features and again.identity() == cal.identity() != back.identity()
+
+    def test_older_format_refused(self, tmp_path):
+        """A calibration.h5 of format 2 does not say which local features its thresholds were calibrated on."""
+        import h5py
+
+        self.cal().save(tmp_path / "c.h5")
+        with h5py.File(tmp_path / "c.h5", "a") as h5:
+            h5.attrs["format_version"] = 2
+        with pytest.raises(ConfigError, match="format_version 2.*calibrate again"):
+            Calibration.load(tmp_path / "c.h5")
 
     def test_damaged_file(self, tmp_path):
         (tmp_path / "c.h5").write_bytes(b"not hdf5")
         with pytest.raises(DatabaseError, match="damaged"):
             Calibration.load(tmp_path / "c.h5")
+
+
+class TestCalibratedFeatures:
+    """A calibrated run extracts its local features at ``calibration.features_px`` (the calibration's and the run's),
+    the fixed policy at ``features.resize_max``; a calibration made on other features is refused."""
+
+    def test_the_rule(self):
+        from retrieval.detector import resolve_conf
+
+        conf = resolve_conf({})
+        assert calibrated_features(conf)["resize_max"] == 384 and conf["features"]["resize_max"] == 512
+        assert calibrated_features(resolve_conf({"calibration": {"features_px": None}}))["resize_max"] == 512
+        assert calibrated_features(resolve_conf({"features": {"resize_max": None}}))["resize_max"] is None
+        assert calibrated_features(resolve_conf({"features": {"name": "orb"}}))["resize_max"] is None  # full size
+
+    def test_recorded_and_checked(self, kitti_runs, encoder):
+        from retrieval.detector import LoopDetector
+
+        cal = Calibration.load(kitti_runs["00"].calibration)
+        assert cal.features["resize_max"] == 384
+        with LoopDetector(calibration=cal, encoder=encoder) as det, LoopDetector(encoder=encoder) as fixed:
+            assert det.extractor.conf == cal.features and fixed.extractor.conf["resize_max"] == 512
+        with pytest.raises(ConfigError, match="calibrate again"):
+            LoopDetector({"calibration": {"features_px": None}}, calibration=cal, encoder=encoder)
+        with LoopDetector({"calibration": {"enabled": False}}, calibration=cal, encoder=encoder) as det:
+            assert det.calibration is None and det.extractor.conf["resize_max"] == 512  # the fixed policy
 
 
 class TestCalibrationFrames:

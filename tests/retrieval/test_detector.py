@@ -445,9 +445,11 @@ class TestLazyFeatures:
 
         source = self.run({}, encoder, sample_seq, sample_image, frame_source=again)
         alone = self.run({"runtime": {"feature_worker": True}}, encoder, sample_seq, sample_image)  # the worker
+        serial = self.run({"runtime": {"feature_worker": False, "verify_worker": False}}, encoder, sample_seq,
+                          sample_image)  # one thread: features, matching and checks on the caller's
         rows = [[c.as_row() for c in r.candidates] for r in eager]
         assert sum(len(r) for r in rows) > 50 and len(loops_of(eager)) >= 15
-        for lazy in (copies, source, alone):
+        for lazy in (copies, source, alone, serial):
             assert [[c.as_row() for c in r.candidates] for r in lazy] == rows
             assert loops_of(lazy).tolist() == loops_of(eager).tolist()
         assert all(r.ms["features"] > 0 for r in eager)

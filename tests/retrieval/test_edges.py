@@ -67,7 +67,9 @@ def test_the_detect_run_writes_edges_a_back_end_loads(cli_sample_run, sample_seq
     assert len(edges) == len(loops) > 0
     assert np.array_equal(edges[:, :2], loops[:, :2])
     # the same verification on the stored features (keypoints kept to 1/8 pixel): the same inliers, within a few
-    assert np.abs(edges[:, 2] - loops[:, 4]).max() <= 0.05 * loops[:, 4].max()
+    # (RANSAC on points moved by the rounding; at 384 px, measured: median 1, at most 7 % of the pair's count)
+    diff = np.abs(edges[:, 2] - loops[:, 4])
+    assert np.median(diff) <= 2 and (diff <= 0.1 * loops[:, 4]).all()
     graph, initial = gtsam.readG2o(str(run.edges_g2o), True)
     assert graph.size() == len(loops) and initial.size() > 0
     from_g2o = [LoopEdge(int(f.keys()[1]), int(f.keys()[0]), 0, f.measured().rotation().matrix(),

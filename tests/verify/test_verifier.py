@@ -1,9 +1,15 @@
+import random
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import pytest
 
 from core.conf import ConfigError
 from verify.features import Features
-from verify.verifier import NOT_CHECKED, MATCHERS, RatioTestMatcher, Verification, create_verifier
+from verify.geometry import GeometryResult
+from verify.verifier import NOT_CHECKED, MATCHERS, RatioTestMatcher, Verification, _checked_in_turn, create_verifier
 
 
 class TestRatioTestMatcher:
@@ -48,6 +54,64 @@ class TestRatioTestMatcher:
         mutual = RatioTestMatcher({"mutual": True}).match_many(sift_features(55), [sift_features(5)])[0]
         assert set(map(tuple, mutual.tolist())) <= set(map(tuple, plain.tolist()))
         assert 0 < len(mutual) < len(plain)
+
+
+class CountingPool(ThreadPoolExecutor):
+    """A one-thread executor that counts the jobs it was given."""
+
+    def __init__(self):
+        super().__init__(1)
+        self.jobs = 0
+
+    def submit(self, *args, **kwargs):
+        self.jobs += 1
+        return super().submit(*args, **kwargs)
+
+
+class TestVerifyWorker:
+    """A second thread (``pool``) matches and checks beside the caller: the same result as one thread."""
+
+    @pytest.mark.parametrize("check_all", [False, True])
+    def test_same_as_one_thread(self, sift_features, sample_K, check_all):
+        v = RatioTestMatcher()
+        cands = [sift_features(i) for i in (30, 5, 6, 4, 40, 7)]
+        alone = v.verify(sift_features(55), cands, sample_K, 5, 50, check_all)
+        with CountingPool() as pool:
+            for _ in range(3):
+                both = v.verify(sift_features(55), cands, sample_K, 5, 50, check_all, pool)
+                for a, b in zip(alone, both):
+                    assert (a.matches, a.inliers, a.geometry.model) == (b.matches, b.inliers, b.geometry.model)
+                    np.testing.assert_array_equal(a.pairs, b.pairs)
+                    np.testing.assert_array_equal(a.geometry.mask, b.geometry.mask)
+            assert pool.jobs == 6  # each call: half the matching, then a lane of checks
+        checked = sum(a.inliers != NOT_CHECKED for a in alone)
+        # all: 4 pairs over 50 matches checked; bound: one (266 inliers), the others' checks made ahead are dropped
+        assert checked == 4 if check_all else checked == 1 and sum(a.matches > 50 for a in alone) == 4
+
+    def test_every_sequential_check_is_made(self):
+        """Checks taken in turn by two threads, finishing in any order: every check the sequential branch and bound
+        makes is among them (a skipped candidate could not win), whatever the timing."""
+        rng = random.Random(3)
+        with ThreadPoolExecutor(1) as pool:
+            for _ in range(40):
+                matches = sorted((rng.randint(10, 300) for _ in range(rng.randint(1, 8))), reverse=True)
+                inliers = [rng.randint(0, m) for m in matches]
+                ran = []
+
+                def check(i):
+                    time.sleep(rng.random() * 1e-3)
+                    ran.append(threading.get_ident())
+                    return GeometryResult(inliers[i], np.zeros(0, bool), "essential")
+
+                done = _checked_in_turn(list(range(len(matches))), matches, check, False, pool)
+                best, sequential = -1, []
+                for i, m in enumerate(matches):
+                    if best > m:
+                        continue
+                    sequential.append(i)
+                    best = max(best, inliers[i])
+                assert set(sequential) <= set(done) and all(done[i].inliers == inliers[i] for i in done)
+                assert len(_checked_in_turn(list(range(len(matches))), matches, check, True, pool)) == len(matches)
 
 
 class TestCreateVerifier:
