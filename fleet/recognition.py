@@ -170,7 +170,10 @@ class FleetRecognizer:
     default_conf: dict[str, Any] = {
         "detector": {"calibration": {"enabled": False},  # LoopDetector conf of every robot (fixed policy)
                      "runtime": {"features": "database",  # features read back from its database when needed,
-                                 "feature_cache": 64}},  # at most this many kept per robot (~64 kB each)
+                                 "feature_cache": 64,  # at most this many kept per robot (~64 kB each)
+                                 "flush_every": 16}},  # keyframes a robot's store holds in memory (features
+    #                              included, ~70 kB each) before it writes them into its columns: 256 (a detector's
+    #                              default) would be up to 18 MB a robot; every keyframe is in the store's log at once
         "cross": {
             "search_k": 64,  # entries of other robots searched in the fleet's place memory per query
             "k": 3,  # candidates of each other robot verified per query
