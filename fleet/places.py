@@ -208,12 +208,6 @@ class LocalPlaces(FleetPlaces):
                 if pid >= 0 and self.keys[pid][0] != robot]
         return _grouped(hits[:max(int(k), 0)])
 
-    def close(self) -> None:
-        """Closes the memory's code index when it holds a connection."""
-        index = getattr(getattr(self.places, "index", None), "index", None)
-        if hasattr(index, "close"):
-            index.close()
-
 
 @FLEET_PLACES.register("milvus")
 class MilvusPlaces(FleetPlaces):

@@ -31,7 +31,7 @@ import os
 import time
 from collections import deque
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Iterator, Mapping
 
 import faiss
 import numpy as np
@@ -243,6 +243,10 @@ class AdmissionQueue:
     def __len__(self) -> int:
         return len(self._pending)
 
+    def __iter__(self) -> Iterator[tuple[int, float | None, Any]]:
+        """``(frame id, timestamp, item)`` of the queued keyframes, oldest first."""
+        return iter(self._pending)
+
     def push(self, frame_id: int, timestamp: float | None, item: Any) -> None:
         self._pending.append((int(frame_id), timestamp, item))
 
@@ -335,7 +339,7 @@ class KeyframeIndex:
         out.frame_ids = list(self.frame_ids)
         if out.frame_ids:
             out.index.add(fn(codes_of(np.asarray(out.frame_ids, np.int64))))
-        for fid, ts, code in self._queue._pending:
+        for fid, ts, code in self._queue:
             out._queue.push(fid, ts, fn(code[None])[0])
         return out
 
@@ -351,7 +355,7 @@ class KeyframeIndex:
 
     def queued_ids(self) -> list[int]:
         """Frame ids of the keyframes still queued (not searchable yet), oldest first."""
-        return [fid for fid, _, _ in self._queue._pending]
+        return [fid for fid, _, _ in self._queue]
 
     def _position(self, frame_id: int) -> int:
         """The admitted keyframe's position in the index, -1 if not admitted (admitted in increasing frame order)."""
@@ -361,7 +365,7 @@ class KeyframeIndex:
     def holds(self, frame_id: int) -> bool:
         """True when the keyframe is queued or admitted."""
         fid = int(frame_id)
-        return self._position(fid) >= 0 or any(q == fid for q, _, _ in self._queue._pending)
+        return self._position(fid) >= 0 or any(q == fid for q, _, _ in self._queue)
 
     def codes(self, frame_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The codes of keyframes this index holds (queued or admitted; exact where ``CodeIndex.exact_codes``).
@@ -371,7 +375,7 @@ class KeyframeIndex:
         """
         fids = np.asarray(frame_ids, np.int64).reshape(-1)
         found, out = np.zeros(len(fids), bool), np.zeros((len(fids), self.index.dim), np.float32)
-        queued = {fid: code for fid, _, code in self._queue._pending} if len(self._queue) else {}
+        queued = {fid: code for fid, _, code in self._queue}
         positions, rows = [], []
         for row, fid in enumerate(fids.tolist()):
             if fid in queued:

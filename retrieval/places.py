@@ -155,8 +155,7 @@ class CodePlaces(Places):
     def insert(self, frame_id: int, entry: np.ndarray, timestamp: float | None) -> None:
         if frame_id > self._restored_to:  # else already in the index restore_index took back
             self.index.add(frame_id, entry, timestamp)
-        if isinstance(self.source, IndexedCodes):
-            self.source.inserted(frame_id)
+        self.source.inserted(frame_id)
         if self._fit_at is not None and self.whitening is None and len(self.source) >= self._fit_at:
             self._fit_stream()
 
@@ -166,14 +165,10 @@ class CodePlaces(Places):
         ids, codes = self.source.items()
         w = Whitening.fit(codes, self._fit_dim, self._shrink)
         white = (lambda x: np.asarray(w.transform(x), np.float16).astype(np.float32))  # as ``entry`` rounds
-        recent = self.source.recent() if isinstance(self.source, IndexedCodes) else {}
         self.index = self.index.mapped(white, w.dim, lambda fids: codes[np.searchsorted(ids, fids)])
         table = self._table(w.dim)
-        if isinstance(table, IndexedCodes):
-            for fid, code in recent.items():
-                table.add(fid, white(code[None])[0])
-        else:
-            for fid, code in zip(ids.tolist(), white(codes)):
+        for fid, code in zip(ids.tolist(), white(codes)):
+            if fid not in table:  # an index-backed source holds the inserted ones already
                 table.add(fid, code)
         self.source, self.whitening, self.dim = table, w, w.dim
         log.info("stream whitening fitted on %d keyframes: codes %d -> %d dimensions", len(ids), codes.shape[1], w.dim)
@@ -221,10 +216,6 @@ class IndexedCodes:
         """Undoes the last ``add`` (of ``frame_id``), e.g. when the database refused the frame."""
         if next(reversed(self._recent), None) == int(frame_id):
             del self._recent[int(frame_id)]
-
-    def recent(self) -> dict[int, np.ndarray]:
-        """The frames searched and not inserted: ``{frame id: (dim,) code}``."""
-        return dict(self._recent)
 
     def __len__(self) -> int:
         return len(self._index()) + len(self._recent)

@@ -77,6 +77,9 @@ class CodeTable:
         self._rows[int(frame_id)] = self._n
         self._n += 1
 
+    def inserted(self, frame_id: int) -> None:
+        """The frame became a keyframe: nothing to do, the table keeps its own copy of every code."""
+
     def remove_last(self, frame_id: int) -> None:
         """Undoes the last ``add`` (of ``frame_id``), e.g. when the database refused the frame."""
         if self._rows.get(int(frame_id)) == self._n - 1:
