@@ -35,6 +35,7 @@ from typing import Any
 
 import numpy as np
 
+from core.cluster import start_ray
 from core.errors import ConfigError
 
 from .places import FLEET_PLACES
@@ -160,20 +161,14 @@ class RayRecognizer:
 
     def __init__(self, state_dir: str | Path, conf: dict[str, Any] | None = None, workers: int = 2,
                  ray_address: str | None = None) -> None:
-        import ray  # here: only this recognizer needs it
-
         if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
             raise ConfigError(f"workers must be an integer >= 1; got {workers!r}")
         places = FleetRecognizer.resolve(conf)["places"]  # a bad conf is refused here, before any worker starts
-        self._ray = ray
-        if not ray.is_initialized():
-            # "local": a new Ray of our own, never another program's cluster found on this machine
-            ray.init(address=ray_address or "local", num_cpus=None if ray_address else workers, include_dashboard=False,
-                     log_to_driver=False, configure_logging=False)
+        self._ray, _ = start_ray(ray_address, workers)  # this process's Ray, the cluster's, or a new local one
         self.state_dir, self.conf, self.workers = str(Path(state_dir).resolve()), conf, workers
         self._host = None
         self.conf = self._host_places(places)
-        self._actor = ray.remote(num_cpus=1, max_restarts=0, concurrency_groups={FETCH: 1})(_Shard)
+        self._actor = self._ray.remote(num_cpus=1, max_restarts=0, concurrency_groups={FETCH: 1})(_Shard)
         self._shards = [self._start(i) for i in range(workers)]
         self._resumed: tuple[list[OverlapRecord], list[EdgeRecord]] | None = None
         self._recorded: set[frozenset[str]] = set()  # robot pairs whose overlap was reported (by either worker)

@@ -16,17 +16,17 @@ import os
 from pathlib import Path
 from typing import Any, Callable
 
+from core.cluster import start_ray
 from core.conf import ConfigError
 from core.files import prepare_out_dir, write_text_atomic
 from core.progress import progress_bar
 
-__all__ = ["run_batch", "batch_outs", "local_ray_options", "SUMMARY_COLUMNS"]
+__all__ = ["run_batch", "batch_outs", "SUMMARY_COLUMNS"]
 
 log = logging.getLogger(__name__)
 
 #: columns of ``summary.csv``: one row a sequence
 SUMMARY_COLUMNS = ("sequence", "frames", "keyframes", "loops", "precision", "recall", "ms_per_frame", "status", "out")
-_OBJECT_STORE_BYTES = 128 * 1024 ** 2  #: a local Ray's object store: tasks pass paths and summaries only
 
 
 def batch_outs(paths: list[Path], out: Path) -> list[Path]:
@@ -41,28 +41,6 @@ def batch_outs(paths: list[Path], out: Path) -> list[Path]:
         raise ConfigError(f"two sequences named {dupes[0]!r}: their run folders in {out} would collide; "
                           "rename one or run them separately")
     return [out / n for n in names]
-
-
-def local_ray_options(cpus: int) -> dict[str, Any]:
-    """``ray.init`` arguments of a new local Ray of ``cpus`` CPUs: always a new one (never another user's running on
-    this machine), on loopback only, without the dashboard."""
-    return {"address": "local", "num_cpus": cpus, "_node_ip_address": "127.0.0.1", "include_dashboard": False,
-            "log_to_driver": False, "object_store_memory": _OBJECT_STORE_BYTES}
-
-
-def _ray(address: str | None, workers: int | None) -> tuple[Any, bool]:
-    """The ``ray`` module, initialised; and whether this call started it (then it is shut down at the end)."""
-    try:
-        import ray
-    except ImportError:
-        raise ConfigError("many sequences at once need Ray: pip install 'cae-loop-closure[ray]'") from None
-    if ray.is_initialized():
-        return ray, False
-    if address is not None:
-        ray.init(address=address, log_to_driver=False)
-    else:
-        ray.init(**local_ray_options(workers or os.cpu_count() or 1))
-    return ray, True
 
 
 def _call(task: Callable[[Path, Path], dict[str, Any]], path: Path, out: Path) -> dict[str, Any]:
@@ -113,7 +91,7 @@ def run_batch(paths: list[Path], out: str | Path, task: Callable[[Path, Path], d
         raise ConfigError(f"--workers must be an integer >= 1; got {workers!r}")
     out = prepare_out_dir(Path(out))
     outs = batch_outs(paths, out)
-    ray, started = _ray(address, workers)
+    ray, started = start_ray(address, workers or os.cpu_count() or 1)
     try:
         remote = ray.remote(num_cpus=1, max_retries=0)(_call)
         pending = {remote.remote(task, p, o): k for k, (p, o) in enumerate(zip(paths, outs))}

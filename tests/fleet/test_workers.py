@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from core.cluster import start_ray
 from fleet.workers import NAMESPACE, RayRecognizer, create_recognizer, host_name, shard_of
 
 ray = pytest.importorskip("ray")
@@ -16,9 +17,10 @@ A, B = "C", "D"
 
 @pytest.fixture(scope="module")
 def local_ray():
-    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False)
+    _, started = start_ray(cpus=2)
     yield
-    ray.shutdown()
+    if started:
+        ray.shutdown()
 
 
 def frames(kitti_sequences, kitti_poses, ids):

@@ -10,9 +10,10 @@ import pytest
 import yaml
 
 from cli.main import main
+from core.cluster import start_ray
 from core.conf import ConfigError
 from retrieval import detect
-from retrieval.batch import batch_outs, local_ray_options
+from retrieval.batch import batch_outs
 from retrieval.run_folder import RunFolder
 
 # 16-frame sequences: loops 8 frames apart count; no calibration (the fixed policy: the test is about Ray, not
@@ -33,11 +34,10 @@ def collection(tmp_path_factory, copy_sample_frames):
 @pytest.fixture(scope="module")
 def local_ray():
     """One local Ray for the module (``run_batch`` uses a running Ray and leaves it running; starting one is slow)."""
-    import ray
-
-    ray.init(**local_ray_options(2))
+    ray, started = start_ray(cpus=2)
     yield
-    ray.shutdown()
+    if started:
+        ray.shutdown()
 
 
 def test_two_sequences_on_ray_like_each_alone(collection, tmp_path, local_ray):
