@@ -81,9 +81,12 @@ class Sim3:
         M = np.asarray(M, np.float64)
         if M.shape not in ((3, 4), (4, 4)):
             raise ConfigError(f"a similarity matrix is (4, 4) or (3, 4); got {M.shape}")
-        det = np.linalg.det(M[:3, :3])
-        if not det > 0:
-            raise ConfigError("a similarity matrix needs a 3x3 block with a positive determinant")
+        if not np.isfinite(M).all():
+            raise ConfigError("a similarity matrix needs finite entries")
+        with np.errstate(over="ignore", invalid="ignore"):  # an overflowing determinant is refused just below
+            det = np.linalg.det(M[:3, :3])
+        if not (det > 0 and np.isfinite(det)):
+            raise ConfigError("a similarity matrix needs a 3x3 block with a positive, finite determinant")
         s = float(np.cbrt(det))
         return cls(s, M[:3, :3] / s, M[:3, 3])
 

@@ -60,6 +60,13 @@ class TestSim3:
         with pytest.raises(ConfigError):
             Sim3.from_matrix(np.diag([1.0, 1.0, -1.0, 1.0]))
 
+    @pytest.mark.parametrize("value", [np.inf, np.nan, 1e300])
+    def test_from_matrix_rejects_what_is_not_finite(self, value):
+        """An infinite or overflowing entry (a poisoned stored transform) is refused, never turned into NaNs."""
+        M = np.diag([value, value, value, 1.0])  # 1e300: finite entries, an infinite determinant
+        with pytest.raises(ConfigError, match="finite"):
+            Sim3.from_matrix(M)
+
 
 class TestUmeyama:
     def test_exact_on_kitti_points(self, known_sim3, kitti_landmarks):

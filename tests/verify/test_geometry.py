@@ -113,20 +113,22 @@ class TestGeometricVerifier:
             GeometricVerifier({"iters": 5})
 
 
+@pytest.fixture(scope="module")
+def flipped(sample_image, sift_features):
+    """Matched keypoints of a frame and a mirrored look-alike: frame 30 with itself flipped, 60 with 10 flipped."""
+    from verify.features import SIFT
+
+    out = {}
+    for q, c in ((30, 30), (60, 10)):
+        fq, fc = sift_features(q), SIFT().extract(np.ascontiguousarray(sample_image(c)[:, ::-1]))
+        m = match_ratio(fq.descriptors, fc.descriptors)
+        out[(q, c)] = (fq.keypoints[m[:, 0]], fc.keypoints[m[:, 1]])
+    return out
+
+
 class TestMirror:
     """A mirrored look-alike (the same frame or a revisit, flipped left-right) has inliers under an epipolar model
     but no camera motion makes it: ``reject_mirrored`` gives it none; a real revisit keeps all of its inliers."""
-
-    @pytest.fixture(scope="class")
-    def flipped(self, sample_image, sift_features):
-        from verify.features import SIFT
-
-        out = {}
-        for q, c in ((30, 30), (60, 10)):
-            fq, fc = sift_features(q), SIFT().extract(np.ascontiguousarray(sample_image(c)[:, ::-1]))
-            m = match_ratio(fq.descriptors, fc.descriptors)
-            out[(q, c)] = (fq.keypoints[m[:, 0]], fc.keypoints[m[:, 1]])
-        return out
 
     @pytest.mark.parametrize("K_known", [True, False])
     def test_a_mirrored_frame_has_no_inliers(self, flipped, sample_K, K_known):
