@@ -2,9 +2,10 @@
 robots sharded over workers) and for their tests.
 
 A local Ray is always a new one of our own (``address="local"``: never another program's cluster found on this
-machine), bound to loopback, without the dashboard, with a small object store (tasks and actors pass paths, codes
-and summaries, never images in bulk): Ray's default sizes the store from free memory and ``/dev/shm``, which differ
-from machine to machine. Starting a local Ray launches a handful of processes and picks free ports; on a loaded
+machine), without the dashboard, with a small object store (tasks and actors pass paths, codes and summaries, never
+images in bulk): Ray's default sizes the store from free memory and ``/dev/shm``, which differ from machine to
+machine. Ray itself resolves a loopback node address to the machine's own (its ports then listen there) and
+requires its cluster token on them (Ray's token authentication, on by default). Starting a local Ray launches a handful of processes and picks free ports; on a loaded
 machine that can fail once for reasons of the moment (a start-up timeout, a port taken between its pick and its
 use), so a local start is tried ``START_ATTEMPTS`` times, the failure logged, before it is reported. Joining a
 cluster by address is tried once: an unreachable address is the user's to fix.
@@ -30,8 +31,8 @@ START_ATTEMPTS = 3  #: tries to start a local Ray before its failure is reported
 
 def local_ray_options(cpus: int | None) -> dict[str, Any]:
     """``ray.init`` arguments of a new local Ray of ``cpus`` CPUs (None: Ray counts the machine's)."""
-    return {"address": "local", "num_cpus": cpus, "_node_ip_address": "127.0.0.1", "include_dashboard": False,
-            "log_to_driver": False, "configure_logging": False, "object_store_memory": OBJECT_STORE_BYTES}
+    return {"address": "local", "num_cpus": cpus, "include_dashboard": False, "log_to_driver": False,
+            "configure_logging": False, "object_store_memory": OBJECT_STORE_BYTES}
 
 
 def start_ray(address: str | None = None, cpus: int | None = None) -> tuple[Any, bool]:
