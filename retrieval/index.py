@@ -8,7 +8,8 @@ Index types, by registry name (``index.name``):
 
 - ``flat``: exact, float32 (4 bytes per dimension).
 - ``fp16``: exact up to float16 rounding (2 bytes per dimension).
-- ``hnsw``: approximate graph search over float32 codes (HNSW, Malkov & Yashunin), for very large maps.
+- ``hnsw``: approximate graph search (HNSW, Malkov & Yashunin) over float16 codes (``storage``; or float32), for
+  very large maps.
 - ``sq8``: 8-bit scalar quantisation, one byte per dimension (per-dimension range learned from the first codes).
 - ``ivfpq``: OPQ rotation, inverted file and product quantisation, re-ranked on float16 codes (learned from the
   first codes; exact brute force until then): a million codes in well under 2 GiB, ~1 ms a query.
@@ -71,7 +72,7 @@ class CodeIndex:
     #: costs minutes at a million); an exact one (flat, fp16) is rebuilt from the store's codes as fast as a saved
     #: copy would load
     save_with_store = True
-    #: ``reconstruct`` gives back exactly the codes added (flat, fp16 for float16-rounded codes, HNSW's flat storage):
+    #: ``reconstruct`` gives back exactly the codes added (flat; fp16 and HNSW for float16-rounded codes):
     #: a place memory then reads its stored codes from the index instead of keeping a second copy
     exact_codes = True
 
@@ -214,11 +215,14 @@ class HNSWIndex(CodeIndex):
         "ef_search": 256,  # candidate list size at search time: more = better recall, slower (chosen on 1M
         #                    realistic codes with ef_construction: BENCHMARKS.md, issue 18, "a million keyframes")
         "ef_construction": 128,  # candidate list size while inserting: the graph's quality bounds the recall
+        "storage": "fp16",  # how the graph keeps the codes: "fp16" (half of float32's memory, exact for the
+        #                     detector's float16-rounded entries, and scanned as fast) or "flat" (float32)
     }
-    conf_rules: dict[str, Any] = {"m": Int(2, 512), "ef_search": Int(1, 100_000), "ef_construction": Int(1, 100_000)}
+    conf_rules: dict[str, Any] = {"m": Int(2, 512), "ef_search": Int(1, 100_000), "ef_construction": Int(1, 100_000),
+                                  "storage": Choice("flat", "fp16")}
 
     def _factory(self) -> str:
-        return f"HNSW{self.conf['m']}"
+        return f"HNSW{self.conf['m']}" + ("_SQfp16" if self.conf["storage"] == "fp16" else "")
 
     def _configure(self) -> None:
         self.index.hnsw.efSearch = self.conf["ef_search"]

@@ -133,6 +133,23 @@ class TestHNSWIndex:
         with pytest.raises(ConfigError, match="index.M"):
             HNSWIndex(D, {"M": 16})
 
+    def test_fp16_storage_halves_memory_and_finds_the_same(self, data):
+        """The detector's entries are float16-rounded: a graph over float16 storage gives them back exactly and finds
+        what one over float32 finds, in about half the memory (the graph's links stay the same size)."""
+        xb, xq = (x.astype(np.float16).astype(np.float32) for x in data)
+        half, full = HNSWIndex(D, {"m": 16}), HNSWIndex(D, {"m": 16, "storage": "flat"})
+        for index in (half, full):
+            index.add(xb)
+        np.testing.assert_array_equal(half.reconstruct(np.arange(len(xb))), xb)
+        _, Ib = brute_force_search(xq, xb, 10)
+        assert recall_at_k(half.search(xq, 10)[1], Ib) >= recall_at_k(full.search(xq, 10)[1], Ib) - 0.01
+        links = full.bytes_per_code() - 4 * D
+        assert half.bytes_per_code() == pytest.approx(links + 2 * D, rel=0.05)
+
+    def test_storage_is_checked(self):
+        with pytest.raises(ConfigError, match="index.storage"):
+            HNSWIndex(D, {"storage": "fp8"})
+
 
 @pytest.mark.skipif("sq8" not in INDEXES.names(), reason="no sq8 index in this version")
 class TestSQ8Index:
