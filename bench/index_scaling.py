@@ -35,9 +35,12 @@ log = logging.getLogger(__name__)
 
 _INT8_STD = math.sqrt((256**2 - 1) / 12)  # std of uniform random int8
 
-#: the indexes offered (retrieval.index), with the conf the bench runs them with
+#: the indexes offered (retrieval.index), with the conf the bench runs them with (``hnsw-float32``: the graph over
+#: float32 storage, beside the default float16)
 INDEX_CONFS: dict[str, dict[str, Any]] = {"flat": {"name": "flat"}, "fp16": {"name": "fp16"},
-                                          "sq8": {"name": "sq8"}, "hnsw": {"name": "hnsw"}, "ivfpq": {"name": "ivfpq"}}
+                                          "sq8": {"name": "sq8"}, "hnsw": {"name": "hnsw"},
+                                          "hnsw-float32": {"name": "hnsw", "storage": "flat"},
+                                          "ivfpq": {"name": "ivfpq"}}
 
 
 def synth_codes(base: np.ndarray, n: int, sigma: float, rng: np.random.Generator,
