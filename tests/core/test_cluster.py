@@ -25,12 +25,13 @@ def test_a_local_ray_is_our_own():
 
 
 def test_a_failed_start_is_tried_again(monkeypatch, no_sleep, caplog):
-    """Two starts fail (as a start-up timeout would), the third starts a real local Ray."""
+    """The first start fails (as a start-up timeout would), the next starts a real local Ray (on a loaded machine a
+    real start may fail too: it is then tried again like any other)."""
     real_init, calls = ray.init, []
 
     def flaky_init(**options):
         calls.append(options)
-        if len(calls) < cluster.START_ATTEMPTS:
+        if len(calls) == 1:
             raise TimeoutError("the raylet did not register in time")
         return real_init(**options)
 
@@ -40,8 +41,8 @@ def test_a_failed_start_is_tried_again(monkeypatch, no_sleep, caplog):
         module, started = cluster.start_ray(cpus=1)
     try:
         assert module is ray and started and ray.is_initialized()
-        assert len(calls) == cluster.START_ATTEMPTS and all(c == cluster.local_ray_options(1) for c in calls)
-        assert sum("did not start" in r.getMessage() for r in caplog.records) == cluster.START_ATTEMPTS - 1
+        assert 2 <= len(calls) <= cluster.START_ATTEMPTS and all(c == cluster.local_ray_options(1) for c in calls)
+        assert sum("did not start" in r.getMessage() for r in caplog.records) == len(calls) - 1
         assert cluster.start_ray(cpus=1) == (ray, False)  # a running Ray is used, not started again
     finally:
         ray.shutdown()
