@@ -88,9 +88,17 @@ class TestPoses:
 class TestIntrinsics:
     def test_the_sample_camera_is_accepted(self, sample_K):
         assert np.array_equal(check_intrinsics(sample_K), sample_K)
+        normalised = np.diag([sample_K[0, 0], sample_K[1, 1], 620.0]) / 620.0  # a camera in normalised units
+        assert np.array_equal(check_intrinsics(normalised), normalised)
 
     @pytest.mark.parametrize("K", [np.zeros((3, 3)), -np.eye(3), np.full((3, 3), np.nan), np.eye(4),
-                                   [[700, 0, 300], [0, 700, 90], [0, 1, 1]]])
+                                   [[700, 0, 300], [0, 700, 90], [0, 1, 1]],
+                                   # near-singular or enormous: K^-1 or K overflows (a server hung on fx = 1e-300)
+                                   [[1e-300, 0, 300], [0, 1e-300, 90], [0, 0, 1]],
+                                   [[700, 0, 300], [0, 1e-4, 90], [0, 0, 1]],
+                                   [[1e300, 0, 300], [0, 1e300, 90], [0, 0, 1]],
+                                   [[700, 1e300, 300], [0, 700, 90], [0, 0, 1]],
+                                   [[700, 0, -1e300], [0, 700, 90], [0, 0, 1]]])
     def test_refused(self, K):
         with pytest.raises(ConfigError, match="intrinsics"):
             check_intrinsics(K)
