@@ -6,7 +6,9 @@
   over ``max_values`` -> 413 before it is parsed (30 MB of ``{},`` parsed into 800 MB of dicts for 1.5 s in the
   event loop, before the token was even looked at).
 - ``TimedH11Protocol`` (uvicorn's h11 protocol): a connection whose request headers are not complete within
-  ``header_timeout_s`` of its opening (or of its previous response) is closed: half-sent requests hold nothing.
+  ``header_timeout_s`` of its opening (or of its previous response) is closed: half-sent requests hold nothing; an
+  address holding ``max_per_address`` connections has its next ones closed at once (400 idle connections from one
+  address took every file descriptor of a server, whose good robots then waited 10 s for an answer).
 - ``AuthThrottle``: failed authentications per client address in a sliding window; past the limit, requests that
   would need a token hash get 429 *before* the hash is computed.
 """
@@ -99,14 +101,31 @@ class BodyLimit:
 
 
 class TimedH11Protocol(H11Protocol):
-    """uvicorn's h11 protocol, closing a connection whose request headers are not in within ``header_timeout_s``
-    (set as a class attribute by ``fleet.runner.server_config``)."""
+    """uvicorn's h11 protocol, closing a connection whose request headers are not in within ``header_timeout_s``, and
+    the connections of an address beyond its ``max_per_address`` open ones (class attributes set by
+    ``fleet.runner.server_config``, with ``open_per_address``: the counts of one server, kept in its event loop)."""
 
     header_timeout_s: float = 10.0
+    max_per_address: int = 64
+    open_per_address: collections.Counter[str] = collections.Counter()
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
+        self._address = self.client[0] if self.client else "?"
+        if self.open_per_address[self._address] >= self.max_per_address:
+            self._address = None
+            transport.close()
+            return
+        self.open_per_address[self._address] += 1
         self._arm_header_deadline()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        super().connection_lost(exc)
+        if getattr(self, "_address", None) is not None:
+            self.open_per_address[self._address] -= 1
+            if self.open_per_address[self._address] <= 0:
+                del self.open_per_address[self._address]
+            self._address = None
 
     def on_response_complete(self) -> None:
         super().on_response_complete()

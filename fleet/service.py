@@ -50,6 +50,7 @@ class FleetService:
             "max_image_pixels": 16_000_000,  # larger images are refused (HTTP 413), from their header
             "body_timeout_s": 60.0,  # a request body not received within this is refused (HTTP 408)
             "header_timeout_s": 10.0,  # a connection whose request headers are not in within this is closed
+            "max_connections_per_address": 64,  # an address's further connections are closed at once
             "auth_failures": 20,  # failed authentications an address may make per window; then HTTP 429
             "auth_window_s": 60.0,  # the window of auth_failures, seconds
         },
@@ -57,7 +58,8 @@ class FleetService:
     conf_rules: dict[str, Any] = {"graph": PoseGraph.conf_rules, "optimizer": BackgroundOptimizer.conf_rules,
                                   "limits": {"max_request_mb": Float(0, lo_open=True), "max_json_values": Int(64),
                                              "max_image_pixels": Int(64), "body_timeout_s": Float(0, lo_open=True),
-                                             "header_timeout_s": Float(0, lo_open=True), "auth_failures": Int(1),
+                                             "header_timeout_s": Float(0, lo_open=True),
+                                             "max_connections_per_address": Int(1), "auth_failures": Int(1),
                                              "auth_window_s": Float(0, lo_open=True)}}
 
     def __init__(self, store: FleetStore, conf: dict[str, Any] | None = None,

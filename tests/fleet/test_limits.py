@@ -95,6 +95,32 @@ class TestHalfSentRequests:
         assert httpx.get(f"{server.url}/overlaps", headers={"Authorization": f"Bearer {ADMIN}"}).status_code == 200
 
 
+class TestConnectionsPerAddress:
+    def test_an_address_beyond_its_connections_is_closed_and_others_are_served(self, tmp_path):
+        """400 idle connections from one address took every file descriptor: good robots waited 10 s for an answer.
+        The flood comes from 127.0.0.2 (loopback too), the good client from 127.0.0.1."""
+        conf = {"limits": {"max_connections_per_address": 8, "header_timeout_s": 30.0}}
+        with ServerThread(create_app(tmp_path, ADMIN, conf, recognize=False)) as server:
+            flood = [socket.create_connection((server.host, server.port), timeout=10, source_address=("127.0.0.2", 0))
+                     for _ in range(20)]
+            try:
+                deadline, closed = time.monotonic() + 5, set()
+                while len(closed) < 12 and time.monotonic() < deadline:
+                    for s in select.select([s for s in flood if s not in closed], [], [], 0.2)[0]:
+                        if s.recv(1024) == b"":
+                            closed.add(s)
+                assert len(closed) == 12  # the 8 first ones are held (until their header deadline)
+                assert httpx.get(f"{server.url}/overlaps", headers={"Authorization": f"Bearer {ADMIN}"}).json() == []
+            finally:
+                for s in flood:
+                    s.close()
+            time.sleep(0.3)  # their slots are given back once the server saw them go
+            with socket.create_connection((server.host, server.port), timeout=10,
+                                          source_address=("127.0.0.2", 0)) as s:
+                s.sendall(b"GET /map HTTP/1.1\r\nHost: x\r\n\r\n")
+                assert s.recv(1024).startswith(b"HTTP/1.1 200")
+
+
 class TestAuthThrottle:
     def test_wrong_tokens_are_429_after_the_limit_and_good_tokens_still_work(self, live):
         server, token = live
