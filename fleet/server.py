@@ -24,7 +24,8 @@ acknowledged so far). State lives under ``state_dir``: ``fleet.sqlite`` (robots,
 unknown robot or another robot's (alike, so names cannot be probed), 408 a body sent too slowly, 409 a taken name or a
 retry of an acknowledged keyframe with other content, 413 a body (bytes or JSON values) or an image too large, 422 a
 body that does not fit the schema (``SchemaProblem``: one line, the first errors; unknown fields are one error), 429
-too many failed authentications from one address (refused before any hash).
+too many failed authentications from one address (refused before any hash) or a robot's keyframes sent at once
+beyond ``limits.keyframes_in_flight`` (refused before decoding).
 """
 
 from __future__ import annotations
@@ -51,7 +52,7 @@ from core.images import decode_image, image_header
 from retrieval.descriptors import GlobalDescriptor
 
 from .map_page import map_router
-from .limits import AuthThrottle, BodyLimit
+from .limits import AuthThrottle, BodyLimit, InFlight
 from .service import ROBOT_NAME, FleetService
 from .stores import open_store
 from .workers import create_recognizer
@@ -129,7 +130,8 @@ _PROBLEMS: dict[int | str, dict[str, Any]] = {
     409: {"model": Problem, "description": "a taken name, or a retry with other content"},
     413: {"model": Problem, "description": "a body or an image too large"},
     422: {"model": SchemaProblem, "description": "does not fit the schema"},
-    429: {"model": Problem, "description": "too many failed authentications from this address"},
+    429: {"model": Problem, "description": "too many failed authentications from this address, or keyframes of "
+                                            "this robot at once"},
 }
 
 
@@ -246,6 +248,7 @@ def _write_routes(app: FastAPI, service: FleetService, caller: Callable[..., str
                   owner_or_admin: Callable[[str, str], None]) -> None:
     """``POST /robots`` and ``POST /robots/{name}/keyframes``."""
     max_pixels = service.conf["limits"]["max_image_pixels"]
+    in_flight = InFlight(service.conf["limits"]["keyframes_in_flight"])
 
     @app.post("/robots", status_code=201, responses=_PROBLEMS)
     def register(body: RobotIn, who: str = Depends(caller)) -> dict[str, str]:
@@ -262,13 +265,17 @@ def _write_routes(app: FastAPI, service: FleetService, caller: Callable[..., str
         if who != name:  # the admin reads, but only the robot itself writes its keyframes
             raise HTTPException(404, f"no robot {name!r}")
         owner_or_admin(name, who)
-        pose, image, K, depth = _decode_keyframe(body, max_pixels)
+        if not in_flight.acquire(name):  # before decoding: a queued keyframe would hold its decoded image
+            raise HTTPException(429, f"robot {name!r} has {in_flight.limit} keyframes in flight; retry once answered")
         try:
+            pose, image, K, depth = _decode_keyframe(body, max_pixels)
             stored = service.submit_keyframe(name, body.keyframe, body.timestamp, pose, image, K, depth)
         except ConflictError as err:
             raise HTTPException(409, str(err)) from None
         except LCDError as err:
             raise HTTPException(400, str(err)) from None
+        finally:
+            in_flight.release(name)
         return {"robot": name, "keyframe": body.keyframe, "stored": stored}
 
 

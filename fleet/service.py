@@ -48,6 +48,7 @@ class FleetService:
             "max_request_mb": 32.0,  # larger request bodies are refused (HTTP 413)
             "max_json_values": 1000,  # bodies holding more JSON values are refused unparsed (HTTP 413; a keyframe: ~40)
             "max_image_pixels": 16_000_000,  # larger images are refused (HTTP 413), from their header
+            "keyframes_in_flight": 2,  # a robot's further keyframes sent at once are refused (HTTP 429), not queued
             "body_timeout_s": 60.0,  # a request body not received within this is refused (HTTP 408)
             "header_timeout_s": 10.0,  # a connection whose request headers are not in within this is closed
             "max_connections_per_address": 64,  # an address's further connections are closed at once
@@ -57,7 +58,8 @@ class FleetService:
     }
     conf_rules: dict[str, Any] = {"graph": PoseGraph.conf_rules, "optimizer": BackgroundOptimizer.conf_rules,
                                   "limits": {"max_request_mb": Float(0, lo_open=True), "max_json_values": Int(64),
-                                             "max_image_pixels": Int(64), "body_timeout_s": Float(0, lo_open=True),
+                                             "max_image_pixels": Int(64), "keyframes_in_flight": Int(1),
+                                             "body_timeout_s": Float(0, lo_open=True),
                                              "header_timeout_s": Float(0, lo_open=True),
                                              "max_connections_per_address": Int(1), "auth_failures": Int(1),
                                              "auth_window_s": Float(0, lo_open=True)}}

@@ -95,6 +95,47 @@ class TestHalfSentRequests:
         assert httpx.get(f"{server.url}/overlaps", headers={"Authorization": f"Bearer {ADMIN}"}).status_code == 200
 
 
+class TestKeyframesInFlight:
+    def test_a_robots_keyframes_beyond_its_slots_are_429_at_once(self, live, sample_poses, jpeg, monkeypatch):
+        """A robot's keyframes sent at once queued for its lock, each holding its decoded image (a 3 MB PNG of 16-bit
+        RGBA zeros: 380 MB each, 2 GB for 8): beyond ``limits.keyframes_in_flight`` (2) they are refused first."""
+        import base64
+        import threading
+
+        server, token = live
+        service, release, entered = server.app.state.service, threading.Event(), threading.Semaphore(0)
+        submit = service.submit_keyframe
+
+        def held(*args, **kwargs):
+            entered.release()
+            release.wait(20)
+            return submit(*args, **kwargs)
+
+        monkeypatch.setattr(service, "submit_keyframe", held)
+        payload = {"keyframe": 0, "timestamp": 0.0, "pose": sample_poses[0].tolist(),
+                   "image": base64.b64encode(jpeg(0)).decode()}
+        auth = {"Authorization": f"Bearer {token}"}
+        codes: list[int] = []
+
+        def post() -> None:
+            codes.append(httpx.post(f"{server.url}/robots/A/keyframes", json=payload, headers=auth, timeout=30)
+                         .status_code)
+
+        first = [threading.Thread(target=post) for _ in range(2)]
+        for t in first:
+            t.start()
+        try:
+            assert entered.acquire(timeout=20) and entered.acquire(timeout=20)  # both in flight, held
+            r = httpx.post(f"{server.url}/robots/A/keyframes", json=payload, headers=auth, timeout=5)
+            assert r.status_code == 429 and "in flight" in r.json()["detail"]
+        finally:
+            release.set()
+            for t in first:
+                t.join(30)
+        assert sorted(codes) == [200, 200]  # one stored, the other its identical retry
+        assert FleetClient(server.url, token).submit_keyframe("A", 0, 0.0, sample_poses[0], jpeg(0)) is False
+
+
 class TestConnectionsPerAddress:
     def test_an_address_beyond_its_connections_is_closed_and_others_are_served(self, tmp_path):
         """400 idle connections from one address took every file descriptor: good robots waited 10 s for an answer.
