@@ -236,6 +236,19 @@ class TestMalformedInput:
         assert not (state / "robots" / "D" / "camera.json").exists()
         assert FleetClient(url, token).submit_keyframe("D", 0, 0.0, sample_poses[0], jpeg(0), sample_K)
 
+    def test_a_depth_map_without_intrinsics_is_refused(self, live, sample_poses, jpeg, sample_K):
+        """It was acknowledged and dropped without a word (no camera to back-project it with)."""
+        url, state, _ = live
+        token = FleetClient(url, ADMIN).register("E")
+        depth = _npy(np.full((188, 620), 5.0, np.float32))
+        r = httpx.post(f"{url}/robots/E/keyframes", json=body(0, sample_poses, jpeg, depth=depth),
+                       headers={"Authorization": f"Bearer {token}"})
+        assert r.status_code == 400 and "needs intrinsics" in r.json()["detail"]
+        assert not (state / "robots" / "E").exists() and state_of(state, "E") == ([], b"")
+        r = httpx.post(f"{url}/robots/E/keyframes", json=body(0, sample_poses, jpeg, sample_K, depth=depth),
+                       headers={"Authorization": f"Bearer {token}"})
+        assert r.status_code == 200 and r.json()["stored"] is True
+
     def test_an_unknown_robot_is_404(self, live, sample_poses, jpeg):
         url, state, _ = live
         r = httpx.post(f"{url}/robots/C/keyframes", json=body(40, sample_poses, jpeg),
