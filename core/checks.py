@@ -106,7 +106,9 @@ def check_rigid_pose(value: Any, what: str = "pose", tol: float = ROTATION_TOL,
     else:
         M = check_matrix(value, (3, 4), what)
     R = M[:3, :3]
-    if np.abs(R.T @ R - np.eye(3)).max() > tol or np.linalg.det(R) <= 0:
+    with np.errstate(over="ignore", invalid="ignore"):  # entries past 1e154 overflow R^T R: inf, refused below
+        orthonormal = np.abs(R.T @ R - np.eye(3)).max() <= tol
+    if not orthonormal or np.linalg.det(R) <= 0:
         raise ConfigError(f"{what}: the 3x3 block must be a rotation (orthonormal within {tol:g}, det +1)")
     if np.abs(M[:3, 3]).max() > max_translation:
         raise ConfigError(f"{what}: translation {np.abs(M[:3, 3]).max():.3g} is beyond {max_translation:g}")

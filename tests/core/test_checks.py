@@ -54,7 +54,8 @@ class TestPoses:
             M = check_rigid_pose(p)
             assert M.shape == (4, 4) and np.allclose(M[:3], p, atol=1e-5)
 
-    @pytest.mark.parametrize("scale", [1e-100, 1e100, 2.0])
+    @pytest.mark.filterwarnings("error")  # 1e200: R^T R overflowed with a RuntimeWarning on the server's stderr
+    @pytest.mark.parametrize("scale", [1e-100, 1e100, 1e200, 2.0])
     def test_a_scaled_rotation_is_not_rigid(self, sample_poses, scale):
         p = sample_poses[5].copy()
         p[:, :3] *= scale
