@@ -24,8 +24,9 @@ acknowledged so far). State lives under ``state_dir``: ``fleet.sqlite`` (robots,
 unknown robot or another robot's (alike, so names cannot be probed), 408 a body sent too slowly, 409 a taken name or a
 retry of an acknowledged keyframe with other content, 413 a body (bytes or JSON values) or an image too large, 422 a
 body that does not fit the schema (``SchemaProblem``: one line, the first errors; unknown fields are one error), 429
-too many failed authentications from one address (refused before any hash) or a robot's keyframes sent at once
-beyond ``limits.keyframes_in_flight`` (refused before decoding).
+too many failed authentications from one address (refused before any hash), a robot's keyframes sent at once
+beyond ``limits.keyframes_in_flight`` (refused before decoding) or request bodies in memory beyond
+``limits.max_buffered_mb`` (``fleet.limits``).
 """
 
 from __future__ import annotations
@@ -130,8 +131,8 @@ _PROBLEMS: dict[int | str, dict[str, Any]] = {
     409: {"model": Problem, "description": "a taken name, or a retry with other content"},
     413: {"model": Problem, "description": "a body or an image too large"},
     422: {"model": SchemaProblem, "description": "does not fit the schema"},
-    429: {"model": Problem, "description": "too many failed authentications from this address, or keyframes of "
-                                            "this robot at once"},
+    429: {"model": Problem, "description": "too many failed authentications from this address, keyframes of this "
+                                            "robot at once, or request bodies in memory"},
 }
 
 
@@ -197,7 +198,8 @@ def create_app(state_dir: str | Path, admin_token: str, conf: dict[str, Any] | N
     app.state.service = service
     limits = service.conf["limits"]
     app.add_middleware(BodyLimit, max_bytes=int(limits["max_request_mb"] * 2**20),
-                       timeout_s=limits["body_timeout_s"], max_values=limits["max_json_values"])
+                       timeout_s=limits["body_timeout_s"], max_values=limits["max_json_values"],
+                       max_buffered=int(limits["max_buffered_mb"] * 2**20))
     app.add_exception_handler(RequestValidationError, _one_line_422)
     throttle = AuthThrottle(limits["auth_failures"], limits["auth_window_s"])
     caller, owner_or_admin = _auth(service, admin_token, throttle)

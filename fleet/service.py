@@ -46,6 +46,7 @@ class FleetService:
         "optimizer": BackgroundOptimizer.default_conf,  # when the graph is solved (fleet.optimizer)
         "limits": {
             "max_request_mb": 32.0,  # larger request bodies are refused (HTTP 413)
+            "max_buffered_mb": 256.0,  # request bodies in memory at once (at least max_request_mb); past it HTTP 429
             "max_json_values": 1000,  # bodies holding more JSON values are refused unparsed (HTTP 413; a keyframe: ~40)
             "max_image_pixels": 16_000_000,  # larger images are refused (HTTP 413), from their header
             "keyframes_in_flight": 2,  # a robot's further keyframes sent at once are refused (HTTP 429), not queued
@@ -58,6 +59,7 @@ class FleetService:
     }
     conf_rules: dict[str, Any] = {"graph": PoseGraph.conf_rules, "optimizer": BackgroundOptimizer.conf_rules,
                                   "limits": {"max_request_mb": Float(0, lo_open=True), "max_json_values": Int(64),
+                                             "max_buffered_mb": Float(0, lo_open=True),
                                              "max_image_pixels": Int(64), "keyframes_in_flight": Int(1),
                                              "body_timeout_s": Float(0, lo_open=True),
                                              "header_timeout_s": Float(0, lo_open=True),

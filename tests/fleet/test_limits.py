@@ -95,6 +95,28 @@ class TestHalfSentRequests:
         assert httpx.get(f"{server.url}/overlaps", headers={"Authorization": f"Bearer {ADMIN}"}).status_code == 200
 
 
+class TestBodiesInMemory:
+    def test_bodies_past_the_servers_budget_are_429_and_it_is_given_back(self, tmp_path):
+        """Bodies are read before the token is looked at: 30 unauthenticated 30 MB bodies held 1 GB at once."""
+        conf = {"limits": {"max_request_mb": 1.0, "max_buffered_mb": 1.5, "body_timeout_s": 20.0}}
+        with ServerThread(create_app(tmp_path, ADMIN, conf, recognize=False)) as server:
+            def post() -> httpx.Response:
+                return httpx.post(f"{server.url}/robots", content=b"x" * 800_000,
+                                  headers={"Authorization": "Bearer nobody", "Content-Type": "application/json"})
+
+            with socket.create_connection((server.host, server.port), timeout=10) as held:
+                held.sendall(b"POST /robots HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer nobody\r\n"
+                             b"Content-Type: application/json\r\nContent-Length: 900000\r\n\r\n" + b"x" * 800_000)
+                deadline, r = time.monotonic() + 10, post()
+                while r.status_code != 429 and time.monotonic() < deadline:  # once the server holds the 800 kB
+                    time.sleep(0.05)
+                    r = post()
+                assert r.status_code == 429 and "in memory" in r.json()["detail"]
+                held.sendall(b"x" * 100_000)
+                assert held.recv(1024).startswith(b"HTTP/1.1 422")  # read in full: then not JSON
+            assert post().status_code == 422  # its bytes were given back
+
+
 class TestKeyframesInFlight:
     def test_a_robots_keyframes_beyond_its_slots_are_429_at_once(self, live, sample_poses, jpeg, monkeypatch):
         """A robot's keyframes sent at once queued for its lock, each holding its decoded image (a 3 MB PNG of 16-bit
