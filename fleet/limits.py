@@ -45,15 +45,16 @@ async def _refuse(send: Send, status: int, detail: str) -> None:
 class BodyLimit:
     """ASGI middleware: reads the whole body first (at most ``max_bytes``, within ``timeout_s``), then replays it to
     ``app``; a request over either limit, or whose body holds more than ``max_values`` JSON values, is answered 413
-    or 408 and never reaches ``app``. The bodies of all requests in memory at once are at most ``max_buffered`` bytes
-    (at least ``max_bytes``): past it, 429 (30 unauthenticated 30 MB bodies held 1 GB; 64 connections from each
-    address could hold 2 GB each)."""
+    or 408 and never reaches ``app``. The bodies in memory at once of one client address are at most
+    ``max_buffered`` bytes (at least ``max_bytes``): past it, 429 (bodies are read before the token is looked at: 30
+    unauthenticated 30 MB bodies held 1 GB; per address, so that one client cannot use up the others' share)."""
 
     def __init__(self, app: Callable[..., Awaitable[None]], max_bytes: int, timeout_s: float,
-                 max_values: int = 1000, max_buffered: int = 256 * 2**20) -> None:
+                 max_values: int = 1000, max_buffered: int = 64 * 2**20) -> None:
         self.app, self.max_bytes, self.timeout_s = app, int(max_bytes), float(timeout_s)
         self.max_values, self.max_buffered = int(max_values), max(int(max_buffered), int(max_bytes))
-        self.buffered = 0  #: bytes of the bodies in memory now (the event loop's: no lock)
+        #: bytes of the bodies in memory now per client address (the event loop's: no lock)
+        self.buffered: collections.Counter[str] = collections.Counter()
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -64,19 +65,22 @@ class BodyLimit:
             await _refuse(send, 413, f"request body over {self.max_bytes} bytes")
             return
         chunks: list[bytes] = []
+        address = scope["client"][0] if scope.get("client") else "?"
         try:
-            await self._serve(scope, receive, send, chunks)
+            await self._serve(scope, receive, send, chunks, address)
         finally:
-            self.buffered -= sum(len(c) for c in chunks)
+            self.buffered[address] -= sum(len(c) for c in chunks)
+            if self.buffered[address] <= 0:
+                del self.buffered[address]
 
-    async def _serve(self, scope: Scope, receive: Receive, send: Send, chunks: list[bytes]) -> None:
-        """Reads the body into ``chunks`` (counted in ``buffered``), refuses it or replays it to ``app``."""
+    async def _serve(self, scope: Scope, receive: Receive, send: Send, chunks: list[bytes], address: str) -> None:
+        """Reads the body into ``chunks`` (counted in ``buffered[address]``), refuses it or replays it to ``app``."""
         try:
-            status = await asyncio.wait_for(self._read(receive, chunks), self.timeout_s)
+            status = await asyncio.wait_for(self._read(receive, chunks, address), self.timeout_s)
         except asyncio.TimeoutError:
             status = 408
         if status == 429:
-            await _refuse(send, 429, "too many request bodies in memory at once; retry")
+            await _refuse(send, 429, "too many request bodies from this address in memory at once; retry")
             return
         if status == 413:
             await _refuse(send, 413, f"request body over {self.max_bytes} bytes")
@@ -100,9 +104,9 @@ class BodyLimit:
 
         await self.app(scope, replay, send)
 
-    async def _read(self, receive: Receive, chunks: list[bytes]) -> int:
-        """Reads the body into ``chunks``: 200 read, 413 over the limit, 429 over ``max_buffered`` with the others,
-        499 the client disconnected."""
+    async def _read(self, receive: Receive, chunks: list[bytes], address: str) -> int:
+        """Reads the body into ``chunks``: 200 read, 413 over the limit, 429 over ``max_buffered`` with the address's
+        others, 499 the client disconnected."""
         size = 0
         while True:
             message = await receive()
@@ -112,10 +116,10 @@ class BodyLimit:
             size += len(chunk)
             if size > self.max_bytes:
                 return 413
-            if self.buffered + len(chunk) > self.max_buffered:
+            if self.buffered[address] + len(chunk) > self.max_buffered:
                 return 429
             chunks.append(chunk)
-            self.buffered += len(chunk)
+            self.buffered[address] += len(chunk)
             if not message.get("more_body", False):
                 return 200
 

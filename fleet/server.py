@@ -132,7 +132,7 @@ _PROBLEMS: dict[int | str, dict[str, Any]] = {
     413: {"model": Problem, "description": "a body or an image too large"},
     422: {"model": SchemaProblem, "description": "does not fit the schema"},
     429: {"model": Problem, "description": "too many failed authentications from this address, keyframes of this "
-                                            "robot at once, or request bodies in memory"},
+                                            "robot at once, or request bodies from this address in memory"},
 }
 
 

@@ -46,7 +46,7 @@ class FleetService:
         "optimizer": BackgroundOptimizer.default_conf,  # when the graph is solved (fleet.optimizer)
         "limits": {
             "max_request_mb": 32.0,  # larger request bodies are refused (HTTP 413)
-            "max_buffered_mb": 256.0,  # request bodies in memory at once (at least max_request_mb); past it HTTP 429
+            "max_buffered_mb": 64.0,  # an address's request bodies in memory at once (>= max_request_mb); then 429
             "max_json_values": 1000,  # bodies holding more JSON values are refused unparsed (HTTP 413; a keyframe: ~40)
             "max_image_pixels": 16_000_000,  # larger images are refused (HTTP 413), from their header
             "keyframes_in_flight": 2,  # a robot's further keyframes sent at once are refused (HTTP 429), not queued

@@ -96,13 +96,15 @@ class TestHalfSentRequests:
 
 
 class TestBodiesInMemory:
-    def test_bodies_past_the_servers_budget_are_429_and_it_is_given_back(self, tmp_path):
-        """Bodies are read before the token is looked at: 30 unauthenticated 30 MB bodies held 1 GB at once."""
+    def test_bodies_past_an_addresss_budget_are_429_and_it_is_given_back(self, tmp_path):
+        """Bodies are read before the token is looked at: 30 unauthenticated 30 MB bodies held 1 GB at once. Per
+        address: one client cannot use up the others' share."""
         conf = {"limits": {"max_request_mb": 1.0, "max_buffered_mb": 1.5, "body_timeout_s": 20.0}}
         with ServerThread(create_app(tmp_path, ADMIN, conf, recognize=False)) as server:
-            def post() -> httpx.Response:
-                return httpx.post(f"{server.url}/robots", content=b"x" * 800_000,
-                                  headers={"Authorization": "Bearer nobody", "Content-Type": "application/json"})
+            def post(source: str = "127.0.0.1") -> httpx.Response:
+                with httpx.Client(transport=httpx.HTTPTransport(local_address=source)) as http:
+                    return http.post(f"{server.url}/robots", content=b"x" * 800_000,
+                                     headers={"Authorization": "Bearer nobody", "Content-Type": "application/json"})
 
             with socket.create_connection((server.host, server.port), timeout=10) as held:
                 held.sendall(b"POST /robots HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer nobody\r\n"
@@ -112,6 +114,7 @@ class TestBodiesInMemory:
                     time.sleep(0.05)
                     r = post()
                 assert r.status_code == 429 and "in memory" in r.json()["detail"]
+                assert post("127.0.0.2").status_code == 422  # another address has its own share
                 held.sendall(b"x" * 100_000)
                 assert held.recv(1024).startswith(b"HTTP/1.1 422")  # read in full: then not JSON
             assert post().status_code == 422  # its bytes were given back
