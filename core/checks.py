@@ -13,14 +13,17 @@ import numpy as np
 
 from .errors import ConfigError
 
-__all__ = ["MAX_FRAME_ID", "MAX_TIMESTAMP", "MAX_TRANSLATION", "MAX_DEPTH", "ROTATION_TOL", "check_frame_id",
-           "check_timestamp", "check_matrix", "check_pose", "check_rigid_pose", "check_intrinsics", "decode_depth"]
+__all__ = ["MAX_FRAME_ID", "MAX_TIMESTAMP", "MAX_TRANSLATION", "MAX_DEPTH", "ROTATION_TOL", "MIN_FOCAL",
+           "MAX_INTRINSIC", "check_frame_id", "check_timestamp", "check_matrix", "check_pose", "check_rigid_pose",
+           "check_intrinsics", "decode_depth"]
 
 MAX_FRAME_ID = 2**53  #: ids are in [0, 2**53): exact as a float64 and as a JSON number everywhere
 MAX_TIMESTAMP = 1e11  #: |timestamp| in seconds at most this (year 5138 as Unix time)
 MAX_TRANSLATION = 1e7  #: a pose's translation at most this far from its map's origin (map units, metres: 10 000 km)
 MAX_DEPTH = 1e6  #: a depth value at most this (map units); 0 means "no depth"
 ROTATION_TOL = 1e-3  #: ``|R^T R - I|`` and ``|det R - 1|`` at most this for a rigid pose
+MIN_FOCAL = 1e-3  #: fx, fy at least this (pixels; normalised cameras have ~1): K^-1 then stays finite on any pixel
+MAX_INTRINSIC = 1e7  #: fx, fy, skew, cx, cy at most this in magnitude (pixels)
 
 
 def check_frame_id(value: Any, what: str = "frame id") -> int:
@@ -103,7 +106,9 @@ def check_rigid_pose(value: Any, what: str = "pose", tol: float = ROTATION_TOL,
     else:
         M = check_matrix(value, (3, 4), what)
     R = M[:3, :3]
-    if np.abs(R.T @ R - np.eye(3)).max() > tol or np.linalg.det(R) <= 0:
+    with np.errstate(over="ignore", invalid="ignore"):  # entries past 1e154 overflow R^T R: inf, refused below
+        orthonormal = np.abs(R.T @ R - np.eye(3)).max() <= tol
+    if not orthonormal or np.linalg.det(R) <= 0:
         raise ConfigError(f"{what}: the 3x3 block must be a rotation (orthonormal within {tol:g}, det +1)")
     if np.abs(M[:3, 3]).max() > max_translation:
         raise ConfigError(f"{what}: translation {np.abs(M[:3, 3]).max():.3g} is beyond {max_translation:g}")
@@ -114,14 +119,19 @@ def check_rigid_pose(value: Any, what: str = "pose", tol: float = ROTATION_TOL,
 
 
 def check_intrinsics(value: Any, what: str = "intrinsics") -> np.ndarray:
-    """A pinhole camera matrix ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]``, finite, ``fx, fy > 0`` -> ``(3, 3)``.
+    """A pinhole camera matrix ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]``, finite, ``fx, fy`` in
+    ``[MIN_FOCAL, MAX_INTRINSIC]``, ``|s|, |cx|, |cy| <= MAX_INTRINSIC`` -> ``(3, 3)``.
 
     Raises:
-        ConfigError: another shape, NaN/inf, fx or fy not > 0, or a last row other than ``0 0 1``.
+        ConfigError: another shape, NaN/inf, fx or fy out of range (a singular or near-singular matrix), an entry
+            beyond ``MAX_INTRINSIC``, or a last row other than ``0 0 1``.
     """
     K = check_matrix(value, (3, 3), what)
     if K[0, 0] <= 0 or K[1, 1] <= 0 or K[1, 0] != 0 or np.abs(K[2] - [0, 0, 1]).max() > 1e-9:
         raise ConfigError(f"{what} must be a camera matrix [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
+    if min(K[0, 0], K[1, 1]) < MIN_FOCAL or np.abs(K[:2]).max() > MAX_INTRINSIC:
+        raise ConfigError(f"{what}: fx and fy must be in [{MIN_FOCAL:g}, {MAX_INTRINSIC:g}] and |s|, |cx|, |cy| at "
+                          f"most {MAX_INTRINSIC:g} pixels")
     return K
 
 

@@ -355,12 +355,14 @@ class FleetRecognizer:
             K: ``(3, 3)`` intrinsics (the first keyframe's are kept). depth: ``(H, W)`` depth map, or None.
 
         Raises:
-            ConfigError, ImageError: a bad input; nothing was stored.
+            ConfigError, ImageError: a bad input (also a depth map of a robot without intrinsics); nothing was stored.
         """
         check_image(image, "image")  # before a new robot's folder is made: a refused keyframe leaves nothing
         with self._lock:
             self.check(robot, K)
             r = self.robots.get(robot)
+            if depth is not None and K is None and (r is None or r.K is None):  # it would be dropped without a word
+                raise ConfigError(f"robot {robot}: a depth map needs intrinsics (with the robot's first keyframe)")
             if r is None or isinstance(r.detector, _Adopted):  # first keyframe here (adopted keyframes: now owned)
                 r = self._open(robot, K)
         with r.lock:

@@ -4,6 +4,7 @@ srv: FleetClient(srv.url, token)``. Port 0 picks a free port; loopback by defaul
 
 from __future__ import annotations
 
+import collections
 import logging
 import threading
 import time
@@ -22,9 +23,12 @@ log = logging.getLogger(__name__)
 
 def server_config(app: FastAPI, host: str = "127.0.0.1", port: int = 0, log_level: str = "warning") -> uvicorn.Config:
     """The uvicorn configuration of the fleet server (``cae-lcd serve`` and ``ServerThread`` alike): the h11 protocol
-    with a header read deadline (``limits.header_timeout_s``), a short keep-alive and bounded request heads."""
+    with a header read deadline (``limits.header_timeout_s``) and open connections bounded per client address
+    (``limits.max_connections_per_address``), a short keep-alive and bounded request heads."""
     limits = app.state.service.conf["limits"]
-    protocol = type("FleetH11", (TimedH11Protocol,), {"header_timeout_s": float(limits["header_timeout_s"])})
+    protocol = type("FleetH11", (TimedH11Protocol,), {"header_timeout_s": float(limits["header_timeout_s"]),
+                                                      "max_per_address": int(limits["max_connections_per_address"]),
+                                                      "open_per_address": collections.Counter()})
     return uvicorn.Config(app, host=host, port=port, log_level=log_level, lifespan="on", access_log=False,
                           http=protocol, timeout_keep_alive=5, h11_max_incomplete_event_size=64 * 1024)
 

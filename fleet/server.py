@@ -22,8 +22,11 @@ acknowledged so far). State lives under ``state_dir``: ``fleet.sqlite`` (robots,
 ``robots/NAME/`` (each robot's HDF5 keyframe database and intrinsics). Errors (``Problem``: one line in
 ``detail``): 400 a bad value, 401 no or a wrong token, 403 a robot's token where the admin's is needed, 404 an
 unknown robot or another robot's (alike, so names cannot be probed), 408 a body sent too slowly, 409 a taken name or a
-retry of an acknowledged keyframe with other content, 413 a body or an image too large, 422 a body that does not fit
-the schema (``SchemaProblem``), 429 too many failed authentications from one address (refused before any hash).
+retry of an acknowledged keyframe with other content, 413 a body (bytes or JSON values) or an image too large, 422 a
+body that does not fit the schema (``SchemaProblem``: one line, the first errors; unknown fields are one error), 429
+too many failed authentications from one address (refused before any hash), a robot's keyframes sent at once
+beyond ``limits.keyframes_in_flight`` (refused before decoding) or request bodies in memory beyond
+``limits.max_buffered_mb`` (``fleet.limits``).
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ from __future__ import annotations
 import base64
 import binascii
 import hmac
+import itertools
 import logging
 from pathlib import Path
 from typing import Annotated, Any, Callable
@@ -40,7 +44,7 @@ from fastapi import Depends, FastAPI, Header, HTTPException, Request
 from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, model_validator
 
 from core.checks import MAX_FRAME_ID, check_intrinsics, check_rigid_pose, decode_depth
 from core.conf import ConfigError
@@ -49,7 +53,7 @@ from core.images import decode_image, image_header
 from retrieval.descriptors import GlobalDescriptor
 
 from .map_page import map_router
-from .limits import AuthThrottle, BodyLimit
+from .limits import AuthThrottle, BodyLimit, InFlight
 from .service import ROBOT_NAME, FleetService
 from .stores import open_store
 from .workers import create_recognizer
@@ -61,6 +65,7 @@ log = logging.getLogger(__name__)
 ADMIN = "\0admin"  #: the caller name of the admin token
 MAX_B64 = 48 * 2**20  #: longest base64 string a field may hold (the body limit is usually lower)
 MAX_TOKEN = 256  #: longest Authorization header value looked at
+MAX_ERRORS = 20  #: schema errors reported in a 422 (the first ones)
 
 
 def _a_number(value: Any) -> Any:
@@ -73,17 +78,34 @@ def _a_number(value: Any) -> Any:
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", strict=True)  # unknown fields and "16" for an int are refused
 
+    @model_validator(mode="before")
+    @classmethod
+    def _known_fields(cls, data: Any) -> Any:
+        """Refuses unknown fields in one error (pydantic would make one per field: a body of 2 million unknown keys
+        became a 180 MB answer after 40 s and 3.7 GB)."""
+        unknown = [k for k in data if k not in cls.model_fields] if isinstance(data, dict) else []
+        if unknown:
+            raise ValueError(f"unknown fields {', '.join(repr(str(k)[:40]) for k in unknown[:5])}"
+                             + (f" and {len(unknown) - 5} more" if len(unknown) > 5 else ""))
+        return data
+
 
 class RobotIn(_Strict):
     name: str = Field(pattern=f"^{ROBOT_NAME}$")  #: 1 to 64 letters, digits, _ and -
 
 
+#: a matrix row, its length bounded before its items are validated (one error, not one per item); a short row is
+#: refused by ``core.checks`` with the matrix's shape
+Row3 = Annotated[list[float], Field(max_length=3)]
+Row4 = Annotated[list[float], Field(max_length=4)]
+
+
 class KeyframeIn(_Strict):
     keyframe: Annotated[int, BeforeValidator(_a_number)] = Field(ge=0, lt=MAX_FRAME_ID, strict=False)  #: increasing
     timestamp: float  #: seconds, finite, never less than the robot's previous keyframe's
-    pose: list[list[float]] = Field(min_length=3, max_length=4)  #: 3x4 or 4x4 rigid camera-to-map pose
+    pose: list[Row4] = Field(min_length=3, max_length=4)  #: 3x4 or 4x4 rigid camera-to-map pose
     image: str = Field(max_length=MAX_B64)  #: base64 PNG, JPEG, TIFF, BMP or WebP bytes
-    intrinsics: list[list[float]] | None = Field(default=None, max_length=3)  #: 3x3 camera matrix
+    intrinsics: list[Row3] | None = Field(default=None, max_length=3)  #: 3x3 camera matrix
     depth: str | None = Field(default=None, max_length=MAX_B64)  #: base64 .npy of a (H, W) depth map, the image's size
 
 
@@ -94,7 +116,8 @@ class Problem(BaseModel):
 
 
 class SchemaProblem(Problem):
-    """A body, path or query that does not fit the schema (422): one line, and pydantic's errors."""
+    """A body, path or query that does not fit the schema (422): one line, and pydantic's first errors
+    (``MAX_ERRORS``)."""
 
     errors: list[dict[str, Any]]
 
@@ -108,7 +131,8 @@ _PROBLEMS: dict[int | str, dict[str, Any]] = {
     409: {"model": Problem, "description": "a taken name, or a retry with other content"},
     413: {"model": Problem, "description": "a body or an image too large"},
     422: {"model": SchemaProblem, "description": "does not fit the schema"},
-    429: {"model": Problem, "description": "too many failed authentications from this address"},
+    429: {"model": Problem, "description": "too many failed authentications from this address, keyframes of this "
+                                            "robot at once, or request bodies from this address in memory"},
 }
 
 
@@ -173,7 +197,9 @@ def create_app(state_dir: str | Path, admin_token: str, conf: dict[str, Any] | N
     app = FastAPI(title="cae-lcd fleet server", on_shutdown=[service.close])
     app.state.service = service
     limits = service.conf["limits"]
-    app.add_middleware(BodyLimit, max_bytes=int(limits["max_request_mb"] * 2**20), timeout_s=limits["body_timeout_s"])
+    app.add_middleware(BodyLimit, max_bytes=int(limits["max_request_mb"] * 2**20),
+                       timeout_s=limits["body_timeout_s"], max_values=limits["max_json_values"],
+                       max_buffered=int(limits["max_buffered_mb"] * 2**20))
     app.add_exception_handler(RequestValidationError, _one_line_422)
     throttle = AuthThrottle(limits["auth_failures"], limits["auth_window_s"])
     caller, owner_or_admin = _auth(service, admin_token, throttle)
@@ -186,8 +212,9 @@ def create_app(state_dir: str | Path, admin_token: str, conf: dict[str, Any] | N
 async def _one_line_422(request: Request, exc: RequestValidationError) -> JSONResponse:
     """Schema errors as one line (``"body.keyframe: Input should be greater than or equal to 0"``), like the others;
     the details stay in ``errors`` (``SchemaProblem``)."""
-    lines = [".".join(str(p) for p in e.get("loc", ())) + ": " + str(e.get("msg", "invalid")) for e in exc.errors()]
-    errors = [{k: v for k, v in e.items() if k in ("type", "loc", "msg")} for e in exc.errors()]
+    first = list(itertools.islice(exc.errors(), MAX_ERRORS))
+    lines = [".".join(str(p) for p in e.get("loc", ())) + ": " + str(e.get("msg", "invalid")) for e in first]
+    errors = [{k: v for k, v in e.items() if k in ("type", "loc", "msg")} for e in first]
     return JSONResponse(status_code=422, content={"detail": "; ".join(lines)[:2000] or "invalid request",
                                                   "errors": jsonable_encoder(errors)})
 
@@ -223,6 +250,7 @@ def _write_routes(app: FastAPI, service: FleetService, caller: Callable[..., str
                   owner_or_admin: Callable[[str, str], None]) -> None:
     """``POST /robots`` and ``POST /robots/{name}/keyframes``."""
     max_pixels = service.conf["limits"]["max_image_pixels"]
+    in_flight = InFlight(service.conf["limits"]["keyframes_in_flight"])
 
     @app.post("/robots", status_code=201, responses=_PROBLEMS)
     def register(body: RobotIn, who: str = Depends(caller)) -> dict[str, str]:
@@ -239,13 +267,17 @@ def _write_routes(app: FastAPI, service: FleetService, caller: Callable[..., str
         if who != name:  # the admin reads, but only the robot itself writes its keyframes
             raise HTTPException(404, f"no robot {name!r}")
         owner_or_admin(name, who)
-        pose, image, K, depth = _decode_keyframe(body, max_pixels)
+        if not in_flight.acquire(name):  # before decoding: a queued keyframe would hold its decoded image
+            raise HTTPException(429, f"robot {name!r} has {in_flight.limit} keyframes in flight; retry once answered")
         try:
+            pose, image, K, depth = _decode_keyframe(body, max_pixels)
             stored = service.submit_keyframe(name, body.keyframe, body.timestamp, pose, image, K, depth)
         except ConflictError as err:
             raise HTTPException(409, str(err)) from None
         except LCDError as err:
             raise HTTPException(400, str(err)) from None
+        finally:
+            in_flight.release(name)
         return {"robot": name, "keyframe": body.keyframe, "stored": stored}
 
 

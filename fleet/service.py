@@ -16,6 +16,7 @@ import numpy as np
 
 from core.checks import check_frame_id, check_intrinsics, check_rigid_pose, check_timestamp
 from core.conf import ConfigError, Float, Int, configure
+from core.errors import ConflictError
 
 from .graph import GraphResult, Node, PoseGraph
 from .optimizer import BackgroundOptimizer
@@ -45,17 +46,24 @@ class FleetService:
         "optimizer": BackgroundOptimizer.default_conf,  # when the graph is solved (fleet.optimizer)
         "limits": {
             "max_request_mb": 32.0,  # larger request bodies are refused (HTTP 413)
+            "max_buffered_mb": 64.0,  # an address's request bodies in memory at once (>= max_request_mb); then 429
+            "max_json_values": 1000,  # bodies holding more JSON values are refused unparsed (HTTP 413; a keyframe: ~40)
             "max_image_pixels": 16_000_000,  # larger images are refused (HTTP 413), from their header
+            "keyframes_in_flight": 2,  # a robot's further keyframes sent at once are refused (HTTP 429), not queued
             "body_timeout_s": 60.0,  # a request body not received within this is refused (HTTP 408)
             "header_timeout_s": 10.0,  # a connection whose request headers are not in within this is closed
+            "max_connections_per_address": 64,  # an address's further connections are closed at once
             "auth_failures": 20,  # failed authentications an address may make per window; then HTTP 429
             "auth_window_s": 60.0,  # the window of auth_failures, seconds
         },
     }
     conf_rules: dict[str, Any] = {"graph": PoseGraph.conf_rules, "optimizer": BackgroundOptimizer.conf_rules,
-                                  "limits": {"max_request_mb": Float(0, lo_open=True),
-                                             "max_image_pixels": Int(64), "body_timeout_s": Float(0, lo_open=True),
-                                             "header_timeout_s": Float(0, lo_open=True), "auth_failures": Int(1),
+                                  "limits": {"max_request_mb": Float(0, lo_open=True), "max_json_values": Int(64),
+                                             "max_buffered_mb": Float(0, lo_open=True),
+                                             "max_image_pixels": Int(64), "keyframes_in_flight": Int(1),
+                                             "body_timeout_s": Float(0, lo_open=True),
+                                             "header_timeout_s": Float(0, lo_open=True),
+                                             "max_connections_per_address": Int(1), "auth_failures": Int(1),
                                              "auth_window_s": Float(0, lo_open=True)}}
 
     def __init__(self, store: FleetStore, conf: dict[str, Any] | None = None,
@@ -162,7 +170,8 @@ class FleetService:
         Raises:
             ConfigError, ImageError: a bad value (``core.checks``: id, timestamp, rigid pose, intrinsics), an id not
                 after the robot's last, a timestamp before its last; nothing was stored.
-            ConflictError: a retry of a stored keyframe with another timestamp, pose or image; nothing changed.
+            ConflictError: a retry of a stored keyframe with another timestamp, pose, image or intrinsics; nothing
+                changed.
         """
         keyframe, timestamp = check_frame_id(keyframe, "keyframe"), check_timestamp(timestamp)
         local = Sim3.from_pose(check_rigid_pose(pose))
@@ -171,8 +180,7 @@ class FleetService:
             ack = KeyframeAck(robot, keyframe, timestamp, local.matrix())
             # the store, not this process: replicas share it (one row each, not the robot's every keyframe)
             if self.store.keyframe(robot, keyframe) is not None:  # a retry (False) or a conflict (ConflictError)
-                if self.recognizer is not None and image is not None:
-                    self.recognizer.check_retry(robot, keyframe, image)
+                self._check_retry(robot, keyframe, image, K)
                 return self.store.ack_keyframe(ack)
             last = self.store.last_keyframe(robot)
             if last is not None and keyframe < last.keyframe:
@@ -200,6 +208,18 @@ class FleetService:
                                          e.relative)
             self.optimizer.changed()
             return True
+
+    def _check_retry(self, robot: str, keyframe: int, image: np.ndarray | None, K: np.ndarray | None) -> None:
+        """Refuses (``ConflictError``) a retry of a stored keyframe with another image or other intrinsics than the
+        robot's (both may be left out of a retry); changes nothing."""
+        if self.recognizer is None:
+            return
+        try:
+            self.recognizer.check(robot, K)
+        except ConfigError:
+            raise ConflictError(f"robot {robot!r} sent keyframe {keyframe} before, with other intrinsics") from None
+        if image is not None:
+            self.recognizer.check_retry(robot, keyframe, image)
 
     def _catch_up(self, edges: list[EdgeRecord]) -> None:
         """Adds to the graph the keyframes that ``edges`` join and another front end on the same store acknowledged

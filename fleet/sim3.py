@@ -175,16 +175,21 @@ def _fit_batch(src: np.ndarray, dst: np.ndarray, w: np.ndarray, with_scale: bool
         cross-covariance (near 0: collinear or coincident points, the fit is meaningless).
     """
     wn = w / w.sum(axis=1, keepdims=True)
-    mu_s = np.einsum("kn,knd->kd", wn, src)
-    mu_d = np.einsum("kn,knd->kd", wn, dst)
-    a = src - mu_s[:, None]
-    b = dst - mu_d[:, None]
-    cov = np.einsum("kn,kni,knj->kij", wn, b, a)
-    U, D, Vt = np.linalg.svd(cov)
+    with np.errstate(over="ignore", invalid="ignore"):
+        mu_s = np.einsum("kn,knd->kd", wn, src)
+        mu_d = np.einsum("kn,knd->kd", wn, dst)
+        a = src - mu_s[:, None]
+        b = dst - mu_d[:, None]
+        cov = np.einsum("kn,kni,knj->kij", wn, b, a)
+    # LAPACK never returns on an infinite matrix (points so far apart that their products overflow): such problems
+    # are solved as the zero matrix, whose spread 0 marks them degenerate
+    finite = np.isfinite(cov).all(axis=(1, 2))
+    U, D, Vt = np.linalg.svd(np.where(finite[:, None, None], cov, 0.0))
+    D[~finite] = 0.0
     flip = np.ones((len(D), 3))
     flip[:, 2] = np.where(np.linalg.det(U) * np.linalg.det(Vt) < 0, -1.0, 1.0)  # a reflection -> the best rotation
     R = U @ (flip[:, :, None] * Vt)
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         spread = D[:, 1] / D[:, 0]
         var_s = np.einsum("kn,knd,knd->k", wn, a, a)
         s = (D * flip).sum(axis=1) / var_s if with_scale else np.ones(len(D))
@@ -215,14 +220,15 @@ def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True, weights: 
         raise ConfigError(f"a similarity needs at least 3 point pairs; got {np.count_nonzero(w)}")
     s, R, t, spread = _fit_batch(a[None], b[None], w[None], with_scale)
     if not spread[0] > _RANK_TOL or not (np.isfinite(s[0]) and s[0] > 0):
-        raise ConfigError("the points are coincident or collinear: no unique similarity")
+        raise ConfigError("the points are coincident, collinear or too far apart: no unique similarity")
     return Sim3(float(s[0]), R[0], t[0])
 
 
 def _residuals(s: np.ndarray, R: np.ndarray, t: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     """``(k, n)`` distances ``||s R src + t - dst||`` of ``k`` hypotheses (``s (k,)``, ``R (k,3,3)``, ``t (k,3)``)."""
-    pred = s[:, None, None] * np.einsum("kij,nj->kni", R, src) + t[:, None]
-    return np.linalg.norm(pred - dst[None], axis=2)
+    with np.errstate(over="ignore", invalid="ignore"):  # points far apart: inf, never an inlier
+        pred = s[:, None, None] * np.einsum("kij,nj->kni", R, src) + t[:, None]
+        return np.linalg.norm(pred - dst[None], axis=2)
 
 
 def _robust_weights(r: np.ndarray, scale: float, loss: str) -> np.ndarray:
@@ -267,7 +273,8 @@ class Sim3Ransac:
         """The inlier distance for points ``dst (n, 3)`` in ``dst`` units (0 when they have no spread)."""
         if self.conf["threshold_mode"] == "absolute":
             return float(self.conf["threshold"])
-        scene = float(np.median(np.linalg.norm(dst - np.median(dst, axis=0), axis=1))) if len(dst) else 0.0
+        with np.errstate(over="ignore", invalid="ignore"):
+            scene = float(np.median(np.linalg.norm(dst - np.median(dst, axis=0), axis=1))) if len(dst) else 0.0
         return self.conf["threshold"] * scene
 
     def __call__(self, src: np.ndarray, dst: np.ndarray) -> tuple[Sim3, np.ndarray] | None:

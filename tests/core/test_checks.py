@@ -54,7 +54,8 @@ class TestPoses:
             M = check_rigid_pose(p)
             assert M.shape == (4, 4) and np.allclose(M[:3], p, atol=1e-5)
 
-    @pytest.mark.parametrize("scale", [1e-100, 1e100, 2.0])
+    @pytest.mark.filterwarnings("error")  # 1e200: R^T R overflowed with a RuntimeWarning on the server's stderr
+    @pytest.mark.parametrize("scale", [1e-100, 1e100, 1e200, 2.0])
     def test_a_scaled_rotation_is_not_rigid(self, sample_poses, scale):
         p = sample_poses[5].copy()
         p[:, :3] *= scale
@@ -88,9 +89,17 @@ class TestPoses:
 class TestIntrinsics:
     def test_the_sample_camera_is_accepted(self, sample_K):
         assert np.array_equal(check_intrinsics(sample_K), sample_K)
+        normalised = np.diag([sample_K[0, 0], sample_K[1, 1], 620.0]) / 620.0  # a camera in normalised units
+        assert np.array_equal(check_intrinsics(normalised), normalised)
 
     @pytest.mark.parametrize("K", [np.zeros((3, 3)), -np.eye(3), np.full((3, 3), np.nan), np.eye(4),
-                                   [[700, 0, 300], [0, 700, 90], [0, 1, 1]]])
+                                   [[700, 0, 300], [0, 700, 90], [0, 1, 1]],
+                                   # near-singular or enormous: K^-1 or K overflows (a server hung on fx = 1e-300)
+                                   [[1e-300, 0, 300], [0, 1e-300, 90], [0, 0, 1]],
+                                   [[700, 0, 300], [0, 1e-4, 90], [0, 0, 1]],
+                                   [[1e300, 0, 300], [0, 1e300, 90], [0, 0, 1]],
+                                   [[700, 1e300, 300], [0, 700, 90], [0, 0, 1]],
+                                   [[700, 0, -1e300], [0, 700, 90], [0, 0, 1]]])
     def test_refused(self, K):
         with pytest.raises(ConfigError, match="intrinsics"):
             check_intrinsics(K)

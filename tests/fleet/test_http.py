@@ -163,6 +163,9 @@ BAD = {  # name -> (change to a good body, expected status, words of the reason)
     "pose-far": (lambda j: {"pose": (np.c_[np.eye(3), [1e300, 0, 0]]).tolist()}, 400, "translation"),
     "intrinsics-zero": (lambda j: {"intrinsics": np.zeros((3, 3)).tolist()}, 400, "intrinsics"),
     "unknown-field": (lambda j: {"padding": "x" * 1000}, 422, "padding"),
+    # a near-singular camera: with a depth map its back-projected points overflowed and hung the server
+    "intrinsics-tiny-focal": (lambda j: {"intrinsics": [[1e-300, 0, 300], [0, 1e-300, 90], [0, 0, 1]]}, 400,
+                              "fx and fy"),
 }
 
 
@@ -199,6 +202,30 @@ class TestMalformedInput:
         assert r.status_code == 409 and "another image" in r.json()["detail"]
         assert state_of(state, "A") == before
 
+    def test_a_retry_with_other_intrinsics_is_409(self, live, sample_poses, jpeg, sample_K):
+        url, state, tokens = live
+        auth = {"Authorization": f"Bearer {tokens['A']}"}
+        httpx.post(f"{url}/robots/A/keyframes", json=body(14, sample_poses, jpeg, sample_K), headers=auth)
+        before = state_of(state, "A")
+        other = body(14, sample_poses, jpeg, np.diag([2.0, 2.0, 1.0]) @ sample_K)
+        r = httpx.post(f"{url}/robots/A/keyframes", json=other, headers=auth)
+        assert r.status_code == 409 and "other intrinsics" in r.json()["detail"]  # was 200, stored: false
+        same = httpx.post(f"{url}/robots/A/keyframes", json=body(14, sample_poses, jpeg, sample_K), headers=auth)
+        assert same.status_code == 200 and same.json()["stored"] is False
+        assert state_of(state, "A") == before
+
+    @pytest.mark.parametrize("change", [{f"k{i}": 0 for i in range(600)}, {"pose": [["x"] * 300] * 3}],
+                             ids=["600-unknown-fields", "pose-rows-of-300-strings"])
+    def test_many_bad_values_get_a_short_answer(self, live, sample_poses, jpeg, change):
+        """One error a bad value made a 2 MB body of unknown keys a 180 MB answer (40 s, 3.7 GB of memory)."""
+        url, state, tokens = live
+        before = state_of(state, "A")
+        r = httpx.post(f"{url}/robots/A/keyframes", json=body(40, sample_poses, jpeg, **change),
+                       headers={"Authorization": f"Bearer {tokens['A']}"})
+        assert r.status_code == 422 and len(r.json()["errors"]) <= 20 and len(r.content) < 5000, r.text[:300]
+        assert "\n" not in r.json()["detail"]
+        assert state_of(state, "A") == before
+
     def test_a_refused_first_keyframe_leaves_no_trace(self, live, sample_poses, jpeg, sample_K):
         url, state, _ = live
         token = FleetClient(url, ADMIN).register("D")
@@ -208,6 +235,19 @@ class TestMalformedInput:
         assert r.status_code == 400 and "too small" in r.json()["detail"]
         assert not (state / "robots" / "D" / "camera.json").exists()
         assert FleetClient(url, token).submit_keyframe("D", 0, 0.0, sample_poses[0], jpeg(0), sample_K)
+
+    def test_a_depth_map_without_intrinsics_is_refused(self, live, sample_poses, jpeg, sample_K):
+        """It was acknowledged and dropped without a word (no camera to back-project it with)."""
+        url, state, _ = live
+        token = FleetClient(url, ADMIN).register("E")
+        depth = _npy(np.full((188, 620), 5.0, np.float32))
+        r = httpx.post(f"{url}/robots/E/keyframes", json=body(0, sample_poses, jpeg, depth=depth),
+                       headers={"Authorization": f"Bearer {token}"})
+        assert r.status_code == 400 and "needs intrinsics" in r.json()["detail"]
+        assert not (state / "robots" / "E").exists() and state_of(state, "E") == ([], b"")
+        r = httpx.post(f"{url}/robots/E/keyframes", json=body(0, sample_poses, jpeg, sample_K, depth=depth),
+                       headers={"Authorization": f"Bearer {token}"})
+        assert r.status_code == 200 and r.json()["stored"] is True
 
     def test_an_unknown_robot_is_404(self, live, sample_poses, jpeg):
         url, state, _ = live

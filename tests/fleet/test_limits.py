@@ -59,6 +59,15 @@ class TestBodyLimit:
                           headers={"Authorization": f"Bearer {token}", "Content-Type": "application/json"})
         assert r.status_code == 413 and "bytes" in r.json()["detail"]
 
+    @pytest.mark.parametrize("token", ["A.wrong", None], ids=["wrong-token", "A"])
+    def test_a_body_of_too_many_json_values_is_413_before_it_is_parsed(self, live, token):
+        """30 MB of ``{},`` were parsed into 800 MB of dicts (1.5 s in the event loop) before the token was looked
+        at; a few kB show that the values are counted, not the bytes."""
+        server, good = live
+        r = httpx.post(f"{server.url}/robots/A/keyframes", content=b'{"x": [' + b",".join([b"{}"] * 5000) + b"]}",
+                       headers={"Authorization": f"Bearer {token or good}", "Content-Type": "application/json"})
+        assert r.status_code == 413 and "JSON values" in r.json()["detail"]
+
     def test_a_body_sent_too_slowly_is_408(self, live):
         server, token = live
         head = (f"POST /robots/A/keyframes HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {token}\r\n"
@@ -84,6 +93,98 @@ class TestHalfSentRequests:
             for s in sockets:
                 s.close()
         assert httpx.get(f"{server.url}/overlaps", headers={"Authorization": f"Bearer {ADMIN}"}).status_code == 200
+
+
+class TestBodiesInMemory:
+    def test_bodies_past_an_addresss_budget_are_429_and_it_is_given_back(self, tmp_path):
+        """Bodies are read before the token is looked at: 30 unauthenticated 30 MB bodies held 1 GB at once. Per
+        address: one client cannot use up the others' share."""
+        conf = {"limits": {"max_request_mb": 1.0, "max_buffered_mb": 1.5, "body_timeout_s": 20.0}}
+        with ServerThread(create_app(tmp_path, ADMIN, conf, recognize=False)) as server:
+            def post(source: str = "127.0.0.1") -> httpx.Response:
+                with httpx.Client(transport=httpx.HTTPTransport(local_address=source)) as http:
+                    return http.post(f"{server.url}/robots", content=b"x" * 800_000,
+                                     headers={"Authorization": "Bearer nobody", "Content-Type": "application/json"})
+
+            with socket.create_connection((server.host, server.port), timeout=10) as held:
+                held.sendall(b"POST /robots HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer nobody\r\n"
+                             b"Content-Type: application/json\r\nContent-Length: 900000\r\n\r\n" + b"x" * 800_000)
+                deadline, r = time.monotonic() + 10, post()
+                while r.status_code != 429 and time.monotonic() < deadline:  # once the server holds the 800 kB
+                    time.sleep(0.05)
+                    r = post()
+                assert r.status_code == 429 and "in memory" in r.json()["detail"]
+                assert post("127.0.0.2").status_code == 422  # another address has its own share
+                held.sendall(b"x" * 100_000)
+                assert held.recv(1024).startswith(b"HTTP/1.1 422")  # read in full: then not JSON
+            assert post().status_code == 422  # its bytes were given back
+
+
+class TestKeyframesInFlight:
+    def test_a_robots_keyframes_beyond_its_slots_are_429_at_once(self, live, sample_poses, jpeg, monkeypatch):
+        """A robot's keyframes sent at once queued for its lock, each holding its decoded image (a 3 MB PNG of 16-bit
+        RGBA zeros: 380 MB each, 2 GB for 8): beyond ``limits.keyframes_in_flight`` (2) they are refused first."""
+        import base64
+        import threading
+
+        server, token = live
+        service, release, entered = server.app.state.service, threading.Event(), threading.Semaphore(0)
+        submit = service.submit_keyframe
+
+        def held(*args, **kwargs):
+            entered.release()
+            release.wait(20)
+            return submit(*args, **kwargs)
+
+        monkeypatch.setattr(service, "submit_keyframe", held)
+        payload = {"keyframe": 0, "timestamp": 0.0, "pose": sample_poses[0].tolist(),
+                   "image": base64.b64encode(jpeg(0)).decode()}
+        auth = {"Authorization": f"Bearer {token}"}
+        codes: list[int] = []
+
+        def post() -> None:
+            codes.append(httpx.post(f"{server.url}/robots/A/keyframes", json=payload, headers=auth, timeout=30)
+                         .status_code)
+
+        first = [threading.Thread(target=post) for _ in range(2)]
+        for t in first:
+            t.start()
+        try:
+            assert entered.acquire(timeout=20) and entered.acquire(timeout=20)  # both in flight, held
+            r = httpx.post(f"{server.url}/robots/A/keyframes", json=payload, headers=auth, timeout=5)
+            assert r.status_code == 429 and "in flight" in r.json()["detail"]
+        finally:
+            release.set()
+            for t in first:
+                t.join(30)
+        assert sorted(codes) == [200, 200]  # one stored, the other its identical retry
+        assert FleetClient(server.url, token).submit_keyframe("A", 0, 0.0, sample_poses[0], jpeg(0)) is False
+
+
+class TestConnectionsPerAddress:
+    def test_an_address_beyond_its_connections_is_closed_and_others_are_served(self, tmp_path):
+        """400 idle connections from one address took every file descriptor: good robots waited 10 s for an answer.
+        The flood comes from 127.0.0.2 (loopback too), the good client from 127.0.0.1."""
+        conf = {"limits": {"max_connections_per_address": 8, "header_timeout_s": 30.0}}
+        with ServerThread(create_app(tmp_path, ADMIN, conf, recognize=False)) as server:
+            flood = [socket.create_connection((server.host, server.port), timeout=10, source_address=("127.0.0.2", 0))
+                     for _ in range(20)]
+            try:
+                deadline, closed = time.monotonic() + 5, set()
+                while len(closed) < 12 and time.monotonic() < deadline:
+                    for s in select.select([s for s in flood if s not in closed], [], [], 0.2)[0]:
+                        if s.recv(1024) == b"":
+                            closed.add(s)
+                assert len(closed) == 12  # the 8 first ones are held (until their header deadline)
+                assert httpx.get(f"{server.url}/overlaps", headers={"Authorization": f"Bearer {ADMIN}"}).json() == []
+            finally:
+                for s in flood:
+                    s.close()
+            time.sleep(0.3)  # their slots are given back once the server saw them go
+            with socket.create_connection((server.host, server.port), timeout=10,
+                                          source_address=("127.0.0.2", 0)) as s:
+                s.sendall(b"GET /map HTTP/1.1\r\nHost: x\r\n\r\n")
+                assert s.recv(1024).startswith(b"HTTP/1.1 200")
 
 
 class TestAuthThrottle:

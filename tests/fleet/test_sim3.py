@@ -217,6 +217,26 @@ class TestRansacSim3:
         assert ransac_sim3(kitti_landmarks, rng.permutation(kitti_landmarks)) is None  # matches all wrong
         assert ransac_sim3(np.zeros((0, 3)), np.zeros((0, 3))) is None
 
+    def test_points_whose_products_overflow_are_degenerate_samples(self, kitti_landmarks):
+        """Finite points whose products overflow made an infinite cross-covariance, on which LAPACK's SVD never
+        returned (one far point: a robot with fx = 1e-300 and a depth map hung the server, holding the recognizer's
+        lock, for good) or raised (all far: a 500)."""
+        import threading
+
+        one_far, all_far = kitti_landmarks.copy(), kitti_landmarks * 1e160
+        one_far[0, 0] = 1e200
+        out: list = []
+        worker = threading.Thread(target=lambda: out.append((ransac_sim3(one_far, 3 * one_far),
+                                                             ransac_sim3(all_far, 3 * all_far))), daemon=True)
+        worker.start()
+        worker.join(timeout=20)
+        assert not worker.is_alive(), "RANSAC hung on points whose products overflow"
+        assert len(out) == 1, "RANSAC raised on points whose products overflow"
+        (found, inliers), none = out[0]
+        assert found.s == pytest.approx(3.0) and inliers[1:].all() and none is None
+        with pytest.raises(ConfigError, match="too far apart"):
+            umeyama(all_far, 2 * all_far)
+
     def test_malformed_input_raises(self, kitti_landmarks):
         bad = kitti_landmarks.copy()
         bad[3, 1] = np.inf
