@@ -50,7 +50,7 @@ class BodyLimit:
     unauthenticated 30 MB bodies held 1 GB; per address, so that one client cannot use up the others' share)."""
 
     def __init__(self, app: Callable[..., Awaitable[None]], max_bytes: int, timeout_s: float,
-                 max_values: int = 1000, max_buffered: int = 64 * 2**20) -> None:
+                 max_values: int = 1000, max_buffered: int = 256 * 2**20) -> None:
         self.app, self.max_bytes, self.timeout_s = app, int(max_bytes), float(timeout_s)
         self.max_values, self.max_buffered = int(max_values), max(int(max_buffered), int(max_bytes))
         #: bytes of the bodies in memory now per client address (the event loop's: no lock)
@@ -130,7 +130,7 @@ class TimedH11Protocol(H11Protocol):
     ``fleet.runner.server_config``, with ``open_per_address``: the counts of one server, kept in its event loop)."""
 
     header_timeout_s: float = 10.0
-    max_per_address: int = 64
+    max_per_address: int = 256
     open_per_address: collections.Counter[str] = collections.Counter()
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]

@@ -46,13 +46,15 @@ class FleetService:
         "optimizer": BackgroundOptimizer.default_conf,  # when the graph is solved (fleet.optimizer)
         "limits": {
             "max_request_mb": 32.0,  # larger request bodies are refused (HTTP 413)
-            "max_buffered_mb": 64.0,  # an address's request bodies in memory at once (>= max_request_mb); then 429
+            "max_buffered_mb": 256.0,  # an address's request bodies in memory at once (>= max_request_mb); then 429
+            #                            (a fleet behind one NAT or proxy is one address: 64 robots' 2 MB keyframes)
             "max_json_values": 1000,  # bodies holding more JSON values are refused unparsed (HTTP 413; a keyframe: ~40)
             "max_image_pixels": 16_000_000,  # larger images are refused (HTTP 413), from their header
             "keyframes_in_flight": 2,  # a robot's further keyframes sent at once are refused (HTTP 429), not queued
             "body_timeout_s": 60.0,  # a request body not received within this is refused (HTTP 408)
             "header_timeout_s": 10.0,  # a connection whose request headers are not in within this is closed
-            "max_connections_per_address": 64,  # an address's further connections are closed at once
+            "max_connections_per_address": 256,  # an address's further connections are closed at once (a fleet
+            #                                      streaming from one machine or NAT holds one or two a robot)
             "auth_failures": 20,  # failed authentications an address may make per window; then HTTP 429
             "auth_window_s": 60.0,  # the window of auth_failures, seconds
         },
