@@ -23,7 +23,7 @@ import numpy as np
 
 from .errors import ImageError
 
-__all__ = ["IMAGE_EXTENSIONS", "MAX_IMAGE_PIXELS", "MIN_IMAGE_SIDE", "image_entries", "read_image", "read_file",
+__all__ = ["IMAGE_EXTENSIONS", "MAX_IMAGE_PIXELS", "MIN_IMAGE_SIDE", "natural_key", "image_entries", "read_image", "read_file",
            "decode_image", "image_header", "HEADER_FORMATS", "fingerprint", "check_image", "to_uint8", "to_gray_u8", "to_rgb_u8", "resize_square"]
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".webp")
@@ -31,8 +31,17 @@ MAX_IMAGE_PIXELS = 1 << 27  #: larger images are refused before decoding (134 Mp
 MIN_IMAGE_SIDE = 8  #: smaller images are refused (no feature, no edge can be measured)
 
 
+def natural_key(path: str | Path) -> tuple:
+    """A sort key that orders numbers in names as numbers: ``1.png, 2.png, 10.png`` (text order would put ``10``
+    before ``2``); names equal as numbers (``01``, ``1``) fall back to text order."""
+    text = str(path)
+    parts = re.split(r"(\d+)", text)  # text, digits, text, ...: the same kind at the same position
+    return tuple(int(t) if i % 2 else t for i, t in enumerate(parts)), text
+
+
 def image_entries(folder: str | Path, recursive: bool = False) -> list[Path]:
-    """Every entry below ``folder`` whose name has an image extension, sorted by path.
+    """Every entry below ``folder`` whose name has an image extension, in natural order of their paths (numbers in
+    names compared as numbers, ``natural_key``: ``2.png`` before ``10.png``).
 
     Entries that are not readable regular files (broken symbolic links, FIFOs, folders named like images) are
     listed too, so that the caller can report and count them (``read_image`` refuses them with a clear message);
@@ -40,7 +49,7 @@ def image_entries(folder: str | Path, recursive: bool = False) -> list[Path]:
     """
     folder = Path(folder)
     entries = folder.rglob("*") if recursive else folder.iterdir()
-    return sorted(p for p in entries if p.suffix.lower() in IMAGE_EXTENSIONS)
+    return sorted((p for p in entries if p.suffix.lower() in IMAGE_EXTENSIONS), key=natural_key)
 
 
 def _kind(path: Path) -> str | None:

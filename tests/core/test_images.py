@@ -1,4 +1,4 @@
-"""``core.images``: reading image files safely and converting every dtype and layout a camera gives."""
+"""``core.images``: listing and reading image files safely and converting every dtype and layout a camera gives."""
 
 import os
 
@@ -144,3 +144,18 @@ class TestReadImageHostile:
         fp = fingerprint(data)
         assert fp.startswith(f"{len(data)}:") and len(fp.split(":")[1]) == 16
         assert fingerprint(data[:-1] + b"x") != fp
+
+
+class TestImageEntries:
+    def test_numbers_in_names_sort_as_numbers(self, tmp_path, grey):
+        """A camera that writes ``1.png ... 12.png`` (no zero padding): frame 10 comes after 9, not after 1."""
+        for n in (1, 10, 2, 12, 9, 11):
+            assert cv2.imwrite(str(tmp_path / f"{n}.png"), grey[:16, :16])
+        (tmp_path / "notes.txt").write_text("not a frame")
+        assert [p.name for p in image_entries(tmp_path)] == ["1.png", "2.png", "9.png", "10.png", "11.png", "12.png"]
+
+    def test_padded_names_and_prefixes_keep_their_order(self, tmp_path, grey):
+        names = ["000000.png", "000001.png", "000010.png", "cam_b_2.png", "cam_b_10.png", "cam_c_1.png"]
+        for name in reversed(names):
+            assert cv2.imwrite(str(tmp_path / name), grey[:16, :16])
+        assert [p.name for p in image_entries(tmp_path)] == names
