@@ -260,6 +260,9 @@ BAD_CONFS = [
     ("matcher: {ratio: 2.0}", "'matcher.ratio'"),
     ("policy: {min_inliers: -5}", "'policy.min_inliers'"),
     ("features: {max_features: -1}", "'features.max_features'"),
+    ("features: {max_features: 1000000000000}", "'features.max_features'"),  # beyond OpenCV's C int
+    ("search: {k: 3}\nsearch: {k: 4}", "key 'search' given twice"),
+    ("a: " + "[" * 5000 + "]" * 5000, "nested more than 32 levels deep"),
     ("gate: {image_size: 0}", "'gate.image_size'"),
     ("runtime: {threads: -2}", "'runtime.threads'"),
     ("descriptor: {device: tpu}", "'descriptor.device'"),
@@ -272,7 +275,7 @@ BAD_CONFS = [
 
 
 class TestBadConfig:
-    @pytest.mark.parametrize("text, fragment", BAD_CONFS, ids=[c[0] for c in BAD_CONFS])
+    @pytest.mark.parametrize("text, fragment", BAD_CONFS, ids=[c[0][:40] for c in BAD_CONFS])
     def test_refused_before_anything_is_written(self, tmp_path, capsys, baseline, text, fragment):
         bad = tmp_path / "bad.yaml"
         bad.write_text(text + "\n")
