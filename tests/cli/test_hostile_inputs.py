@@ -455,3 +455,25 @@ class TestEvaluateHostile:
         code, err = run_cli(["evaluate", baseline[1], "--gt", tmp_path / "gt.txt", "--out", tmp_path / "ev"], capsys)
         assert code == 0 and "Traceback" not in err
         assert any("holds no loop pair" in r.getMessage() for r in caplog.records if r.levelname == "WARNING")
+
+
+# ------------------------------------------------------------------------------------------------ odd folders
+class TestOddFolders:
+    def test_a_camera_standing_still_reports_no_loop(self, tmp_path, capsys):
+        """60 copies of one frame, the default conf: the calibration cannot be made (no far-side pair), and the
+        fixed policy it falls back to counts the stop as one frame (was: a loop for each frame past the 50th)."""
+        (tmp_path / "seq").mkdir()
+        for n in range(60):
+            shutil.copyfile(REPO / "retrieval" / "sample" / "image_0" / "000010.jpg", tmp_path / "seq" / f"{n:06d}.jpg")
+        code, err = run_cli(["detect", tmp_path / "seq", "--out", tmp_path / "run", "--no-progress"], capsys)
+        assert code == 0 and "Traceback" not in err, err
+        assert loops_rows(tmp_path / "run") == []
+
+    def test_unpadded_names_run_in_number_order(self, tmp_path, capsys, baseline, conf_file):
+        """``0.jpg ... 15.jpg``: the same loops as ``000000.jpg ...`` (text order put 10..15 before 2)."""
+        seq = make_sequence(tmp_path / "seq")
+        for p in (seq / "image_0").iterdir():
+            p.rename(p.with_name(f"{int(p.stem)}{p.suffix}"))
+        code, err = run_cli(["detect", seq, "--out", tmp_path / "run", "--config", conf_file, "--no-progress"], capsys)
+        assert code == 0, err
+        assert loops_rows(tmp_path / "run") == loops_rows(baseline[1])
