@@ -349,6 +349,25 @@ class TestBadOut:
             assert (tmp_path / "f").read_text() == "keep me"
 
 
+    @pytest.mark.parametrize("found", ["loops.csv", "summary.json"])
+    def test_results_without_a_database_are_kept(self, tmp_path, capsys, baseline, conf_file, found):
+        """An --out holding someone's ``loops.csv`` (or a run whose keyframes.h5 was removed): was overwritten."""
+        out = tmp_path / "run"
+        out.mkdir()
+        (out / found).write_text("keep me")
+        code, err = run_cli(["detect", baseline[0], "--out", out, "--config", conf_file, "--no-progress"], capsys)
+        one_error_line(code, err, f"holds {found} but no keyframes.h5")
+        assert [p.name for p in out.iterdir()] == [found] and (out / found).read_text() == "keep me"
+
+    def test_other_files_are_left_alone(self, tmp_path, capsys, baseline, conf_file):
+        out = tmp_path / "run"
+        out.mkdir()
+        (out / "notes.txt").write_text("mine")
+        code, err = run_cli(["detect", baseline[0], "--out", out, "--config", conf_file, "--no-progress"], capsys)
+        assert code == 0, err
+        assert (out / "notes.txt").read_text() == "mine" and (out / "loops.csv").read_bytes() == baseline[2]
+
+
 # ----------------------------------------------------------------------------------------------- disk full
 class TestDiskFull:
     def test_clean_error_then_resume_to_the_same_result(self, tmp_path, baseline, conf_file):
