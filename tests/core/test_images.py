@@ -159,3 +159,37 @@ class TestImageEntries:
         for name in reversed(names):
             assert cv2.imwrite(str(tmp_path / name), grey[:16, :16])
         assert [p.name for p in image_entries(tmp_path)] == names
+
+
+class TestExifOrientation:
+    @pytest.mark.parametrize("orientation", range(1, 9))
+    @pytest.mark.parametrize("channels", [1, 3])
+    @pytest.mark.parametrize("fmt", ["WEBP", "TIFF"])
+    def test_turned_as_a_viewer_shows_it(self, grey, orientation, channels, fmt):
+        """A phone or action camera stores its pixels as the sensor read them and says in EXIF how to turn them;
+        ``cv2.IMREAD_UNCHANGED`` ignores it in a JPEG or WebP (the frame reached the encoder on its side) and
+        applies it in a TIFF (not twice). Pillow's ``exif_transpose`` is the reference (lossless files: exact)."""
+        import io
+
+        from PIL import Image, ImageOps
+
+        img = grey[:60, :90] if channels == 1 else np.dstack([grey[:60, :90], grey[:60, :90] // 2,
+                                                            np.tile(np.arange(90, dtype=np.uint8), (60, 1))])
+        exif = Image.Exif()
+        exif[0x0112] = orientation
+        buf = io.BytesIO()
+        Image.fromarray(img if channels == 1 else img[:, :, ::-1]).save(buf, fmt, exif=exif, lossless=True)
+        want = np.asarray(ImageOps.exif_transpose(Image.open(io.BytesIO(buf.getvalue()))))
+        got = decode_image(buf.getvalue())
+        np.testing.assert_array_equal(got if channels == 1 else got[:, :, ::-1], want)
+
+    def test_jpeg_rotated_upright(self, sample_dir, tmp_path):
+        from PIL import Image
+
+        exif = Image.Exif()
+        exif[0x0112] = 6  # stored turned a quarter to the left: show it turned a quarter to the right
+        Image.open(sample_dir / "image_0" / "000003.jpg").transpose(Image.Transpose.ROTATE_90).save(
+            tmp_path / "a.jpg", exif=exif, quality=95)
+        upright = read_image(sample_dir / "image_0" / "000003.jpg").astype(int)
+        got = read_image(tmp_path / "a.jpg")
+        assert got.shape == upright.shape and np.abs(got.astype(int) - upright).mean() < 3
