@@ -160,6 +160,8 @@ def decode_image(data: bytes, name: str | Path = "<bytes>", max_pixels: int = MA
         raise ImageError(f"{name} is not a readable PNG or JPEG (or TIFF, BMP, WebP, PPM) file")
     if header is not None and header[1] * header[2] > max_pixels:
         raise ImageError(f"image {name} too large: {header[1] * header[2]} pixels (limit {max_pixels})")
+    if header is not None and header[0] == "PNG" and data.rfind(b"IEND") < 0:  # libpng would print to stderr
+        raise ImageError(f"cannot decode image {name}: truncated PNG (no IEND chunk)")
     try:
         img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     except cv2.error as err:

@@ -92,6 +92,18 @@ class TestToUint8Dtypes:
 
 
 class TestReadImageHostile:
+    @pytest.mark.parametrize("keep", [0.3, 0.6, 0.99])
+    def test_truncated_png_one_message_nothing_on_stderr(self, tmp_path, grey, capfd, keep):
+        """A PNG cut short (a copy interrupted): libpng printed its own line to stderr beside our warning."""
+        data = cv2.imencode(".png", grey)[1].tobytes()
+        (tmp_path / "cut.png").write_bytes(data[: int(len(data) * keep)])
+        capfd.readouterr()
+        with pytest.raises(ImageError, match="truncated PNG"):
+            read_image(tmp_path / "cut.png")
+        assert capfd.readouterr().err == ""
+        (tmp_path / "whole.png").write_bytes(data + b"trailing bytes after IEND")
+        np.testing.assert_array_equal(read_image(tmp_path / "whole.png"), grey)
+
     def test_not_regular_files(self, tmp_path):
         (tmp_path / "dir.png").mkdir()
         (tmp_path / "link.png").symlink_to(tmp_path / "missing.png")
