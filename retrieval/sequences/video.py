@@ -64,12 +64,15 @@ class VideoFrames:
     def read(self, i: int) -> tuple[np.ndarray | ImageError, str]:
         target = i * self.stride
         with self._lock:
-            if not 0 <= target - self._next <= _SEEK_AHEAD:
+            seek = not 0 <= target - self._next <= _SEEK_AHEAD
+            if seek:
                 self._cap.set(cv2.CAP_PROP_POS_FRAMES, target)
                 self._next = target
             while self._next < target and self._cap.grab():
                 self._next += 1
             ok, image = self._cap.read()
+            if not ok and seek:  # a container that cannot seek here (a one-frame video): from the start instead
+                ok, image = self._read_from_start(target)
             self._next = target + 1 if ok else -_SEEK_AHEAD - 1  # after a failure: seek next time
         if not ok or image is None:
             return ImageError(f"cannot decode frame {target} of {self.path}"), ""
@@ -78,6 +81,16 @@ class VideoFrames:
             return check_image(image, self.name(i)), fingerprint(image.tobytes())
         except ImageError as err:
             return err, fingerprint(image.tobytes())
+
+
+    def _read_from_start(self, target: int) -> tuple[bool, np.ndarray | None]:
+        """Video frame ``target`` read from a capture opened again, grabbing every frame before it."""
+        self._cap.release()
+        self._cap = cv2.VideoCapture(str(self.path))
+        for _ in range(target):
+            if not self._cap.grab():
+                return False, None
+        return self._cap.read()
 
 
 def open_video(root: Path, stride: int = 1) -> Sequence:

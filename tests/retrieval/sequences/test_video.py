@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
@@ -41,3 +42,22 @@ def test_bad_options_are_one_error(video_file, sample_dir, tmp_path):
 def test_same_loops_as_the_sample(video_file, sample_loops, detect_like_sample, tmp_path):
     """A lossless video of the sample: the frames are the sample's, so are the loops (read lazily, in order)."""
     np.testing.assert_array_equal(detect_like_sample(video_file, tmp_path / "run"), sample_loops)
+
+
+@pytest.mark.parametrize("fourcc, ext", [("MJPG", ".avi"), ("mp4v", ".mp4"), ("FFV1", ".avi")])
+def test_a_one_frame_video_reads_its_frame_again(tmp_path, sample_images, fourcc, ext):
+    """Read once by the calibration's pass and again by the run: the seek back to frame 0 failed in a one-frame
+    MJPG or MPEG-4 video (the run skipped its only frame as unreadable)."""
+    path = tmp_path / f"one{ext}"
+    h, w = sample_images[0].shape
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*fourcc), 10, (w, h), isColor=False)
+    assert writer.isOpened()
+    writer.write(sample_images[0])
+    writer.release()
+    seq = open_sequence(path)
+    assert len(seq) == 1
+    first = seq.read_frame(0)[0]
+    assert isinstance(first, np.ndarray)
+    for _ in range(2):
+        again, _ = seq.read_frame(0)
+        assert isinstance(again, np.ndarray) and np.array_equal(again, first)
