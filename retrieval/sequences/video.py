@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import os
 import threading
 from pathlib import Path
 
@@ -20,6 +21,10 @@ __all__ = ["VIDEO_EXTENSIONS", "VideoFrames", "is_video", "open_video"]
 
 VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm")  #: file name endings read as a video
 _SEEK_AHEAD = 64  #: a frame at most this many frames ahead is reached by grabbing rather than seeking
+#: FFmpeg's own log (through OpenCV) to fatal errors only, unless the environment sets it: a broken or cut video
+#: printed one line per damaged packet to stderr ("moov atom not found", "overread 8") beside the project's one
+#: warning per frame. Read when OpenCV first opens a video, so set here, before any capture.
+os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "8")
 
 
 def is_video(root: Path) -> bool:

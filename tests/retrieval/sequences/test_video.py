@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
@@ -61,3 +63,31 @@ def test_a_one_frame_video_reads_its_frame_again(tmp_path, sample_images, fourcc
     for _ in range(2):
         again, _ = seq.read_frame(0)
         assert isinstance(again, np.ndarray) and np.array_equal(again, first)
+
+
+def test_a_broken_or_cut_video_prints_no_ffmpeg_lines(tmp_path, sample_images):
+    """FFmpeg printed its own lines to stderr for each damaged packet; now only the project's messages. Run in a
+    fresh process: FFmpeg reads its log level when OpenCV first opens a video."""
+    import subprocess
+    import sys
+
+    h, w = sample_images[0].shape
+    writer = cv2.VideoWriter(str(tmp_path / "whole.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 10, (w, h), isColor=False)
+    for image in sample_images[:20]:
+        writer.write(image)
+    writer.release()
+    data = (tmp_path / "whole.avi").read_bytes()
+    (tmp_path / "cut.avi").write_bytes(data[: len(data) // 2])
+    (tmp_path / "fake.mp4").write_text("not a video")
+    script = ("import sys\nfrom retrieval.sequences import open_sequence\n"
+              f"seq = open_sequence({str(tmp_path / 'cut.avi')!r})\n"
+              "bad = sum(not hasattr(seq.read_frame(i)[0], 'shape') for i in range(len(seq)))\n"
+              "print(bad)\n"
+              f"try:\n    open_sequence({str(tmp_path / 'fake.mp4')!r})\nexcept Exception as err:\n    print(err)\n")
+    env = {k: v for k, v in __import__("os").environ.items() if k != "OPENCV_FFMPEG_LOGLEVEL"}
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120, env=env,
+                          cwd=Path(__file__).parents[3])
+    assert proc.returncode == 0, proc.stderr
+    bad, refused = proc.stdout.splitlines()
+    assert int(bad) > 0 and "cannot open video" in refused  # the cut frames are reported, the fake refused
+    assert proc.stderr == ""
