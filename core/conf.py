@@ -66,17 +66,46 @@ def merge_conf(defaults: Mapping[str, Any], override: Mapping[str, Any] | None, 
     return out
 
 
+MAX_CONF_DEPTH = 32  #: a config file nested deeper than this is refused (the deepest conf has 4 levels)
+
+
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` that refuses a key given twice in one mapping (PyYAML would keep the last silently) and
+    mappings or lists nested deeper than ``MAX_CONF_DEPTH`` (PyYAML would recurse until Python's stack runs out)."""
+
+    def compose_node(self, parent: Any, index: Any) -> Any:
+        self._depth = getattr(self, "_depth", 0) + 1
+        try:
+            if self._depth > MAX_CONF_DEPTH:
+                raise yaml.YAMLError(f"nested more than {MAX_CONF_DEPTH} levels deep")
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
+
+    def construct_mapping(self, node: Any, deep: bool = False) -> Any:
+        seen: set[Any] = set()
+        for key_node, _ in node.value:
+            if not isinstance(key_node, yaml.ScalarNode) or key_node.tag == "tag:yaml.org,2002:merge":
+                continue  # ``<<: *anchor`` merges; a non-scalar key is refused by the merge onto the defaults
+            key = self.construct_object(key_node, deep=True)
+            if key in seen:
+                raise yaml.YAMLError(f"key {key!r} given twice (line {key_node.start_mark.line + 1})")
+            seen.add(key)
+        return super().construct_mapping(node, deep)
+
+
 def load_conf_file(path: str | Path) -> dict[str, Any]:
     """Reads a YAML (or JSON) config file into a dict; an empty file gives ``{}``.
 
     Raises:
-        ConfigError: the file is missing, unreadable, or not a mapping at the top level.
+        ConfigError: the file is missing, unreadable, not YAML, not a mapping at the top level, a key given twice
+            in one mapping, or nested deeper than ``MAX_CONF_DEPTH``.
     """
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"config file not found: {path}")
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+        data = yaml.load(path.read_text(encoding="utf-8"), Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader
     except (OSError, UnicodeDecodeError, yaml.YAMLError) as err:
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         raise ConfigError(f"cannot parse config file {path}: {first}") from None

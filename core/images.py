@@ -23,7 +23,7 @@ import numpy as np
 
 from .errors import ImageError
 
-__all__ = ["IMAGE_EXTENSIONS", "MAX_IMAGE_PIXELS", "MIN_IMAGE_SIDE", "image_entries", "read_image", "read_file",
+__all__ = ["IMAGE_EXTENSIONS", "MAX_IMAGE_PIXELS", "MIN_IMAGE_SIDE", "natural_key", "image_entries", "read_image", "read_file",
            "decode_image", "image_header", "HEADER_FORMATS", "fingerprint", "check_image", "to_uint8", "to_gray_u8", "to_rgb_u8", "resize_square"]
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".webp")
@@ -31,8 +31,17 @@ MAX_IMAGE_PIXELS = 1 << 27  #: larger images are refused before decoding (134 Mp
 MIN_IMAGE_SIDE = 8  #: smaller images are refused (no feature, no edge can be measured)
 
 
+def natural_key(path: str | Path) -> tuple:
+    """A sort key that orders numbers in names as numbers: ``1.png, 2.png, 10.png`` (text order would put ``10``
+    before ``2``); names equal as numbers (``01``, ``1``) fall back to text order."""
+    text = str(path)
+    parts = re.split(r"(\d+)", text)  # text, digits, text, ...: the same kind at the same position
+    return tuple(int(t) if i % 2 else t for i, t in enumerate(parts)), text
+
+
 def image_entries(folder: str | Path, recursive: bool = False) -> list[Path]:
-    """Every entry below ``folder`` whose name has an image extension, sorted by path.
+    """Every entry below ``folder`` whose name has an image extension, in natural order of their paths (numbers in
+    names compared as numbers, ``natural_key``: ``2.png`` before ``10.png``).
 
     Entries that are not readable regular files (broken symbolic links, FIFOs, folders named like images) are
     listed too, so that the caller can report and count them (``read_image`` refuses them with a clear message);
@@ -40,7 +49,7 @@ def image_entries(folder: str | Path, recursive: bool = False) -> list[Path]:
     """
     folder = Path(folder)
     entries = folder.rglob("*") if recursive else folder.iterdir()
-    return sorted(p for p in entries if p.suffix.lower() in IMAGE_EXTENSIONS)
+    return sorted((p for p in entries if p.suffix.lower() in IMAGE_EXTENSIONS), key=natural_key)
 
 
 def _kind(path: Path) -> str | None:
@@ -85,9 +94,9 @@ def fingerprint(data: bytes) -> str:
 HEADER_FORMATS = ("PNG", "JPEG", "TIFF", "BMP", "WEBP", "PPM")  #: formats whose size ``image_header`` reads
 
 
-def image_header(data: bytes) -> tuple[str, int, int] | None:
-    """``(format, width, height)`` from an image file's header without decoding it (Pillow reads headers lazily);
-    None when the header is not one of ``HEADER_FORMATS`` or cannot be parsed."""
+def _header(data: bytes) -> tuple[str, int, int, int] | None:
+    """``(format, width, height, EXIF orientation 1-8)`` from an image file's header without decoding it (Pillow
+    reads headers lazily); None when the header is not one of ``HEADER_FORMATS`` or cannot be parsed."""
     try:
         from PIL import Image
 
@@ -95,17 +104,48 @@ def image_header(data: bytes) -> tuple[str, int, int] | None:
             warnings.simplefilter("ignore")
             with Image.open(io.BytesIO(data), formats=list(HEADER_FORMATS)) as im:
                 w, h = im.size
-                return str(im.format), int(w), int(h)
+                orientation = 1
+                if im.format in _EXIF_IN_HEADER:  # a PNG's eXIf may follow its pixels: Pillow would decode them
+                    try:
+                        orientation = int(im.getexif().get(_ORIENTATION, 1))
+                    except Exception:  # noqa: BLE001 - a damaged EXIF block: the pixels as stored
+                        orientation = 1
+                return str(im.format), int(w), int(h), orientation if orientation in _ORIENT else 1
     except Exception as err:  # noqa: BLE001 - any header Pillow cannot parse: unknown
         if type(err).__name__ == "DecompressionBombError":  # Pillow's own limit: its message has the size
             found = re.search(r"\((\d+) pixels\)", str(err))
-            return "?", int(found.group(1)) if found else MAX_IMAGE_PIXELS + 1, 1
+            return "?", int(found.group(1)) if found else MAX_IMAGE_PIXELS + 1, 1, 1
         return None
+
+
+def image_header(data: bytes) -> tuple[str, int, int] | None:
+    """``(format, width, height)`` from an image file's header without decoding it (Pillow reads headers lazily);
+    None when the header is not one of ``HEADER_FORMATS`` or cannot be parsed."""
+    header = _header(data)
+    return None if header is None else header[:3]
+
+
+_EXIF_IN_HEADER = ("JPEG", "WEBP")  #: formats whose EXIF orientation is applied here (OpenCV turns a TIFF itself)
+_ORIENTATION = 0x0112  #: the EXIF tag of how the stored pixels are to be turned for display
+_ORIENT: dict[int, tuple[int | None, int | None]] = {  # EXIF orientation -> (cv2.flip code, cv2.rotate code), in turn
+    1: (None, None), 2: (1, None), 3: (None, cv2.ROTATE_180), 4: (0, None),
+    5: (1, cv2.ROTATE_90_COUNTERCLOCKWISE), 6: (None, cv2.ROTATE_90_CLOCKWISE),
+    7: (1, cv2.ROTATE_90_CLOCKWISE), 8: (None, cv2.ROTATE_90_COUNTERCLOCKWISE)}
+
+
+def _upright(img: np.ndarray, orientation: int) -> np.ndarray:
+    """The stored pixels turned as their EXIF ``orientation`` says (as a viewer shows them; ``cv2.IMREAD_UNCHANGED``
+    ignores it)."""
+    flip, rotate = _ORIENT.get(orientation, (None, None))
+    if flip is not None:
+        img = cv2.flip(img, flip)
+    return img if rotate is None else cv2.rotate(img, rotate)
 
 
 def decode_image(data: bytes, name: str | Path = "<bytes>", max_pixels: int = MAX_IMAGE_PIXELS,
                  known_header: bool = False) -> np.ndarray:
-    """Decodes image file bytes unchanged (grey or colour, 8- or 16-bit), after checking its size in its header.
+    """Decodes image file bytes unchanged (grey or colour, 8- or 16-bit), after checking its size in its header, and
+    turned upright as its EXIF orientation says (a phone's or action camera's JPEG shows as a viewer shows it).
 
     Args:
         data: the file's bytes. name: what messages call it. max_pixels: larger images are refused (from the header
@@ -115,11 +155,13 @@ def decode_image(data: bytes, name: str | Path = "<bytes>", max_pixels: int = MA
     Raises:
         ImageError: corrupt, unsupported, larger than ``max_pixels`` or smaller than 8x8.
     """
-    header = image_header(data)
+    header = _header(data)
     if header is None and known_header:
         raise ImageError(f"{name} is not a readable PNG or JPEG (or TIFF, BMP, WebP, PPM) file")
     if header is not None and header[1] * header[2] > max_pixels:
         raise ImageError(f"image {name} too large: {header[1] * header[2]} pixels (limit {max_pixels})")
+    if header is not None and header[0] == "PNG" and data.rfind(b"IEND") < 0:  # libpng would print to stderr
+        raise ImageError(f"cannot decode image {name}: truncated PNG (no IEND chunk)")
     try:
         img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     except cv2.error as err:
@@ -129,7 +171,7 @@ def decode_image(data: bytes, name: str | Path = "<bytes>", max_pixels: int = MA
     if img.shape[0] * img.shape[1] > max_pixels:
         raise ImageError(f"image {name} too large: {img.shape[0] * img.shape[1]} pixels (limit {max_pixels})")
     check_image(img, name)
-    return img
+    return img if header is None or header[3] == 1 else _upright(img, header[3])
 
 
 def read_image(path: str | Path) -> np.ndarray:

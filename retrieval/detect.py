@@ -269,6 +269,7 @@ def main(path: str | Path | None = None, out: str | Path | None = None, conf: di
     out = Path(out) if out is not None else default_out(seq)
     created = not out.exists()
     run = RunFolder(prepare_out_dir(out))
+    run.check_resumable()  # results without a database: nothing to resume, and they would be overwritten
     codes: dict[int, np.ndarray] = {}  # the calibration's codes, reused by the run
     try:
         t0 = time.perf_counter()

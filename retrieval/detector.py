@@ -45,6 +45,7 @@ from verify.gate import EdgeGate
 from verify.geometry import GeometricVerifier
 from verify.verifier import MATCHERS, Verification, create_verifier
 
+from .decision import Stops
 from .database import CANDIDATE_ROW, FeatureStore, KeyframeDatabase, KeyframeRecord
 from .calibrate import Calibration, calibrated_features
 from .descriptors import DESCRIPTORS, GlobalDescriptor, create_descriptor
@@ -111,6 +112,11 @@ default_conf: dict[str, Any] = {
         "min_inliers": 50,  # uncalibrated: geometric inliers a candidate needs (0: none); chosen on KITTI
         "min_seq_score": None,  # uncalibrated: the temporal filter's score a candidate needs (MILD: posterior 0.7)
         "check_all": False,  # True: geometric check on every candidate; False: skip those that cannot win (same loops)
+        "still_cos": 0.999,  # uncalibrated: the frames of the query's stop (each stored frame's code unchanged from
+        #                     the one before: cosine >= this; ``retrieval.decision.Stops``) count as one for
+        #                     search.exclude_recent: a robot standing or creeping is not back at a place (adjacent
+        #                     moving frames: <= 0.995 on KITTI, where the rule changes nothing; standing: >= 0.9999);
+        #                     None: off (the paper's literal rule)
     },
     "runtime": {
         "threads": 1,  # threads of each library's pool (torch, OpenCV, faiss: ``core.threads``); 1 = the cores go to
@@ -148,7 +154,8 @@ conf_rules: dict[str, Any] = {
     "search": {"k": Int(1, 10_000), "exclude_recent": Int(0), "exclude_recent_s": Float(0, optional=True),
                "min_score": Float(-1, 1), "verify_min_z": Float(-100, 100, optional=True)},
     "policy": {"verify": Bool(), "min_matches": Int(0), "min_inliers": Int(0),
-               "min_seq_score": Float(-1e9, 1e9, optional=True), "check_all": Bool()},
+               "min_seq_score": Float(-1e9, 1e9, optional=True), "check_all": Bool(),
+               "still_cos": Float(0, 1, lo_open=True, optional=True)},
     "whitening": {"enabled": Bool(), "source": Choice("auto", "sequence", "weights"), "dim": Int(1, 4096),
                   "shrink": Float(0, 100), "skip_still": Bool(), "stream_fit": Int(32, optional=True)},
     "calibration": {"enabled": Bool(), "expected_false_loops": Float(0, 100, lo_open=True),
@@ -307,6 +314,9 @@ class LoopDetector:
         if self.calibration is not None:
             self.decision = self.calibration.decision(c["search"]["exclude_recent"], self.filter)
             self._min_inliers = int(self.decision.floor)  # weaker pairs still add fused evidence
+        still = c["policy"]["still_cos"]  # uncalibrated: the stop a still camera has not left is too recent
+        self._still = Stops(still) \
+            if self.decision is None and still is not None and self.descriptor.searched_by == "cosine" else None
         apply_thread_policy(c["runtime"]["threads"])
         self._init_lazy(database is not None, frame_source, features)
         self._next_id = 0
@@ -493,7 +503,7 @@ class LoopDetector:
                                               self.places.source, np.array([cd.confidence for cd in candidates]))
             for cand, value in zip(candidates, fused):
                 cand.confidence = float(max(value, -1e9))
-        loop, best = self._decide(candidates, checks)
+        loop, best = self._decide(fid, candidates, checks)
         ms["verify"] = (time.perf_counter() - t0) * 1e3 - (ms["features"] - f0)  # late extraction not counted
 
         t0 = time.perf_counter()
@@ -719,19 +729,24 @@ class LoopDetector:
             return False
         return p["min_seq_score"] is None or cand.seq_score >= p["min_seq_score"]
 
-    def _decide(self, candidates: list[Candidate],
+    def _decide(self, fid: int, candidates: list[Candidate],
                 checks: list[Verification | None]) -> tuple[Candidate | None, Verification | None]:
-        """The accepted candidate.
+        """The accepted candidate of frame ``fid``.
 
         Calibrated: the most confident one whose confidence reaches ``Calibration.accept_at``. Uncalibrated: one that
-        passes every policy threshold; most inliers, then most matches, then score (verifying), else the best
-        temporal score (as ``evaluation``'s sweep on ``confidence`` picks it).
+        passes every policy threshold and is older than the stop a still camera has not left
+        (``policy.still_cos``); most inliers, then most matches, then score (verifying), else the best temporal
+        score (as ``evaluation``'s sweep on ``confidence`` picks it).
         """
         if self.calibration is not None:
             passing = [(cd, ch) for cd, ch in zip(candidates, checks) if cd.confidence >= self.calibration.accept_at]
             key = (lambda pair: (pair[0].confidence, pair[0].inliers, pair[0].seq_score))
         else:
             passing = [(cd, ch) for cd, ch in zip(candidates, checks) if self._passes_policy(cd)]
+            if passing and self._still is not None:  # only where a loop could be accepted: no cost elsewhere
+                stop = int(self._still.lengths(np.array([fid], np.int64), self.places.source)[0])
+                newest = fid - stop - self.conf["search"]["exclude_recent"]  # the stop counts as one frame
+                passing = [(cd, ch) for cd, ch in passing if cd.frame_id <= newest]
             key = (lambda pair: (pair[0].inliers, pair[0].matches, pair[0].score)) if self._verify else \
                 (lambda pair: (pair[0].seq_score, pair[0].inliers, pair[0].score))
         if not passing:

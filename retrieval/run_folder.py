@@ -33,6 +33,7 @@ import numpy as np
 from core.errors import ConfigError
 from core.files import atomic_write, write_text_atomic
 
+from .database import LOG_SUFFIX
 from .edges import LoopEdge, rotation_to_quaternion
 
 __all__ = ["RunFolder", "LOOPS_COLUMNS", "CANDIDATE_COLUMNS", "EDGE_COLUMNS", "MAX_FRAME_ID", "read_csv_table"]
@@ -109,6 +110,21 @@ class RunFolder:
     edges_g2o = _file("loop_edges.g2o")
     edges_csv = _file("loop_edges.csv")
     edges_json = _file("loop_edges.json")
+
+    def check_resumable(self) -> None:
+        """Refuses a folder that holds results but no keyframe database (nor its write-ahead log): files a run would
+        overwrite without resuming anything (another tool's ``loops.csv``, a run whose database was removed).
+
+        Raises:
+            ConfigError: naming the files found.
+        """
+        if self.database.exists() or self.database.with_name(self.database.name + LOG_SUFFIX).exists():
+            return
+        found = [p.name for p in (self.conf, self.loops, self.candidates, self.summary, self.ground_truth_poses,
+                                  self.edges_g2o, self.edges_csv, self.edges_json) if p.exists()]
+        if found:
+            raise ConfigError(f"{self.root} holds {', '.join(found)} but no keyframes.h5 (not a run to resume): "
+                              "choose another --out, or remove them")
 
     def write_ground_truth_poses(self, poses: np.ndarray) -> Path:
         """Writes ``(N, 3, 4)`` camera-to-world poses as a KITTI poses file (12 numbers a line); returns its path."""

@@ -115,7 +115,7 @@ class SIFT(FeatureExtractor):
         "n_octave_layers": 3,  # scales per octave (OpenCV default)
         "root_sift": False,  # L1-normalise then square-root descriptors (Arandjelovic & Zisserman 2012)
     }
-    conf_rules: dict[str, Any] = {"resize_max": Int(16, optional=True), "max_features": Int(1),
+    conf_rules: dict[str, Any] = {"resize_max": Int(16, optional=True), "max_features": Int(1, 100_000),
                                   "contrast_threshold": Float(0, lo_open=True), "edge_threshold": Float(0, lo_open=True),
                                   "n_octave_layers": Int(1, 16), "root_sift": Bool()}
     descriptor_dim = 128
@@ -155,7 +155,7 @@ class ORB(FeatureExtractor):
         "n_levels": 8,  # pyramid levels (OpenCV default)
         "fast_threshold": 20,  # FAST corner threshold (OpenCV default)
     }
-    conf_rules: dict[str, Any] = {"resize_max": Int(16, optional=True), "max_features": Int(1),
+    conf_rules: dict[str, Any] = {"resize_max": Int(16, optional=True), "max_features": Int(1, 100_000),
                                   "scale_factor": Float(1, 4, lo_open=True), "n_levels": Int(1, 32),
                                   "fast_threshold": Int(1, 255)}
     descriptor_dim = 32

@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import os
 import threading
 from pathlib import Path
 
@@ -20,6 +21,10 @@ __all__ = ["VIDEO_EXTENSIONS", "VideoFrames", "is_video", "open_video"]
 
 VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm")  #: file name endings read as a video
 _SEEK_AHEAD = 64  #: a frame at most this many frames ahead is reached by grabbing rather than seeking
+#: FFmpeg's own log (through OpenCV) to fatal errors only, unless the environment sets it: a broken or cut video
+#: printed one line per damaged packet to stderr ("moov atom not found", "overread 8") beside the project's one
+#: warning per frame. Read when OpenCV first opens a video, so set here, before any capture.
+os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "8")
 
 
 def is_video(root: Path) -> bool:
@@ -64,12 +69,15 @@ class VideoFrames:
     def read(self, i: int) -> tuple[np.ndarray | ImageError, str]:
         target = i * self.stride
         with self._lock:
-            if not 0 <= target - self._next <= _SEEK_AHEAD:
+            seek = not 0 <= target - self._next <= _SEEK_AHEAD
+            if seek:
                 self._cap.set(cv2.CAP_PROP_POS_FRAMES, target)
                 self._next = target
             while self._next < target and self._cap.grab():
                 self._next += 1
             ok, image = self._cap.read()
+            if not ok and seek:  # a container that cannot seek here (a one-frame video): from the start instead
+                ok, image = self._read_from_start(target)
             self._next = target + 1 if ok else -_SEEK_AHEAD - 1  # after a failure: seek next time
         if not ok or image is None:
             return ImageError(f"cannot decode frame {target} of {self.path}"), ""
@@ -78,6 +86,16 @@ class VideoFrames:
             return check_image(image, self.name(i)), fingerprint(image.tobytes())
         except ImageError as err:
             return err, fingerprint(image.tobytes())
+
+
+    def _read_from_start(self, target: int) -> tuple[bool, np.ndarray | None]:
+        """Video frame ``target`` read from a capture opened again, grabbing every frame before it."""
+        self._cap.release()
+        self._cap = cv2.VideoCapture(str(self.path))
+        for _ in range(target):
+            if not self._cap.grab():
+                return False, None
+        return self._cap.read()
 
 
 def open_video(root: Path, stride: int = 1) -> Sequence:

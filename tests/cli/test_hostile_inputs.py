@@ -260,6 +260,9 @@ BAD_CONFS = [
     ("matcher: {ratio: 2.0}", "'matcher.ratio'"),
     ("policy: {min_inliers: -5}", "'policy.min_inliers'"),
     ("features: {max_features: -1}", "'features.max_features'"),
+    ("features: {max_features: 1000000000000}", "'features.max_features'"),  # beyond OpenCV's C int
+    ("search: {k: 3}\nsearch: {k: 4}", "key 'search' given twice"),
+    ("a: " + "[" * 5000 + "]" * 5000, "nested more than 32 levels deep"),
     ("gate: {image_size: 0}", "'gate.image_size'"),
     ("runtime: {threads: -2}", "'runtime.threads'"),
     ("descriptor: {device: tpu}", "'descriptor.device'"),
@@ -272,7 +275,7 @@ BAD_CONFS = [
 
 
 class TestBadConfig:
-    @pytest.mark.parametrize("text, fragment", BAD_CONFS, ids=[c[0] for c in BAD_CONFS])
+    @pytest.mark.parametrize("text, fragment", BAD_CONFS, ids=[c[0][:40] for c in BAD_CONFS])
     def test_refused_before_anything_is_written(self, tmp_path, capsys, baseline, text, fragment):
         bad = tmp_path / "bad.yaml"
         bad.write_text(text + "\n")
@@ -344,6 +347,25 @@ class TestBadOut:
         one_error_line(code, err, fragment)
         if (tmp_path / "f").exists():
             assert (tmp_path / "f").read_text() == "keep me"
+
+
+    @pytest.mark.parametrize("found", ["loops.csv", "summary.json"])
+    def test_results_without_a_database_are_kept(self, tmp_path, capsys, baseline, conf_file, found):
+        """An --out holding someone's ``loops.csv`` (or a run whose keyframes.h5 was removed): was overwritten."""
+        out = tmp_path / "run"
+        out.mkdir()
+        (out / found).write_text("keep me")
+        code, err = run_cli(["detect", baseline[0], "--out", out, "--config", conf_file, "--no-progress"], capsys)
+        one_error_line(code, err, f"holds {found} but no keyframes.h5")
+        assert [p.name for p in out.iterdir()] == [found] and (out / found).read_text() == "keep me"
+
+    def test_other_files_are_left_alone(self, tmp_path, capsys, baseline, conf_file):
+        out = tmp_path / "run"
+        out.mkdir()
+        (out / "notes.txt").write_text("mine")
+        code, err = run_cli(["detect", baseline[0], "--out", out, "--config", conf_file, "--no-progress"], capsys)
+        assert code == 0, err
+        assert (out / "notes.txt").read_text() == "mine" and (out / "loops.csv").read_bytes() == baseline[2]
 
 
 # ----------------------------------------------------------------------------------------------- disk full
@@ -452,3 +474,25 @@ class TestEvaluateHostile:
         code, err = run_cli(["evaluate", baseline[1], "--gt", tmp_path / "gt.txt", "--out", tmp_path / "ev"], capsys)
         assert code == 0 and "Traceback" not in err
         assert any("holds no loop pair" in r.getMessage() for r in caplog.records if r.levelname == "WARNING")
+
+
+# ------------------------------------------------------------------------------------------------ odd folders
+class TestOddFolders:
+    def test_a_camera_standing_still_reports_no_loop(self, tmp_path, capsys):
+        """60 copies of one frame, the default conf: the calibration cannot be made (no far-side pair), and the
+        fixed policy it falls back to counts the stop as one frame (was: a loop for each frame past the 50th)."""
+        (tmp_path / "seq").mkdir()
+        for n in range(60):
+            shutil.copyfile(REPO / "retrieval" / "sample" / "image_0" / "000010.jpg", tmp_path / "seq" / f"{n:06d}.jpg")
+        code, err = run_cli(["detect", tmp_path / "seq", "--out", tmp_path / "run", "--no-progress"], capsys)
+        assert code == 0 and "Traceback" not in err, err
+        assert loops_rows(tmp_path / "run") == []
+
+    def test_unpadded_names_run_in_number_order(self, tmp_path, capsys, baseline, conf_file):
+        """``0.jpg ... 15.jpg``: the same loops as ``000000.jpg ...`` (text order put 10..15 before 2)."""
+        seq = make_sequence(tmp_path / "seq")
+        for p in (seq / "image_0").iterdir():
+            p.rename(p.with_name(f"{int(p.stem)}{p.suffix}"))
+        code, err = run_cli(["detect", seq, "--out", tmp_path / "run", "--config", conf_file, "--no-progress"], capsys)
+        assert code == 0, err
+        assert loops_rows(tmp_path / "run") == loops_rows(baseline[1])

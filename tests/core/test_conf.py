@@ -78,6 +78,26 @@ class TestLoadConfFile:
         with pytest.raises(ConfigError, match="cannot parse"):
             load_conf_file(tmp_path / "broken.yaml")
 
+    @pytest.mark.parametrize("text, fragment", [
+        ("search: {k: 3}\npolicy: {min_inliers: 20}\nsearch: {k: 4}\n", "key 'search' given twice (line 3)"),
+        ("search:\n  k: 3\n  k: 4\n", "key 'k' given twice (line 3)"),
+        ("a: " + "[" * 5000 + "]" * 5000 + "\n", "nested more than 32 levels deep"),  # was a RecursionError
+        ("a: " + "{b: " * 40 + "1" + "}" * 40 + "\n", "nested more than 32 levels deep"),
+    ], ids=["section twice", "key twice", "deep lists", "deep mappings"])
+    def test_ambiguous_or_too_deep_refused_in_one_line(self, tmp_path, text, fragment):
+        (tmp_path / "c.yaml").write_text(text)
+        with pytest.raises(ConfigError, match="cannot parse config file") as err:
+            load_conf_file(tmp_path / "c.yaml")
+        assert fragment in str(err.value) and "\n" not in str(err.value)
+
+    def test_anchors_and_merge_keys_still_work(self, tmp_path):
+        (tmp_path / "c.yaml").write_text("base: &b {k: 3, min_score: 0.1}\nsearch: {<<: *b, k: 5}\n")
+        assert load_conf_file(tmp_path / "c.yaml")["search"] == {"k": 5, "min_score": 0.1}
+
+    def test_every_preset_loads(self):
+        for path in sorted((REPO / "configs").glob("*.yaml")):
+            assert isinstance(load_conf_file(path), dict), path
+
 
 class TestDumpConf:
     def test_round_trip_keeps_order(self, tmp_path):

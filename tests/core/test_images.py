@@ -1,4 +1,4 @@
-"""``core.images``: reading image files safely and converting every dtype and layout a camera gives."""
+"""``core.images``: listing and reading image files safely and converting every dtype and layout a camera gives."""
 
 import os
 
@@ -92,6 +92,18 @@ class TestToUint8Dtypes:
 
 
 class TestReadImageHostile:
+    @pytest.mark.parametrize("keep", [0.3, 0.6, 0.99])
+    def test_truncated_png_one_message_nothing_on_stderr(self, tmp_path, grey, capfd, keep):
+        """A PNG cut short (a copy interrupted): libpng printed its own line to stderr beside our warning."""
+        data = cv2.imencode(".png", grey)[1].tobytes()
+        (tmp_path / "cut.png").write_bytes(data[: int(len(data) * keep)])
+        capfd.readouterr()
+        with pytest.raises(ImageError, match="truncated PNG"):
+            read_image(tmp_path / "cut.png")
+        assert capfd.readouterr().err == ""
+        (tmp_path / "whole.png").write_bytes(data + b"trailing bytes after IEND")
+        np.testing.assert_array_equal(read_image(tmp_path / "whole.png"), grey)
+
     def test_not_regular_files(self, tmp_path):
         (tmp_path / "dir.png").mkdir()
         (tmp_path / "link.png").symlink_to(tmp_path / "missing.png")
@@ -144,3 +156,52 @@ class TestReadImageHostile:
         fp = fingerprint(data)
         assert fp.startswith(f"{len(data)}:") and len(fp.split(":")[1]) == 16
         assert fingerprint(data[:-1] + b"x") != fp
+
+
+class TestImageEntries:
+    def test_numbers_in_names_sort_as_numbers(self, tmp_path, grey):
+        """A camera that writes ``1.png ... 12.png`` (no zero padding): frame 10 comes after 9, not after 1."""
+        for n in (1, 10, 2, 12, 9, 11):
+            assert cv2.imwrite(str(tmp_path / f"{n}.png"), grey[:16, :16])
+        (tmp_path / "notes.txt").write_text("not a frame")
+        assert [p.name for p in image_entries(tmp_path)] == ["1.png", "2.png", "9.png", "10.png", "11.png", "12.png"]
+
+    def test_padded_names_and_prefixes_keep_their_order(self, tmp_path, grey):
+        names = ["000000.png", "000001.png", "000010.png", "cam_b_2.png", "cam_b_10.png", "cam_c_1.png"]
+        for name in reversed(names):
+            assert cv2.imwrite(str(tmp_path / name), grey[:16, :16])
+        assert [p.name for p in image_entries(tmp_path)] == names
+
+
+class TestExifOrientation:
+    @pytest.mark.parametrize("orientation", range(1, 9))
+    @pytest.mark.parametrize("channels", [1, 3])
+    @pytest.mark.parametrize("fmt", ["WEBP", "TIFF"])
+    def test_turned_as_a_viewer_shows_it(self, grey, orientation, channels, fmt):
+        """A phone or action camera stores its pixels as the sensor read them and says in EXIF how to turn them;
+        ``cv2.IMREAD_UNCHANGED`` ignores it in a JPEG or WebP (the frame reached the encoder on its side) and
+        applies it in a TIFF (not twice). Pillow's ``exif_transpose`` is the reference (lossless files: exact)."""
+        import io
+
+        from PIL import Image, ImageOps
+
+        img = grey[:60, :90] if channels == 1 else np.dstack([grey[:60, :90], grey[:60, :90] // 2,
+                                                            np.tile(np.arange(90, dtype=np.uint8), (60, 1))])
+        exif = Image.Exif()
+        exif[0x0112] = orientation
+        buf = io.BytesIO()
+        Image.fromarray(img if channels == 1 else img[:, :, ::-1]).save(buf, fmt, exif=exif, lossless=True)
+        want = np.asarray(ImageOps.exif_transpose(Image.open(io.BytesIO(buf.getvalue()))))
+        got = decode_image(buf.getvalue())
+        np.testing.assert_array_equal(got if channels == 1 else got[:, :, ::-1], want)
+
+    def test_jpeg_rotated_upright(self, sample_dir, tmp_path):
+        from PIL import Image
+
+        exif = Image.Exif()
+        exif[0x0112] = 6  # stored turned a quarter to the left: show it turned a quarter to the right
+        Image.open(sample_dir / "image_0" / "000003.jpg").transpose(Image.Transpose.ROTATE_90).save(
+            tmp_path / "a.jpg", exif=exif, quality=95)
+        upright = read_image(sample_dir / "image_0" / "000003.jpg").astype(int)
+        got = read_image(tmp_path / "a.jpg")
+        assert got.shape == upright.shape and np.abs(got.astype(int) - upright).mean() < 3

@@ -229,6 +229,30 @@ class TestCandidate:
 REPO = Path(__file__).parents[2]
 
 
+class TestStandingStill:
+    """Uncalibrated (the API's fixed policy, and ``detect`` where the calibration finds no far-side pair: a camera that
+    never moves): a camera standing still is not back at a place, and a revisit after a stop is still found."""
+
+    CONF = {"search": {"exclude_recent": 8}, "calibration": {"enabled": False}}
+
+    def run(self, sample_image, encoder, frames, conf=None):
+        with LoopDetector(conf or self.CONF, encoder=encoder) as det:
+            return loops_of([det.process(sample_image(i), n) for n, i in enumerate(frames)])
+
+    def test_one_frame_repeated_gives_no_loop(self, sample_image, encoder):
+        assert len(self.run(sample_image, encoder, [10] * 24)) == 0  # was: frame 8 -> 0, 9 -> 1, ... (16 loops)
+
+    def test_revisit_after_a_stop_found_and_the_stop_is_no_loop(self, sample_image, encoder):
+        frames = [*range(0, 8), *[7] * 10, *range(50, 58)]  # move, stand still at frame 7, revisit 0..7
+        loops = self.run(sample_image, encoder, frames)
+        assert all(n >= 18 for n, _ in loops), loops  # none inside the stop (was: 14 -> 6, 15 -> 7, ...)
+        assert len(loops) >= 6 and all(m < 18 for _, m in loops)  # the revisit: 50..57 -> 0..7 (7: its stop)
+
+    def test_off_is_the_literal_rule(self, sample_image, encoder):
+        conf = {**self.CONF, "policy": {"still_cos": None}}
+        assert len(self.run(sample_image, encoder, [10] * 12, conf)) == 4
+
+
 class TestResolveConf:
     """``resolve_conf``: registry sections merge onto the named unit's defaults; every value is checked."""
 
@@ -249,7 +273,7 @@ class TestResolveConf:
         before = copy.deepcopy(default_conf)
         conf = resolve_conf({"policy": {"min_inliers": 30}, "features": {"max_features": 123}})
         assert conf["policy"] == {"verify": True, "min_matches": 5, "min_inliers": 30, "min_seq_score": None,
-                                  "check_all": False}
+                                  "check_all": False, "still_cos": 0.999}
         from verify.features import SIFT
 
         assert conf["features"]["max_features"] == 123

@@ -129,6 +129,13 @@ class TestCreateExtractor:
         with pytest.raises(ConfigError, match="unknown feature extractor 'surf'"):
             create_extractor({"name": "surf"})
 
+    @pytest.mark.parametrize("name", ["sift", "orb"])
+    def test_a_cap_beyond_a_c_int_is_a_config_error(self, name):
+        """OpenCV takes the cap as a C int: 10**12 was an internal error from ``SIFT_create``, not a conf error."""
+        with pytest.raises(ConfigError, match="'features.max_features' must be an integer >= 1 and <= 100000"):
+            create_extractor({"name": name, "max_features": 10**12})
+        assert create_extractor({"name": name, "max_features": 100_000}).conf["max_features"] == 100_000
+
 
 class TestORB:
     def test_binary_hamming_features(self, sample_image):

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
+import cv2
 import numpy as np
 import pytest
 
@@ -41,3 +44,50 @@ def test_bad_options_are_one_error(video_file, sample_dir, tmp_path):
 def test_same_loops_as_the_sample(video_file, sample_loops, detect_like_sample, tmp_path):
     """A lossless video of the sample: the frames are the sample's, so are the loops (read lazily, in order)."""
     np.testing.assert_array_equal(detect_like_sample(video_file, tmp_path / "run"), sample_loops)
+
+
+@pytest.mark.parametrize("fourcc, ext", [("MJPG", ".avi"), ("mp4v", ".mp4"), ("FFV1", ".avi")])
+def test_a_one_frame_video_reads_its_frame_again(tmp_path, sample_images, fourcc, ext):
+    """Read once by the calibration's pass and again by the run: the seek back to frame 0 failed in a one-frame
+    MJPG or MPEG-4 video (the run skipped its only frame as unreadable)."""
+    path = tmp_path / f"one{ext}"
+    h, w = sample_images[0].shape
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*fourcc), 10, (w, h), isColor=False)
+    assert writer.isOpened()
+    writer.write(sample_images[0])
+    writer.release()
+    seq = open_sequence(path)
+    assert len(seq) == 1
+    first = seq.read_frame(0)[0]
+    assert isinstance(first, np.ndarray)
+    for _ in range(2):
+        again, _ = seq.read_frame(0)
+        assert isinstance(again, np.ndarray) and np.array_equal(again, first)
+
+
+def test_a_broken_or_cut_video_prints_no_ffmpeg_lines(tmp_path, sample_images):
+    """FFmpeg printed its own lines to stderr for each damaged packet; now only the project's messages. Run in a
+    fresh process: FFmpeg reads its log level when OpenCV first opens a video."""
+    import subprocess
+    import sys
+
+    h, w = sample_images[0].shape
+    writer = cv2.VideoWriter(str(tmp_path / "whole.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 10, (w, h), isColor=False)
+    for image in sample_images[:20]:
+        writer.write(image)
+    writer.release()
+    data = (tmp_path / "whole.avi").read_bytes()
+    (tmp_path / "cut.avi").write_bytes(data[: len(data) // 2])
+    (tmp_path / "fake.mp4").write_text("not a video")
+    script = ("import sys\nfrom retrieval.sequences import open_sequence\n"
+              f"seq = open_sequence({str(tmp_path / 'cut.avi')!r})\n"
+              "bad = sum(not hasattr(seq.read_frame(i)[0], 'shape') for i in range(len(seq)))\n"
+              "print(bad)\n"
+              f"try:\n    open_sequence({str(tmp_path / 'fake.mp4')!r})\nexcept Exception as err:\n    print(err)\n")
+    env = {k: v for k, v in __import__("os").environ.items() if k != "OPENCV_FFMPEG_LOGLEVEL"}
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120, env=env,
+                          cwd=Path(__file__).parents[3])
+    assert proc.returncode == 0, proc.stderr
+    bad, refused = proc.stdout.splitlines()
+    assert int(bad) > 0 and "cannot open video" in refused  # the cut frames are reported, the fake refused
+    assert proc.stderr == ""
