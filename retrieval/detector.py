@@ -26,7 +26,6 @@ import math
 import threading
 import time
 from collections import OrderedDict
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -39,7 +38,7 @@ from cae.whitening import DEFAULT_DIM, DEFAULT_SHRINK
 from core.checks import check_frame_id, check_intrinsics, check_pose, check_timestamp
 from core.conf import Bool, Choice, ConfigError, Float, Int, check_conf, merge_conf
 from core.images import check_image, to_gray_u8, to_uint8
-from core.threads import apply_thread_policy
+from core.threads import BesideExecutor, apply_thread_policy
 from verify.features import FEATURES, FeatureExtractor, Features, create_extractor
 from verify.gate import EdgeGate
 from verify.geometry import GeometricVerifier
@@ -329,7 +328,7 @@ class LoopDetector:
             self.db = KeyframeDatabase(database, persisted, identity, c["runtime"]["flush_every"])
         self._jobs = FeatureJobs(functools.partial(create_extractor, fconf), c["runtime"]["feature_cache"]) \
             if c["runtime"]["feature_worker"] and self._verify and not self.descriptor.needs_features else None
-        self._pool = ThreadPoolExecutor(1, thread_name_prefix="verify") \
+        self._pool = BesideExecutor(thread_name_prefix="verify") \
             if c["runtime"]["verify_worker"] and self._verify else None
         self._wanted = False  # whether the previous frame's query needed its local features
         self.features = FeatureStore(self.db if c["runtime"]["features"] in ("database", "image") else None,

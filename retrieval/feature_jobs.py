@@ -27,6 +27,7 @@ import cv2
 import numpy as np
 
 from core.errors import DatabaseError
+from core.threads import BesideCaller
 from verify.features import FeatureExtractor, Features
 
 __all__ = ["FeatureJobs", "grey_copy", "read_grey_copy"]
@@ -79,6 +80,7 @@ class FeatureJobs:
         self._lock = threading.Lock()
         self._wake = threading.Condition(self._lock)
         self._closed = False
+        self._steering = BesideCaller()  # the worker off the core of the thread that submits
         self._thread = threading.Thread(target=self._work, name="features", daemon=True)
         self._thread.start()
 
@@ -94,6 +96,7 @@ class FeatureJobs:
             self._tasks[int(frame_id)] = _Task(fn)
             (self._queue.appendleft if urgent else self._queue.append)(int(frame_id))
             self._trim()
+            self._steering.steer()
             self._wake.notify()
 
     def take(self, frame_id: int, extractor: FeatureExtractor) -> Features | None:
@@ -117,6 +120,7 @@ class FeatureJobs:
             del self._tasks[fid]
 
     def _work(self) -> None:
+        self._steering.attach()
         while True:
             with self._lock:
                 while not self._queue and not self._closed:

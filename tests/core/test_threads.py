@@ -1,9 +1,12 @@
 """One thread policy for torch, OpenCV, faiss and numpy's BLAS (``core.threads``)."""
 
+import ctypes
 import os
 import platform
 import subprocess
 import sys
+import threading
+import time
 from pathlib import Path
 
 import cv2
@@ -13,7 +16,7 @@ import pytest
 import torch
 from threadpoolctl import threadpool_info, threadpool_limits
 
-from core.threads import apply_thread_policy, cpu_count
+from core.threads import BesideExecutor, apply_thread_policy, cpu_count
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -143,3 +146,49 @@ def test_release_free_memory_returns_freed_pages():
     assert run("no") == (0, 0)  # freed, yet resident: the hole below a live block stays
     released, mib = run("trim")
     assert released == 1 and mib > 150
+
+
+linux_two_cores = pytest.mark.skipif(not hasattr(os, "sched_setaffinity") or platform.libc_ver()[0] != "glibc"
+                                     or len(os.sched_getaffinity(0)) < 2, reason="thread affinity: Linux, >= 2 cores")
+
+
+@linux_two_cores
+def test_beside_executor_keeps_its_thread_off_the_callers_core():
+    mine = os.sched_getaffinity(0)
+    try:
+        with BesideExecutor("t") as ex:
+            tid = ex.submit(threading.get_native_id).result()  # started while the caller may use every core
+            for core in sorted(mine)[:2]:  # the caller on one core, then on another: the worker moves off each
+                os.sched_setaffinity(0, {core})
+                ex.submit(lambda: None).result()
+                assert os.sched_getaffinity(tid) == mine - {core}
+    finally:
+        os.sched_setaffinity(0, mine)
+
+
+@linux_two_cores
+def test_feature_jobs_worker_kept_off_the_submitting_core():
+    from retrieval.feature_jobs import FeatureJobs
+    from verify.features import create_extractor
+
+    mine = os.sched_getaffinity(0)
+    core = sorted(mine)[0]
+    jobs = FeatureJobs(lambda: create_extractor({"name": "sift"}))
+    try:
+        os.sched_setaffinity(0, {core})
+        tids: list[int] = []
+        jobs.submit(0, lambda ex: tids.append(threading.get_native_id()))
+        deadline = time.monotonic() + 10
+        while not tids and time.monotonic() < deadline:
+            time.sleep(0.01)
+        jobs.submit(1, lambda ex: None)  # steered now that the worker has started
+        assert tids and os.sched_getaffinity(tids[0]) == mine - {core}
+    finally:
+        os.sched_setaffinity(0, mine)
+        jobs.close()
+
+
+def test_beside_executor_runs_jobs_where_it_cannot_steer(monkeypatch):
+    monkeypatch.setattr("core.threads._sched_getcpu", lambda: None)
+    with BesideExecutor("t") as ex:
+        assert ex.submit(sum, [1, 2]).result() == 3 and ex.steering._tid is None
