@@ -12,7 +12,6 @@ import csv
 import io
 import json
 import logging
-import os
 from pathlib import Path
 from typing import Any, Callable
 
@@ -20,6 +19,7 @@ from core.cluster import start_ray
 from core.conf import ConfigError
 from core.files import prepare_out_dir, write_text_atomic
 from core.progress import progress_bar
+from core.threads import cpu_count
 
 __all__ = ["run_batch", "batch_outs", "SUMMARY_COLUMNS"]
 
@@ -91,7 +91,7 @@ def run_batch(paths: list[Path], out: str | Path, task: Callable[[Path, Path], d
         raise ConfigError(f"--workers must be an integer >= 1; got {workers!r}")
     out = prepare_out_dir(Path(out))
     outs = batch_outs(paths, out)
-    ray, started = start_ray(address, workers or os.cpu_count() or 1)
+    ray, started = start_ray(address, workers or cpu_count())  # one a core this process may use
     try:
         remote = ray.remote(num_cpus=1, max_retries=0)(_call)
         pending = {remote.remote(task, p, o): k for k, (p, o) in enumerate(zip(paths, outs))}

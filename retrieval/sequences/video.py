@@ -87,7 +87,6 @@ class VideoFrames:
         except ImageError as err:
             return err, fingerprint(image.tobytes())
 
-
     def _read_from_start(self, target: int) -> tuple[bool, np.ndarray | None]:
         """Video frame ``target`` read from a capture opened again, grabbing every frame before it."""
         self._cap.release()
