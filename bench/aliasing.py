@@ -33,17 +33,19 @@ from evaluation.metrics import precision_recall
 from retrieval.run_folder import RunFolder
 from retrieval.sequences import open_sequence
 
+from .augment import darken
 from .common import detect_run, md_table, study_parser
 
-__all__ = ["plain_folder", "stress_folders", "stress_sets", "evaluate", "aliasing_table", "main"]
+__all__ = ["plain_folder", "dark_proxy_folder", "stress_folders", "stress_sets", "evaluate", "aliasing_table", "main"]
 
 log = logging.getLogger(__name__)
 
 
 def plain_folder(dst: Path, sources: list[Path], size: tuple[int, int] | None = None,
-                 transform: Callable[[np.ndarray], np.ndarray] | None = None) -> Path:
-    """Frames of ``sources`` (in order) as ``dst/000000.png``...: resized to ``size`` (w, h) and transformed
-    when asked; no calibration, times or poses (as a user's plain folder). Reused when already built."""
+                 transform: Callable[[np.ndarray], np.ndarray] | None = None, transform_from: int = 0) -> Path:
+    """Frames of ``sources`` (in order) as ``dst/000000.png``...: resized to ``size`` (w, h) and, from index
+    ``transform_from`` on, transformed when asked (in order, so a seeded transform is reproducible); no
+    calibration, times or poses (as a user's plain folder). Reused when already built."""
     if dst.is_dir() and len(list(dst.glob("*.png"))) == len(sources):
         return dst
     dst.mkdir(parents=True, exist_ok=True)
@@ -51,7 +53,7 @@ def plain_folder(dst: Path, sources: list[Path], size: tuple[int, int] | None = 
         image = read_image(src)
         if size is not None:
             image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
-        if transform is not None:
+        if transform is not None and i >= transform_from:
             image = transform(image)
         cv2.imwrite(str(dst / f"{i:06d}.png"), image)
     return dst
@@ -74,6 +76,14 @@ def stress_folders(kitti: Path, run_dir: Path) -> dict[str, Path]:
     return out
 
 
+def dark_proxy_folder(dst: Path, frames90: list[Path], seed: int = 0) -> Path:
+    """KITTI 90 shrunk to 160x120 (INTER_AREA, plain folder) with its second pass (the last half of the frames)
+    made dark and noisy by ``bench.augment.darken`` (one generator seeded ``seed``): a change of light where
+    retrieval still finds the place. The proxy of issues 27 and 28 for the held-out night and indoor sets."""
+    rng = np.random.default_rng(seed)
+    return plain_folder(dst, frames90, (160, 120), lambda image: darken(image, rng), len(frames90) // 2)
+
+
 def stress_sets(data: Path, run_dir: Path) -> dict[str, tuple[Path, np.ndarray | None]]:
     """Every sequence of the table: name -> (folder, ground-truth pairs or None for a set without revisits)."""
     kitti = data / "kitti" / "sequences"
@@ -84,6 +94,8 @@ def stress_sets(data: Path, run_dir: Path) -> dict[str, tuple[Path, np.ndarray |
         "KITTI 90 (1241x376, intrinsics)": (kitti / "90", truth90),
         "KITTI 90 at 160x120 (plain folder)": (plain_folder(run_dir / "k90_160", frames90, (160, 120)), truth90),
         "KITTI 90 at 64x32 (plain folder)": (plain_folder(run_dir / "k90_64", frames90, (64, 32)), truth90),
+        "KITTI 90 at 160x120, second pass dark and noisy": (dark_proxy_folder(run_dir / "k90_160_dark", frames90),
+                                                           truth90),
         "KITTI 00 (no revisit)": (kitti / "00", None),
         "KITTI 07 (no revisit)": (kitti / "07", None),
         "Nordland summer -> winter (64x32)": (data / "nordland", read_loop_pairs(data / "nordland" / "loops.txt")),

@@ -16,7 +16,7 @@ import numpy as np
 
 from core.images import image_entries, read_image
 
-__all__ = ["shared_frames", "augment", "augmented_frames"]
+__all__ = ["shared_frames", "augment", "augmented_frames", "darken"]
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "datasets"  #: the real data sets
 
@@ -47,6 +47,27 @@ def augment(image: np.ndarray, rng: np.random.Generator, strength: float = 0.3, 
     gain, gamma = rng.uniform(1 - strength, 1 + strength, 2)
     offset = rng.uniform(-strength / 2, strength / 2)
     x = np.clip(np.power(np.clip(x, 1e-4, 1), gamma) * gain + offset, 0, 1)
+    return (x * 255 + 0.5).astype(np.uint8)
+
+
+def darken(image: np.ndarray, rng: np.random.Generator, scale: float = 0.35, gamma: float = 1.8,
+           floor: float = 0.03, blur_sigma: float = 0.8, noise_sigma: float = 0.02) -> np.ndarray:
+    """The night proxy of the decision and learned-code issues: a frame made dark, soft and noisy.
+
+    On grey in [0, 1]: ``scale * im ** gamma + floor``, a Gaussian blur of ``blur_sigma`` px, Gaussian noise of
+    ``noise_sigma``, clipped and rounded back to uint8 (a colour frame is turned grey first).
+
+    Args:
+        image: ``(H, W[, C])`` uint8.
+        rng: the noise's generator (one generator seeded once per folder makes the folder reproducible).
+
+    Returns:
+        ``(H, W)`` uint8.
+    """
+    grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    x = scale * np.power(grey.astype(np.float32) / 255.0, gamma) + floor
+    x = cv2.GaussianBlur(x, (0, 0), blur_sigma)
+    x = np.clip(x + rng.normal(0.0, noise_sigma, x.shape).astype(np.float32), 0, 1)
     return (x * 255 + 0.5).astype(np.uint8)
 
 

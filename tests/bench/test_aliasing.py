@@ -16,3 +16,29 @@ def test_calibration_share_own_and_with_the_runs_work():
     assert "| KITTI 90 | 200 | 100 | 1.000 | 1.000 | 15.5 | 12 % / 50 % | inliers |" in table
     assert "| n/a (no revisit) | n/a | n/a | none |" in table
     assert "own / with the run's work" in table.splitlines()[0]
+
+
+def test_dark_proxy_darkens_the_second_pass_only(tmp_path):
+    """The night proxy (issues 27 and 28): KITTI 90's first pass kept at 160x120, the second made dark and noisy,
+    reproducibly (the same seed gives the same pixels)."""
+    import cv2
+    import numpy as np
+    import pytest
+
+    from bench.aliasing import dark_proxy_folder
+    from bench.augment import darken
+    from retrieval.sequences import open_sequence
+    from tests.conftest import KITTI_SEQUENCES
+
+    if not (KITTI_SEQUENCES / "90").is_dir():
+        pytest.skip("shared KITTI data not found")
+    frames = list(open_sequence(KITTI_SEQUENCES / "90").frames)[98:102]  # two of each pass
+    a = dark_proxy_folder(tmp_path / "a", frames)
+    b = dark_proxy_folder(tmp_path / "b", frames)
+    imgs = [cv2.imread(str(a / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED) for i in range(4)]
+    assert all(im.shape == (120, 160) for im in imgs)
+    assert imgs[0].mean() > 2 * imgs[2].mean()  # the second half is dark
+    assert np.array_equal(imgs[3], cv2.imread(str(b / "000003.png"), cv2.IMREAD_UNCHANGED))  # seeded
+    rng = np.random.default_rng(0)
+    flat = np.full((50, 50), 255, np.uint8)
+    assert abs(float(darken(flat, rng).mean()) - 255 * 0.38) < 2  # 0.35 * 1 ** 1.8 + 0.03
