@@ -140,7 +140,7 @@ class PoseGraph:
     def __init__(self, conf: dict[str, Any] | None = None) -> None:
         self.conf = configure(self, conf, "graph")
         self._consistency = PairwiseConsistency(self.conf["consistency"], self.conf["odometry"])
-        self.anchor: str | None = None  #: the first robot added; its map frame is the global frame
+        self.anchor: str | None = None  #: the robot whose map frame is the global frame: the first added, or ``set_anchor``
         self._local: dict[Node, Sim3] = {}
         self._last: dict[str, Node] = {}
         self._edges: list[Edge] = []
@@ -177,7 +177,7 @@ class PoseGraph:
         if prev is not None and node.keyframe <= prev.keyframe:
             raise ConfigError(f"robot {robot}: keyframe {keyframe} is not after its last one ({prev.keyframe})")
         self._local[node] = local
-        self.anchor = self.anchor or robot
+        self.anchor = self.anchor or robot  # the first robot added, unless set (``set_anchor``)
         if prev is not None:
             self._edges.append(Edge("odometry", prev, node, self._local[prev].to(local)))
         self._last[robot] = node
@@ -216,6 +216,12 @@ class PoseGraph:
         other._last = {r: n for r, n in self._last.items() if r not in robots}
         other._edges = [e for e in self._edges if e.a.robot not in robots and e.b.robot not in robots]
         return other
+
+    def set_anchor(self, robot: str | None) -> None:
+        """Makes ``robot``'s map frame the global frame (None: none yet; nothing is then merged); the initial guesses
+        of the transforms (expressed in the old frame) are forgotten when it changes."""
+        if robot != self.anchor:
+            self.anchor, self._guess = robot, {}
 
     def set_transform(self, robot: str, transform: Sim3) -> None:
         """An initial guess of ``robot``'s map-to-global transform (otherwise derived from the overlap edges)."""

@@ -125,7 +125,7 @@ class TestOverlapThroughTheService:
         rel = gt[4].inverse().compose(known_sim3).compose(Sim3(1.0, *(lambda L: (L.R, L.t))(
             known_sim3.inverse().compose(gt[5]))))
         http.app.state.service.add_edge(EdgeRecord("overlap", "A", 4, "B", 5, rel, 40.0))
-        T = Sim3.from_matrix(a.transforms(wait=True)["B"])
+        T = Sim3.from_matrix(admin.transforms(wait=True)["B"])  # the fleet's list is the admin's
         angle, scale, trans = T.errors(known_sim3)
         assert angle < 0.1 and scale < 1e-3 and trans < 0.1
         assert [loop["kind"] for loop in b.loops("B")] == ["overlap"]
