@@ -282,12 +282,12 @@ def _imdecode_logged(data: bytes) -> np.ndarray | None:
                     log.warning("image decoder: %s", line.strip()[:300])
 
 
-def too_large(header: tuple, max_pixels: int, name: str | Path = "image") -> str:
-    """The one-line refusal of an image whose ``header`` (format, width, height, ...) declares more than
-    ``max_pixels``."""
+def too_large(header: tuple, max_pixels: int, what: str = "image") -> str:
+    """The one-line refusal of ``what`` whose ``header`` (format, width, height, ...) declares more than
+    ``max_pixels``: its width and height when the header gave them, else its pixel count alone."""
     fmt, width, height = header[:3]
-    size = f"{width}x{height} " if fmt != "?" else ""  # "?": Pillow's own limit told the count only
-    return f"image {name} too large: its header declares {size}{width * height} pixels (limit {max_pixels})"
+    size = f"{width}x{height} ({width * height} pixels)" if fmt != "?" else f"{width * height} pixels"
+    return f"{what} too large: its header declares {size}; at most {max_pixels} pixels are accepted"
 
 
 def decode_image(data: bytes, name: str | Path = "<bytes>", max_pixels: int = MAX_IMAGE_PIXELS,
@@ -309,7 +309,7 @@ def decode_image(data: bytes, name: str | Path = "<bytes>", max_pixels: int = MA
     if header is None and known_header:
         raise ImageError(f"{name} is not a readable PNG or JPEG (or TIFF, BMP, WebP, PPM) file")
     if header is not None and header[1] * header[2] > max_pixels:
-        raise ImageError(too_large(header, max_pixels, name))
+        raise ImageError(too_large(header, max_pixels, f"image {name}"))
     if header is not None and header[0] == "PNG" and data.rfind(b"IEND") < 0:  # libpng would print to stderr
         raise ImageError(f"cannot decode image {name}: truncated PNG (no IEND chunk)")
     if known_header:
