@@ -257,7 +257,7 @@ def check_structure(data: bytes, fmt: str, name: str | Path = "<bytes>") -> None
     check = _STRUCTURE.get(fmt)
     why = None if check is None else check(data)
     if why is not None:
-        raise ImageError(f"cannot decode image {name}: {fmt} {why}")
+        raise ImageError(f"cannot decode {name}: {fmt} {why}")
 
 
 _STDERR_LOCK = threading.Lock()  #: one captured decoder at a time (file descriptor 2 is the process's)

@@ -32,6 +32,7 @@ from __future__ import annotations
 import functools
 import json
 import logging
+import os
 import threading
 import time
 from collections import OrderedDict
@@ -237,7 +238,9 @@ class FleetRecognizer:
                 self._open(name, None)
         except Exception as err:  # noqa: BLE001 -- any damage (JSON, HDF5, OS): this robot only
             self.robots.pop(name, None)
-            why = (str(err).strip().splitlines() or [type(err).__name__])[0][:300]
+            # the first clause of the first line, paths from the state folder on (an answer to a robot holds it)
+            why = (str(err).strip().splitlines() or [type(err).__name__])[0].split("; ")[0][:300]
+            why = why.replace(f"{self.root.parent}{os.sep}", "")
             self.quarantined[name] = f"{type(err).__name__}: {why}"
             log.error("robot %s quarantined: its files cannot be read (%s); its requests are refused until an admin "
                       "resets or drops it", name, self.quarantined[name])

@@ -239,3 +239,23 @@ class TestWhatARobotReads:
         assert answer.status_code == 422 and "at least 4" in answer.json()["detail"]
         rows = http.get("/openapi.json").json()["components"]["schemas"]["KeyframeIn"]["properties"]["pose"]["items"]
         assert rows["minItems"] == rows["maxItems"] == 4
+
+
+class TestRefusals:
+    def test_a_413_says_what_the_header_declares_in_one_sensible_line(self, server):
+        """Pillow's own bomb limit gives a pixel count alone: the answer was "image has 900000000x1 pixels"."""
+        import base64
+        import struct
+        import zlib
+
+        import cv2
+
+        http, admin = server()
+        token = admin.register("A")
+        png = bytearray(cv2.imencode(".png", np.zeros((8, 8), np.uint8))[1].tobytes())
+        ihdr = bytes(png[12:16]) + struct.pack(">II", 30000, 30000) + bytes(png[24:29])
+        png[12:33] = ihdr + struct.pack(">I", zlib.crc32(ihdr))
+        body = {"keyframe": 0, "timestamp": 0.0, "pose": np.eye(4).tolist(), "image": base64.b64encode(png).decode()}
+        answer = http.post("/robots/A/keyframes", json=body, headers={"Authorization": f"Bearer {token}"})
+        assert answer.status_code == 413
+        assert answer.json()["detail"].startswith("image too large: its header declares 900000000 pixels; at most")
