@@ -196,7 +196,7 @@ def _jpeg_structure(data: bytes) -> str | None:
     else:
         return "cut short (no end marker)"
     if blocks is not None and coded * 8 < blocks:
-        return f"{coded} bytes of coded data where its declared size needs at least {-(-blocks // 8)}"
+        return f"{coded} bytes of coded data where its declared size needs at least {_ceil_div(blocks, 8)}"
     return None
 
 
@@ -209,7 +209,13 @@ def _jpeg_blocks(sof: bytes) -> int:
     if not comps:
         return 0
     hmax, vmax = max(max(h for h, _ in comps), 1), max(max(v for _, v in comps), 1)
-    return sum(-(-(-(-width * h // hmax)) // 8) * -(-(-(-height * v // vmax)) // 8) for h, v in comps)
+    return sum(_ceil_div(_ceil_div(width * h, hmax), 8) * _ceil_div(_ceil_div(height * v, vmax), 8)
+               for h, v in comps)
+
+
+def _ceil_div(a: int, b: int) -> int:
+    """``ceil(a / b)`` of integers."""
+    return -(-a // b)
 
 
 _PNG_CHANNELS = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}  #: colour type -> samples per pixel
@@ -226,7 +232,7 @@ def _png_structure(data: bytes) -> str | None:
             return "a chunk runs past the end of the file"
         if kind == b"IHDR" and length >= 13:
             width, height, depth, colour = struct.unpack(">IIBB", data[pos + 8:pos + 18])
-            raw = height * (1 + -(-width * _PNG_CHANNELS.get(colour, 1) * depth // 8))
+            raw = height * (1 + _ceil_div(width * _PNG_CHANNELS.get(colour, 1) * depth, 8))
         elif kind == b"IDAT":
             idat += length
         elif kind == b"IEND":
@@ -239,7 +245,7 @@ def _png_structure(data: bytes) -> str | None:
     else:
         return "cut short (no IEND chunk)"
     if idat * DEFLATE_MAX_RATIO < raw:
-        return f"{idat} bytes of pixel data where its declared size needs at least {-(-raw // DEFLATE_MAX_RATIO)}"
+        return f"{idat} bytes of pixel data where its declared size needs at least {_ceil_div(raw, DEFLATE_MAX_RATIO)}"
     return None
 
 

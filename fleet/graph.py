@@ -140,7 +140,7 @@ class PoseGraph:
     def __init__(self, conf: dict[str, Any] | None = None) -> None:
         self.conf = configure(self, conf, "graph")
         self._consistency = PairwiseConsistency(self.conf["consistency"], self.conf["odometry"])
-        self.anchor: str | None = None  #: the robot whose map frame is the global frame: the first added, or ``set_anchor``
+        self.anchor: str | None = None  #: the robot whose map is the global frame: the first added, or ``set_anchor``
         self._local: dict[Node, Sim3] = {}
         self._last: dict[str, Node] = {}
         self._edges: list[Edge] = []

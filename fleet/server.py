@@ -12,7 +12,7 @@ TIFF, BMP or WebP bytes, their size checked from the header before decoding), a 
     GET  /robots/{name}/loops          robot name or admin   loop and overlap edges touching the robot
     GET  /robots/{name}/poses?wait=    robot name or admin   corrected keyframe poses in the global frame
     GET  /overlaps                     robot or admin        accepted overlaps (a robot: those involving it)
-    GET  /transforms?wait=             robot or admin        merged robots' map-to-global similarities (a robot: its own)
+    GET  /transforms?wait=             robot or admin        merged robots' map-to-global similarities (robot: its own)
     GET  /robots/{name}/trajectory     robot name or admin   ?format=tum|kitti: corrected trajectory (fleet.export)
     GET  /map                          none (holds no data)  live map page polling the routes above (fleet.map_page)
     POST /robots/{name}/reset          admin                 {"keep_keyframes"}: recognition restarted, keyframes kept
