@@ -89,6 +89,7 @@ class FleetService:
         self._verified: dict[bytes, str] = {}  # sha256(name, token) -> name of tokens already checked (PBKDF2 is slow)
         self._graph = PoseGraph(self.conf["graph"])
         self.anchor: str | None = None
+        self._anchor_merged: str | None = None  # the anchor, once it has an overlap edge (``_settle_anchor``)
         #: robots whose files could not be read at start-up (or since): name -> why; their requests are refused (503)
         self.quarantined: dict[str, str] = dict(getattr(recognizer, "quarantined", {}))
         self._rebuild()
@@ -129,14 +130,15 @@ class FleetService:
                 log.warning("stored %s edge %s %d -> %s %d skipped: %s", e.kind, e.robot_a, e.keyframe_a, e.robot_b,
                             e.keyframe_b, err)
         self._set_anchor(None)
+        self._settle_anchor()
         log.info("fleet state: %d robots, %d keyframes (%d stored values skipped)", len(self.store.robots()),
                  len(self._graph.nodes), skipped)
 
     def _set_anchor(self, robot: str | None) -> None:
-        """The global frame is the stored anchor's map, chosen once: the robot of the first keyframe acknowledged
-        (``robot``; another front end's choice when it stored one first), or the admin's (``set_anchor``). A state of
-        an older version without a stored anchor keeps its old one: the first registered robot with keyframes. Call
-        under the graph lock (or before the service runs)."""
+        """The global frame is the stored anchor's map: the robot of the first keyframe acknowledged (``robot``;
+        another front end's choice when it stored one first) until a map is merged (``_settle_anchor``), or the
+        admin's (``set_anchor``). A state of an older version without a stored anchor keeps its old one: the first
+        registered robot with keyframes. Call under the graph lock (or before the service runs)."""
         anchor = self.store.anchor()
         if anchor is None:
             present = {n.robot for n in self._graph.nodes}
@@ -144,6 +146,28 @@ class FleetService:
             anchor = None if candidate is None else self.store.set_anchor(candidate)
         self.anchor = anchor  #: the robot whose map frame is the global frame (None: no keyframe yet)
         self._graph.set_anchor(anchor)
+
+    def _settle_anchor(self) -> None:
+        """The first robot whose map is merged is the anchor for good: while the anchor has no overlap edge (it is
+        alone: no other map is expressed in its frame), the first overlap edge between two other robots makes the one
+        of them registered first the anchor (a lone robot that spoke first, a hostile one included, does not become
+        the fleet's frame). Once the anchor has an overlap edge, nothing but the admin changes it. Call under the
+        graph lock."""
+        if self.anchor is None or self._anchor_merged == self.anchor:
+            return
+        edges = [e for e in self._graph.edges if e.kind == "overlap"]
+        if any(self.anchor in (e.a.robot, e.b.robot) for e in edges):
+            self._anchor_merged = self.anchor  # for good: no scan of the edges again
+            return
+        if not edges:
+            return
+        pair = {edges[0].a.robot, edges[0].b.robot}
+        choice = next((r for r in self.store.robots() if r in pair), None)
+        if choice is not None:
+            log.info("the first merged maps are robots %s: robot %s is the anchor (robot %s was alone)",
+                     " and ".join(sorted(pair)), choice, self.anchor)
+            self.anchor = self.store.set_anchor(choice, replace=True)
+            self._graph.set_anchor(self.anchor)
 
     def register(self, name: str) -> str:
         """Registers a robot; returns its new token ``NAME.SECRET`` (shown once, stored hashed).
@@ -234,6 +258,8 @@ class FleetService:
                 for e in found.edges:
                     self._graph.add_edge(e.kind, Node(e.robot_a, e.keyframe_a), Node(e.robot_b, e.keyframe_b),
                                          e.relative)
+                if any(e.kind == "overlap" for e in found.edges):
+                    self._settle_anchor()
             self.optimizer.changed()
             return True
 
@@ -287,6 +313,8 @@ class FleetService:
             a, b = Node(edge.robot_a, edge.keyframe_a), Node(edge.robot_b, edge.keyframe_b)
             self._graph.add_edge(edge.kind, a, b, edge.relative)  # checks kind and nodes before the store
             self.store.add_edges([edge])
+            if edge.kind == "overlap":
+                self._settle_anchor()
         self.optimizer.changed()
 
     def optimize(self, wait: bool = True, timeout: float = 30.0) -> GraphResult:

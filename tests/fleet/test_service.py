@@ -79,6 +79,25 @@ class TestAnchor:
         finally:
             service.close()
 
+    def test_a_lone_robot_that_spoke_first_is_not_the_fleets_frame(self, tmp_path, kitti_poses, known_sim3):
+        """H (say a hostile robot) sends first and never merges: the first merged maps, RA's and RB's, are the
+        fleet's; H's keyframes, before and after, move nothing."""
+        service = service_on(str(tmp_path / "fleet.sqlite"))
+        try:
+            for name in ("H", "RA", "RB"):
+                service.register(name)
+            service.submit_keyframe("H", 0, 0.0, np.eye(4))
+            assert service.anchor == "H"  # provisional: nobody merged yet
+            stream_two_robots(service, kitti_poses, known_sim3, 60)
+            assert service.anchor == "RA" and service.store.anchor() == "RA"
+            before = maps(service)
+            service.submit_keyframe("H", 1, 1.0, np.eye(4))
+            after = maps(service)
+            for key in before:
+                np.testing.assert_allclose(after[key], before[key], atol=1e-6, err_msg=key)
+        finally:
+            service.close()
+
     def test_the_admin_names_another_anchor_and_every_map_is_re_expressed(self, location, kitti_poses, known_sim3,
                                                                           caplog):
         service = service_on(location)
