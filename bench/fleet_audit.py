@@ -299,7 +299,7 @@ def damaged_state(work: Path) -> dict[str, Any]:
         SQLiteStore(wal_copy / "fleet.sqlite").close()
         out["wal_cut_in_half"] = "opened (at an older state)"
     except DatabaseError as err:
-        out["wal_cut_in_half"] = f"refused: {str(err).split(': ', 1)[-1][:110]}"
+        out["wal_cut_in_half"] = "refused: " + str(err).replace(f"{wal_copy}{os.sep}", "").split(": the database")[0]
     return out
 
 
