@@ -6,8 +6,9 @@ Conventions (``fleet.sim3.Sim3``, ``x -> s R x + t``):
 - A robot's **local pose** of a keyframe is its camera-to-map transform in the robot's own map (KITTI's 3x4 or a 4x4;
   a rigid pose, or a similarity whose scale is kept).
 - A **node** holds the keyframe's camera-to-global similarity: ``node = S_robot o local_pose`` where ``S_robot`` maps
-  the robot's map into the global frame (``s`` is the global units per local unit). The first robot added is the
-  anchor: its first keyframe carries a tight prior at its local pose, so its map frame is the global frame.
+  the robot's map into the global frame (``s`` is the global units per local unit). The anchor (the first
+  robot added, unless ``set_anchor`` names one: the fleet service stores its choice) has its first keyframe carry a
+  tight prior at its local pose, so its map frame is the global frame.
 - An **edge** ``a -> b`` measures ``node_a^-1 o node_b``: keyframe b's camera frame expressed in keyframe a's (the
   similarity that maps b-camera points to a-camera points, as ``ransac_sim3`` estimates it from 3D-3D matches).
   Odometry edges are derived from consecutive local poses (``local_a^-1 o local_b``, scale 1 for rigid poses).
