@@ -341,6 +341,7 @@ class FleetService:
         with self._lock:
             self.anchor = self.store.set_anchor(robot, replace=True)
             self._graph.set_anchor(self.anchor)
+            self._anchor_merged = self.anchor  # the admin's choice: not moved by a first merge of others
         log.warning("admin: the anchor (global frame) is now robot %s; every map is re-expressed in its frame", robot)
         self.optimizer.changed()
 
