@@ -11,10 +11,14 @@ from __future__ import annotations
 
 import hashlib
 import io
+import logging
 import math
 import os
 import re
 import stat
+import struct
+import tempfile
+import threading
 import warnings
 from pathlib import Path
 
@@ -24,11 +28,18 @@ import numpy as np
 from .errors import ImageError
 
 __all__ = ["IMAGE_EXTENSIONS", "MAX_IMAGE_PIXELS", "MIN_IMAGE_SIDE", "natural_key", "image_entries", "read_image", "read_file",
-           "decode_image", "image_header", "HEADER_FORMATS", "fingerprint", "check_image", "to_uint8", "to_gray_u8", "to_rgb_u8", "resize_square"]
+           "decode_image", "image_header", "HEADER_FORMATS", "check_structure", "too_large", "MAX_JPEG_SCANS",
+           "MAX_PNG_CHUNKS", "fingerprint", "check_image", "to_uint8", "to_gray_u8", "to_rgb_u8", "resize_square"]
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm", ".webp")
 MAX_IMAGE_PIXELS = 1 << 27  #: larger images are refused before decoding (134 Mpixel: 11585x11585; 4K is 8.3)
 MIN_IMAGE_SIDE = 8  #: smaller images are refused (no feature, no edge can be measured)
+MAX_JPEG_SCANS = 32  #: a JPEG of more scans is refused before decoding (``check_structure``; libjpeg writes 6 to 10
+#                      for a progressive file; each scan costs up to ~40 ms on 16 Mpixel: 1000 took 40-50 s)
+MAX_PNG_CHUNKS = 256  #: a PNG of more chunks besides its pixel data (IDAT) is refused (100 000 text chunks: 5.8 s)
+DEFLATE_MAX_RATIO = 1032  #: deflate never expands more than this: a PNG's pixel data needs at least raw / this bytes
+
+log = logging.getLogger(__name__)
 
 
 def natural_key(path: str | Path) -> tuple:
@@ -142,6 +153,149 @@ def _upright(img: np.ndarray, orientation: int) -> np.ndarray:
     return img if rotate is None else cv2.rotate(img, rotate)
 
 
+_JPEG_ENTROPY_END = re.compile(rb"\xff(?![\x00\xd0-\xd7\xff])")  #: the marker that ends a scan's coded data
+_JPEG_SOF_HUFFMAN = (0xC0, 0xC1, 0xC2)  #: baseline, extended and progressive Huffman: the codings accepted
+
+
+def _jpeg_structure(data: bytes) -> str | None:
+    """Why a JPEG would cost more than its size says (None: it would not): a coding other than Huffman (arithmetic
+    coding packs a large flat image in a few bytes), more than ``MAX_JPEG_SCANS`` scans, no end marker (cut short:
+    libjpeg invents the rest), or less coded data than its declared size needs (one bit per 8x8 block of each
+    component at least: a DC code)."""
+    pos, scans, coded, blocks = 2, 0, 0, None
+    while pos + 2 <= len(data):
+        if data[pos] != 0xFF:
+            return "bytes where a marker should be"
+        marker = data[pos + 1]
+        if marker == 0xFF:  # fill byte
+            pos += 1
+            continue
+        if marker == 0xD9:  # EOI
+            break
+        if 0xD0 <= marker <= 0xD7 or marker == 0x01:
+            pos += 2
+            continue
+        length = struct.unpack(">H", data[pos + 2:pos + 4])[0] if pos + 4 <= len(data) else 0
+        end = pos + 2 + length
+        if length < 2 or end > len(data):
+            return "a segment runs past the end of the file"
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+            if marker not in _JPEG_SOF_HUFFMAN:
+                return f"coding SOF{marker - 0xC0} is not accepted (baseline or progressive Huffman only)"
+            blocks = _jpeg_blocks(data[pos + 4:end])
+        if marker == 0xDA:
+            scans += 1
+            if scans > MAX_JPEG_SCANS:
+                return f"more than {MAX_JPEG_SCANS} scans"
+            found = _JPEG_ENTROPY_END.search(data, end)
+            if found is None:
+                return "cut short (no end marker)"
+            coded += found.start() - end
+            end = found.start()
+        pos = end
+    else:
+        return "cut short (no end marker)"
+    if blocks is not None and coded * 8 < blocks:
+        return f"{coded} bytes of coded data where its declared size needs at least {_ceil_div(blocks, 8)}"
+    return None
+
+
+def _jpeg_blocks(sof: bytes) -> int:
+    """8x8 blocks of every component of a JPEG frame header (SOF payload), as its size declares them."""
+    if len(sof) < 6:
+        return 0
+    height, width, count = struct.unpack(">HHB", sof[1:6])
+    comps = [(sof[6 + 3 * i + 1] >> 4, sof[6 + 3 * i + 1] & 15) for i in range(count) if 6 + 3 * i + 2 < len(sof)]
+    if not comps:
+        return 0
+    hmax, vmax = max(max(h for h, _ in comps), 1), max(max(v for _, v in comps), 1)
+    return sum(_ceil_div(_ceil_div(width * h, hmax), 8) * _ceil_div(_ceil_div(height * v, vmax), 8)
+               for h, v in comps)
+
+
+def _ceil_div(a: int, b: int) -> int:
+    """``ceil(a / b)`` of integers."""
+    return -(-a // b)
+
+
+_PNG_CHANNELS = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}  #: colour type -> samples per pixel
+
+
+def _png_structure(data: bytes) -> str | None:
+    """Why a PNG would cost more than its size says (None: it would not): a chunk running past the end, more than
+    ``MAX_PNG_CHUNKS`` chunks besides IDAT, no IEND, or less pixel data than its declared size needs through deflate
+    (``DEFLATE_MAX_RATIO``)."""
+    pos, others, idat, raw = 8, 0, 0, 0
+    while pos + 8 <= len(data):
+        length, kind = struct.unpack(">I4s", data[pos:pos + 8])
+        if pos + 12 + length > len(data):
+            return "a chunk runs past the end of the file"
+        if kind == b"IHDR" and length >= 13:
+            width, height, depth, colour = struct.unpack(">IIBB", data[pos + 8:pos + 18])
+            raw = height * (1 + _ceil_div(width * _PNG_CHANNELS.get(colour, 1) * depth, 8))
+        elif kind == b"IDAT":
+            idat += length
+        elif kind == b"IEND":
+            break
+        else:
+            others += 1
+            if others > MAX_PNG_CHUNKS:
+                return f"more than {MAX_PNG_CHUNKS} chunks besides its pixel data"
+        pos += 12 + length
+    else:
+        return "cut short (no IEND chunk)"
+    if idat * DEFLATE_MAX_RATIO < raw:
+        return f"{idat} bytes of pixel data where its declared size needs at least {_ceil_div(raw, DEFLATE_MAX_RATIO)}"
+    return None
+
+
+_STRUCTURE = {"JPEG": _jpeg_structure, "PNG": _png_structure}  #: format -> its structure check
+
+
+def check_structure(data: bytes, fmt: str, name: str | Path = "<bytes>") -> None:
+    """Refuses, before any decoder runs, a file whose decoding would cost more than its size says: a JPEG of many
+    scans, of arithmetic coding, cut short or with less coded data than its declared size needs; a PNG of many
+    chunks, cut short or with too little pixel data for its size (other formats: nothing checked).
+
+    Raises:
+        ImageError: one line, what is wrong.
+    """
+    check = _STRUCTURE.get(fmt)
+    why = None if check is None else check(data)
+    if why is not None:
+        raise ImageError(f"cannot decode {name}: {fmt} {why}")
+
+
+_STDERR_LOCK = threading.Lock()  #: one captured decoder at a time (file descriptor 2 is the process's)
+
+
+def _imdecode_logged(data: bytes) -> np.ndarray | None:
+    """``cv2.imdecode`` with what the decoders write to the process's stderr (libjpeg's, libpng's warnings) sent to
+    this module's log instead, one record a line."""
+    with _STDERR_LOCK, tempfile.TemporaryFile() as capture:
+        saved = os.dup(2)
+        try:
+            os.dup2(capture.fileno(), 2)
+            try:
+                return cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+            finally:
+                os.dup2(saved, 2)
+        finally:
+            os.close(saved)
+            capture.seek(0)
+            for line in capture.read(4096).decode("utf-8", "replace").splitlines():
+                if line.strip():
+                    log.warning("image decoder: %s", line.strip()[:300])
+
+
+def too_large(header: tuple, max_pixels: int, what: str = "image") -> str:
+    """The one-line refusal of ``what`` whose ``header`` (format, width, height, ...) declares more than
+    ``max_pixels``: its width and height when the header gave them, else its pixel count alone."""
+    fmt, width, height = header[:3]
+    size = f"{width}x{height} ({width * height} pixels)" if fmt != "?" else f"{width * height} pixels"
+    return f"{what} too large: its header declares {size}; at most {max_pixels} pixels are accepted"
+
+
 def decode_image(data: bytes, name: str | Path = "<bytes>", max_pixels: int = MAX_IMAGE_PIXELS,
                  known_header: bool = False) -> np.ndarray:
     """Decodes image file bytes unchanged (grey or colour, 8- or 16-bit), after checking its size in its header, and
@@ -150,7 +304,9 @@ def decode_image(data: bytes, name: str | Path = "<bytes>", max_pixels: int = MA
     Args:
         data: the file's bytes. name: what messages call it. max_pixels: larger images are refused (from the header
             when it can be read, before any pixel is decoded). known_header: refuse files whose header is not one of
-            ``HEADER_FORMATS`` (a server's input: no decoder runs on a file whose size is unknown).
+            ``HEADER_FORMATS``, and files whose decoding would cost more than their size says (``check_structure``),
+            with the decoders' own messages sent to this module's log (a server's input: no decoder runs on a file
+            whose size is unknown; its stderr stays its own).
 
     Raises:
         ImageError: corrupt, unsupported, larger than ``max_pixels`` or smaller than 8x8.
@@ -159,11 +315,14 @@ def decode_image(data: bytes, name: str | Path = "<bytes>", max_pixels: int = MA
     if header is None and known_header:
         raise ImageError(f"{name} is not a readable PNG or JPEG (or TIFF, BMP, WebP, PPM) file")
     if header is not None and header[1] * header[2] > max_pixels:
-        raise ImageError(f"image {name} too large: {header[1] * header[2]} pixels (limit {max_pixels})")
+        raise ImageError(too_large(header, max_pixels, f"image {name}"))
     if header is not None and header[0] == "PNG" and data.rfind(b"IEND") < 0:  # libpng would print to stderr
         raise ImageError(f"cannot decode image {name}: truncated PNG (no IEND chunk)")
+    if known_header:
+        check_structure(data, header[0], name)
     try:
-        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+        img = _imdecode_logged(data) if known_header else cv2.imdecode(np.frombuffer(data, np.uint8),
+                                                                        cv2.IMREAD_UNCHANGED)
     except cv2.error as err:
         raise ImageError(f"cannot decode image {name}: {str(err).strip().splitlines()[-1][:160]}") from None
     if img is None or img.size == 0:

@@ -85,3 +85,20 @@ class FleetClient:
     def transforms(self, wait: bool = False) -> dict[str, np.ndarray]:
         """Robot -> ``(4, 4)`` map-to-global similarity matrix (``wait``: as for ``poses``)."""
         return {r: np.array(m) for r, m in self._call("GET", "/transforms", params={"wait": wait}).items()}
+
+    # ------------------------------------------------------------------------------------ admin (the admin token)
+    def reset(self, robot: str, keep_keyframes: bool = True) -> int:
+        """(Admin) restarts the robot's recognition (releases a quarantined robot); returns the keyframes dropped."""
+        return int(self._call("POST", f"/robots/{robot}/reset", {"keep_keyframes": keep_keyframes})["dropped"])
+
+    def retire(self, robot: str, keep_keyframes: bool = True) -> int:
+        """(Admin) revokes the robot's token; returns the keyframes dropped."""
+        return int(self._call("POST", f"/robots/{robot}/retire", {"keep_keyframes": keep_keyframes})["dropped"])
+
+    def rotate_token(self, robot: str) -> str:
+        """(Admin) a new token for the robot (the old one revoked)."""
+        return self._call("POST", f"/robots/{robot}/token")["token"]
+
+    def set_anchor(self, robot: str) -> None:
+        """(Admin) makes the robot's map frame the global frame."""
+        self._call("PUT", "/anchor", {"name": robot})

@@ -162,7 +162,7 @@ def _score(admin: FleetClient, robots: list[RobotStream], truth: Sim3 | None,
     """The summary: overlaps, transforms, errors against ``truth`` and the merged B trajectory's error."""
     transforms = admin.transforms(wait=True)
     a, b = robots
-    out: dict[str, Any] = {"overlaps": admin.overlaps(), "merged": "B" in transforms,
+    out: dict[str, Any] = {"overlaps": admin.overlaps(), "merged": {"A", "B"} <= set(transforms),  # one frame
                            "loops": len([e for e in admin.loops("A") + admin.loops("B") if e["kind"] == "loop"]),
                            "keyframes": {r.name: len(r.frames) for r in robots}}
     out["overlap_edges"] = len([e for e in admin.loops("B") if e["kind"] == "overlap"])

@@ -4,7 +4,7 @@
 - KITTI: one line a pose, the 12 numbers of the ``3x4`` camera-to-global matrix row-major, no timestamp (a
   KITTI file lines up with another only frame by frame: compare it with the ground truth of the same frames).
 
-Poses are the server's corrected ones in the global frame (the first robot's map), rigid (the scale of each
+Poses are the server's corrected ones in the global frame (the anchor's map: ``fleet.service``), rigid (the scale of each
 keyframe's similarity is not part of a trajectory file). ``trajectory_rows`` joins the server's poses with the
 keyframes' timestamps; ``write_trajectory`` writes either format; ``export_robot`` does both for one robot of a
 running ``FleetService``; ``GET /robots/{name}/trajectory?format=tum|kitti`` (``fleet.map_page``) serves them.

@@ -6,8 +6,9 @@ Conventions (``fleet.sim3.Sim3``, ``x -> s R x + t``):
 - A robot's **local pose** of a keyframe is its camera-to-map transform in the robot's own map (KITTI's 3x4 or a 4x4;
   a rigid pose, or a similarity whose scale is kept).
 - A **node** holds the keyframe's camera-to-global similarity: ``node = S_robot o local_pose`` where ``S_robot`` maps
-  the robot's map into the global frame (``s`` is the global units per local unit). The first robot added is the
-  anchor: its first keyframe carries a tight prior at its local pose, so its map frame is the global frame.
+  the robot's map into the global frame (``s`` is the global units per local unit). The anchor (the first
+  robot added, unless ``set_anchor`` names one: the fleet service stores its choice) has its first keyframe carry a
+  tight prior at its local pose, so its map frame is the global frame.
 - An **edge** ``a -> b`` measures ``node_a^-1 o node_b``: keyframe b's camera frame expressed in keyframe a's (the
   similarity that maps b-camera points to a-camera points, as ``ransac_sim3`` estimates it from 3D-3D matches).
   Odometry edges are derived from consecutive local poses (``local_a^-1 o local_b``, scale 1 for rigid poses).
@@ -140,7 +141,7 @@ class PoseGraph:
     def __init__(self, conf: dict[str, Any] | None = None) -> None:
         self.conf = configure(self, conf, "graph")
         self._consistency = PairwiseConsistency(self.conf["consistency"], self.conf["odometry"])
-        self.anchor: str | None = None  #: the first robot added; its map frame is the global frame
+        self.anchor: str | None = None  #: the robot whose map is the global frame: the first added, or ``set_anchor``
         self._local: dict[Node, Sim3] = {}
         self._last: dict[str, Node] = {}
         self._edges: list[Edge] = []
@@ -177,7 +178,7 @@ class PoseGraph:
         if prev is not None and node.keyframe <= prev.keyframe:
             raise ConfigError(f"robot {robot}: keyframe {keyframe} is not after its last one ({prev.keyframe})")
         self._local[node] = local
-        self.anchor = self.anchor or robot
+        self.anchor = self.anchor or robot  # the first robot added, unless set (``set_anchor``)
         if prev is not None:
             self._edges.append(Edge("odometry", prev, node, self._local[prev].to(local)))
         self._last[robot] = node
@@ -216,6 +217,12 @@ class PoseGraph:
         other._last = {r: n for r, n in self._last.items() if r not in robots}
         other._edges = [e for e in self._edges if e.a.robot not in robots and e.b.robot not in robots]
         return other
+
+    def set_anchor(self, robot: str | None) -> None:
+        """Makes ``robot``'s map frame the global frame (None: none yet; nothing is then merged); the initial guesses
+        of the transforms (expressed in the old frame) are forgotten when it changes."""
+        if robot != self.anchor:
+            self.anchor, self._guess = robot, {}
 
     def set_transform(self, robot: str, transform: Sim3) -> None:
         """An initial guess of ``robot``'s map-to-global transform (otherwise derived from the overlap edges)."""

@@ -11,6 +11,9 @@
   address took every file descriptor of a server, whose good robots then waited 10 s for an answer).
 - ``AuthThrottle``: failed authentications per client address in a sliding window; past the limit, requests that
   would need a token hash get 429 *before* the hash is computed.
+- ``HashBudget``: token hashes (PBKDF2, ~0.1 s of CPU each) for the whole server and per robot name, token
+  buckets: past either, 429 before the hash (500 addresses x 20 bad tokens bought 1832 hashes in 93 s from the
+  per-address limit alone; robots whose token was verified before need no hash and are never slowed).
 - ``InFlight``: requests at once per key (a robot's keyframes): past the limit, 429 before the body is decoded (a
   robot's concurrent 3 MB PNGs of 16-bit RGBA zeros each held 380 MB while they waited for its lock: 2 GB for 8).
 """
@@ -26,7 +29,7 @@ from typing import Any, Awaitable, Callable
 
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
-__all__ = ["BodyLimit", "TimedH11Protocol", "AuthThrottle", "InFlight"]
+__all__ = ["BodyLimit", "TimedH11Protocol", "AuthThrottle", "HashBudget", "InFlight"]
 
 Scope = dict[str, Any]
 Message = dict[str, Any]
@@ -198,6 +201,41 @@ class AuthThrottle:
             now = time.monotonic()
             self._recent(client, now).append(now)
             self._failures.move_to_end(client)
+
+
+class HashBudget:
+    """Token buckets of hashes: one for the server (``rate`` a second, ``burst`` at once) and one per robot name
+    (``name_rate``, ``name_burst``; at most ``max_names`` names kept, the least recently used forgotten: a forgotten
+    name starts full, so a flood of names is still bounded by the server's bucket); thread-safe."""
+
+    def __init__(self, rate: float, burst: int, name_rate: float, name_burst: int, max_names: int = 10_000) -> None:
+        self.rate, self.burst, self.name_rate, self.name_burst = float(rate), int(burst), float(name_rate), \
+            int(name_burst)
+        self.max_names = int(max_names)
+        self._all = (float(burst), time.monotonic())
+        self._names: collections.OrderedDict[str, tuple[float, float]] = collections.OrderedDict()
+        self._lock = threading.Lock()
+
+    @staticmethod
+    def _refill(bucket: tuple[float, float], rate: float, burst: int, now: float) -> float:
+        level, then = bucket
+        return min(float(burst), level + (now - then) * rate)
+
+    def take(self, name: str) -> bool:
+        """Takes one hash of the server's and of ``name``'s buckets: False (nothing taken) when either is empty."""
+        with self._lock:
+            now = time.monotonic()
+            level = self._refill(self._all, self.rate, self.burst, now)
+            own = self._refill(self._names.get(name, (float(self.name_burst), now)), self.name_rate, self.name_burst,
+                               now)
+            if level < 1.0 or own < 1.0:
+                return False
+            self._all = (level - 1.0, now)
+            self._names[name] = (own - 1.0, now)
+            self._names.move_to_end(name)
+            while len(self._names) > self.max_names:
+                self._names.popitem(last=False)
+            return True
 
 
 class InFlight:

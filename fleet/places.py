@@ -102,6 +102,10 @@ class FleetPlaces:
         """
         raise NotImplementedError
 
+    def remove(self, robot: str) -> None:
+        """Forgets every entry of ``robot`` (an admin's reset); its keyframe ids may be held again."""
+        raise NotImplementedError
+
     def __contains__(self, key: object) -> bool:
         """True when ``(robot, keyframe)`` is held."""
         raise NotImplementedError
@@ -179,6 +183,7 @@ class LocalPlaces(FleetPlaces):
         self.keys: list[tuple[str, int]] = []  # place id -> (robot, keyframe)
         self._known: set[tuple[str, int]] = set()
         self._own: Counter[str] = Counter()  # entries per robot
+        self._removed = 0  # entries of removed robots still in the index (``remove``)
 
     def __len__(self) -> int:
         return len(self.keys)
@@ -197,15 +202,26 @@ class LocalPlaces(FleetPlaces):
                 self._known.add(key)
                 self._own[robot] += 1
 
+    def remove(self, robot: str) -> None:
+        """The robot's entries stay in the index (it cannot delete) but are no longer keys: never returned, counted
+        among the removed ones that a search asks for beyond its ``k``."""
+        for pid, key in enumerate(self.keys):
+            if key[0] == robot:
+                self._known.discard(key)
+                self.keys[pid] = ("", -1)
+                self._removed += 1
+        self._own.pop(robot, None)
+
     def search(self, robot: str, entry: np.ndarray, k: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         """The ``k`` entries most similar to ``entry`` of the other robots (the memory's top ``k`` + the robot's own
-        count, its own then left out: exact for an exact index), grouped by robot, best first."""
+        count + the removed ones, those then left out: exact for an exact index), grouped by robot, best first."""
         check_robot_name(robot)
         query = len(self.keys)  # the id the next entry would take: registered by the search, then forgotten
-        scores, ids = self.places.search(query, entry, None, max(1, min(int(k) + self._own[robot], len(self.keys))))
+        wanted = int(k) + self._own[robot] + self._removed
+        scores, ids = self.places.search(query, entry, None, max(1, min(wanted, len(self.keys))))
         self.places.undo(query)
         hits = [(*self.keys[pid], score) for score, pid in zip(scores.tolist(), ids.tolist())
-                if pid >= 0 and self.keys[pid][0] != robot]
+                if pid >= 0 and self.keys[pid][0] not in (robot, "")]
         return _grouped(hits[:max(int(k), 0)])
 
 
@@ -297,6 +313,10 @@ class MilvusPlaces(FleetPlaces):
         found = sorted(((h["entity"]["robot"], int(h["entity"]["keyframe"]), float(h["distance"])) for h in hits),
                        key=lambda h: (-h[2], h[0], h[1]))
         return _grouped(found[:max(int(k), 0)])
+
+    def remove(self, robot: str) -> None:
+        """Deletes the robot's entries from the collection."""
+        self.client.delete(self.collection, filter=f'robot == "{check_robot_name(robot)}"')
 
     def __contains__(self, key: object) -> bool:
         if not (isinstance(key, tuple) and len(key) == 2 and isinstance(key[1], (int, np.integer))):

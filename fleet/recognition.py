@@ -32,6 +32,7 @@ from __future__ import annotations
 import functools
 import json
 import logging
+import os
 import threading
 import time
 from collections import OrderedDict
@@ -217,9 +218,32 @@ class FleetRecognizer:
         self._edges: dict[tuple[str, str], int] = {}
         self._recorded: set[frozenset[str]] = set()  # robot pairs whose overlap was recorded (this run)
         self._lock = threading.RLock()  # what robots share: robots, places, tracker, checks, edges, points
-        for folder in sorted(self.root.glob("*/camera.json")):
-            if owns is None or owns(folder.parent.name):
-                self._open(folder.parent.name, None)
+        #: robots whose files cannot be read (name -> why, one line): not opened, the others are (``forget`` resets)
+        self.quarantined: dict[str, str] = {}
+        self._owns = owns
+        for folder in sorted(self.root.iterdir()) if self.root.is_dir() else []:
+            if owns is None or owns(folder.name):
+                self._open_at_start(folder)
+
+    def _open_at_start(self, folder: Path) -> None:
+        """Opens a robot's folder found at start-up; one that cannot be read is quarantined (one log line), so that
+        one robot's damaged files never stop the others."""
+        name = folder.name
+        if name.startswith("."):  # .reset/: folders moved aside by ``forget``
+            return
+        try:
+            if not folder.is_dir():
+                raise ConfigError(f"{folder} is not a folder")
+            if (folder / "camera.json").exists():
+                self._open(name, None)
+        except Exception as err:  # noqa: BLE001 -- any damage (JSON, HDF5, OS): this robot only
+            self.robots.pop(name, None)
+            # the first clause of the first line, paths from the state folder on (an answer to a robot holds it)
+            why = (str(err).strip().splitlines() or [type(err).__name__])[0].split("; ")[0][:300]
+            why = why.replace(f"{self.root.parent}{os.sep}", "")
+            self.quarantined[name] = f"{type(err).__name__}: {why}"
+            log.error("robot %s quarantined: its files cannot be read (%s); its requests are refused until an admin "
+                      "resets or drops it", name, self.quarantined[name])
 
     @classmethod
     def resolve(cls, conf: dict[str, Any] | None) -> dict[str, Any]:
@@ -245,7 +269,7 @@ class FleetRecognizer:
         camera = folder / "camera.json"
         if camera.exists():
             stored = json.loads(camera.read_text())
-            if stored.get("format_version") != CAMERA_FORMAT_VERSION:
+            if not isinstance(stored, dict) or stored.get("format_version") != CAMERA_FORMAT_VERSION:
                 raise ConfigError(f"{camera}: format_version {stored.get('format_version')} is not "
                                   f"{CAMERA_FORMAT_VERSION}")
             K = None if stored["K"] is None else np.asarray(stored["K"], np.float64)
@@ -493,6 +517,31 @@ class FleetRecognizer:
         log.info("overlap accepted: robot %s keyframe %d ~ robot %s keyframe %d (scale %.3f)", edge.robot_b,
                  edge.keyframe_b, edge.robot_a, edge.keyframe_a, T.s)
         return OverlapRecord(edge.robot_a, edge.robot_b, T, self.conf["overlap"]["required"], time.time())
+
+    def forget(self, robot: str) -> None:
+        """Starts the robot's recognition again from nothing (an admin's reset): its detector is closed, its folder
+        moved aside to ``robots/.reset/NAME-TIME`` (kept for inspection), its entries taken out of the place memory
+        and its pairs' overlap state forgotten; its next keyframe opens a new database. A quarantined robot is
+        released."""
+        with self._lock:
+            r = self.robots.pop(robot, None)
+            if r is not None and not isinstance(r.detector, _Adopted):
+                with r.lock:
+                    try:
+                        r.detector.close()
+                    except Exception as err:  # noqa: BLE001 -- a damaged database: moved aside all the same
+                        log.warning("robot %s: its database did not close cleanly (%s)", robot, err)
+            folder = self.root / robot
+            if (self._owns is None or self._owns(robot)) and (folder.exists() or folder.is_symlink()):
+                aside = self.root / ".reset" / f"{robot}-{time.strftime('%Y%m%dT%H%M%S')}-{time.time_ns() % 10**9}"
+                aside.parent.mkdir(parents=True, exist_ok=True)
+                folder.rename(aside)
+            self.places.remove(robot)
+            self.tracker.rules = {k: v for k, v in self.tracker.rules.items() if robot not in k}
+            self._checks = {k: v for k, v in self._checks.items() if robot not in k}
+            self._edges = {k: v for k, v in self._edges.items() if robot not in k}
+            self._recorded = {p for p in self._recorded if robot not in p}
+            self.quarantined.pop(robot, None)
 
     def close(self) -> None:
         """Flushes and closes every robot's database and the place memory."""

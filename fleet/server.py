@@ -11,10 +11,18 @@ TIFF, BMP or WebP bytes, their size checked from the header before decoding), a 
                                                      "intrinsics"?, "depth"?} -> {"robot", "keyframe", "stored"}
     GET  /robots/{name}/loops          robot name or admin   loop and overlap edges touching the robot
     GET  /robots/{name}/poses?wait=    robot name or admin   corrected keyframe poses in the global frame
-    GET  /overlaps                     any robot or admin    accepted overlaps
-    GET  /transforms?wait=             any robot or admin    each merged robot's map-to-global similarity
+    GET  /overlaps                     robot or admin        accepted overlaps (a robot: those involving it)
+    GET  /transforms?wait=             robot or admin        merged robots' map-to-global similarities (robot: its own)
     GET  /robots/{name}/trajectory     robot name or admin   ?format=tum|kitti: corrected trajectory (fleet.export)
     GET  /map                          none (holds no data)  live map page polling the routes above (fleet.map_page)
+    POST /robots/{name}/reset          admin                 {"keep_keyframes"}: recognition restarted, keyframes kept
+                                                             or dropped (releases a quarantined robot)
+    POST /robots/{name}/retire         admin                 {"keep_keyframes"}: token revoked, keyframes kept/dropped
+    POST /robots/{name}/token          admin                 -> 201 {"name", "token"}: a new token, the old revoked
+    PUT  /anchor                       admin                 {"name"}: that robot's map becomes the global frame
+
+The global frame is the map of the anchor: the robot of the fleet's first acknowledged keyframe, stored, or the one
+the admin names; robots that join later or speak after a silence are merged into it, never the reverse.
 
 Each keyframe runs through place recognition (``fleet.recognition``) before it is acknowledged; the pose graph is
 re-solved in the background, and reads return the latest solution (``wait=true``: one that includes every keyframe
@@ -25,8 +33,10 @@ unknown robot or another robot's (alike, so names cannot be probed), 408 a body 
 retry of an acknowledged keyframe with other content, 413 a body (bytes or JSON values) or an image too large, 422 a
 body that does not fit the schema (``SchemaProblem``: one line, the first errors; unknown fields are one error), 429
 too many failed authentications from one address (refused before any hash), a robot's keyframes sent at once
-beyond ``limits.keyframes_in_flight`` (refused before decoding) or request bodies in memory beyond
-``limits.max_buffered_mb`` (``fleet.limits``).
+beyond ``limits.keyframes_in_flight`` (refused before decoding), token hashes beyond the server's or the name's
+budget (``limits.token_hashes_per_s``, ``robot_hashes_per_s``: before the hash) or request bodies in memory beyond
+``limits.max_buffered_mb`` (``fleet.limits``), 503 a quarantined robot (its files could not be read at start-up:
+``fleet.recognition``; the others are served).
 """
 
 from __future__ import annotations
@@ -49,16 +59,16 @@ from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, model_valida
 from core.checks import MAX_FRAME_ID, check_intrinsics, check_rigid_pose, decode_depth
 from core.conf import ConfigError
 from core.errors import ConflictError, ImageError, LCDError
-from core.images import decode_image, image_header
+from core.images import decode_image, image_header, too_large
 from retrieval.descriptors import GlobalDescriptor
 
 from .map_page import map_router
-from .limits import AuthThrottle, BodyLimit, InFlight
+from .limits import AuthThrottle, BodyLimit, HashBudget, InFlight
 from .service import ROBOT_NAME, FleetService
 from .stores import open_store
 from .workers import create_recognizer
 
-__all__ = ["create_app", "KeyframeIn", "RobotIn", "Problem", "SchemaProblem"]
+__all__ = ["create_app", "KeyframeIn", "RobotIn", "ResetIn", "Problem", "SchemaProblem"]
 
 log = logging.getLogger(__name__)
 
@@ -94,10 +104,10 @@ class RobotIn(_Strict):
     name: str = Field(pattern=f"^{ROBOT_NAME}$")  #: 1 to 64 letters, digits, _ and -
 
 
-#: a matrix row, its length bounded before its items are validated (one error, not one per item); a short row is
-#: refused by ``core.checks`` with the matrix's shape
-Row3 = Annotated[list[float], Field(max_length=3)]
-Row4 = Annotated[list[float], Field(max_length=4)]
+#: a matrix row of exactly its length, bounded before its items are validated (one error, not one per item): the
+#: schema says what the server enforces (a 3x0 pose was schema-valid, then 400)
+Row3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+Row4 = Annotated[list[float], Field(min_length=4, max_length=4)]
 
 
 class KeyframeIn(_Strict):
@@ -107,6 +117,10 @@ class KeyframeIn(_Strict):
     image: str = Field(max_length=MAX_B64)  #: base64 PNG, JPEG, TIFF, BMP or WebP bytes
     intrinsics: list[Row3] | None = Field(default=None, max_length=3)  #: 3x3 camera matrix
     depth: str | None = Field(default=None, max_length=MAX_B64)  #: base64 .npy of a (H, W) depth map, the image's size
+
+
+class ResetIn(_Strict):
+    keep_keyframes: bool = True  #: keep the robot's stored keyframes (poses, edges) in the map; false: drop them
 
 
 class Problem(BaseModel):
@@ -130,9 +144,12 @@ _PROBLEMS: dict[int | str, dict[str, Any]] = {
     408: {"model": Problem, "description": "the body came too slowly"},
     409: {"model": Problem, "description": "a taken name, or a retry with other content"},
     413: {"model": Problem, "description": "a body or an image too large"},
+    503: {"model": Problem, "description": "the robot is quarantined: its files could not be read (an admin resets "
+                                            "or drops it)"},
     422: {"model": SchemaProblem, "description": "does not fit the schema"},
-    429: {"model": Problem, "description": "too many failed authentications from this address, keyframes of this "
-                                            "robot at once, or request bodies from this address in memory"},
+    429: {"model": Problem, "description": "too many failed authentications from this address, token checks now "
+                                            "(the server's or this name's budget), keyframes of this robot at once, "
+                                            "or request bodies from this address in memory"},
 }
 
 
@@ -155,7 +172,7 @@ def _decode_keyframe(body: KeyframeIn, max_pixels: int) -> tuple[np.ndarray, np.
     raw = _decode_b64(body.image, "image")
     header = image_header(raw)
     if header is not None and header[1] * header[2] > max_pixels:
-        raise HTTPException(413, f"image has {header[1]}x{header[2]} pixels; at most {max_pixels} are accepted")
+        raise HTTPException(413, too_large(header, max_pixels))
     try:
         image = decode_image(raw, "image", max_pixels, known_header=True)
         depth = None if body.depth is None else decode_depth(_decode_b64(body.depth, "depth"), image.shape[:2])
@@ -202,9 +219,12 @@ def create_app(state_dir: str | Path, admin_token: str, conf: dict[str, Any] | N
                        max_buffered=int(limits["max_buffered_mb"] * 2**20))
     app.add_exception_handler(RequestValidationError, _one_line_422)
     throttle = AuthThrottle(limits["auth_failures"], limits["auth_window_s"])
-    caller, owner_or_admin = _auth(service, admin_token, throttle)
+    budget = HashBudget(limits["token_hashes_per_s"], limits["token_hash_burst"], limits["robot_hashes_per_s"],
+                        limits["robot_hash_burst"])
+    caller, owner_or_admin = _auth(service, admin_token, throttle, budget)
     _write_routes(app, service, caller, owner_or_admin)
     _read_routes(app, service, caller, owner_or_admin)
+    _admin_routes(app, service, caller)
     app.include_router(map_router(service, caller, owner_or_admin, _PROBLEMS))  # GET /map, GET /robots/{name}/trajectory
     return app
 
@@ -219,10 +239,11 @@ async def _one_line_422(request: Request, exc: RequestValidationError) -> JSONRe
                                                   "errors": jsonable_encoder(errors)})
 
 
-def _auth(service: FleetService, admin_token: str,
-          throttle: AuthThrottle) -> tuple[Callable[..., str], Callable[[str, str], None]]:
-    """The ``caller`` dependency (token -> robot name or ``ADMIN``; 401, 429 after too many failures from the address,
-    before any hash) and the ``owner_or_admin`` check (404 alike for a missing robot and another robot's)."""
+def _auth(service: FleetService, admin_token: str, throttle: AuthThrottle,
+          budget: HashBudget) -> tuple[Callable[..., str], Callable[[str, str], None]]:
+    """The ``caller`` dependency (token -> robot name or ``ADMIN``; 401; 429 before any hash after too many failures
+    from the address, or past the server's or the name's hash budget; a token verified before needs no hash) and the
+    ``owner_or_admin`` check (404 alike for a missing robot and another robot's; 503 a quarantined robot)."""
 
     def caller(request: Request, authorization: str = Header(default="", max_length=MAX_TOKEN)) -> str:
         token = authorization.removeprefix("Bearer ").strip()
@@ -234,6 +255,8 @@ def _auth(service: FleetService, admin_token: str,
         client = request.client.host if request.client else "?"
         if throttle.blocked(client):
             raise HTTPException(429, "too many failed authentications from this address; wait and retry")
+        if name and not budget.take(name[:64]):
+            raise HTTPException(429, "too many token checks at the moment; retry in a second")
         if not name or not service.authenticate(name, token):
             throttle.failed(client)
             raise HTTPException(401, "missing or wrong token")
@@ -242,6 +265,9 @@ def _auth(service: FleetService, admin_token: str,
     def owner_or_admin(name: str, who: str) -> None:
         if who not in (name, ADMIN) or not service.has_robot(name):
             raise HTTPException(404, f"no robot {name!r}")
+        if name in service.quarantined:
+            raise HTTPException(503, f"robot {name!r} is quarantined: {service.quarantined[name]}; an admin resets "
+                                     "it (POST /robots/{name}/reset)")
 
     return caller, owner_or_admin
 
@@ -299,10 +325,59 @@ def _read_routes(app: FastAPI, service: FleetService, caller: Callable[..., str]
 
     @app.get("/overlaps", responses=_PROBLEMS)
     def overlaps(who: str = Depends(caller)) -> list[dict[str, Any]]:
+        """Accepted overlaps: every one for the admin token, those involving the robot for a robot's."""
         return [{"robot_a": o.robot_a, "robot_b": o.robot_b, "transform": o.transform.matrix().tolist(),
-                 "matches": o.matches, "accepted": o.accepted} for o in service.store.overlaps()]
+                 "matches": o.matches, "accepted": o.accepted} for o in service.store.overlaps()
+                if who in (ADMIN, o.robot_a, o.robot_b)]
 
     @app.get("/transforms", responses=_PROBLEMS)
     def transforms(wait: bool = False, who: str = Depends(caller)) -> dict[str, list[list[float]]]:
+        """Each merged robot's map-to-global transform for the admin token; a robot's own for a robot's."""
         service.optimize(wait)
-        return {robot: T.matrix().tolist() for robot, T in service.store.transforms().items()}
+        return {robot: T.matrix().tolist() for robot, T in service.store.transforms().items()
+                if who in (ADMIN, robot)}
+
+
+def _admin_routes(app: FastAPI, service: FleetService, caller: Callable[..., str]) -> None:
+    """What a fleet operator does with the admin token (each audited in the log by ``FleetService``): reset or retire
+    a robot, rotate its token, name the anchor."""
+
+    def admin_on(name: str, who: str) -> None:
+        if who != ADMIN:
+            raise HTTPException(403, "only the admin token may do this")
+        if not service.has_robot(name):
+            raise HTTPException(404, f"no robot {name!r}")
+
+    def run(action: Callable[[], Any]) -> Any:
+        try:
+            return action()
+        except ConflictError as err:
+            raise HTTPException(409, str(err)) from None
+        except LCDError as err:
+            raise HTTPException(400, str(err)) from None
+
+    @app.post("/robots/{name}/reset", responses=_PROBLEMS)
+    def reset(name: str, body: ResetIn, who: str = Depends(caller)) -> dict[str, Any]:
+        """Restarts the robot's recognition from nothing (its folder moved aside; a quarantined robot is released);
+        its stored keyframes kept or dropped."""
+        admin_on(name, who)
+        return {"robot": name, "dropped": run(lambda: service.reset(name, body.keep_keyframes))}
+
+    @app.post("/robots/{name}/retire", responses=_PROBLEMS)
+    def retire(name: str, body: ResetIn, who: str = Depends(caller)) -> dict[str, Any]:
+        """Revokes the robot's token (its name stays taken); its stored keyframes kept or dropped."""
+        admin_on(name, who)
+        return {"robot": name, "dropped": run(lambda: service.retire(name, body.keep_keyframes))}
+
+    @app.post("/robots/{name}/token", status_code=201, responses=_PROBLEMS)
+    def rotate(name: str, who: str = Depends(caller)) -> dict[str, str]:
+        """A new token for the robot (the old one revoked at once; a retired robot is active again)."""
+        admin_on(name, who)
+        return {"name": name, "token": run(lambda: service.rotate_token(name))}
+
+    @app.put("/anchor", responses=_PROBLEMS)
+    def anchor(body: RobotIn, who: str = Depends(caller)) -> dict[str, str]:
+        """Makes the robot's map frame the global frame: every map is re-expressed in it."""
+        admin_on(body.name, who)
+        run(lambda: service.set_anchor(body.name))
+        return {"anchor": body.name}

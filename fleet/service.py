@@ -57,6 +57,12 @@ class FleetService:
             #                                      streaming from one machine or NAT holds one or two a robot)
             "auth_failures": 20,  # failed authentications an address may make per window; then HTTP 429
             "auth_window_s": 60.0,  # the window of auth_failures, seconds
+            "token_hashes_per_s": 5.0,  # token hashes (PBKDF2, ~0.1 s of CPU each) the server computes a second on
+            #                             average, for every address and name together; past it HTTP 429 (a robot
+            #                             whose token was verified before needs none)
+            "token_hash_burst": 20,  # ... and at once
+            "robot_hashes_per_s": 0.5,  # token hashes a second for one robot name (a guessed token of it included)
+            "robot_hash_burst": 5,  # ... and at once
         },
     }
     conf_rules: dict[str, Any] = {"graph": PoseGraph.conf_rules, "optimizer": BackgroundOptimizer.conf_rules,
@@ -66,7 +72,11 @@ class FleetService:
                                              "body_timeout_s": Float(0, lo_open=True),
                                              "header_timeout_s": Float(0, lo_open=True),
                                              "max_connections_per_address": Int(1), "auth_failures": Int(1),
-                                             "auth_window_s": Float(0, lo_open=True)}}
+                                             "auth_window_s": Float(0, lo_open=True),
+                                             "token_hashes_per_s": Float(0, lo_open=True),
+                                             "token_hash_burst": Int(1),
+                                             "robot_hashes_per_s": Float(0, lo_open=True),
+                                             "robot_hash_burst": Int(1)}}
 
     def __init__(self, store: FleetStore, conf: dict[str, Any] | None = None,
                  recognizer: FleetRecognizer | None = None) -> None:
@@ -76,8 +86,12 @@ class FleetService:
         self._lock = threading.Lock()  # the graph
         self._submit = threading.Lock()  # one keyframe at a time through recognition and the store
         self._robot_locks: dict[str, threading.Lock] = {}  # per robot, when the recognizer runs robots in parallel
-        self._verified: set[bytes] = set()  # sha256(name, token) of tokens already checked (PBKDF2 is slow)
+        self._verified: dict[bytes, str] = {}  # sha256(name, token) -> name of tokens already checked (PBKDF2 is slow)
         self._graph = PoseGraph(self.conf["graph"])
+        self.anchor: str | None = None
+        self._anchor_merged: str | None = None  # the anchor, once it has an overlap edge (``_settle_anchor``)
+        #: robots whose files could not be read at start-up (or since): name -> why; their requests are refused (503)
+        self.quarantined: dict[str, str] = dict(getattr(recognizer, "quarantined", {}))
         self._rebuild()
         if recognizer is not None:
             recognizer.resume(self.store.overlaps(), self.store.edges(kind="overlap"))
@@ -115,16 +129,45 @@ class FleetService:
                 skipped += 1
                 log.warning("stored %s edge %s %d -> %s %d skipped: %s", e.kind, e.robot_a, e.keyframe_a, e.robot_b,
                             e.keyframe_b, err)
-        self._set_anchor()
+        self._set_anchor(None)
+        self._settle_anchor()
         log.info("fleet state: %d robots, %d keyframes (%d stored values skipped)", len(self.store.robots()),
                  len(self._graph.nodes), skipped)
 
-    def _set_anchor(self) -> None:
-        """The global frame is the map of the first registered robot that has keyframes (whoever sent first)."""
-        present = {n.robot for n in self._graph.nodes} if self._graph.anchor is not None else set()
-        first = next((r for r in self.store.robots() if r in present), None)
-        if first is not None:
-            self._graph.anchor = first
+    def _set_anchor(self, robot: str | None) -> None:
+        """The global frame is the stored anchor's map: the robot of the first keyframe acknowledged (``robot``;
+        another front end's choice when it stored one first) until a map is merged (``_settle_anchor``), or the
+        admin's (``set_anchor``). A state of an older version without a stored anchor keeps its old one: the first
+        registered robot with keyframes. Call under the graph lock (or before the service runs)."""
+        anchor = self.store.anchor()
+        if anchor is None:
+            present = {n.robot for n in self._graph.nodes}
+            candidate = robot or next((r for r in self.store.robots() if r in present), None)
+            anchor = None if candidate is None else self.store.set_anchor(candidate)
+        self.anchor = anchor  #: the robot whose map frame is the global frame (None: no keyframe yet)
+        self._graph.set_anchor(anchor)
+
+    def _settle_anchor(self) -> None:
+        """The first robot whose map is merged is the anchor for good: while the anchor has no overlap edge (it is
+        alone: no other map is expressed in its frame), the first overlap edge between two other robots makes the one
+        of them registered first the anchor (a lone robot that spoke first, a hostile one included, does not become
+        the fleet's frame). Once the anchor has an overlap edge, nothing but the admin changes it. Call under the
+        graph lock."""
+        if self.anchor is None or self._anchor_merged == self.anchor:
+            return
+        edges = [e for e in self._graph.edges if e.kind == "overlap"]
+        if any(self.anchor in (e.a.robot, e.b.robot) for e in edges):
+            self._anchor_merged = self.anchor  # for good: no scan of the edges again
+            return
+        if not edges:
+            return
+        pair = {edges[0].a.robot, edges[0].b.robot}
+        choice = next((r for r in self.store.robots() if r in pair), None)
+        if choice is not None:
+            log.info("the first merged maps are robots %s: robot %s is the anchor (robot %s was alone)",
+                     " and ".join(sorted(pair)), choice, self.anchor)
+            self.anchor = self.store.set_anchor(choice, replace=True)
+            self._graph.set_anchor(self.anchor)
 
     def register(self, name: str) -> str:
         """Registers a robot; returns its new token ``NAME.SECRET`` (shown once, stored hashed).
@@ -151,9 +194,14 @@ class FleetService:
         if key in self._verified:
             return True
         if self.store.verify_token(name, token):
-            self._verified.add(key)
+            self._verified[key] = name
             return True
         return False
+
+    def _forget_tokens(self, robot: str) -> None:
+        """Forgets the robot's verified tokens (rotated or retired: the old one must be hashed again, and fail)."""
+        for key in [k for k, name in list(self._verified.items()) if name == robot]:
+            self._verified.pop(key, None)
 
     def submit_keyframe(self, robot: str, keyframe: int, timestamp: float, pose: np.ndarray,
                         image: np.ndarray | None = None, K: np.ndarray | None = None,
@@ -204,10 +252,14 @@ class FleetService:
             with self._lock:
                 self._graph.add_keyframe(robot, ack.keyframe, ack.pose)
                 self._catch_up(found.edges)
-                self._set_anchor()
+                if self.anchor is None:  # the fleet's first keyframe: its robot's map is the global frame, for good
+                    self._set_anchor(robot)
+                self._graph.set_anchor(self.anchor)  # not the graph's own choice (its first robot added)
                 for e in found.edges:
                     self._graph.add_edge(e.kind, Node(e.robot_a, e.keyframe_a), Node(e.robot_b, e.keyframe_b),
                                          e.relative)
+                if any(e.kind == "overlap" for e in found.edges):
+                    self._settle_anchor()
             self.optimizer.changed()
             return True
 
@@ -261,6 +313,8 @@ class FleetService:
             a, b = Node(edge.robot_a, edge.keyframe_a), Node(edge.robot_b, edge.keyframe_b)
             self._graph.add_edge(edge.kind, a, b, edge.relative)  # checks kind and nodes before the store
             self.store.add_edges([edge])
+            if edge.kind == "overlap":
+                self._settle_anchor()
         self.optimizer.changed()
 
     def optimize(self, wait: bool = True, timeout: float = 30.0) -> GraphResult:
@@ -273,6 +327,78 @@ class FleetService:
         result = self.optimize(wait)
         return [{"keyframe": n.keyframe, "pose": result.pose_matrix(n).tolist(), "scale": T.s}
                 for n, T in sorted(result.poses.items()) if n.robot == robot]
+
+    # ------------------------------------------------------------------------------------------- admin actions
+    def set_anchor(self, robot: str) -> None:
+        """Makes ``robot``'s map frame the global frame (an admin's action): every map is re-expressed in it by the
+        next solution.
+
+        Raises:
+            ConfigError: an unknown robot, or one without keyframes (its frame would hold nothing).
+        """
+        if self.store.last_keyframe(robot) is None:
+            raise ConfigError(f"robot {robot!r} has no keyframes: its map cannot be the global frame")
+        with self._lock:
+            self.anchor = self.store.set_anchor(robot, replace=True)
+            self._graph.set_anchor(self.anchor)
+            self._anchor_merged = self.anchor  # the admin's choice: not moved by a first merge of others
+        log.warning("admin: the anchor (global frame) is now robot %s; every map is re-expressed in its frame", robot)
+        self.optimizer.changed()
+
+    def reset(self, robot: str, keep_keyframes: bool = True) -> int:
+        """Starts the robot again (an admin's action; also what releases a quarantined one): its recognition from
+        nothing (``FleetRecognizer.forget``: its folder moved aside), and, unless ``keep_keyframes``, its stored
+        keyframes, their edges, overlaps and transform dropped (its next keyframe id and timestamp may then be any).
+
+        Returns:
+            Keyframes dropped.
+
+        Raises:
+            ConfigError: an unknown robot. ConflictError: dropping the anchor's keyframes (name another first).
+        """
+        if not self.has_robot(robot):
+            raise ConfigError(f"unknown robot {robot!r}")
+        if not keep_keyframes and robot == self.anchor:
+            raise ConflictError(f"robot {robot!r} is the anchor (the global frame); name another anchor first")
+        dropped = 0
+        with self._submit_lock(robot):
+            if self.recognizer is not None:
+                self.recognizer.forget(robot)
+            if not keep_keyframes:
+                dropped = self.store.drop_keyframes(robot)
+                with self._lock:
+                    self._graph = self._graph.without({robot})
+            self.quarantined.pop(robot, None)
+        log.warning("admin: robot %s reset (recognition restarted; %s)", robot,
+                    "stored keyframes kept" if keep_keyframes else f"{dropped} stored keyframes dropped")
+        self.optimizer.changed()
+        return dropped
+
+    def retire(self, robot: str, keep_keyframes: bool = True) -> int:
+        """Retires a robot (an admin's action): its token stops working at once, its name stays taken; its keyframes
+        stay in the map unless ``keep_keyframes`` is False (then dropped as ``reset`` does). ``rotate_token`` brings
+        it back.
+
+        Returns:
+            Keyframes dropped.
+        """
+        if not self.has_robot(robot):
+            raise ConfigError(f"unknown robot {robot!r}")
+        dropped = 0 if keep_keyframes else self.reset(robot, keep_keyframes=False)
+        self.store.retire(robot)
+        self._forget_tokens(robot)
+        log.warning("admin: robot %s retired (its token revoked; %s)", robot,
+                    "stored keyframes kept" if keep_keyframes else f"{dropped} stored keyframes dropped")
+        return dropped
+
+    def rotate_token(self, robot: str) -> str:
+        """A new token for the robot (an admin's action; the old one stops working at once; a retired robot is
+        active again); returns it (shown once, stored hashed)."""
+        token = f"{robot}.{secrets.token_urlsafe(32)}"
+        self.store.set_token(robot, token)
+        self._forget_tokens(robot)
+        log.warning("admin: robot %s has a new token (the old one is revoked)", robot)
+        return token
 
     def close(self) -> None:
         """Stops the optimizer, closes the robots' databases and the store."""

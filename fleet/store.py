@@ -12,7 +12,8 @@ is checked with ``hmac.compare_digest``. Similarities are stored as their 4x4 ma
 
 Layout (``format_version`` 1, in table ``meta``)::
 
-    meta(key, value)                    format_version, created
+    meta(key, value)                    format_version, created, anchor (the global frame's robot),
+                                        retired:NAME (when robot NAME was retired)
     robots(name, salt, token_hash, iterations, created)
     keyframes(robot, keyframe, timestamp, pose)                      pose: 16 numbers, row-major 4x4
     edges(id, kind, robot_a, keyframe_a, robot_b, keyframe_b, sim3, score)
@@ -29,6 +30,7 @@ import logging
 import os
 import re
 import sqlite3
+import struct
 import threading
 import time
 from abc import ABC, abstractmethod
@@ -46,7 +48,7 @@ from .graph import EDGE_KINDS
 from .sim3 import Sim3
 
 __all__ = ["FORMAT_VERSION", "KeyframeAck", "EdgeRecord", "OverlapRecord", "FleetStore", "SQLStore", "SQLiteStore",
-           "hash_token", "pose_json", "sim3_json", "sim3_from_json", "ROBOT_NAME", "check_robot_name"]
+           "hash_token", "check_wal", "pose_json", "sim3_json", "sim3_from_json", "ROBOT_NAME", "check_robot_name"]
 
 log = logging.getLogger(__name__)
 
@@ -197,6 +199,34 @@ class FleetStore(ABC):
         """Each merged robot's map-to-global transform."""
 
     @abstractmethod
+    def anchor(self) -> str | None:
+        """The robot whose map frame is the global frame (None: none chosen yet)."""
+
+    @abstractmethod
+    def set_anchor(self, robot: str, replace: bool = False) -> str:
+        """Stores ``robot`` as the anchor when none is stored (``replace``: in any case, an admin's choice); returns
+        the anchor stored now (another front end's when it chose first). Raises ``ConfigError``: unknown robot."""
+
+    @abstractmethod
+    def drop_keyframes(self, robot: str) -> int:
+        """Deletes the robot's keyframes, the edges touching them, its overlaps and transform (one transaction);
+        returns how many keyframes were deleted."""
+
+    @abstractmethod
+    def set_token(self, robot: str, token: str) -> None:
+        """Replaces the robot's token (stored hashed; the old one no longer verifies). Raises ``ConfigError``: unknown
+        robot."""
+
+    @abstractmethod
+    def retire(self, robot: str) -> None:
+        """Retires a robot: its token no longer verifies, its name stays taken, its keyframes stay (``drop_keyframes``
+        deletes them)."""
+
+    @abstractmethod
+    def retired(self) -> list[str]:
+        """Retired robots' names."""
+
+    @abstractmethod
     def close(self) -> None:
         """Releases the store; further calls fail."""
 
@@ -300,6 +330,59 @@ class SQLStore(FleetStore):
         rows = self._read(f"SELECT robot, sim3 FROM transforms ORDER BY {self._ORDER}")
         return dict(_loadable(rows, lambda r: (r[0], _sim3_from_json(r[1])), "transform"))
 
+    def anchor(self) -> str | None:
+        rows = self._read(f"SELECT value FROM meta WHERE key = {self._P}", ("anchor",))
+        return rows[0][0] if rows else None
+
+    def set_anchor(self, robot: str, replace: bool = False) -> str:
+        p = self._P
+        with self._transaction() as db:
+            if not db.execute(f"SELECT 1 FROM robots WHERE name = {p}", (robot,)).fetchone():
+                raise ConfigError(f"unknown robot {robot!r}")
+            old = db.execute(f"SELECT value FROM meta WHERE key = {p}", ("anchor",)).fetchone()
+            if old is None:
+                db.execute(f"INSERT INTO meta VALUES ({p}, {p})", ("anchor", robot))
+            elif replace:
+                db.execute(f"UPDATE meta SET value = {p} WHERE key = {p}", (robot, "anchor"))
+            else:
+                return old[0]
+        return robot
+
+    def drop_keyframes(self, robot: str) -> int:
+        p = self._P
+        with self._transaction() as db:
+            db.execute(f"DELETE FROM edges WHERE robot_a = {p} OR robot_b = {p}", (robot, robot))
+            db.execute(f'DELETE FROM "overlaps" WHERE robot_a = {p} OR robot_b = {p}', (robot, robot))
+            db.execute(f"DELETE FROM transforms WHERE robot = {p}", (robot,))
+            n = db.execute(f"SELECT COUNT(*) FROM keyframes WHERE robot = {p}", (robot,)).fetchone()[0]
+            db.execute(f"DELETE FROM keyframes WHERE robot = {p}", (robot,))
+        return int(n)
+
+    def set_token(self, robot: str, token: str) -> None:
+        if not token:
+            raise ConfigError("a robot's token must not be empty")
+        salt, iterations, p = os.urandom(16), self.conf["token_iterations"], self._P
+        with self._transaction() as db:
+            if not db.execute(f"SELECT 1 FROM robots WHERE name = {p}", (robot,)).fetchone():
+                raise ConfigError(f"unknown robot {robot!r}")
+            db.execute(f"UPDATE robots SET salt = {p}, token_hash = {p}, iterations = {p} WHERE name = {p}",
+                       (salt, hash_token(token, salt, iterations), iterations, robot))
+            db.execute(f"DELETE FROM meta WHERE key = {p}", (f"retired:{robot}",))
+
+    def retire(self, robot: str) -> None:
+        p = self._P
+        with self._transaction() as db:
+            if not db.execute(f"SELECT 1 FROM robots WHERE name = {p}", (robot,)).fetchone():
+                raise ConfigError(f"unknown robot {robot!r}")
+            # a random hash: no token verifies any more
+            db.execute(f"UPDATE robots SET token_hash = {p} WHERE name = {p}", (os.urandom(32), robot))
+            db.execute(f"DELETE FROM meta WHERE key = {p}", (f"retired:{robot}",))
+            db.execute(f"INSERT INTO meta VALUES ({p}, {p})", (f"retired:{robot}", repr(time.time())))
+
+    def retired(self) -> list[str]:
+        rows = self._read(f"SELECT key FROM meta WHERE key LIKE {self._P} ORDER BY key", ("retired:%",))
+        return [r[0].split(":", 1)[1] for r in rows]
+
     def close(self) -> None:
         with self._lock:
             self._db.close()
@@ -311,6 +394,49 @@ class SQLStore(FleetStore):
         self.close()
 
 
+_WAL_MAGIC = (0x377F0682, 0x377F0683)  #: a SQLite WAL's first 4 bytes (little-, big-endian checksums)
+_WAL_HEADER, _WAL_FRAME_HEADER = 32, 24  #: bytes
+
+
+def _wal_checksum(data: bytes, big_endian: bool) -> tuple[int, int]:
+    """SQLite's WAL checksum of ``data`` (a multiple of 8 bytes)."""
+    words = struct.unpack((">" if big_endian else "<") + f"{len(data) // 4}I", data)
+    s0 = s1 = 0
+    for i in range(0, len(words), 2):
+        s0 = (s0 + words[i] + s1) & 0xFFFFFFFF
+        s1 = (s1 + words[i + 1] + s0) & 0xFFFFFFFF
+    return s0, s1
+
+
+def check_wal(path: Path) -> None:
+    """Refuses a SQLite write-ahead log that SQLite would silently skip (whole or from a point on), opening the
+    database at an older state: a header that is not a WAL's or fails its checksum, a length that is not whole frames
+    (a frame cut by a crash is at most its 24-byte header: SQLite writes the header, then the page).
+
+    Raises:
+        DatabaseError: one line, what is wrong and what to do.
+    """
+    wal = Path(f"{path}-wal")
+    try:
+        size = wal.stat().st_size
+    except FileNotFoundError:
+        return
+    if size == 0:
+        return
+    with open(wal, "rb") as f:
+        head = f.read(_WAL_HEADER)
+    fix = ("the database would open at an older state; restore the file from a backup, or move it aside to accept "
+           "the state without it")
+    if len(head) < _WAL_HEADER or struct.unpack(">I", head[:4])[0] not in _WAL_MAGIC:
+        raise DatabaseError(f"{wal} is damaged (not a SQLite WAL header): {fix}")
+    magic, _, page = struct.unpack(">III", head[:12])
+    if _wal_checksum(head[:24], bool(magic & 1)) != struct.unpack(">II", head[24:32]):
+        raise DatabaseError(f"{wal} is damaged (its header fails its checksum): {fix}")
+    frame = _WAL_FRAME_HEADER + (page if page != 1 else 65536)
+    if (size - _WAL_HEADER) % frame not in (0, _WAL_FRAME_HEADER):
+        raise DatabaseError(f"{wal} is damaged ({size} bytes: not whole {frame}-byte frames; cut short?): {fix}")
+
+
 class SQLiteStore(SQLStore):
     """``FleetStore`` on one SQLite file; safe to share between the threads of one process (one lock).
 
@@ -319,7 +445,8 @@ class SQLiteStore(SQLStore):
         conf: overrides of ``default_conf``.
 
     Raises:
-        DatabaseError: the file is not a fleet database, has another ``format_version``, or is damaged or locked.
+        DatabaseError: the file is not a fleet database, has another ``format_version``, or is damaged or locked, or
+            its write-ahead log is damaged (``check_wal``).
     """
 
     default_conf: dict[str, Any] = {
@@ -332,6 +459,7 @@ class SQLiteStore(SQLStore):
         self.conf = configure(self, conf, "store")
         self.path = Path(path)
         self._lock = threading.Lock()
+        check_wal(self.path)  # before SQLite opens it: it would skip a damaged log without a word
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self._db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)

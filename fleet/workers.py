@@ -139,6 +139,12 @@ class _Shard:
         found = self.rec.process(robot, keyframe, *args)
         return found, ([] if found.gated else self.rec.export(robot, [keyframe]))
 
+    def forget(self, robot: str) -> None:
+        self.rec.forget(robot)
+
+    def quarantined(self) -> dict[str, str]:
+        return dict(self.rec.quarantined)
+
     def close(self) -> None:
         self.rec.close()
 
@@ -261,6 +267,15 @@ class RayRecognizer:
         self._resumed = (overlaps, edges)
         self._recorded.update(frozenset((o.robot_a, o.robot_b)) for o in overlaps)
         self._ray.get([s.resume.remote(overlaps, edges) for s in self._shards])
+
+    @property
+    def quarantined(self) -> dict[str, str]:
+        """Robots whose files their worker could not read (name -> why)."""
+        return {k: v for q in self._ray.get([s.quarantined.remote() for s in self._shards]) for k, v in q.items()}
+
+    def forget(self, robot: str) -> None:
+        """``FleetRecognizer.forget`` on every worker (its owner moves its folder aside)."""
+        self._ray.get([s.forget.remote(robot) for s in self._shards])
 
     def close(self) -> None:
         """Closes every worker's databases and stops the workers (those shared with other replicas too)."""

@@ -17,6 +17,7 @@ from fleet.server import create_app
 
 ADMIN = "limits-admin-secret"
 LIMITS = {"limits": {"max_request_mb": 1.0, "header_timeout_s": 1.0, "body_timeout_s": 2.0, "auth_failures": 5,
+                     "robot_hash_burst": 10,  # the address limit is what TestAuthThrottle checks
                      "auth_window_s": 60.0}}
 
 
@@ -213,3 +214,51 @@ class TestAuthThrottle:
         for c in "bcde":
             t.failed(c)
         assert len(t._failures) <= 3
+
+
+class TestHashBudget:
+    def test_rotating_addresses_buy_no_more_hashes_and_cached_robots_are_not_slowed(self, tmp_path):
+        """The audit: 500 addresses x 20 bad tokens bought 1832 PBKDF2 hashes in 93 s. Here 40 loopback addresses x
+        5 bad tokens (each address within its own failure limit) buy at most the server's burst; a robot whose token
+        was verified before is answered at once all along."""
+        limits = {"limits": {"auth_failures": 20, "token_hashes_per_s": 0.01, "token_hash_burst": 10,
+                             "robot_hashes_per_s": 0.01, "robot_hash_burst": 5}}
+        with ServerThread(create_app(tmp_path, ADMIN, limits, recognize=False)) as server:
+            token = FleetClient(server.url, ADMIN).register("A")
+            FleetClient(server.url, token).overlaps()  # verified once: remembered
+            store = server.app.state.service.store
+            hashes = []
+            verify = store.verify_token
+            store.verify_token = lambda *a: hashes.append(a) or verify(*a)
+            codes, honest = [], []
+            for i in range(40):
+                transport = httpx.HTTPTransport(local_address=f"127.0.{i // 200}.{2 + i % 200}")
+                with httpx.Client(transport=transport, base_url=server.url) as c:
+                    codes += [c.get("/overlaps", headers={"Authorization": f"Bearer R{i}x{j}.bad"}).status_code
+                              for j in range(5)]
+                start = time.monotonic()
+                assert FleetClient(server.url, token).overlaps() == []
+                honest.append(time.monotonic() - start)
+            assert len(hashes) <= 11 and codes.count(401) == len(hashes) and codes.count(429) == 200 - len(hashes)
+            assert max(honest) < 1.0
+            # one robot's name from many addresses: its own budget (the server's has none left either)
+            store.verify_token = verify
+            codes = [httpx.get(f"{server.url}/overlaps", headers={"Authorization": f"Bearer A.bad{j}"}).status_code
+                     for j in range(3)]
+            assert codes == [429] * 3
+
+    def test_per_name_buckets_refill_and_are_bounded(self, monkeypatch):
+        from fleet.limits import HashBudget
+
+        clock = [0.0]
+        monkeypatch.setattr(time, "monotonic", lambda: clock[0])
+        b = HashBudget(rate=10.0, burst=100, name_rate=1.0, name_burst=2, max_names=3)
+        assert [b.take("a") for _ in range(3)] == [True, True, False]  # a's burst
+        assert b.take("b")  # another name: the server's budget has room
+        clock[0] = 1.0
+        assert b.take("a") and not b.take("a")  # one a second
+        for name in "cdef":
+            b.take(name)
+        assert len(b._names) <= 3
+        g = HashBudget(rate=1.0, burst=2, name_rate=100.0, name_burst=100)
+        assert [g.take(f"n{i}") for i in range(3)] == [True, True, False]  # the server's burst, whatever the names

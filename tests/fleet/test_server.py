@@ -125,7 +125,7 @@ class TestOverlapThroughTheService:
         rel = gt[4].inverse().compose(known_sim3).compose(Sim3(1.0, *(lambda L: (L.R, L.t))(
             known_sim3.inverse().compose(gt[5]))))
         http.app.state.service.add_edge(EdgeRecord("overlap", "A", 4, "B", 5, rel, 40.0))
-        T = Sim3.from_matrix(a.transforms(wait=True)["B"])
+        T = Sim3.from_matrix(admin.transforms(wait=True)["B"])  # the fleet's list is the admin's
         angle, scale, trans = T.errors(known_sim3)
         assert angle < 0.1 and scale < 1e-3 and trans < 0.1
         assert [loop["kind"] for loop in b.loops("B")] == ["overlap"]
@@ -155,3 +155,107 @@ class TestPoisonedState:
         assert any("skipped" in r.getMessage() for r in caplog.records)
         assert sorted(admin.poses("A", wait=True)) == [0, 1, 2]
         assert admin.loops("A") == []  # the unloadable loop edge is left out, not a 500
+
+
+class TestAdminRoutes:
+    def test_only_the_admin_resets_retires_rotates_and_names_the_anchor(self, server, sample_poses, jpeg, caplog):
+        http, admin = server()
+        a = FleetClient("", admin.register("A"), client=http)
+        b_token = admin.register("B")
+        b = FleetClient("", b_token, client=http)
+        submit(a, "A", range(3), sample_poses, jpeg)
+        submit(b, "B", range(2), sample_poses, jpeg)
+        for call in (lambda: a.reset("A"), lambda: a.retire("B"), lambda: a.rotate_token("A"),
+                     lambda: a.set_anchor("B")):
+            with pytest.raises(FleetError, match="403"):
+                call()
+        with pytest.raises(FleetError, match="404"):
+            admin.reset("nobody")
+        with caplog.at_level("WARNING", "fleet.service"):
+            assert admin.reset("A", keep_keyframes=True) == 0
+            assert sorted(admin.poses("A", wait=True)) == [0, 1, 2]  # kept
+            assert submit(a, "A", [3], sample_poses, jpeg) == [True]  # recognition from nothing, ids go on
+            with pytest.raises(FleetError, match="409: robot 'A' is the anchor"):
+                admin.reset("A", keep_keyframes=False)
+            admin.set_anchor("B")
+            assert admin.reset("A", keep_keyframes=False) == 4 and admin.poses("A", wait=True) == {}
+            assert submit(a, "A", [0], sample_poses, jpeg) == [True]  # from the start again
+            new = admin.rotate_token("B")
+            with pytest.raises(FleetError, match="401"):
+                FleetClient("", b_token, client=http).poses("B")
+            b = FleetClient("", new, client=http)
+            assert sorted(b.poses("B", wait=True)) == [0, 1]
+            assert admin.retire("B") == 0
+            with pytest.raises(FleetError, match="401"):
+                b.poses("B")
+            assert sorted(admin.poses("B", wait=True)) == [0, 1]  # its map stays
+        audit = [r.getMessage() for r in caplog.records if r.getMessage().startswith("admin:")]
+        assert len(audit) == 5, audit
+
+    def test_a_robot_locked_out_by_id_2_53_minus_1_is_reset(self, server, sample_poses, jpeg):
+        http, admin = server()
+        z = FleetClient("", admin.register("Z"), client=http)
+        z.submit_keyframe("Z", 0, 0.0, sample_poses[0], jpeg(0))  # the anchor (whose keyframes cannot be dropped)
+        a = FleetClient("", admin.register("A"), client=http)
+        assert a.submit_keyframe("A", 2**53 - 1, 1e11, sample_poses[0], jpeg(0))
+        for keyframe, t in ((5, 1e11), (2**53 - 1, 1e11 + 1)):
+            with pytest.raises(FleetError, match="400"):
+                a.submit_keyframe("A", keyframe, t, sample_poses[1], jpeg(1))
+        admin.reset("A", keep_keyframes=False)
+        assert a.submit_keyframe("A", 0, 0.0, sample_poses[1], jpeg(1))
+
+
+class TestWhatARobotReads:
+    def test_a_robots_token_reads_its_own_transform_and_overlaps_the_admin_all(self, server, sample_poses, jpeg,
+                                                                                known_sim3):
+        from fleet.store import OverlapRecord
+
+        http, admin = server()
+        robots = {n: FleetClient("", admin.register(n), client=http) for n in ("A", "B", "C")}
+        submit(robots["A"], "A", range(0, 10, 2), sample_poses, jpeg)
+        gt = [Sim3.from_pose(p) for p in sample_poses]
+        for i in range(1, 10, 2):
+            local = known_sim3.inverse().compose(gt[i])
+            robots["B"].submit_keyframe("B", i, 0.1 * i, np.c_[local.R, local.t], jpeg(i))
+        rel = gt[4].inverse().compose(known_sim3).compose(Sim3(1.0, *(lambda L: (L.R, L.t))(
+            known_sim3.inverse().compose(gt[5]))))
+        service = http.app.state.service
+        service.add_edge(EdgeRecord("overlap", "A", 4, "B", 5, rel, 40.0))
+        service.store.add_overlap(OverlapRecord("A", "B", known_sim3, 3, 1.0))
+        assert sorted(admin.transforms(wait=True)) == ["A", "B"] and len(admin.overlaps()) == 1
+        assert list(robots["A"].transforms(wait=True)) == ["A"] and list(robots["B"].transforms()) == ["B"]
+        assert len(robots["A"].overlaps()) == len(robots["B"].overlaps()) == 1
+        assert robots["C"].transforms() == {} and robots["C"].overlaps() == []  # no name of another robot leaks
+
+    def test_the_schema_says_what_the_server_enforces(self, server, sample_poses, jpeg):
+        """``"pose": [[], [], []]`` was schema-valid and answered 400 (schemathesis ST202): rows have their length
+        in the schema now (422)."""
+        import base64
+
+        http, admin = server()
+        token = admin.register("A")
+        body = {"keyframe": 0, "timestamp": 0.0, "pose": [[], [], []], "image": base64.b64encode(jpeg(0)).decode()}
+        answer = http.post("/robots/A/keyframes", json=body, headers={"Authorization": f"Bearer {token}"})
+        assert answer.status_code == 422 and "at least 4" in answer.json()["detail"]
+        rows = http.get("/openapi.json").json()["components"]["schemas"]["KeyframeIn"]["properties"]["pose"]["items"]
+        assert rows["minItems"] == rows["maxItems"] == 4
+
+
+class TestRefusals:
+    def test_a_413_says_what_the_header_declares_in_one_sensible_line(self, server):
+        """Pillow's own bomb limit gives a pixel count alone: the answer was "image has 900000000x1 pixels"."""
+        import base64
+        import struct
+        import zlib
+
+        import cv2
+
+        http, admin = server()
+        token = admin.register("A")
+        png = bytearray(cv2.imencode(".png", np.zeros((8, 8), np.uint8))[1].tobytes())
+        ihdr = bytes(png[12:16]) + struct.pack(">II", 30000, 30000) + bytes(png[24:29])
+        png[12:33] = ihdr + struct.pack(">I", zlib.crc32(ihdr))
+        body = {"keyframe": 0, "timestamp": 0.0, "pose": np.eye(4).tolist(), "image": base64.b64encode(png).decode()}
+        answer = http.post("/robots/A/keyframes", json=body, headers={"Authorization": f"Bearer {token}"})
+        assert answer.status_code == 413
+        assert answer.json()["detail"].startswith("image too large: its header declares 900000000 pixels; at most")
