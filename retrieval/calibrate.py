@@ -16,19 +16,19 @@ Before a run, the calibration looks at the sequence itself (``cae-lcd calibrate 
    after frame, is one place and is left out, and so is a pair whose *line* passes such a place: the pair moved back
    together over the frames its fused score reads, query and reference must have moved apart at every step, else
    the line's terms include one stop matched to itself and the nulls' tails hold a place, not a non-loop). Their
-   temporal-filter scores are the score path's null (a Gaussian
-   through the median and the 90th percentile); the same for the fused score of 2 and 3 consecutive windows on each
-   pair's line (``retrieval.decision.ScoreSpans``: where the code is weak, as across seasons, evidence repeated over
-   more frames can accept what one window cannot). For the inlier path the null is what the detector really tests:
+   temporal-filter scores are the score path's null (a Gaussian through the median and the 90th percentile); the
+   same for the fused score of 2 to ``SPAN`` consecutive windows on each pair's line
+   (``retrieval.decision.ScoreSpans``: where the code is weak, as across seasons, evidence repeated over more frames
+   can accept what one window cannot). For the inlier path the null is what the detector really tests:
    the **hard negatives**, the two far-side keyframes retrieval would return for a sampled query (keeping
-   ``exclude_recent // 10`` frames off the boundary), verified as in the run, each followed back ``INLIER_SPAN - 1``
+   ``exclude_recent // 10`` frames off the boundary), verified as in the run, each followed back ``SPAN - 1``
    frames (look-alike streets look alike for several frames). A random far-side pair per query is verified too (and
    joins the null), to show the difference; the **positives** are a frame and its neighbour ``exclude_recent // 25``
    frames back, followed back
    likewise. ``retrieval.decision`` turns them into the pair null (issue 27: the measured sample itself, every pair of
    the hard sequences and the random ones, ``calibration.null_pairs`` verified pairs in all: an empirical p-value that
    claims nothing past the sample, ``retrieval.decision.EmpiricalTail``; one pair then never decides alone, a loop
-   is a run of frames on one offset, fused over up to ``INLIER_SPAN`` frames) and the fused-evidence tail measured
+   is a run of frames on one offset, fused over up to ``SPAN`` frames) and the fused-evidence tail measured
    on the hard-negative sequences.
 4. **Which path decides**: where local features can verify (the median frame has at least ``min_features``
    keypoints), geometry decides, fused over consecutive frames: the *inlier path*. Where they are too few (a 64x32
@@ -83,7 +83,7 @@ from verify.features import create_extractor
 from verify.gate import EdgeGate
 from verify.verifier import create_verifier
 
-from .decision import (INLIER_SPAN, SPAN, TOL, Decision, EmpiricalTail, Horizon, ScoreSpans, Stops, TailModel,
+from .decision import (SPAN, TOL, Decision, EmpiricalTail, Horizon, MeasuredTail, ScoreSpans, Stops, TailModel,
                        gaussian_log10_sf)
 from .descriptors import GlobalDescriptor
 from .temporal import CodeTable, NoFilter, SequenceFilter, TemporalFilter
@@ -204,7 +204,9 @@ class Calibration:
         (``exclude_recent`` frames as its floor)."""
         n, f = self.inlier_null, self.fused
         horizon = Horizon(f["stretch_cos"], exclude_recent) if "stretch_cos" in f else None
+        measured = f.get("measured") and "hard_fused" in self.samples
         return Decision(self.pair_tail(),
+                        MeasuredTail(self.samples["hard_fused"]) if measured else
                         TailModel(f.get("u", 0.0), f.get("beta", 1 / _LN10)), self.tests.get("inliers", 1.0),
                         self.accept_at, bool(f.get("single", 0.0)), horizon, n.get("floor", 0.0),
                         int(f.get("span", SPAN)), int(f.get("tol", TOL)), spans=self.score_spans(filt),
@@ -418,7 +420,7 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
                            "search.exclude_recent")
     n_keyframes = max(len(ids) * n_frames / max(len(images), 1), 2.0)
     cal.tests = {"score": max(n_keyframes, (n_keyframes - window) ** 2 / 2),  # every query against every keyframe
-                 "inliers": n_keyframes * conf["search"]["k"] * INLIER_SPAN}  # every run length 1..span counted
+                 "inliers": n_keyframes * conf["search"]["k"] * SPAN}  # every run length 1..span counted
     _score_path(cal, null, filt, table)
     shared += _inlier_path(cal, conf, images, null, table, K, progress, features)
     _stretch(cal, ids, table, moved)
@@ -597,7 +599,7 @@ class _Verify:
 
 
 def _plan(null: np.ndarray, table: CodeTable, picks: np.ndarray, gap: int,
-          window: int, span: int = INLIER_SPAN) -> list[tuple[str, list[tuple[int, int]]]]:
+          window: int, span: int = SPAN) -> list[tuple[str, list[tuple[int, int]]]]:
     """The pairs to verify for sampled queries: a random far-side pair, the two far-side keyframes retrieval would
     return (hard negatives, each followed back ``span - 1`` frames: a look-alike sequence), and a positive sequence
     (the query and the frame ``gap`` before it, followed back likewise); ``(kind, [(query, ref), ...])``, the query's
@@ -663,7 +665,7 @@ def _inlier_path(cal: Calibration, conf: dict[str, Any], images: dict[int, np.nd
         return 0.0
     verify = _Verify(conf, images, K, {} if feats is None else feats)
     queries = np.unique(null[:, 0]).astype(np.int64)
-    n_q = min(len(queries), max(10, cc["null_pairs"] // (1 + 3 * INLIER_SPAN)))
+    n_q = min(len(queries), max(10, cc["null_pairs"] // (1 + 3 * SPAN)))
     picks = queries[np.unique(np.linspace(0, len(queries) - 1, n_q).astype(int))]
     window = conf["search"]["exclude_recent"]
     gap = max(1, window // 25)  # a near neighbour: the same place under the sequence's own motion
@@ -685,10 +687,9 @@ def _inlier_path(cal: Calibration, conf: dict[str, Any], images: dict[int, np.nd
                    floor=cc["min_inliers"])
     hard_e = _fused_samples(got["hard"] + got["hard2"], dec)
     pos_e = _fused_samples(got["positive"], dec)
-    fused = TailModel.fit(hard_e, 1 / _LN10)
     rand = np.array([s[0] for s in got["random"]], np.float64)
     pos = np.array([s[0] for s in got["positive"]], np.float64)
-    cal.fused = {**fused.as_dict(), "single": 0.0, "span": float(INLIER_SPAN), "tol": float(TOL),
+    cal.fused = {"measured": 1.0, "single": 0.0, "span": float(SPAN), "tol": float(TOL),
                  "samples": float(len(hard_e))}
     first = np.array([seq[0] for name in ("hard", "hard2") for seq in got[name]], np.float64)
     cal.samples.update({"random_inliers": rand, "positive_inliers": pos, "hard_fused": hard_e,
@@ -701,7 +702,7 @@ def _inlier_path(cal: Calibration, conf: dict[str, Any], images: dict[int, np.nd
                      f"positives (frames {gap} apart, {len(pos)}): {q(pos)}")
     cal.notes.append(f"pair evidence: the hard negatives' own empirical p-value, at most {tail.max_evidence:.1f} "
                      f"decades a pair (no tail past the sample): a loop needs a run of frames on one offset; fused "
-                     f"evidence of up to {INLIER_SPAN} frames (decades): hard-negative sequences median "
+                     f"evidence of up to {SPAN} frames (decades): hard-negative sequences median "
                      f"{np.median(hard_e):.1f}, max {hard_e.max():.1f}; positive sequences median "
                      f"{np.median(pos_e):.1f}")
     return verify.extract_s

@@ -55,12 +55,12 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["TailModel", "EmpiricalTail", "gamma_log10_sf", "gaussian_log10_sf", "Horizon", "Stops", "ScoreSpans",
-           "Decision", "SPAN", "INLIER_SPAN", "TOL", "GAP"]
+__all__ = ["TailModel", "EmpiricalTail", "MeasuredTail", "gamma_log10_sf", "gaussian_log10_sf", "Horizon", "Stops",
+           "ScoreSpans", "Decision", "SPAN", "TOL", "GAP"]
 
 LN10 = math.log(10.0)
-SPAN = 3  #: frames whose evidence one decision fuses (the query and the ones before it)
-INLIER_SPAN = 5  #: on the inlier path with a measured (bounded) pair null: frames one decision may fuse
+SPAN = 5  #: frames (inlier path) or windows (score path) one decision fuses at most, the query's and those before it
+#           (issue 27: a measured pair null caps what one frame claims; a run of frames on one offset decides)
 TOL = 2  #: frames the offset ``q - r`` may drift between fused frames
 GAP = 3  #: dissimilar frames in a row that end the stretch the query is still in
 MAX_BACK = 2000  #: frames the horizon looks back at most
@@ -132,6 +132,26 @@ class EmpiricalTail:
     def max_evidence(self) -> float:
         """The most one value can claim: ``log10(n + 1)`` decades."""
         return math.log10(len(self.x) + 1)
+
+
+class MeasuredTail:
+    """What a sample of a null statistic shows of its tail, and nothing more: ``P(X >= x) = #{samples >= x} / (n + 1)``
+    (``-inf`` above the largest sample). Used beside a model (``Decision.fused_log10_sf`` takes the heavier): where the
+    measured null is heavier than the model (look-alike frames are not independent), it raises the bar; beyond its
+    largest sample the model speaks, and the stress sets check it (``bench.aliasing``). Unlike a tail fitted to the
+    sample, one large value cannot widen the null far past itself (issue 27).
+
+    Args:
+        samples: ``(n,)`` the measured statistic (the fused evidence of hard-negative sequences, decades).
+    """
+
+    def __init__(self, samples: np.ndarray) -> None:
+        self.x = np.sort(np.asarray(samples, np.float64).ravel())
+
+    def log10_sf(self, x: float) -> float:
+        """``log10 P(X >= x)`` as measured (``-inf`` above the largest sample)."""
+        above = len(self.x) - int(np.searchsorted(self.x, x, "left"))
+        return math.log10(above / (len(self.x) + 1)) if above else -math.inf
 
 
 def gamma_log10_sf(k: int, decades: float) -> float:
@@ -267,7 +287,8 @@ class Decision:
     Args:
         pair_tail: the hard-negative inlier tail (``TailModel``); None where verification is off (the score path:
             the calibrated temporal-score confidence decides, and only the "too recent" rule is added here).
-        fused_tail: the tail measured on hard-negative sequences of ``E`` (``TailModel``, in decades).
+        fused_tail: the tail measured on hard-negative sequences of ``E`` (``MeasuredTail``, or a fitted
+            ``TailModel`` for a calibration made by hand or before; in decades).
         tests: hypotheses the run tests (the NFA's multiplier).
         accept_at: the confidence a loop needs.
         single: True where one pair may decide alone (geometry separates on this sequence).
@@ -278,7 +299,8 @@ class Decision:
         stops: the "a stop is matched to a stop" rule (``Stops``), or None (not applied).
     """
 
-    def __init__(self, pair_tail: TailModel | None, fused_tail: TailModel, tests: float, accept_at: float, single: bool,
+    def __init__(self, pair_tail: TailModel | EmpiricalTail | None, fused_tail: TailModel | MeasuredTail, tests: float,
+                 accept_at: float, single: bool,
                  horizon: Horizon | None = None, floor: float = 0.0, span: int = SPAN, tol: int = TOL,
                  min_support: int = 2, spans: ScoreSpans | None = None, stops: Stops | None = None) -> None:
         self.pair_tail, self.fused_tail, self.tests, self.floor = pair_tail, fused_tail, float(tests), float(floor)

@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from retrieval.decision import Decision, Horizon, Stops, TailModel, gamma_log10_sf
+from retrieval.decision import SPAN, Decision, Horizon, Stops, TailModel, gamma_log10_sf
 
 
 @pytest.fixture(scope="module")
@@ -66,6 +66,13 @@ class TestHardNegatives:
         assert tail.log10_sf(0) == 0.0  # at the median: no evidence
         assert 10 ** tail.log10_sf(10) == pytest.approx(2 / 611)  # the largest sample: (1 + 1) / (n + 1)
         assert tail.evidence(10_000) == pytest.approx(math.log10(611)) == tail.max_evidence  # no tail past it
+
+    def test_measured_sequence_tail_no_wider_than_its_sample(self):
+        from retrieval.decision import MeasuredTail
+
+        tail = MeasuredTail(np.r_[np.zeros(149), 7.1])  # one look-alike sequence far above the rest
+        assert 10 ** tail.log10_sf(7.1) == pytest.approx(1 / 151)  # it raises the bar up to itself
+        assert tail.log10_sf(7.2) == -math.inf  # and no further: beyond it the Gamma model speaks
 
     def test_empirical_calibration_bounded(self, small):
         _, cal = small
@@ -236,7 +243,7 @@ class TestScoreSpans:
 
         seq = open_sequence(shrunk_sample(tmp_path_factory.mktemp("s64") / "seq", (64, 32)))
         cal = calibrate_sequence(seq, {}, progress=False)
-        assert cal.path == "score" and len(cal.spans["nulls"]) == 3 and cal.spans["window"] == 10
+        assert cal.path == "score" and len(cal.spans["nulls"]) == SPAN and cal.spans["window"] == 10
         assert all(np.isfinite(m) and s > 0 for m, s in cal.spans["nulls"])
         assert cal.spans["nulls"][0] == [cal.score_null["median"], cal.score_null["sigma"]]
         assert any("consecutive windows" in n for n in cal.notes)
