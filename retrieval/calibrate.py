@@ -594,7 +594,7 @@ class _Verify:
             return None
         if not hasattr(self._local, "verifier"):
             self._local.verifier = create_verifier(self.conf["matcher"], self.conf["geometry"])
-        check = self._local.verifier.verify(self.feats[q], [self.feats[r]], self.K, 0, 0, True)[0]
+        check = self._local.verifier.verify(self.feats[q], [self.feats[r]], self.K, self.min_matches, 0, True)[0]
         return max(check.inliers, 0) if check.matches >= self.min_matches else 0
 
 
