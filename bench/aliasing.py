@@ -157,7 +157,8 @@ def main(data: Path, run_dir: Path, out: Path | None, only: str = "") -> dict[st
         res[name] = evaluate(folder, truth, run_dir / f"run_{i}")
         log.info("%s: %s", name, res[name])
     body = ("### Precision where places look alike (`python -m bench.aliasing`, issues 17 and 27)\n\n"
-            + aliasing_table(res) + f"\n\nDefault config, one run, nothing tuned per set. Total {time.perf_counter() - t0:.0f} s.")
+            + aliasing_table(res)
+            + f"\n\nDefault config, one run, nothing tuned per set. Total {time.perf_counter() - t0:.0f} s.")
     if out is not None and not only:
         from .run import write_section  # bench.run imports this module (its false-loop stress rows)
 
