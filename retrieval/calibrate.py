@@ -109,19 +109,23 @@ class Calibration:
         whitening: the code normalisation, or None (raw cosine).
         score_null: ``{"median", "sigma", "samples"}`` of the null temporal scores (a Gaussian through their median
             and 90th percentile); empty = the score path is off.
-        inlier_null: ``{"u", "beta", "floor", "samples"}``: the hard-negative inlier tail
-            (``retrieval.decision.TailModel``; ``floor``: the fewest inliers that count as evidence); empty = no
-            verification, the score path decides.
+        inlier_null: ``{"u", "beta", "empirical", "floor", "samples"}``: the pair null; with ``empirical`` (1.0, what
+            ``calibrate`` makes) the measured sample ``samples["hard_inliers"]`` itself
+            (``retrieval.decision.EmpiricalTail``), else the exponential ``TailModel(u, beta)`` (made by hand);
+            ``floor``: the fewest inliers that count as evidence; empty = no verification, the score path decides.
         tests: ``{"score": pairs, "inliers": pairs}`` the run will test (the NFA's multiplier).
         expected_false_loops: the a-contrario target over the whole run.
         notes: one line per choice, saying why (printed, and kept in the summary).
         descriptor: identity of the global descriptor (weights) it was made with; a run with other weights refuses it.
-        fused: ``{"u", "beta", "single", "span", "tol", "stretch_cos", "still_cos", "samples"}``: the tail of the
-            fused evidence on hard-negative sequences (decades), whether one pair may decide alone (1.0) or not
+        fused: ``{"measured" or "u", "beta", "single", "span", "tol", "stretch_cos", "still_cos", "samples"}``: the
+            tail of the fused evidence on hard-negative sequences (decades: with ``measured``, ``samples["hard_fused"]``
+            as measured, ``retrieval.decision.MeasuredTail``; else a fitted ``TailModel(u, beta)``), the most frames
+            fused (``span``), whether one pair may decide alone (1.0) or not
             (0.0), the cosine under which a frame no longer looks like the query, and the one at or above which the
             camera stood still (``retrieval.decision``; a calibration.h5 without it: no stop rule).
-        samples: the measured distributions, by name (``random_inliers``, ``hard_inliers``, ``positive_inliers``,
-            ``hard_fused``, ``positive_fused``, ``adjacent_cos``): saved in ``calibration.h5`` under ``samples/``.
+        samples: the measured distributions, by name (``random_inliers``, ``hard_inliers`` (the pair null: hard and
+            random pairs), ``retrieved_inliers`` (the pairs retrieval returned, each hard sequence's first),
+            ``positive_inliers``, ``hard_fused``, ``positive_fused``, ``adjacent_cos``): saved in ``calibration.h5`` under ``samples/``.
         features: the conf of the local features its inlier thresholds were calibrated on
             (``calibrated_features``); a run extracting other ones refuses it (empty: not recorded).
         spans: the score path's fused windows, ``{"window": frames, "nulls": [[median, sigma], ...]}`` (one null per
