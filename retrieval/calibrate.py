@@ -125,7 +125,8 @@ class Calibration:
             camera stood still (``retrieval.decision``; a calibration.h5 without it: no stop rule).
         samples: the measured distributions, by name (``random_inliers``, ``hard_inliers`` (the pair null: hard and
             random pairs), ``retrieved_inliers`` (the pairs retrieval returned, each hard sequence's first),
-            ``positive_inliers``, ``hard_fused``, ``positive_fused``, ``adjacent_cos``): saved in ``calibration.h5`` under ``samples/``.
+            ``positive_inliers``, ``hard_fused``, ``positive_fused``, ``adjacent_cos``): saved in ``calibration.h5``
+            under ``samples/``.
         features: the conf of the local features its inlier thresholds were calibrated on
             (``calibrated_features``); a run extracting other ones refuses it (empty: not recorded).
         spans: the score path's fused windows, ``{"window": frames, "nulls": [[median, sigma], ...]}`` (one null per
