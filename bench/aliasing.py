@@ -10,7 +10,9 @@ One run of the default config (nothing tuned per data set) on:
   frames mirrored left-right at 160x120 (the same textures, kerbs and cars on the other side: a different place
   that looks alike, frame after frame, in order).
 
-Columns: frames, loops, precision / recall (ground truth where the set has revisits), median ms/frame, the share of
+Columns: frames, loops, precision / recall (ground truth where the set has revisits), retrieval Recall@10 (the run's
+own candidates, ranked as it ranks them) and recall / Recall@10 (a detector safe by being blind shows it: issue 27),
+median ms/frame, the share of
 the run's wall time spent calibrating (its own work: edge ratios, whitening, nulls, verifying the sampled pairs,
 fitting; then with the reading, encoding and local features it does ahead for the run), and the path the
 calibration chose. ``stress_folders`` builds the stress
@@ -29,7 +31,7 @@ import numpy as np
 
 from core.images import read_image
 from evaluation.ground_truth import read_loop_pairs
-from evaluation.metrics import precision_recall
+from evaluation.metrics import precision_recall, recall_at_k
 from retrieval.run_folder import RunFolder
 from retrieval.sequences import open_sequence
 
@@ -119,7 +121,9 @@ def evaluate(folder: Path, truth: np.ndarray | None, out: Path, conf: dict[str, 
     res["path"] = "inliers" if cal.get("verification") else "score" if cal else "none"
     if truth is not None:
         pr = precision_recall(loops, truth)
-        res.update(precision=pr.precision, recall=pr.recall)
+        cands = run.read_candidates()
+        r10 = recall_at_k(cands if cands is not None else np.zeros((0, 8)), truth, (10,))[10]
+        res.update(precision=pr.precision, recall=pr.recall, r10=r10)
     else:
         res.update(precision=1.0 if len(loops) == 0 else 0.0, recall=None)
     return res
@@ -132,9 +136,13 @@ def aliasing_table(res: dict[str, dict[str, Any]]) -> str:
         share = "n/a" if not m.get("calibration_own_s") else \
             f"{100 * m['calibration_own_s'] / m['wall_s']:.0f} % / {100 * m['calibration_s'] / m['wall_s']:.0f} %"
         rec = "n/a (no revisit)" if m["recall"] is None else f"{m['recall']:.3f}"
-        rows.append([name, str(m["frames"]), str(m["loops"]), f"{m['precision']:.3f}", rec,
+        r10 = m.get("r10")
+        seen = "n/a" if r10 is None else f"{r10:.3f}"
+        ratio = "n/a" if not r10 else f"{m['recall'] / r10:.3f}"
+        rows.append([name, str(m["frames"]), str(m["loops"]), f"{m['precision']:.3f}", rec, seen, ratio,
                      "n/a" if m["ms"] is None else f"{m['ms']:.1f}", share, m["path"]])
-    return md_table(["sequence", "frames", "loops", "precision", "recall", "ms/frame",
+    return md_table(["sequence", "frames", "loops", "precision", "recall", "retrieval Recall@10",
+                     "recall / Recall@10 (of the places retrieval found, the share that became loops)", "ms/frame",
                      "calibration share: own / with the run's work", "deciding path"], rows)
 
 
@@ -148,7 +156,8 @@ def main(data: Path, run_dir: Path, out: Path | None, only: str = "") -> dict[st
         log.info("%s", name)
         res[name] = evaluate(folder, truth, run_dir / f"run_{i}")
         log.info("%s: %s", name, res[name])
-    body = ("### Precision where places look alike (`python -m bench.aliasing`, issue 17)\n\n" + aliasing_table(res)
+    body = ("### Precision where places look alike (`python -m bench.aliasing`, issues 17 and 27)\n\n"
+            + aliasing_table(res)
             + f"\n\nDefault config, one run, nothing tuned per set. Total {time.perf_counter() - t0:.0f} s.")
     if out is not None and not only:
         from .run import write_section  # bench.run imports this module (its false-loop stress rows)

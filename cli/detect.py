@@ -37,7 +37,8 @@ def log_summary(s: dict[str, Any]) -> None:
     cal = s.get("calibration")
     if cal is not None:
         log.info("calibrated: accept at confidence >= %.2f (%s); local verification %s", cal["accept_at_confidence"],
-                 ", ".join(f"{k} >= {v:.4g}" for k, v in cal["thresholds"].items() if v is not None),
+                 ", ".join(f"{k} >= {v:.4g}" for k, v in cal["thresholds"].items() if v is not None)
+                 or "no pair alone: a run of frames on one offset",
                  "on" if cal["verification"] else "off (too few local features)")
     written = "loops.csv,candidates.csv,keyframes.h5," + ("calibration.h5," if cal is not None else "") \
         + "loop_edges.g2o,loop_edges.csv,loop_edges.json,"

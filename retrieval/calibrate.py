@@ -16,17 +16,20 @@ Before a run, the calibration looks at the sequence itself (``cae-lcd calibrate 
    after frame, is one place and is left out, and so is a pair whose *line* passes such a place: the pair moved back
    together over the frames its fused score reads, query and reference must have moved apart at every step, else
    the line's terms include one stop matched to itself and the nulls' tails hold a place, not a non-loop). Their
-   temporal-filter scores are the score path's null (a Gaussian
-   through the median and the 90th percentile); the same for the fused score of 2 and 3 consecutive windows on each
-   pair's line (``retrieval.decision.ScoreSpans``: where the code is weak, as across seasons, evidence repeated over
-   more frames can accept what one window cannot). For the inlier path the null is what the detector really tests:
-   the **hard negatives**, the far-side keyframes retrieval would return for a sampled query (keeping
-   ``exclude_recent // 10`` frames off the boundary), verified as in the run, each followed back two frames
-   (look-alike streets look alike for several frames). A random far-side pair per query is verified too, to show the
-   difference; the **positives** are a frame and its neighbour ``exclude_recent // 25`` frames back, followed back
-   likewise. ``retrieval.decision`` turns them into the pair tail (an exponential above the hard null's median,
-   fitted by maximum likelihood, never lighter than its own largest sample), the fused-evidence tail, and whether one
-   pair may decide alone (only where the median positive would pass and no hard negative does).
+   temporal-filter scores are the score path's null (a Gaussian through the median and the 90th percentile); the
+   same for the fused score of 2 to ``SPAN`` consecutive windows on each pair's line
+   (``retrieval.decision.ScoreSpans``: where the code is weak, as across seasons, evidence repeated over more frames
+   can accept what one window cannot). For the inlier path the null is what the detector really tests:
+   the **hard negatives**, the two far-side keyframes retrieval would return for a sampled query (keeping
+   ``exclude_recent // 10`` frames off the boundary), verified as in the run, each followed back ``SPAN - 1``
+   frames (look-alike streets look alike for several frames). A random far-side pair per query is verified too (and
+   joins the null), to show the difference; the **positives** are a frame and its neighbour ``exclude_recent // 25``
+   frames back, followed back
+   likewise. ``retrieval.decision`` turns them into the pair null (issue 27: the measured sample itself, every pair of
+   the hard sequences and the random ones, ``calibration.null_pairs`` verified pairs in all: an empirical p-value that
+   claims nothing past the sample, ``retrieval.decision.EmpiricalTail``; one pair then never decides alone, a loop
+   is a run of frames on one offset, fused over up to ``SPAN`` frames) and the fused-evidence tail measured
+   on the hard-negative sequences.
 4. **Which path decides**: where local features can verify (the median frame has at least ``min_features``
    keypoints), geometry decides, fused over consecutive frames: the *inlier path*. Where they are too few (a 64x32
    camera), verification is switched off and the summary says so: loops then rest on the normalised code plus
@@ -80,7 +83,8 @@ from verify.features import create_extractor
 from verify.gate import EdgeGate
 from verify.verifier import create_verifier
 
-from .decision import SPAN, TOL, Decision, Horizon, ScoreSpans, Stops, TailModel, gaussian_log10_sf
+from .decision import (SPAN, TOL, Decision, EmpiricalTail, Horizon, MeasuredTail, ScoreSpans, Stops, TailModel,
+                       gaussian_log10_sf)
 from .descriptors import GlobalDescriptor
 from .temporal import CodeTable, NoFilter, SequenceFilter, TemporalFilter
 
@@ -105,19 +109,24 @@ class Calibration:
         whitening: the code normalisation, or None (raw cosine).
         score_null: ``{"median", "sigma", "samples"}`` of the null temporal scores (a Gaussian through their median
             and 90th percentile); empty = the score path is off.
-        inlier_null: ``{"u", "beta", "floor", "samples"}``: the hard-negative inlier tail
-            (``retrieval.decision.TailModel``; ``floor``: the fewest inliers that count as evidence); empty = no
-            verification, the score path decides.
+        inlier_null: ``{"u", "beta", "empirical", "floor", "samples"}``: the pair null; with ``empirical`` (1.0, what
+            ``calibrate`` makes) the measured sample ``samples["hard_inliers"]`` itself
+            (``retrieval.decision.EmpiricalTail``), else the exponential ``TailModel(u, beta)`` (made by hand);
+            ``floor``: the fewest inliers that count as evidence; empty = no verification, the score path decides.
         tests: ``{"score": pairs, "inliers": pairs}`` the run will test (the NFA's multiplier).
         expected_false_loops: the a-contrario target over the whole run.
         notes: one line per choice, saying why (printed, and kept in the summary).
         descriptor: identity of the global descriptor (weights) it was made with; a run with other weights refuses it.
-        fused: ``{"u", "beta", "single", "span", "tol", "stretch_cos", "still_cos", "samples"}``: the tail of the
-            fused evidence on hard-negative sequences (decades), whether one pair may decide alone (1.0) or not
+        fused: ``{"measured" or "u", "beta", "single", "span", "tol", "stretch_cos", "still_cos", "samples"}``: the
+            tail of the fused evidence on hard-negative sequences (decades: with ``measured``, ``samples["hard_fused"]``
+            as measured, ``retrieval.decision.MeasuredTail``; else a fitted ``TailModel(u, beta)``), the most frames
+            fused (``span``), whether one pair may decide alone (1.0) or not
             (0.0), the cosine under which a frame no longer looks like the query, and the one at or above which the
             camera stood still (``retrieval.decision``; a calibration.h5 without it: no stop rule).
-        samples: the measured distributions, by name (``random_inliers``, ``hard_inliers``, ``positive_inliers``,
-            ``hard_fused``, ``positive_fused``, ``adjacent_cos``): saved in ``calibration.h5`` under ``samples/``.
+        samples: the measured distributions, by name (``random_inliers``, ``hard_inliers`` (the pair null: hard and
+            random pairs), ``retrieved_inliers`` (the pairs retrieval returned, each hard sequence's first),
+            ``positive_inliers``, ``hard_fused``, ``positive_fused``, ``adjacent_cos``): saved in ``calibration.h5``
+            under ``samples/``.
         features: the conf of the local features its inlier thresholds were calibrated on
             (``calibrated_features``); a run extracting other ones refuses it (empty: not recorded).
         spans: the score path's fused windows, ``{"window": frames, "nulls": [[median, sigma], ...]}`` (one null per
@@ -166,14 +175,26 @@ class Calibration:
             return -math.inf
         return -(math.log10(self.tests["score"]) + gaussian_log10_sf((score - n["median"]) / n["sigma"]))
 
+    def pair_tail(self) -> TailModel | EmpiricalTail | None:
+        """The hard-negative inlier null one pair's evidence is read from: the measured sample itself
+        (``EmpiricalTail``, ``inlier_null["empirical"]``: no tail past the sample) or, for a calibration made by hand
+        or before, the exponential ``TailModel``; None where verification is off."""
+        n = self.inlier_null
+        if not n:
+            return None
+        if n.get("empirical") and "hard_inliers" in self.samples:
+            return EmpiricalTail(self.samples["hard_inliers"])
+        return TailModel(n["u"], n["beta"])
+
     def inlier_confidence(self, inliers: int) -> float:
-        """``-log10 NFA`` of an inlier count (``-inf`` when verification is off or the check did not run)."""
+        """``-log10 NFA`` of one inlier count deciding alone (``-inf`` when verification is off or the check did not
+        run)."""
         n = self.inlier_null
         if not n or inliers < 0:
             return -math.inf
         if inliers < n["floor"]:
             return -math.inf
-        return -(math.log10(self.tests["inliers"]) + TailModel(n["u"], n["beta"]).log10_sf(inliers))
+        return -(math.log10(self.tests["inliers"]) + self.pair_tail().log10_sf(inliers))
 
     def score_spans(self, filt: TemporalFilter | None) -> ScoreSpans | None:
         """The score path's fused windows scored by the run's filter ``filt`` (None where not calibrated)."""
@@ -188,7 +209,9 @@ class Calibration:
         (``exclude_recent`` frames as its floor)."""
         n, f = self.inlier_null, self.fused
         horizon = Horizon(f["stretch_cos"], exclude_recent) if "stretch_cos" in f else None
-        return Decision(TailModel(n["u"], n["beta"]) if n else None,
+        measured = f.get("measured") and "hard_fused" in self.samples
+        return Decision(self.pair_tail(),
+                        MeasuredTail(self.samples["hard_fused"]) if measured else
                         TailModel(f.get("u", 0.0), f.get("beta", 1 / _LN10)), self.tests.get("inliers", 1.0),
                         self.accept_at, bool(f.get("single", 0.0)), horizon, n.get("floor", 0.0),
                         int(f.get("span", SPAN)), int(f.get("tol", TOL)), spans=self.score_spans(filt),
@@ -205,10 +228,10 @@ class Calibration:
                 lo, hi = (lo, mid) if self.score_confidence(mid) >= a else (mid, hi)
             out["score"] = hi
         if self.inlier_null:
-            x = int(self.inlier_null["floor"])
-            while self.inlier_confidence(x) < a:
+            x, top = int(self.inlier_null["floor"]), int(self.inlier_null["floor"]) + 100_000
+            while self.inlier_confidence(x) < a and x < top:
                 x += 1
-            out["inliers"] = x
+            out["inliers"] = x if x < top else None  # None: one pair never decides alone (a measured null)
         return out
 
     def identity(self) -> str:
@@ -402,7 +425,7 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
                            "search.exclude_recent")
     n_keyframes = max(len(ids) * n_frames / max(len(images), 1), 2.0)
     cal.tests = {"score": max(n_keyframes, (n_keyframes - window) ** 2 / 2),  # every query against every keyframe
-                 "inliers": n_keyframes * conf["search"]["k"]}
+                 "inliers": n_keyframes * conf["search"]["k"] * SPAN}  # every run length 1..span counted
     _score_path(cal, null, filt, table)
     shared += _inlier_path(cal, conf, images, null, table, K, progress, features)
     _stretch(cal, ids, table, moved)
@@ -410,10 +433,25 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
         if value is not None:
             cal.notes.append(f"accept: {key} >= {value:.4g} (expected false loops over the run "
                              f"<= {cal.expected_false_loops:g} / 2)")
+    if cal.path == "inliers" and cal.thresholds()["inliers"] is None:
+        cal.notes.append(f"accept: inliers: {_run_needed(cal, conf['search']['exclude_recent'])} (expected false "
+                         f"loops over the run <= {cal.expected_false_loops:g} / 2)")
     _timed(cal, len(images), time.perf_counter() - t0, shared)
     for line in cal.notes:
         log.info("calibration: %s", line)
     return cal
+
+
+def _run_needed(cal: Calibration, window: int) -> str:
+    """The shortest run of frames on one offset, each above every null pair, that the decision accepts (a text)."""
+    dec = cal.decision(window)
+    top = dec.evidence(float(cal.samples["hard_inliers"].max()) + 1)
+    choice = math.log10(2 * dec.tol + 1)
+    for m in range(max(dec.min_support, 1), dec.span + 1):
+        if dec.fused(top, [(d, top - choice) for d in range(1, m)]) >= dec.accept_at:
+            return (f"no pair alone; a run of {m} frames on one offset, each above every null pair "
+                    f"(> {cal.samples['hard_inliers'].max():.0f})")
+    return f"no pair alone and no run of up to {dec.span} frames: verify more pairs (calibration.null_pairs)"
 
 
 def _timed(cal: Calibration, n_images: int, total: float, shared: float) -> None:
@@ -561,29 +599,31 @@ class _Verify:
             return None
         if not hasattr(self._local, "verifier"):
             self._local.verifier = create_verifier(self.conf["matcher"], self.conf["geometry"])
-        check = self._local.verifier.verify(self.feats[q], [self.feats[r]], self.K, 0, 0, True)[0]
+        check = self._local.verifier.verify(self.feats[q], [self.feats[r]], self.K, self.min_matches, 0, True)[0]
         return max(check.inliers, 0) if check.matches >= self.min_matches else 0
 
 
 def _plan(null: np.ndarray, table: CodeTable, picks: np.ndarray, gap: int,
-          window: int) -> list[tuple[str, list[tuple[int, int]]]]:
+          window: int, span: int = SPAN) -> list[tuple[str, list[tuple[int, int]]]]:
     """The pairs to verify for sampled queries: a random far-side pair, the two far-side keyframes retrieval would
-    return (hard negatives, each followed back ``SPAN - 1`` frames: a look-alike sequence), and a positive sequence
+    return (hard negatives, each followed back ``span - 1`` frames: a look-alike sequence), and a positive sequence
     (the query and the frame ``gap`` before it, followed back likewise); ``(kind, [(query, ref), ...])``, the query's
     pair first. Hard negatives keep ``window // 10`` frames away from the exclusion boundary: a revisit just past it
-    (a place longer than the window) is not a look-alike, and the run refuses it as too recent anyway."""
+    (a place longer than the window) is not a look-alike, and the run refuses it as too recent anyway. They are drawn
+    only inside the window (``null``: the far side), where a pair is known not to be a loop: beyond it a true
+    revisit would pass for a look-alike (KITTI 90 revisits 75-125 frames back) and blind the run."""
     rng = np.random.default_rng(0)  # the same pairs every time: a resumed or repeated calibration agrees
-    plan = []
+    plan, margin = [], max(1, window // 10)
     for q in picks.tolist():
         refs = null[null[:, 0] == q, 1].astype(np.int64)
-        inner = refs[q - refs < window - max(1, window // 10)]
+        inner = refs[q - refs < window - margin]
         hard = inner if len(inner) else refs
         hard = hard[np.argsort(-np.nan_to_num(table.pairs(np.full(len(hard), q), hard), nan=-2.0), kind="stable")]
         rand = int(inner[rng.integers(len(inner))]) if len(inner) else -1
-        for name, ref in (("random", rand), ("hard", int(hard[0])), ("hard2", int(hard[min(1, len(hard) - 1)])),
-                          ("positive", q - gap)):
+        for name, ref in (("random", rand), ("hard", int(hard[0]) if len(hard) else -1),
+                          ("hard2", int(hard[min(1, len(hard) - 1)]) if len(hard) else -1), ("positive", q - gap)):
             if ref >= 0:
-                plan.append((name, [(q - j, ref - j) for j in range(1 if name in ("random", "hard2") else SPAN)]))
+                plan.append((name, [(q - j, ref - j) for j in range(1 if name == "random" else span)]))
     return plan
 
 
@@ -604,9 +644,9 @@ def _samples(plan: list[tuple[str, list[tuple[int, int]]]], verify: _Verify,
 
 
 def _hard(got: dict[str, list[list[int]]]) -> np.ndarray:
-    """The hard-negative inlier samples of ``_samples``' output: every pair of the hard sequences, the second hard
-    negatives' own pairs."""
-    return np.array([x for seq in got["hard"] for x in seq] + [s[0] for s in got["hard2"]], np.float64)
+    """The pair null of ``_samples``' output: every pair of both hard sequences and the random far-side pairs (all
+    known not to be loops: a random one may verify higher than what retrieval returns, and the null holds it)."""
+    return np.array([x for name in ("hard", "hard2", "random") for seq in got[name] for x in seq], np.float64)
 
 
 def _fused_samples(seqs: list[list[int]], decision: Decision) -> np.ndarray:
@@ -630,7 +670,7 @@ def _inlier_path(cal: Calibration, conf: dict[str, Any], images: dict[int, np.nd
         return 0.0
     verify = _Verify(conf, images, K, {} if feats is None else feats)
     queries = np.unique(null[:, 0]).astype(np.int64)
-    n_q = min(len(queries), max(10, cc["null_pairs"] // (2 + 2 * SPAN)))
+    n_q = min(len(queries), max(10, cc["null_pairs"] // (1 + 3 * SPAN)))
     picks = queries[np.unique(np.linspace(0, len(queries) - 1, n_q).astype(int))]
     window = conf["search"]["exclude_recent"]
     gap = max(1, window // 25)  # a near neighbour: the same place under the sequence's own motion
@@ -644,28 +684,30 @@ def _inlier_path(cal: Calibration, conf: dict[str, Any], images: dict[int, np.nd
         return 0.0  # features the run will not use: not the run's work
     got = _samples(plan, verify, progress)
     hard = _hard(got)
-    tail = TailModel.fit(hard)
-    cal.inlier_null = {**tail.as_dict(), "floor": float(cc["min_inliers"]), "samples": float(len(hard))}
+    tail = EmpiricalTail(hard)
+    cal.inlier_null = {"u": tail.u, "beta": 0.0, "empirical": 1.0, "floor": float(cc["min_inliers"]),
+                       "samples": float(len(hard))}
+    cal.samples["hard_inliers"] = hard
     dec = Decision(tail, TailModel(0.0, 1 / _LN10), cal.tests["inliers"], cal.accept_at, False,
                    floor=cc["min_inliers"])
-    hard_e, pos_e = _fused_samples(got["hard"], dec), _fused_samples(got["positive"], dec)
-    fused = TailModel.fit(hard_e, 1 / _LN10)
+    hard_e = _fused_samples(got["hard"] + got["hard2"], dec)
+    pos_e = _fused_samples(got["positive"], dec)
     rand = np.array([s[0] for s in got["random"]], np.float64)
     pos = np.array([s[0] for s in got["positive"]], np.float64)
-    single = [cal.inlier_confidence(int(x)) for x in pos]
-    separates = bool(len(pos)) and float(np.median(single)) >= cal.accept_at and \
-        max(cal.inlier_confidence(int(x)) for x in hard) < cal.accept_at
-    cal.fused = {**fused.as_dict(), "single": float(separates), "span": float(SPAN), "tol": float(TOL),
+    cal.fused = {"measured": 1.0, "single": 0.0, "span": float(SPAN), "tol": float(TOL),
                  "samples": float(len(hard_e))}
-    cal.samples.update({"random_inliers": rand, "hard_inliers": hard, "positive_inliers": pos,
-                        "hard_fused": hard_e, "positive_fused": pos_e})
+    first = np.array([seq[0] for name in ("hard", "hard2") for seq in got[name]], np.float64)
+    cal.samples.update({"random_inliers": rand, "positive_inliers": pos, "hard_fused": hard_e,
+                        "positive_fused": pos_e, "retrieved_inliers": first})
     q = (lambda x: "none" if not len(x) else f"median {np.median(x):.0f}, 90th percentile "
          f"{np.quantile(x, 0.9):.0f}, max {np.max(x):.0f}")
     cal.notes.append(f"inliers (median {median_kp:.0f} keypoints per frame): random far-side pairs ({len(rand)}): "
-                     f"{q(rand)}; hard negatives ({len(hard)}): {q(hard)}; positives (frames {gap} apart, "
-                     f"{len(pos)}): {q(pos)}")
-    cal.notes.append(f"fused evidence of {SPAN} frames (decades): hard-negative sequences median "
+                     f"{q(rand)}; null pairs, hard and random ({len(hard)}, {window // 2}-"
+                     f"{window - max(1, window // 10)} frames back): {q(hard)}; "
+                     f"positives (frames {gap} apart, {len(pos)}): {q(pos)}")
+    cal.notes.append(f"pair evidence: the hard negatives' own empirical p-value, at most {tail.max_evidence:.1f} "
+                     f"decades a pair (no tail past the sample): a loop needs a run of frames on one offset; fused "
+                     f"evidence of up to {SPAN} frames (decades): hard-negative sequences median "
                      f"{np.median(hard_e):.1f}, max {hard_e.max():.1f}; positive sequences median "
-                     f"{np.median(pos_e):.1f}; geometry " + ("separates: one pair may decide alone" if separates else
-                                                            "does not separate: a loop needs 2 frames of evidence"))
+                     f"{np.median(pos_e):.1f}")
     return verify.extract_s

@@ -4,15 +4,19 @@ The calibration (``retrieval.calibrate``) measures, on the sequence itself, what
 detector actually looks*: the **hard negatives** (the far-side keyframes retrieval would return for a sampled query,
 verified as in the run), and what a loop looks like: the **positives** (a frame and a near neighbour). From them:
 
-- **Pair evidence** ``e(x) = -log10 P_hard(inliers >= x)``: the hard-negative null's upper tail (``TailModel``: the
-  measured median, an exponential tail above it fitted by maximum likelihood on the exceedances and widened until
-  the largest sample is no surprise). ``e`` is 0 at or below the null's median.
+- **Pair evidence** ``e(x) = -log10 P_hard(inliers >= x)``, read from the measured null itself (``EmpiricalTail``,
+  issue 27: ``(#{samples >= x} + 1) / (n + 1)``, a valid p-value by exchangeability, no tail past the sample, so one
+  pair claims at most ``log10(n + 1)`` decades; ``TailModel``, an exponential tail above the median, remains for
+  calibrations made by hand). ``e`` is 0 at or below the null's median.
 - **Fused evidence** of a hypothesis ``(q, r)``: ``E = e(q, r) + sum`` over the ``span - 1`` frames processed before
   ``q`` of the best ``e(q', r') - log10(2 tol + 1)`` among their verified candidates whose offset ``q' - r'`` is
   within ``tol`` frames of ``q - r`` (the ``log10`` pays for choosing among the consistent ones).
-- **Its null** ``P_E``: the heavier of the Gamma(span) tail (independent pair evidence) and the tail measured on
-  hard-negative *sequences* (the pairs ``(q - j, r - j)`` behind each hard negative: look-alike streets look alike
-  for several frames, and this sees it).
+- **Its null** ``P_E``: for a run of ``m`` consecutive frames ending at the query (``m`` up to ``span``, every ``m``
+  counted in the run's tests), the heavier of the Gamma(m) tail (independent pair evidence: every frame of the run
+  counted, with or without support) and the tail measured on hard-negative *sequences* (the pairs ``(q - j, r - j)``
+  behind each hard negative: look-alike streets look alike for several frames, and this sees it). The independence
+  the Gamma tail assumes is what the stress sets check (``bench.aliasing``: KITTI 00 then its own frames mirrored, and
+  00 then 07, frame after frame: 0 loops).
 - **One threshold**: ``confidence = -log10(tests * P_E(E))``; a loop needs ``confidence >= accept_at``
   (``NFA <= expected_false_loops / 2``) and positive evidence of its own pair (geometry can always veto).
 - **Whether one pair may decide alone**: only where geometry separates on this sequence (the median positive pair
@@ -51,11 +55,12 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["TailModel", "gamma_log10_sf", "gaussian_log10_sf", "Horizon", "Stops", "ScoreSpans", "Decision", "SPAN",
-           "TOL", "GAP"]
+__all__ = ["TailModel", "EmpiricalTail", "MeasuredTail", "gamma_log10_sf", "gaussian_log10_sf", "Horizon", "Stops",
+           "ScoreSpans", "Decision", "SPAN", "TOL", "GAP"]
 
 LN10 = math.log(10.0)
-SPAN = 3  #: frames whose evidence one decision fuses (the query and the ones before it)
+SPAN = 5  #: frames (inlier path) or windows (score path) one decision fuses at most, the query's and those before it
+#           (issue 27: a measured pair null caps what one frame claims; a run of frames on one offset decides)
 TOL = 2  #: frames the offset ``q - r`` may drift between fused frames
 GAP = 3  #: dissimilar frames in a row that end the stretch the query is still in
 MAX_BACK = 2000  #: frames the horizon looks back at most
@@ -95,6 +100,58 @@ class TailModel:
 
     def as_dict(self) -> dict[str, float]:
         return {"u": self.u, "beta": self.beta}
+
+
+class EmpiricalTail:
+    """``P(X >= x)`` of a null sample, claimed only as far as the sample shows: the empirical p-value
+    ``(#{samples >= x} + 1) / (n + 1)`` (1 at or below the median). Under exchangeability of a new null value with the
+    ``n`` samples this is a valid p-value (``P(p <= a) <= a``) without any model of the tail: conservative by
+    construction. Above the largest sample it stays at ``1 / (n + 1)``: no extrapolation, so one pair can never claim
+    more than ``log10(n + 1)`` decades; a loop then needs several frames of evidence (``Decision``).
+
+    Args:
+        samples: ``(n,)`` the measured null (the hard negatives' inlier counts).
+    """
+
+    def __init__(self, samples: np.ndarray) -> None:
+        self.x = np.sort(np.asarray(samples, np.float64).ravel())
+        self.u = float(np.median(self.x)) if len(self.x) else 0.0
+
+    def log10_sf(self, x: float) -> float:
+        """``log10 P(X >= x)`` (0 at or below the median; at least ``-log10(n + 1)``)."""
+        if x <= self.u or not len(self.x):
+            return 0.0
+        above = len(self.x) - int(np.searchsorted(self.x, x, "left"))
+        return min(0.0, math.log10((above + 1) / (len(self.x) + 1)))
+
+    def evidence(self, x: float) -> float:
+        """``-log10 P(X >= x)``, >= 0 and at most ``log10(n + 1)``."""
+        return -self.log10_sf(x)
+
+    @property
+    def max_evidence(self) -> float:
+        """The most one value can claim: ``log10(n + 1)`` decades."""
+        return math.log10(len(self.x) + 1)
+
+
+class MeasuredTail:
+    """What a sample of a null statistic shows of its tail, and nothing more: ``P(X >= x) = #{samples >= x} / (n + 1)``
+    (``-inf`` above the largest sample). Used beside a model (``Decision.fused_log10_sf`` takes the heavier): where the
+    measured null is heavier than the model (look-alike frames are not independent), it raises the bar; beyond its
+    largest sample the model speaks, and the stress sets check it (``bench.aliasing``). Unlike a tail fitted to the
+    sample, one large value cannot widen the null far past itself (issue 27).
+
+    Args:
+        samples: ``(n,)`` the measured statistic (the fused evidence of hard-negative sequences, decades).
+    """
+
+    def __init__(self, samples: np.ndarray) -> None:
+        self.x = np.sort(np.asarray(samples, np.float64).ravel())
+
+    def log10_sf(self, x: float) -> float:
+        """``log10 P(X >= x)`` as measured (``-inf`` above the largest sample)."""
+        above = len(self.x) - int(np.searchsorted(self.x, x, "left"))
+        return math.log10(above / (len(self.x) + 1)) if above else -math.inf
 
 
 def gamma_log10_sf(k: int, decades: float) -> float:
@@ -230,7 +287,8 @@ class Decision:
     Args:
         pair_tail: the hard-negative inlier tail (``TailModel``); None where verification is off (the score path:
             the calibrated temporal-score confidence decides, and only the "too recent" rule is added here).
-        fused_tail: the tail measured on hard-negative sequences of ``E`` (``TailModel``, in decades).
+        fused_tail: the tail measured on hard-negative sequences of ``E`` (``MeasuredTail``, or a fitted
+            ``TailModel`` for a calibration made by hand or before; in decades).
         tests: hypotheses the run tests (the NFA's multiplier).
         accept_at: the confidence a loop needs.
         single: True where one pair may decide alone (geometry separates on this sequence).
@@ -241,7 +299,8 @@ class Decision:
         stops: the "a stop is matched to a stop" rule (``Stops``), or None (not applied).
     """
 
-    def __init__(self, pair_tail: TailModel | None, fused_tail: TailModel, tests: float, accept_at: float, single: bool,
+    def __init__(self, pair_tail: TailModel | EmpiricalTail | None, fused_tail: TailModel | MeasuredTail, tests: float,
+                 accept_at: float, single: bool,
                  horizon: Horizon | None = None, floor: float = 0.0, span: int = SPAN, tol: int = TOL,
                  min_support: int = 2, spans: ScoreSpans | None = None, stops: Stops | None = None) -> None:
         self.pair_tail, self.fused_tail, self.tests, self.floor = pair_tail, fused_tail, float(tests), float(floor)
@@ -256,20 +315,38 @@ class Decision:
             return 0.0
         return self.pair_tail.evidence(inliers)
 
-    def fused_log10_sf(self, decades: float) -> float:
-        """``log10 P_E(E >= decades)``: the heavier of the Gamma(span) and the measured sequence tails."""
-        return max(gamma_log10_sf(self.span, decades), self.fused_tail.log10_sf(decades))
+    def fused_log10_sf(self, decades: float, frames: int | None = None) -> float:
+        """``log10 P_E(E >= decades)`` of the evidence summed over ``frames`` consecutive frames (default ``span``):
+        the heavier of the Gamma(frames) and the measured sequence tails."""
+        return max(gamma_log10_sf(self.span if frames is None else frames, decades),
+                   self.fused_tail.log10_sf(decades))
 
-    def support(self, query_id: int, ref: int) -> list[float]:
-        """Evidence of the earlier fused frames for the hypothesis ``(query_id, ref)`` (one value per frame)."""
+    def support(self, query_id: int, ref: int) -> list[tuple[int, float]]:
+        """Evidence of the earlier fused frames for the hypothesis ``(query_id, ref)``: ``(frames back, decades)``
+        per frame with evidence beyond the choice among its consistent candidates."""
         out, choice = [], math.log10(2 * self.tol + 1)
         for q, refs, ev in self._recent:
             if query_id - q >= self.span or not len(refs):
                 continue
             ok = np.abs((q - refs) - (query_id - ref)) <= self.tol
             if ok.any() and ev[ok].max() > choice:
-                out.append(float(ev[ok].max()) - choice)
+                out.append((query_id - q, float(ev[ok].max()) - choice))
         return out
+
+    def fused(self, e0: float, more: list[tuple[int, float]]) -> float:
+        """``-log10 NFA`` of the query's evidence ``e0`` fused with ``more`` (``support``): the best run of ``m``
+        consecutive frames ending at the query (``m`` from ``min_support`` to ``span``), its evidence under a
+        Gamma(m) null (every frame of the run counted, with or without support) or the measured sequence tail,
+        whichever is heavier; ``-inf`` where fewer than ``min_support`` frames carry evidence. The run's ``tests``
+        count every ``m`` (the calibration multiplies them)."""
+        if 1 + len(more) < self.min_support:
+            return -math.inf
+        best, base = -math.inf, -math.log10(self.tests)
+        for m in range(max(self.min_support, 1), self.span + 1):
+            used = [v for d, v in more if d < m]
+            if 1 + len(used) >= self.min_support:
+                best = max(best, base - self.fused_log10_sf(e0 + sum(used), m))
+        return best
 
     def confidences(self, query_id: int, refs: np.ndarray, inliers: np.ndarray, source: Any,
                     fallback: np.ndarray | None = None) -> np.ndarray:
@@ -293,8 +370,7 @@ class Decision:
             e0 = self.evidence(inl)
             if e0 <= 0:
                 continue
-            more = self.support(query_id, ref)
-            best = base - self.fused_log10_sf(e0 + sum(more)) if 1 + len(more) >= self.min_support else -math.inf
+            best = self.fused(e0, self.support(query_id, ref))
             if self.single:
                 best = max(best, base - self.pair_tail.log10_sf(inl))
             out[i] = best

@@ -94,7 +94,8 @@ default_conf: dict[str, Any] = {
         "enabled": True,  # calibrate thresholds on the sequence (detect) / use the calibration given (API);
         #                   False: the fixed policy below (the API without a calibration uses it too)
         "expected_false_loops": 0.1,  # a-contrario target: expected false loops over the whole run
-        "null_pairs": 150,  # far-side pairs verified with local features for the inlier null
+        "null_pairs": 1200,  # pairs verified with local features for the nulls (hard-negative sequences: the
+        #                     pair null is their empirical p-value, so more pairs let one pair claim more)
         "min_features": 50,  # median keypoints per frame under which local verification is not used
         "min_inliers": 12,  # floor of the calibrated inlier threshold (a 7-point model always fits 7)
         "verification": "auto",  # "auto": used when features suffice; "on": always; "off": global + temporal only

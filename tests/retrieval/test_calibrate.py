@@ -207,7 +207,8 @@ def test_own_seconds_apart_from_the_runs_work(sample_dir, tmp_path):
     # run's work it does ahead (reading, encoding, local features the run reuses)
     assert sec["calibration_own"] > 0 and sec["calibration_shared"] > 0
     assert sec["calibration_own"] + sec["calibration_shared"] <= sec["calibration"]  # that one adds loading, saving
-    assert sec["calibration_own"] < sec["calibration_shared"]  # features and codes dominate; verifying ~150 does not
+    # (issue 27: the measured null verifies calibration.null_pairs = 1200 pairs, which on this 100-frame sample costs
+    # more than reading and encoding it: no claim on their ratio here; bench.aliasing reports both)
     assert any("its own work" in n and "the run reuses" in n for n in summary["calibration"]["notes"])
 
 

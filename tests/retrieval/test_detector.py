@@ -59,12 +59,17 @@ class TestLoopDetector:
         with open(out / "loops.csv") as f:
             cli_loops = {(int(r["query"]), int(r["match"])) for r in csv.DictReader(f)}
         assert len(cli_loops) >= 45
-        assert set(map(tuple, loops_of(stream_run["results"]).tolist())) == cli_loops
+        stream = set(map(tuple, loops_of(stream_run["results"]).tolist()))
+        # the CLI run is calibrated: a loop is a run of frames on one offset (issue 27), so it may miss the first
+        # frames of the revisit that the stream's fixed policy (one pair of >= 50 inliers) accepts; nothing else
+        from retrieval.decision import SPAN
+
+        assert cli_loops <= stream and all(q < 50 + SPAN - 1 for q, _ in stream - cli_loops)
         with KeyframeDatabase(stream_run["db"], mode="r") as db:
             assert len(db) == 100 and db.last_frame_id() == 99
             recs = list(db)
         assert [r.frame_id for r in recs] == list(range(100))
-        assert {(r.frame_id, r.loop) for r in recs if r.loop >= 0} == cli_loops
+        assert {(r.frame_id, r.loop) for r in recs if r.loop >= 0} == stream  # what the stream accepted, stored
 
     def test_frame_results(self, stream_run, detect_conf):
         results = stream_run["results"]
