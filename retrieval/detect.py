@@ -33,10 +33,10 @@ from .descriptors import GlobalDescriptor, create_descriptor
 from .detector import STAGES, LoopDetector, resolve_conf
 from .edges import loop_edges
 from .temporal import create_filter
-from .run_folder import RunFolder
+from .run_folder import FrameKeys, RunFolder
 from .sequences import Sequence, open_sequence
 
-__all__ = ["SAMPLE_DIR", "main", "stage_stats", "check_same_frames", "calibrate_sequence", "default_out"]
+__all__ = ["SAMPLE_DIR", "main", "stage_stats", "check_same_frames", "calibrate_sequence", "default_out", "frame_keys"]
 
 log = logging.getLogger(__name__)
 
@@ -226,6 +226,11 @@ def _run_frames(det: LoopDetector, seq: Sequence, start: int, progress: bool,
     return timings
 
 
+def frame_keys(seq: Sequence) -> FrameKeys:
+    """Each frame's timestamp and id in its source (``Sequence.source_id``), for the run folder's tables."""
+    return FrameKeys(seq.timestamps, [seq.source_id(i) for i in range(len(seq))])
+
+
 def _log_seconds(seconds: dict[str, float]) -> None:
     """One line: the wall time of the calibration (its own work apart from the run's work it did ahead) and of the
     frames."""
@@ -294,10 +299,11 @@ def main(path: str | Path | None = None, out: str | Path | None = None, conf: di
         seconds["frames"] = time.perf_counter() - t0
         seconds.update({f"calibration_{k}": v for k, v in (cal.seconds if cal is not None else {}).items()})
         _log_seconds(seconds)
-        loops = run.write_tables(det.db.results())
+        keys = frame_keys(seq)
+        loops = run.write_tables(det.db.results(), keys)
         verified = bool(cal.inlier_null) if cal is not None else bool(resolved["policy"]["verify"])
         edges = loop_edges(det.keyframe_features, loops, seq.K, resolved) if verified else []  # a pose only where it was verified
-        run.write_edges(edges, seq.poses)
+        run.write_edges(edges, seq.poses, keys)
         frames = det.db.frames()
         keyframes = len(det.db)
     unreadable = [e.source for e in frames if e.kind == "unreadable"]

@@ -42,6 +42,10 @@ class FrameStream(Protocol):
         """Frame ``i`` as ``(image (H, W[, 3]) or the reason it cannot be read, fingerprint of its bytes)``."""
         ...
 
+    def source_id(self, i: int) -> str:
+        """Frame ``i``'s id in the file as its own tools number it (a video frame number, a bag message index)."""
+        ...
+
 
 @dataclass
 class Sequence:
@@ -66,6 +70,15 @@ class Sequence:
     def frame_name(self, i: int) -> str:
         """Frame ``i``'s source as the keyframe database records it (file name, or ``stream.name(i)``)."""
         return self.stream.name(i) if self.stream is not None else self.frames[i].name
+
+    def source_id(self, i: int) -> str:
+        """Frame ``i``'s id in its source, for the user to join results with their own data: the image file's
+        path relative to the sequence (``image_0/000012.png``, ``rgb/1305031102.175304.png``), or the stream's
+        (``FrameStream.source_id``: a video's frame number, a bag's message index on the topic)."""
+        if self.stream is not None:
+            return self.stream.source_id(i)
+        path = self.frames[i]
+        return path.relative_to(self.root).as_posix() if path.is_relative_to(self.root) else path.name
 
     def read_frame(self, i: int) -> tuple[np.ndarray | ImageError, str]:
         """Frame ``i``: ``(image or the reason it cannot be read, fingerprint or "")``."""

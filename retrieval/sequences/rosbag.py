@@ -138,6 +138,10 @@ class BagFrames:
     def name(self, i: int) -> str:
         return f"{self.topic}@{int(self.stamps_ns[i])}"
 
+    def source_id(self, i: int) -> str:
+        """The message's index on the topic (0 = its first message)."""
+        return str(i)
+
     def _message(self, i: int) -> Any:
         reader = getattr(self._local, "reader", None)
         if reader is None:

@@ -15,6 +15,7 @@ import yaml
 from core.images import read_image
 from cli.main import main
 from retrieval.database import KeyframeDatabase, KeyframeRecord
+from retrieval.detect import SAMPLE_DIR
 from retrieval.detector import resolve_conf
 
 
@@ -45,9 +46,19 @@ class TestDetectSample:
         code, out = cli_sample_run
         assert code == 0
         loops = read_csv(out / "loops.csv")
-        assert loops[0] == ["query", "match", "score", "matches", "inliers", "seq_score", "confidence"]
+        assert loops[0] == ["query", "match", "score", "matches", "inliers", "seq_score", "confidence",
+                            "query_time", "match_time", "query_source", "match_source"]
         cands = read_csv(out / "candidates.csv")
-        assert cands[0] == ["query", "candidate", "score", "matches", "inliers", "seq_score", "confidence", "accepted"]
+        assert cands[0] == ["query", "candidate", "score", "matches", "inliers", "seq_score", "confidence", "accepted",
+                            "query_time", "candidate_time", "query_source", "candidate_source"]
+        # each frame's stamp (the sample's times.txt) and file, to join with the user's own trajectory
+        times = np.loadtxt(SAMPLE_DIR / "times.txt")
+        for row in loops[1:] + cands[1:]:
+            q, m = int(row[0]), int(row[1])
+            assert float(row[-4]) == pytest.approx(times[q], abs=1e-9) and float(row[-3]) == pytest.approx(times[m])
+            assert row[-2:] == [f"image_0/{q:06d}.jpg", f"image_0/{m:06d}.jpg"]
+        tum = np.loadtxt(out / "loops_tum.txt")
+        assert np.allclose(tum, [[times[int(r[0])], times[int(r[1])]] for r in loops[1:]])
         summary = json.loads((out / "summary.json").read_text())
         gt = summary["ground_truth"]
         assert gt["precision"] == 1.0
@@ -61,7 +72,7 @@ class TestDetectSample:
         _, out = cli_sample_run
         summary = json.loads((out / "summary.json").read_text())
         accept_at = summary["calibration"]["accept_at_confidence"]
-        loops = [tuple(r) for r in read_csv(out / "loops.csv")[1:]]
+        loops = [tuple(r[:7]) for r in read_csv(out / "loops.csv")[1:]]
         accepted = [tuple(r[:7]) for r in read_csv(out / "candidates.csv")[1:] if r[7] == "1"]
         assert sorted(loops) == sorted(accepted)
         for q, m, score, matches, inliers, seq_score, confidence in loops:
