@@ -25,7 +25,7 @@ from retrieval.database import KeyframeDatabase
 from retrieval.run_folder import CANDIDATE_COLUMNS, LOOPS_COLUMNS, RunFolder, read_csv_table
 from retrieval.sequences import kitti_metadata_file, open_sequence, read_kitti_poses, read_times
 
-from .ground_truth import GroundTruth, load_ground_truth, sniff_ground_truth
+from .ground_truth import GroundTruth, in_run_ids, load_ground_truth, sniff_ground_truth
 from .metrics import SCORES, best_per_query, correct_mask, pr_curve, precision_recall, recall_at_k
 
 __all__ = ["FORMAT_VERSION", "KS", "main", "score_run"]
@@ -48,8 +48,8 @@ def score_run(run_dir: str | Path, gt: str | Path) -> dict[str, Any]:
         The updated summary.
     """
     run = RunFolder(Path(run_dir))
-    truth = load_ground_truth(gt)
     summary = run.read_summary()
+    truth = _source_numbered(load_ground_truth(gt), gt, summary)
     pairs = read_csv_table(run.loops, LOOPS_COLUMNS[:2]).astype(np.int64)
     summary["ground_truth"] = precision_recall(pairs, truth.pairs).as_dict()
     run.write_summary(summary)
@@ -99,7 +99,18 @@ def _load_truth(gt: Path, radius: float, min_gap: int, min_gap_s: float | None, 
         if tpath is None:
             raise ConfigError("--min-gap-s needs timestamps: pass --times, or run on a sequence with times.txt")
         timestamps = read_times(tpath)
-    return load_ground_truth(gt, radius, min_gap, timestamps, min_gap_s), timestamps is not None
+    return _source_numbered(load_ground_truth(gt, radius, min_gap, timestamps, min_gap_s), gt, summary), \
+        timestamps is not None
+
+
+def _source_numbered(truth: GroundTruth, gt: str | Path, summary: dict[str, Any]) -> GroundTruth:
+    """``truth`` in the run's frame ids: a run of every n-th frame of a video (``summary["stride"]``) scored against
+    a ground truth given in the video's own frame numbers (not the one ``detect`` wrote for the run itself)."""
+    stride = summary.get("stride", 1)
+    own = summary.get("ground_truth_file")
+    if not isinstance(stride, int) or stride <= 1 or (isinstance(own, str) and Path(own) == Path(gt)):
+        return truth
+    return in_run_ids(truth, stride)
 
 
 def _frame_count(summary: dict[str, Any], ids_seen: np.ndarray, truth: GroundTruth) -> int:

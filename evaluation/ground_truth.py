@@ -21,7 +21,7 @@ from retrieval.run_folder import MAX_FRAME_ID
 from retrieval.sequences import read_kitti_poses
 
 __all__ = ["GroundTruth", "loops_from_poses", "load_ground_truth", "pair_matrix", "read_loop_pairs",
-           "sniff_ground_truth"]
+           "sniff_ground_truth", "in_run_ids"]
 
 log = logging.getLogger(__name__)
 
@@ -186,6 +186,19 @@ def load_ground_truth(path: str | Path, radius: float = 5.0, min_gap: int = 50,
     if len(pairs) == 0:
         log.warning("%s holds no loop pair: every detection will count as false and recall is undefined", path)
     return GroundTruth(pairs, "pairs", path)
+
+
+def in_run_ids(truth: GroundTruth, stride: int) -> GroundTruth:
+    """Ground truth numbered by the source's frames (a video's frame numbers) -> numbered as a run that took every
+    ``stride``-th frame numbers them: pairs of frames it read, ids divided by ``stride``; poses every ``stride``-th.
+    """
+    if stride <= 1:
+        return truth
+    p = truth.pairs
+    kept = p[(p % stride == 0).all(axis=1)] // stride
+    log.info("%s: frames numbered in the source; a run of every %d-th frame keeps %d of its %d pairs", truth.path,
+             stride, len(kept), len(p))
+    return GroundTruth(kept, truth.kind, truth.path, None if truth.poses is None else truth.poses[::stride])
 
 
 def pair_matrix(pairs: np.ndarray, n: int) -> np.ndarray:

@@ -311,7 +311,8 @@ def main(path: str | Path | None = None, out: str | Path | None = None, conf: di
     if truth is None and seq.poses_are_truth and seq.poses is not None:
         truth = run.write_ground_truth_poses(seq.poses)
     summary: dict[str, Any] = {
-        "sequence": str(seq.root.resolve()), "frames": len(seq), "processed_this_run": len(timings),
+        "sequence": str(seq.root.resolve()), "frames": len(seq), "stride": stride,
+        "processed_this_run": len(timings),
         "resumed_at": start, "keyframes": keyframes, "gated_out": sum(e.kind == "gated" for e in frames),
         "unreadable": len(unreadable), "unreadable_files": unreadable, "loops": len(loops), "loop_edges": len(edges),
         "ms_per_frame": stage_stats(timings), "seconds": seconds, "out": str(run.root),

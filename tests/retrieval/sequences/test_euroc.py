@@ -36,5 +36,9 @@ def test_bad_data_csv_is_one_error(tmp_path):
         open_sequence(tmp_path)
 
 
-def test_same_loops_as_the_sample(euroc_folder, sample_loops, detect_like_sample, tmp_path):
+def test_same_loops_as_the_sample(euroc_folder, sample_loops, detect_like_sample, tmp_path, sample_truth,
+                                  assert_frame_keys):
     np.testing.assert_array_equal(detect_like_sample(euroc_folder, tmp_path / "run"), sample_loops)
+    # round trip: each row's stamps are data.csv's (ns -> s), its source ids the image paths in the folder
+    ns = (sample_truth[:, 0] * 1e9).round().astype(np.int64)
+    assert assert_frame_keys(tmp_path / "run", ns * 1e-9, [f"mav0/cam0/data/{t}.jpg" for t in ns]) > 0

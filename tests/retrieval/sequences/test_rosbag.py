@@ -44,10 +44,14 @@ def test_reads_frames_stamps_and_camera_info(bags, name, storage, has_K, sample_
 
 
 @pytest.mark.parametrize("name", ["ros2", "ros2.mcap", "ros1.bag"])
-def test_same_loops_as_the_sample(bags, name, sample_loops, detect_like_sample, tmp_path):
+def test_same_loops_as_the_sample(bags, name, sample_loops, detect_like_sample, tmp_path, sample_seq,
+                                  assert_frame_keys):
     """``cae-lcd detect rec --topic /cam0/image_raw`` reads the bag lazily through the detector (ROS 2 sqlite3 and
     mcap, ROS 1)."""
     np.testing.assert_array_equal(detect_like_sample(bags / name, tmp_path / "run", "--topic", TOPIC), sample_loops)
+    # round trip: each row's stamps are the messages' header stamps, its source ids their index on the topic
+    times = sample_seq.timestamps + 1000.0
+    assert assert_frame_keys(tmp_path / "run", times, [str(i) for i in range(len(times))]) > len(sample_loops)
 
 
 def test_topic_errors(bags):

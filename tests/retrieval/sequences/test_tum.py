@@ -22,9 +22,13 @@ def test_reads_frames_times_and_poses(tum_folder, sample_seq, assert_same_frames
     assert seq.poses_are_truth
 
 
-def test_same_loops_as_the_sample_and_scored_from_poses(tum_folder, sample_loops, detect_like_sample, tmp_path):
+def test_same_loops_as_the_sample_and_scored_from_poses(tum_folder, sample_loops, detect_like_sample, tmp_path,
+                                                        sample_truth, assert_frame_keys):
     out = tmp_path / "run"
     np.testing.assert_array_equal(detect_like_sample(tum_folder, out), sample_loops)
+    # round trip: each row's stamps are rgb.txt's, its source ids the image paths rgb.txt lists
+    times = sample_truth[:, 0]
+    assert assert_frame_keys(out, times, [f"rgb/{t:.6f}.jpg" for t in times]) > len(sample_loops)
     summary = json.loads(RunFolder(out).summary.read_text())
     assert summary["ground_truth_file"] == str(RunFolder(out).ground_truth_poses)
     assert summary["ground_truth"]["precision"] == 1.0 and summary["ground_truth"]["recall"] >= 0.9
