@@ -52,6 +52,13 @@ def add_parser(sub: Any) -> None:
                    "holding many sequences (a folder of them, or a .txt list): one run folder a sequence in OUT")
     p.add_argument("--workers", type=int, default=_BATCH["workers"],
                    help="many sequences: sequences at once on a local Ray (default: one a core)")
+    p.add_argument("--intrinsics", default=_DEFAULTS["intrinsics"], metavar="FX,FY,CX,CY",
+                   help="the camera's intrinsics in pixels (over the sequence's own and --camera-info's): enables the "
+                        "essential matrix and the loop edges for a folder, a video or TUM")
+    p.add_argument("--camera-info", default=_DEFAULTS["camera_info"], metavar="FILE",
+                   help="a camera file: ROS camera_info YAML, Kalibr camchain, EuRoC sensor.yaml, or 'intrinsics: [fx, "
+                        "fy, cx, cy]' with distortion_model (radtan, equidistant) and distortion_coefficients; "
+                        "keypoints are undistorted before the geometric check")
     p.add_argument("--ray-address", default=_BATCH["address"],
                    help="many sequences: a Ray cluster to run on (default: a local Ray)")
     p.set_defaults(func=run)
@@ -102,11 +109,12 @@ def run(args: Any) -> None:
     many = None if args.path is None else find_sequences(args.path)
     if many is None:
         log_summary(detect_and_score(args.path, args.out, conf, args.camera, not args.no_progress, args.topic,
-                                     args.stride))
+                                     args.stride, args.intrinsics, args.camera_info))
         return
     if args.out is None:
         raise ConfigError(f"{args.path} holds {len(many)} sequences: pass --out DIR (one run folder a sequence)")
-    task = partial(detect_and_score, conf=conf, camera=args.camera, progress=False, topic=args.topic, stride=args.stride)
+    task = partial(detect_and_score, conf=conf, camera=args.camera, progress=False, topic=args.topic, stride=args.stride,
+                   intrinsics=args.intrinsics, camera_info=args.camera_info)
     rows = run_batch(many, args.out, task, args.workers, args.ray_address, not args.no_progress)
     log_table(rows, Path(args.out))
     failed = [r for r in rows if r["status"] != "ok"]

@@ -17,7 +17,8 @@ __all__ = ["detect_and_score"]
 
 def detect_and_score(path: str | Path | None, out: str | Path | None, conf: dict[str, Any] | None = None,
                      camera: str | None = None, progress: bool = True, topic: str | None = None,
-                     stride: int = 1) -> dict[str, Any]:
+                     stride: int = 1, intrinsics: str | None = None,
+                     camera_info: str | Path | None = None) -> dict[str, Any]:
     """``detect.main`` on one sequence (same arguments), then the operating point against its ground truth (its
     ``loops.txt``, or loops derived from TUM / EuRoC poses) added to the summary.
 
@@ -30,7 +31,7 @@ def detect_and_score(path: str | Path | None, out: str | Path | None, conf: dict
     seq = open_sequence(detect.SAMPLE_DIR if path is None else path, camera, topic, stride)
     if seq.ground_truth is not None:
         load_ground_truth(seq.ground_truth)
-    summary = detect.main(path, out, conf, camera, progress, topic, stride)
+    summary = detect.main(path, out, conf, camera, progress, topic, stride, intrinsics, camera_info)
     if summary.get("ground_truth_file"):
         summary = score_run(summary["out"], summary["ground_truth_file"])
     return summary

@@ -13,7 +13,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from core.conf import Bool, Choice, ConfigError, Float, Int, configure
+from core.conf import Bool, Choice, ConfigError, Float, Floats, Int, configure
+
+from .camera import COEFFICIENTS, DISTORTION_MODELS, undistort_points
 
 __all__ = ["GeometryResult", "GeometricVerifier", "pose_information", "sampson_residuals"]
 
@@ -136,14 +138,23 @@ class GeometricVerifier:
         "prefilter": True,  # essential only: first a fast fundamental-matrix MAGSAC; E runs on its inliers only
         "reject_mirrored": True,  # a pair whose inliers fit a mirror (an orientation-reversing homography) has none:
         #                           no camera motion mirrors an image, a look-alike place (or a flipped frame) can
+        "distortion_model": "none",  # lens model of the keypoints (verify/camera.py): "none", "radtan" (OpenCV's
+        #                              k1 k2 p1 p2 [k3..k6]) or "equidistant" (fisheye k1..k4); undistorted with K
+        #                              before the check (set from --camera-info, EuRoC's sensor.yaml, a bag's CameraInfo)
+        "distortion_coefficients": [],  # the model's coefficients (4, 5 or 8 for radtan, 4 for equidistant)
     }
     conf_rules: dict[str, Any] = {
         "model": Choice("auto", "essential", "fundamental", "none"), "method": Choice(*_METHODS),
         "threshold": Float(0, 100, lo_open=True), "confidence": Float(0, 1, lo_open=True, hi_open=True),
-        "max_iters": Int(1, 1_000_000), "recover_pose": Bool(), "prefilter": Bool(), "reject_mirrored": Bool()}
+        "max_iters": Int(1, 1_000_000), "recover_pose": Bool(), "prefilter": Bool(), "reject_mirrored": Bool(),
+        "distortion_model": Choice(*DISTORTION_MODELS), "distortion_coefficients": Floats(-1e3, 1e3, min_len=0)}
 
     def __init__(self, conf: dict[str, Any] | None = None) -> None:
         self.conf = configure(self, conf, "geometry")
+        model, n = self.conf["distortion_model"], len(self.conf["distortion_coefficients"])
+        if model != "none" and n not in COEFFICIENTS[model]:
+            raise ConfigError(f"geometry.distortion_coefficients: the {model} model takes "
+                              f"{' or '.join(map(str, COEFFICIENTS[model]))} coefficients, got {n}")
 
     def model_for(self, K: np.ndarray | None) -> str:
         model = self.conf["model"]
@@ -158,7 +169,8 @@ class GeometricVerifier:
         """Verifies ``M`` matched points.
 
         Args:
-            pts_q: ``(M, 2)`` query-image points.
+            pts_q: ``(M, 2)`` query-image points (distorted as the camera saw them: undistorted here with ``K`` when
+                the conf has a ``distortion_model``; the essential model's points are the undistorted ones).
             pts_c: ``(M, 2)`` candidate-image points (same order).
             K: ``(3, 3)`` intrinsics shared by both images, or None.
             min_inliers: with ``prefilter``, a pair whose fundamental-matrix inliers are fewer than this stops there
@@ -171,6 +183,9 @@ class GeometricVerifier:
         m = len(pts_q)
         if model == "none":
             return GeometryResult(0, np.zeros(m, bool), "none")
+        if K is not None and self.conf["distortion_model"] != "none":
+            dist = self.conf["distortion_model"], self.conf["distortion_coefficients"]
+            pts_q, pts_c = undistort_points(pts_q, K, *dist), undistort_points(pts_c, K, *dist)
         if m < (5 if model == "essential" else 8):
             return GeometryResult(0, np.zeros(m, bool), model)
         a = np.ascontiguousarray(pts_q, np.float64).reshape(-1, 1, 2)

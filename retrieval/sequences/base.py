@@ -18,6 +18,7 @@ import numpy as np
 from core.conf import ConfigError
 from core.errors import ImageError
 from core.images import decode_image, fingerprint, read_file
+from verify.camera import CameraModel
 
 __all__ = ["Sequence", "FrameStream", "read_numbers", "read_stamped_names", "read_file_frame", "poses_at",
            "Z_UP_TO_KITTI"]
@@ -58,6 +59,8 @@ class Sequence:
     kind: str = "folder"
     stream: FrameStream | None = field(default=None, repr=False)  #: frames inside one file (bag, video)
     poses_are_truth: bool = False  #: ``poses`` are ground truth: the loop ground truth is derived from them
+    camera: CameraModel | None = field(default=None, repr=False)  #: the camera's own model when the layout gives
+    #: one with its distortion (EuRoC ``sensor.yaml``, a bag's ``CameraInfo``); ``K`` is its ``K``
 
     def __len__(self) -> int:
         return len(self.stream) if self.stream is not None else len(self.frames)

@@ -288,3 +288,37 @@ class TestCalibrateCommand:
         err = capsys.readouterr().err
         assert code == 2 and err.startswith("error: ") and "Traceback" not in err
         assert not (tmp_path / "o").exists()
+
+
+class TestCameraOptions:
+    """``--intrinsics`` and ``--camera-info``: a plain folder (no calib.txt) gets the essential matrix and loop
+    edges; a bad camera is one error before anything is written."""
+
+    def test_intrinsics_give_a_plain_folder_its_edges(self, tmp_path, copy_sample_frames, cli_sample_run, sample_K):
+        from retrieval.run_folder import RunFolder
+
+        folder = tmp_path / "plain"
+        copy_sample_frames(range(100), folder)
+        out = tmp_path / "run"
+        out.mkdir()
+        shutil.copyfile(RunFolder(cli_sample_run[1]).calibration, RunFolder(out).calibration)  # same pixels
+        fx, fy, cx, cy = sample_K[0, 0], sample_K[1, 1], sample_K[0, 2], sample_K[1, 2]
+        assert main(["detect", str(folder), "--out", str(out), "--no-progress",
+                     "--intrinsics", f"{fx},{fy},{cx},{cy}"]) == 0
+        run = RunFolder(out)
+        assert len(run.read_edges()) == len(run.read_loops()) > 0
+        summary = json.loads(run.summary.read_text())
+        assert np.allclose(summary["camera"]["K"], sample_K) and summary["camera"]["distortion_model"] == "none"
+
+    @pytest.mark.parametrize("args, message", [
+        (["--intrinsics", "1,2,3"], "--intrinsics must be four numbers"),
+        (["--camera-info", "missing.yaml"], "cannot read camera file"),
+        (["--camera-info", "{bad}"], "takes 4 coefficients"),
+    ])
+    def test_a_bad_camera_is_one_error_and_nothing_is_written(self, tmp_path, args, message, capsys):
+        bad = tmp_path / "bad.yaml"
+        bad.write_text("intrinsics: [1, 2, 3, 4]\ndistortion_model: equidistant\ndistortion_coefficients: [1]\n")
+        args = [a.replace("{bad}", str(bad)).replace("missing.yaml", str(tmp_path / "missing.yaml")) for a in args]
+        out = tmp_path / "run"
+        assert main(["detect", "--out", str(out), "--no-progress", *args]) != 0
+        assert message in capsys.readouterr().err and not out.exists()

@@ -42,3 +42,20 @@ def test_same_loops_as_the_sample(euroc_folder, sample_loops, detect_like_sample
     # round trip: each row's stamps are data.csv's (ns -> s), its source ids the image paths in the folder
     ns = (sample_truth[:, 0] * 1e9).round().astype(np.int64)
     assert assert_frame_keys(tmp_path / "run", ns * 1e-9, [f"mav0/cam0/data/{t}.jpg" for t in ns]) > 0
+
+
+def test_sensor_yaml_distortion_and_body_pose_are_read(euroc_folder, tmp_path):
+    """EuRoC's own ``sensor.yaml`` (radial-tangential distortion and ``T_BS``) gives the sequence its camera model."""
+    import shutil
+
+    copy = tmp_path / "MH"
+    shutil.copytree(euroc_folder / "mav0" / "cam0", copy / "mav0" / "cam0")
+    (copy / "mav0" / "cam0" / "sensor.yaml").write_text(
+        "%YAML:1.0\nsensor_type: camera\nT_BS:\n  cols: 4\n  rows: 4\n  data: [0, -1, 0, -0.02, 1, 0, 0, -0.06, "
+        "0, 0, 1, 0.01, 0, 0, 0, 1]\nintrinsics: [458.654, 457.296, 367.215, 248.375]\n"
+        "distortion_model: radial-tangential\ndistortion_coefficients: [-0.28340811, 0.07395907, 0.00019359, "
+        "1.76187114e-05]\n")
+    seq = open_sequence(copy)
+    assert seq.camera.model == "radtan" and seq.camera.coefficients[0] == pytest.approx(-0.28340811)
+    assert np.allclose(seq.K, seq.camera.K) and seq.K[0, 0] == pytest.approx(458.654)
+    assert np.allclose(seq.camera.T_body_camera[:3, 3], [-0.02, -0.06, 0.01])

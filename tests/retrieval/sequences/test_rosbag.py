@@ -54,6 +54,17 @@ def test_same_loops_as_the_sample(bags, name, sample_loops, detect_like_sample, 
     assert assert_frame_keys(tmp_path / "run", times, [str(i) for i in range(len(times))]) > len(sample_loops)
 
 
+def test_camera_info_distortion_is_read(tmp_path, sample_seq, sample_images):
+    """A bag whose ``CameraInfo`` has an equidistant ``D``: the sequence's camera has it (``detect`` undistorts the
+    keypoints with it)."""
+    D = np.array([0.01, -0.02, 0.003, -0.001])
+    write_image_bag(tmp_path / "fish", sample_images[:3], np.arange(3) + 1.0, TOPIC, K=sample_seq.K,
+                    distortion=("equidistant", D))
+    seq = open_sequence(tmp_path / "fish", topic=TOPIC)
+    assert seq.camera.model == "equidistant" and np.allclose(seq.camera.coefficients, D)
+    assert np.allclose(seq.K, sample_seq.K) and seq.source_id(2) == "2"
+
+
 def test_topic_errors(bags):
     assert open_sequence(bags / "ros2").stream.topic == TOPIC  # no --topic: the bag's only image topic
     with pytest.raises(ConfigError, match=r"has no image topic /nope; image topics: /cam0/image_raw"):
