@@ -2,7 +2,8 @@
 the camera from ``mav0/cam0/sensor.yaml`` (``intrinsics: [fu, fv, cu, cv]``, ``distortion_model``,
 ``distortion_coefficients``, ``T_BS``: ``verify.camera``) and, when present, the ground truth
 ``mav0/state_groundtruth_estimate0/data.csv`` (``timestamp, p_x, p_y, p_z, q_w, q_x, q_y, q_z, ...``: the body in a
-z-up world), from which each frame gets a pose and ``evaluate`` derives the loop ground truth. PATH may be the
+z-up world), from which each frame gets its camera's pose (the body's times ``T_BS``, in EuRoC's own world) and
+``evaluate`` derives the loop ground truth. PATH may be the
 folder holding ``mav0/`` or ``mav0/`` itself.
 """
 
@@ -65,6 +66,8 @@ def open_euroc(root: Path) -> Sequence:
         if rows.shape[1] < 8:
             raise ConfigError(f"{gt}: expected at least 8 columns (timestamp, p_xyz, q_wxyz), got {rows.shape[1]}")
         track = np.column_stack([rows[:, 0] * _NS, rows[:, 1:4], rows[:, 5:8], rows[:, 4]])  # -> t, xyz, xyzw
-        seq.poses = poses_at(times, track[track[:, 0].argsort()], gt)
+        body = poses_at(times, track[track[:, 0].argsort()], gt, z_up=False)  # the body in EuRoC's z-up world
+        seq.poses = body if body is None or camera is None or camera.T_body_camera is None else \
+            body @ camera.T_body_camera  # T_WB T_BS: the camera's pose (a 3x4 times a 4x4)
         seq.poses_are_truth = seq.poses is not None
     return seq

@@ -11,6 +11,7 @@ from cli.main import main
 from core.conf import ConfigError
 from retrieval.run_folder import RunFolder
 from retrieval.sequences import open_sequence
+from retrieval.sequences.base import Z_UP_TO_KITTI
 
 
 def test_reads_frames_times_and_poses(tum_folder, sample_seq, assert_same_frames):
@@ -18,7 +19,8 @@ def test_reads_frames_times_and_poses(tum_folder, sample_seq, assert_same_frames
     assert (seq.kind, seq.K) == ("tum", None)
     assert_same_frames(seq)  # rgb.txt's order is by time, not by line
     np.testing.assert_allclose(seq.timestamps, sample_seq.timestamps + 1000.0)
-    np.testing.assert_allclose(seq.poses, sample_seq.poses, atol=1e-4)  # z-up ground truth back in KITTI's frame
+    # in the file's own z-up world (issue 30: no longer turned into KITTI's frame)
+    np.testing.assert_allclose(seq.poses, Z_UP_TO_KITTI.T @ sample_seq.poses, atol=1e-4)
     assert seq.poses_are_truth
 
 
