@@ -117,8 +117,8 @@ def run(args: Any) -> None:
         return
     if args.out is None:
         raise ConfigError(f"{args.path} holds {len(many)} sequences: pass --out DIR (one run folder a sequence)")
-    task = partial(detect_and_score, conf=conf, camera=args.camera, progress=False, topic=args.topic, stride=args.stride,
-                   intrinsics=args.intrinsics, camera_info=args.camera_info, world=args.world)
+    task = partial(detect_and_score, conf=conf, camera=args.camera, progress=False, topic=args.topic,
+                   stride=args.stride, intrinsics=args.intrinsics, camera_info=args.camera_info, world=args.world)
     rows = run_batch(many, args.out, task, args.workers, args.ray_address, not args.no_progress)
     log_table(rows, Path(args.out))
     failed = [r for r in rows if r["status"] != "ok"]

@@ -212,7 +212,7 @@ def _plots(report: dict[str, Any], out: Path, title: str, truth: GroundTruth, de
         return
     if poses is not None:
         report["plots"]["trajectory"] = str(plot_trajectory(poses, out / "trajectory.png", truth.pairs, det,
-                                                            correct, title))
+                                                            correct, title, 1 if truth.up is None else truth.up))
     else:
         report["skipped"].append("trajectory")
         log.info("no poses known for the run (ground truth is a pairs file, none beside the sequence or in "

@@ -347,7 +347,9 @@ def main(path: str | Path | None = None, out: str | Path | None = None, conf: di
         "ground_truth_file": None if truth is None else str(truth),
         "camera": None if seq.camera is None else {"source": seq.camera.source, "K": seq.camera.K.tolist(),
                                                    "distortion_model": seq.camera.model,
-                                                   "distortion_coefficients": list(seq.camera.coefficients)},
+                                                   "distortion_coefficients": list(seq.camera.coefficients),
+                                                   "T_body_camera": None if seq.camera.T_body_camera is None
+                                                   else seq.camera.T_body_camera.tolist()},
         "calibration": None if cal is None else {"notes": cal.notes, "accept_at_confidence": cal.accept_at,
                                                  "thresholds": cal.thresholds(),
                                                  "verification": bool(cal.inlier_null)},

@@ -17,8 +17,9 @@ columns.
     loop_edges.csv   EDGE_COLUMNS then the frames' keys, the same edges (sigmas instead of the information matrix)
     loop_edges.json  the same edges with ``R``, ``t``, the information matrix, the frames' keys and a note on what
                      they mean
-    ground_truth_poses.txt  the sequence's ground-truth poses, one KITTI row a frame (TUM, EuRoC: layouts whose
-                     poses are ground truth; ``evaluate`` derives the loop ground truth from them)
+    ground_truth_poses.txt  the sequence's ground-truth camera poses in the data set's own world, one KITTI row a
+                     frame (TUM, EuRoC: layouts whose poses are ground truth; ``evaluate`` derives the loop ground
+                     truth from them across the gravity axis, ``evaluation.ground_truth.up_axis``)
 
 Tables and the summary are written to a temporary file and renamed, so a crash never leaves half a file where a
 good one was; what is read back is checked (numeric, finite, integer frame ids).
@@ -75,7 +76,11 @@ class FrameKeys:
         return f"{float(self.times[i]):.9f}" if self.times is not None and 0 <= i < len(self.times) else ""
 
     def source(self, i: int) -> str:
-        return str(self.sources[i]) if 0 <= i < len(self.sources) else ""
+        """Frame ``i``'s id in the source as written: a file name's undecodable bytes (kept by Python as lone
+        surrogates) as ``\\udcff`` escapes, so that the tables stay UTF-8; "" when unknown."""
+        if not 0 <= i < len(self.sources):
+            return ""
+        return str(self.sources[i]).encode("utf-8", "backslashreplace").decode("utf-8")
 
     def row(self, a: int, b: int) -> list[str]:
         """The key columns of a pair (``key_columns``' order)."""

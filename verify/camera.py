@@ -142,7 +142,8 @@ def read_camera_file(path: str | Path, camera: str | None = None) -> CameraModel
     """
     path = Path(path)
     data = _load_yaml(path)
-    cams = sorted(k for k, v in data.items() if isinstance(k, str) and re.fullmatch(r"cam\d+", k) and isinstance(v, dict))
+    cams = sorted(k for k, v in data.items()
+                  if isinstance(k, str) and re.fullmatch(r"cam\d+", k) and isinstance(v, dict))
     if cams:  # Kalibr camchain
         name = camera or ("cam0" if "cam0" in cams else cams[0])
         if name not in cams:

@@ -140,7 +140,7 @@ class GeometricVerifier:
         #                           no camera motion mirrors an image, a look-alike place (or a flipped frame) can
         "distortion_model": "none",  # lens model of the keypoints (verify/camera.py): "none", "radtan" (OpenCV's
         #                              k1 k2 p1 p2 [k3..k6]) or "equidistant" (fisheye k1..k4); undistorted with K
-        #                              before the check (set from --camera-info, EuRoC's sensor.yaml, a bag's CameraInfo)
+        #                              before the check (from --camera-info, EuRoC's sensor.yaml, a bag's CameraInfo)
         "distortion_coefficients": [],  # the model's coefficients (4, 5 or 8 for radtan, 4 for equidistant)
     }
     conf_rules: dict[str, Any] = {

@@ -1,8 +1,8 @@
 """TUM RGB-D layout: ``rgb.txt`` (``timestamp rgb/NAME.png`` a line), ``groundtruth.txt`` (``timestamp tx ty tz qx
 qy qz qw``, the camera in the recording's world: z up for TUM's own, y down for one ``evo`` wrote from KITTI poses)
 when present. The ground truth gives each frame a pose (interpolated at its timestamp, kept in the file's world),
-from which ``evaluate`` derives the loop ground truth (the gravity axis found, or ``--world``); TUM ships no intrinsics file (the
-fundamental matrix is used).
+from which ``evaluate`` derives the loop ground truth (the gravity axis found, or ``--world``); TUM ships no
+intrinsics file (the fundamental matrix is used, unless ``--intrinsics`` or ``--camera-info`` gives the camera).
 """
 
 from __future__ import annotations
