@@ -6,9 +6,9 @@ Runs ``cae-lcd detect`` (default config) on KITTI 90 from ``../shared`` and on t
 relative pose of the ground-truth poses (``retrieval.edges.edge_errors``). Then a pose graph in gtsam
 (``pose_graph``): odometry from the ground truth with seeded noise (its noise model the noise drawn), a prior on the
 first pose, and the loops as (a) none, (b) the g2o factors as written, (c) their rotations only (the marginal
-rotation information, the translation unobserved), (d) the edges at the true length (``LoopEdge.scaled``); the end
-position error after Levenberg-Marquardt and the final chi-square against its degrees of freedom (the rank the loop
-factors add). Writes the ``loop-edges`` section of BENCHMARKS.md.
+rotation information, the translation unobserved), (d) the edges at the true length
+(``retrieval.edges.metric_edges``); the end position error after Levenberg-Marquardt and the final chi-square
+against its degrees of freedom (the rank the loop factors add). Writes the ``loop-edges`` section of BENCHMARKS.md.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from retrieval.detect import SAMPLE_DIR
-from retrieval.edges import LoopEdge, edge_errors, g2o_order
+from retrieval.edges import LENGTH_SIGMA, LoopEdge, edge_errors, g2o_order, metric_edges
 from verify.geometry import UNOBSERVED_INFORMATION
 from retrieval.run_folder import RunFolder
 from retrieval.sequences import open_sequence
@@ -38,7 +38,6 @@ KITTI_90 = REPO.parent / "shared" / "datasets" / "kitti" / "sequences" / "90"
 
 
 ODOMETRY_SIGMAS = (0.01, 0.03)  #: drawn odometry noise a frame: rotation (rad, per axis), translation (m, per axis)
-LENGTH_SIGMA = 0.05  #: the true-length edges' standard deviation along the translation, metres
 VARIANTS = ("no loops", "edges as written", "rotation only", "true scale")
 
 
@@ -49,12 +48,6 @@ def _rotation_only(e: LoopEdge) -> LoopEdge:
     info[:3, :3] = np.linalg.inv(cov[:3, :3])
     info[3:, 3:] = np.eye(3) * UNOBSERVED_INFORMATION
     return LoopEdge(e.query, e.match, e.inliers, e.R, e.t, g2o_order(info))
-
-
-def _true_scale(e: LoopEdge, poses: np.ndarray) -> LoopEdge:
-    """The edge at the ground truth's length between its frames."""
-    length = float(np.linalg.norm(poses[e.query][:3, 3] - poses[e.match][:3, 3]))
-    return e.scaled(max(length, 1e-3), LENGTH_SIGMA)
 
 
 def _rank(info: np.ndarray) -> int:
@@ -83,7 +76,7 @@ def pose_graph(poses: np.ndarray, edges: list[LoopEdge], g2o: str | Path | None 
         base.add(gtsam.BetweenFactorPose3(i, i + 1, noisy, odo_noise))
         initial.insert(i + 1, initial.atPose3(i).compose(noisy))
     loops: dict[str, list] = {"no loops": [], "rotation only": [_rotation_only(e) for e in edges],
-                              "true scale": [_true_scale(e, poses) for e in edges], "edges as written": edges}
+                              "true scale": metric_edges(edges, poses), "edges as written": edges}
     out = {}
     for name in VARIANTS:
         graph = gtsam.NonlinearFactorGraph(base)
@@ -149,7 +142,9 @@ def main(out: str | Path = "runs/bench/loop_edges", write: bool = True) -> dict[
             f"noise ({ODOMETRY_SIGMAS[0]} rad, {ODOMETRY_SIGMAS[1]} m a frame and axis; its noise model the noise "
             "drawn), a prior on the first pose; loops none, as written (`gtsam.readG2o` of `loop_edges.g2o`: rank 5, "
             "the translation's length unobserved), their rotations only (marginal rotation information), and at the "
-            f"true length (`LoopEdge.scaled`, {LENGTH_SIGMA} m along the translation). End error: the last pose's "
+            f"true length (`retrieval.edges.metric_edges` on the ground-truth poses, `cae-lcd detect --metric-edges`: "
+            f"{LENGTH_SIGMA[0]:.0%} of the length along the translation, at least {LENGTH_SIGMA[1]} m). End error: "
+            "the last pose's "
             "position, metres. Chi-square: the whole graph's at the optimum; dof: the rank the loop factors add "
             "(a consistent graph has chi-square near it).\n\n"
             + md_table(["sequence", "loops in the graph", "factors", "end error (m)", "chi-square", "dof"],

@@ -63,6 +63,9 @@ def add_parser(sub: Any) -> None:
                         "fy, cx, cy]' with distortion_model (radtan, equidistant) and distortion_coefficients; "
                         "keypoints are undistorted before the geometric check")
     add_world_argument(p, _SCORED["world"])
+    p.add_argument("--metric-edges", action="store_true", default=_SCORED["metric_from_poses"],
+                   help="loop edges at the distance between the two frames in the sequence's poses (poses you trust "
+                        "for the baseline: your odometry); default: up to scale, the length unobserved")
     p.add_argument("--ray-address", default=_BATCH["address"],
                    help="many sequences: a Ray cluster to run on (default: a local Ray)")
     p.set_defaults(func=run)
@@ -113,12 +116,14 @@ def run(args: Any) -> None:
     many = None if args.path is None else find_sequences(args.path)
     if many is None:
         log_summary(detect_and_score(args.path, args.out, conf, args.camera, not args.no_progress, args.topic,
-                                     args.stride, args.intrinsics, args.camera_info, args.world))
+                                     args.stride, args.intrinsics, args.camera_info, args.world,
+                                     args.metric_edges))
         return
     if args.out is None:
         raise ConfigError(f"{args.path} holds {len(many)} sequences: pass --out DIR (one run folder a sequence)")
     task = partial(detect_and_score, conf=conf, camera=args.camera, progress=False, topic=args.topic,
-                   stride=args.stride, intrinsics=args.intrinsics, camera_info=args.camera_info, world=args.world)
+                   stride=args.stride, intrinsics=args.intrinsics, camera_info=args.camera_info, world=args.world,
+                   metric_from_poses=args.metric_edges)
     rows = run_batch(many, args.out, task, args.workers, args.ray_address, not args.no_progress)
     log_table(rows, Path(args.out))
     failed = [r for r in rows if r["status"] != "ok"]

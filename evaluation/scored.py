@@ -18,7 +18,8 @@ __all__ = ["detect_and_score"]
 def detect_and_score(path: str | Path | None, out: str | Path | None, conf: dict[str, Any] | None = None,
                      camera: str | None = None, progress: bool = True, topic: str | None = None,
                      stride: int = 1, intrinsics: str | None = None,
-                     camera_info: str | Path | None = None, world: str = "auto") -> dict[str, Any]:
+                     camera_info: str | Path | None = None, world: str = "auto",
+                     metric_from_poses: bool = False) -> dict[str, Any]:
     """``detect.main`` on one sequence (same arguments), then the operating point against its ground truth (its
     ``loops.txt``, or loops derived from TUM / EuRoC poses across the gravity axis of ``world``: ``WORLDS``) added
     to the summary.
@@ -33,7 +34,8 @@ def detect_and_score(path: str | Path | None, out: str | Path | None, conf: dict
     seq = open_sequence(detect.SAMPLE_DIR if path is None else path, camera, topic, stride)
     if seq.ground_truth is not None:
         load_ground_truth(seq.ground_truth)
-    summary = detect.main(path, out, conf, camera, progress, topic, stride, intrinsics, camera_info)
+    summary = detect.main(path, out, conf, camera, progress, topic, stride, intrinsics, camera_info,
+                          metric_from_poses)
     if summary.get("ground_truth_file"):
         summary = score_run(summary["out"], summary["ground_truth_file"], world)
     return summary

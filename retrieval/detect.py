@@ -33,7 +33,7 @@ from .calibrate import Calibration, TooFewFrames, calibrate, calibration_frames
 from .database import KeyframeDatabase
 from .descriptors import GlobalDescriptor, create_descriptor
 from .detector import STAGES, LoopDetector, resolve_conf
-from .edges import loop_edges
+from .edges import loop_edges, metric_edges
 from .temporal import create_filter
 from .run_folder import FrameKeys, RunFolder
 from .sequences import Sequence, open_sequence
@@ -268,7 +268,8 @@ def _log_seconds(seconds: dict[str, float]) -> None:
 
 def main(path: str | Path | None = None, out: str | Path | None = None, conf: dict[str, Any] | None = None,
          camera: str | None = None, progress: bool = True, topic: str | None = None,
-         stride: int = 1, intrinsics: str | None = None, camera_info: str | Path | None = None) -> dict[str, Any]:
+         stride: int = 1, intrinsics: str | None = None, camera_info: str | Path | None = None,
+         metric_from_poses: bool = False) -> dict[str, Any]:
     """Runs loop-closure detection over a sequence and writes the run folder.
 
     Args:
@@ -285,6 +286,9 @@ def main(path: str | Path | None = None, out: str | Path | None = None, conf: di
         camera_info: a camera file (``verify.camera.read_camera_file``: ROS ``camera_info``, Kalibr camchain,
             EuRoC ``sensor.yaml`` or ``intrinsics`` + ``distortion_model`` + ``distortion_coefficients``); its
             distortion undistorts the keypoints before the geometric check. None: the sequence's own camera.
+        metric_from_poses: loop edges at the length between the two frames' positions in the sequence's poses
+            (``retrieval.edges.metric_edges``: poses you trust for the baseline, e.g. your odometry as a TUM
+            ``groundtruth.txt``); False: up to scale.
 
     Returns:
         The summary dict also written to ``summary.json``.
@@ -330,7 +334,9 @@ def main(path: str | Path | None = None, out: str | Path | None = None, conf: di
         keys = frame_keys(seq)
         loops = run.write_tables(det.db.results(), keys)
         verified = bool(cal.inlier_null) if cal is not None else bool(resolved["policy"]["verify"])
-        edges = loop_edges(det.keyframe_features, loops, seq.K, resolved) if verified else []  # a pose only where it was verified
+        edges = loop_edges(det.keyframe_features, loops, seq.K, resolved) if verified else []  # only where verified
+        if metric_from_poses:
+            edges = metric_edges(edges, seq.poses)
         run.write_edges(edges, seq.poses, keys)
         frames = det.db.frames()
         keyframes = len(det.db)
@@ -343,6 +349,7 @@ def main(path: str | Path | None = None, out: str | Path | None = None, conf: di
         "processed_this_run": len(timings),
         "resumed_at": start, "keyframes": keyframes, "gated_out": sum(e.kind == "gated" for e in frames),
         "unreadable": len(unreadable), "unreadable_files": unreadable, "loops": len(loops), "loop_edges": len(edges),
+        "metric_edges": sum(e.metric for e in edges),
         "ms_per_frame": stage_stats(timings), "seconds": seconds, "out": str(run.root),
         "ground_truth_file": None if truth is None else str(truth),
         "camera": None if seq.camera is None else {"source": seq.camera.source, "K": seq.camera.K.tolist(),

@@ -36,7 +36,7 @@ from verify.geometry import UNOBSERVED_INFORMATION, pose_information
 from verify.verifier import create_verifier
 
 __all__ = ["LoopEdge", "loop_edges", "edge_errors", "rotation_to_quaternion", "ROTATION_SIGMA_1",
-           "MODEL_VARIANCE", "g2o_order"]
+           "MODEL_VARIANCE", "g2o_order", "metric_edges", "LENGTH_SIGMA"]
 
 #: rotation standard deviation (radians) of one inlier, for an edge made without its residuals (no points kept):
 #: ``ROTATION_SIGMA_1 / sqrt(inliers)``, translation unobserved
@@ -44,6 +44,10 @@ ROTATION_SIGMA_1 = 0.1
 #: the residuals' Gauss-Newton covariance times this is the edge's covariance: the errors of KITTI 90's edges
 #: against the ground truth are this much larger (in variance) than the inliers' residuals alone predict
 MODEL_VARIANCE = 70.0
+
+#: a metric edge's standard deviation along its translation (``metric_edges``): this share of its length, at least
+#: ``LENGTH_SIGMA[1]`` metres
+LENGTH_SIGMA = (0.05, 0.02)
 
 _G2O = np.r_[3, 4, 5, 0, 1, 2]  #: gtsam's order (rotation, translation) -> g2o's (translation, rotation), and back
 
@@ -155,6 +159,20 @@ def loop_edges(features: Callable[[int], Features], loops: Iterable[tuple[int, i
             continue
         out.append(LoopEdge(int(q), int(m), int(geo.inliers), R, t, g2o_order(info),
                             sigma_px=sigma_px))
+    return out
+
+
+def metric_edges(edges: list[LoopEdge], poses: np.ndarray | None) -> list[LoopEdge]:
+    """``edges`` made metric where ``poses`` ``(N, 3|4, 4)`` (camera-to-world, metres) give both frames a position:
+    the length is the distance between them (a baseline the caller trusts: its odometry, stereo or depth), with
+    ``LENGTH_SIGMA``; the direction and rotation stay the images'. Edges without both poses stay up to scale."""
+    if poses is None:
+        return list(edges)
+    out = []
+    for e in edges:
+        ends = [poses[i][:3, 3] for i in (e.query, e.match) if i < len(poses) and np.isfinite(poses[i]).all()]
+        length = float(np.linalg.norm(ends[0] - ends[1])) if len(ends) == 2 else 0.0
+        out.append(e.scaled(length, max(LENGTH_SIGMA[0] * length, LENGTH_SIGMA[1])) if length > 1e-3 else e)
     return out
 
 

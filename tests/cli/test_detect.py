@@ -322,3 +322,17 @@ class TestCameraOptions:
         out = tmp_path / "run"
         assert main(["detect", "--out", str(out), "--no-progress", *args]) != 0
         assert message in capsys.readouterr().err and not out.exists()
+
+    def test_metric_edges_from_the_sequence_poses(self, tmp_path, cli_sample_run, sample_poses):
+        from retrieval.run_folder import RunFolder
+
+        out = tmp_path / "run"
+        out.mkdir()
+        shutil.copyfile(RunFolder(cli_sample_run[1]).calibration, RunFolder(out).calibration)
+        assert main(["detect", "--out", str(out), "--no-progress", "--metric-edges"]) == 0
+        edges = RunFolder(out).read_edge_list()
+        assert edges and all(e.metric for e in edges)
+        for e in edges:
+            assert np.linalg.norm(e.t) == pytest.approx(np.linalg.norm(sample_poses[e.query][:, 3]
+                                                                       - sample_poses[e.match][:, 3]), rel=1e-6)
+        assert json.loads(RunFolder(out).summary.read_text())["metric_edges"] == len(edges)

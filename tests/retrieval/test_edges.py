@@ -199,3 +199,19 @@ def test_fisheye_frames_give_the_pinhole_loops_and_rotations(kitti_sequences, tm
     assert min(e.inliers for e in fisheye) >= 0.5 * min(e.inliers for e in base)
     assert rotation_gaps(fisheye, base).max() < 0.5
     assert rotation_gaps(edges(warped, {}), base).max() > 0.5
+
+
+def test_metric_edges_take_the_length_from_the_poses(sift_features, sample_K, sample_seq):
+    from retrieval.edges import LENGTH_SIGMA, metric_edges
+
+    edges = loop_edges(sift_features, PAIRS, sample_K, {})
+    poses = sample_seq.poses.copy()
+    poses[PAIRS[-1][0]] = np.nan  # a frame without a pose: its edge stays up to scale
+    metric = metric_edges(edges, poses)
+    for e, m in zip(edges[:-1], metric[:-1]):
+        length = np.linalg.norm(poses[e.query][:, 3] - poses[e.match][:, 3])
+        assert m.metric and np.linalg.norm(m.t) == pytest.approx(length) and np.allclose(m.R, e.R)
+        u = np.r_[np.zeros(3), e.R.T @ e.t]
+        assert u @ g2o_order(m.information()) @ u == pytest.approx(1 / max(LENGTH_SIGMA[0] * length,
+                                                                           LENGTH_SIGMA[1]) ** 2, rel=1e-6)
+    assert not metric[-1].metric and metric_edges(edges, None) == edges
