@@ -151,7 +151,16 @@ class GeometricVerifier:
 
     def __init__(self, conf: dict[str, Any] | None = None) -> None:
         self.conf = configure(self, conf, "geometry")
-        model, n = self.conf["distortion_model"], len(self.conf["distortion_coefficients"])
+        self.check_section(self.conf)
+
+    @staticmethod
+    def check_section(conf: dict[str, Any]) -> None:
+        """What the rules of single values cannot check: the distortion model's coefficient count.
+
+        Raises:
+            ConfigError: a count the model does not take.
+        """
+        model, n = conf["distortion_model"], len(conf["distortion_coefficients"])
         if model != "none" and n not in COEFFICIENTS[model]:
             raise ConfigError(f"geometry.distortion_coefficients: the {model} model takes "
                               f"{' or '.join(map(str, COEFFICIENTS[model]))} coefficients, got {n}")

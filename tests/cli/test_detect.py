@@ -314,11 +314,15 @@ class TestCameraOptions:
         (["--intrinsics", "1,2,3"], "--intrinsics must be four numbers"),
         (["--camera-info", "missing.yaml"], "cannot read camera file"),
         (["--camera-info", "{bad}"], "takes 4 coefficients"),
+        (["--config", "{badconf}"], "takes 4 coefficients"),  # the conf's own check, before anything is written
     ])
     def test_a_bad_camera_is_one_error_and_nothing_is_written(self, tmp_path, args, message, capsys):
         bad = tmp_path / "bad.yaml"
         bad.write_text("intrinsics: [1, 2, 3, 4]\ndistortion_model: equidistant\ndistortion_coefficients: [1]\n")
-        args = [a.replace("{bad}", str(bad)).replace("missing.yaml", str(tmp_path / "missing.yaml")) for a in args]
+        badconf = tmp_path / "conf.yaml"
+        badconf.write_text("geometry:\n  distortion_model: equidistant\n  distortion_coefficients: [0.1]\n")
+        args = [a.replace("{bad}", str(bad)).replace("{badconf}", str(badconf))
+                .replace("missing.yaml", str(tmp_path / "missing.yaml")) for a in args]
         out = tmp_path / "run"
         assert main(["detect", "--out", str(out), "--no-progress", *args]) != 0
         assert message in capsys.readouterr().err and not out.exists()
