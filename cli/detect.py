@@ -10,6 +10,8 @@ from typing import Any
 from core.cli import api_defaults
 from core.conf import ConfigError, load_conf_file
 from evaluation.scored import detect_and_score
+
+from .evaluate import add_world_argument
 from retrieval import detect
 from retrieval.methods import METHODS, method_conf
 from retrieval.batch import run_batch
@@ -21,6 +23,7 @@ log = logging.getLogger("cae_lcd.detect")
 
 _DEFAULTS = api_defaults(detect.main)
 _BATCH = api_defaults(run_batch)
+_SCORED = api_defaults(detect_and_score)
 
 
 def log_summary(s: dict[str, Any]) -> None:
@@ -53,6 +56,17 @@ def add_parser(sub: Any) -> None:
                    "holding many sequences (a folder of them, or a .txt list): one run folder a sequence in OUT")
     p.add_argument("--workers", type=int, default=_BATCH["workers"],
                    help="many sequences: sequences at once on a local Ray (default: one a core)")
+    p.add_argument("--intrinsics", default=_DEFAULTS["intrinsics"], metavar="FX,FY,CX,CY",
+                   help="the camera's intrinsics in pixels (over the sequence's own and --camera-info's): enables the "
+                        "essential matrix and the loop edges for a folder, a video or TUM")
+    p.add_argument("--camera-info", default=_DEFAULTS["camera_info"], metavar="FILE",
+                   help="a camera file: ROS camera_info YAML, Kalibr camchain, EuRoC sensor.yaml, or 'intrinsics: [fx, "
+                        "fy, cx, cy]' with distortion_model (radtan, equidistant) and distortion_coefficients; "
+                        "keypoints are undistorted before the geometric check")
+    add_world_argument(p, _SCORED["world"])
+    p.add_argument("--metric-edges", action="store_true", default=_SCORED["metric_from_poses"],
+                   help="loop edges at the distance between the two frames in the sequence's poses (poses you trust "
+                        "for the baseline: your odometry); default: up to scale, the length unobserved")
     p.add_argument("--ray-address", default=_BATCH["address"],
                    help="many sequences: a Ray cluster to run on (default: a local Ray)")
     p.set_defaults(func=run)
@@ -103,11 +117,14 @@ def run(args: Any) -> None:
     many = None if args.path is None else find_sequences(args.path)
     if many is None:
         log_summary(detect_and_score(args.path, args.out, conf, args.camera, not args.no_progress, args.topic,
-                                     args.stride))
+                                     args.stride, args.intrinsics, args.camera_info, args.world,
+                                     args.metric_edges))
         return
     if args.out is None:
         raise ConfigError(f"{args.path} holds {len(many)} sequences: pass --out DIR (one run folder a sequence)")
-    task = partial(detect_and_score, conf=conf, camera=args.camera, progress=False, topic=args.topic, stride=args.stride)
+    task = partial(detect_and_score, conf=conf, camera=args.camera, progress=False, topic=args.topic,
+                   stride=args.stride, intrinsics=args.intrinsics, camera_info=args.camera_info, world=args.world,
+                   metric_from_poses=args.metric_edges)
     rows = run_batch(many, args.out, task, args.workers, args.ray_address, not args.no_progress)
     log_table(rows, Path(args.out))
     failed = [r for r in rows if r["status"] != "ok"]

@@ -7,9 +7,10 @@ from typing import Any
 
 from core.cli import api_defaults
 from evaluation import evaluate
+from evaluation.ground_truth import WORLDS
 from evaluation.metrics import SCORES
 
-__all__ = ["add_parser", "run"]
+__all__ = ["add_parser", "run", "add_world_argument"]
 
 _DEFAULTS = api_defaults(evaluate.main)
 
@@ -30,9 +31,18 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--times", help="times.txt for --min-gap-s (default: the run's sequence's times.txt)")
     p.add_argument("--score", choices=SCORES, default=_DEFAULTS["score"],
                    help="score swept for the PR curve (default %(default)s)")
+    add_world_argument(p, _DEFAULTS["world"])
     p.set_defaults(func=run)
+
+
+def add_world_argument(p: Any, default: str) -> None:
+    """``--world``: the ground-truth poses' world convention (``evaluation.ground_truth.WORLDS``)."""
+    p.add_argument("--world", choices=list(WORLDS), default=default,
+                   help="ground-truth poses' world: z-up (TUM, EuRoC), y-down (KITTI, evo from KITTI poses) or auto "
+                        "(the gravity axis found from the trajectory; default %(default)s)")
 
 
 def run(args: Any) -> None:
     evaluate.main(Path(args.run), None if args.gt is None else Path(args.gt), None if args.out is None else Path(args.out), args.radius,
-                  args.min_gap, args.min_gap_s, args.score, None if args.times is None else Path(args.times))
+                  args.min_gap, args.min_gap_s, args.score, None if args.times is None else Path(args.times),
+                  args.world)

@@ -25,7 +25,7 @@ from retrieval.database import KeyframeDatabase
 from retrieval.run_folder import CANDIDATE_COLUMNS, LOOPS_COLUMNS, RunFolder, read_csv_table
 from retrieval.sequences import kitti_metadata_file, open_sequence, read_kitti_poses, read_times
 
-from .ground_truth import GroundTruth, load_ground_truth, sniff_ground_truth
+from .ground_truth import WORLDS, GroundTruth, in_run_ids, load_ground_truth, sniff_ground_truth
 from .metrics import SCORES, best_per_query, correct_mask, pr_curve, precision_recall, recall_at_k
 
 __all__ = ["FORMAT_VERSION", "KS", "main", "score_run"]
@@ -37,21 +37,24 @@ KS = (1, 5, 10)  #: Recall@k cut-offs
 MAX_PLOTTED_FRAMES = 200_000  #: larger runs get no trajectory/similarity plot (the report is still complete)
 
 
-def score_run(run_dir: str | Path, gt: str | Path) -> dict[str, Any]:
-    """Adds the operating point against ``gt`` to a run's ``summary.json`` (as ``"ground_truth"``).
+def score_run(run_dir: str | Path, gt: str | Path, world: str = "auto") -> dict[str, Any]:
+    """Adds the operating point against ``gt`` to a run's ``summary.json`` (as ``"ground_truth"``, and the world
+    convention as ``"world"`` for a later ``evaluate``).
 
     Args:
         run_dir: a run folder written by ``retrieval.detect.main``.
         gt: pairs file or KITTI poses file (``load_ground_truth`` defaults).
+        world: the poses' world convention (``evaluation.ground_truth.WORLDS``).
 
     Returns:
         The updated summary.
     """
     run = RunFolder(Path(run_dir))
-    truth = load_ground_truth(gt)
     summary = run.read_summary()
+    truth = _source_numbered(load_ground_truth(gt, world=world), gt, summary)
     pairs = read_csv_table(run.loops, LOOPS_COLUMNS[:2]).astype(np.int64)
     summary["ground_truth"] = precision_recall(pairs, truth.pairs).as_dict()
+    summary["world"] = world
     run.write_summary(summary)
     return summary
 
@@ -89,8 +92,11 @@ def _resolve_run(run: Path) -> tuple[Path, Path]:
 
 
 def _load_truth(gt: Path, radius: float, min_gap: int, min_gap_s: float | None, times: Path | None,
-                summary: dict[str, Any]) -> tuple[GroundTruth, bool]:
-    """The ground truth, and whether a time gap was used."""
+                summary: dict[str, Any], world: str = "auto") -> tuple[GroundTruth, bool]:
+    """The ground truth (``world``: "auto" takes the one ``detect`` scored with, when it said), and whether a time
+    gap was used."""
+    if world == "auto" and summary.get("world") in WORLDS:
+        world = summary["world"]
     timestamps = None
     if min_gap_s is not None and sniff_ground_truth(gt) == "poses":
         sequence = summary.get("sequence")
@@ -99,7 +105,18 @@ def _load_truth(gt: Path, radius: float, min_gap: int, min_gap_s: float | None, 
         if tpath is None:
             raise ConfigError("--min-gap-s needs timestamps: pass --times, or run on a sequence with times.txt")
         timestamps = read_times(tpath)
-    return load_ground_truth(gt, radius, min_gap, timestamps, min_gap_s), timestamps is not None
+    return _source_numbered(load_ground_truth(gt, radius, min_gap, timestamps, min_gap_s, world), gt, summary), \
+        timestamps is not None
+
+
+def _source_numbered(truth: GroundTruth, gt: str | Path, summary: dict[str, Any]) -> GroundTruth:
+    """``truth`` in the run's frame ids: a run of every n-th frame of a video (``summary["stride"]``) scored against
+    a ground truth given in the video's own frame numbers (not the one ``detect`` wrote for the run itself)."""
+    stride = summary.get("stride", 1)
+    own = summary.get("ground_truth_file")
+    if not isinstance(stride, int) or stride <= 1 or (isinstance(own, str) and Path(own) == Path(gt)):
+        return truth
+    return in_run_ids(truth, stride)
 
 
 def _frame_count(summary: dict[str, Any], ids_seen: np.ndarray, truth: GroundTruth) -> int:
@@ -195,7 +212,7 @@ def _plots(report: dict[str, Any], out: Path, title: str, truth: GroundTruth, de
         return
     if poses is not None:
         report["plots"]["trajectory"] = str(plot_trajectory(poses, out / "trajectory.png", truth.pairs, det,
-                                                            correct, title))
+                                                            correct, title, 1 if truth.up is None else truth.up))
     else:
         report["skipped"].append("trajectory")
         log.info("no poses known for the run (ground truth is a pairs file, none beside the sequence or in "
@@ -245,7 +262,8 @@ def _check_args(radius: float, min_gap: int, min_gap_s: float | None, score: str
 
 
 def main(run: Path, gt: Path | None = None, out: Path | None = None, radius: float = 5.0, min_gap: int = 50,
-         min_gap_s: float | None = None, score: str = "confidence", times: Path | None = None) -> dict[str, Any]:
+         min_gap_s: float | None = None, score: str = "confidence", times: Path | None = None,
+         world: str = "auto") -> dict[str, Any]:
     """Evaluates a detect run against ground truth and writes the report and plots.
 
     Args:
@@ -262,6 +280,8 @@ def main(run: Path, gt: Path | None = None, out: Path | None = None, radius: flo
         score: the score the PR curve sweeps (``evaluation.metrics.SCORES``): ``"confidence"`` (what the detector
             thresholds), ``"inliers"``, ``"cosine"`` or ``"seq_score"``.
         times: ``times.txt`` (one timestamp a frame) for ``min_gap_s``; None = the run's sequence's.
+        world: a poses ground truth's world convention (``evaluation.ground_truth.WORLDS``): ``"auto"`` takes the
+            one the run was scored with, else finds the gravity axis from the trajectory.
 
     Returns:
         The report written to ``evaluation.json``.
@@ -279,7 +299,7 @@ def main(run: Path, gt: Path | None = None, out: Path | None = None, radius: flo
         if not isinstance(gt, str):
             raise ConfigError(f"{run_dir}: its sequence has no ground truth (no loops.txt, no ground-truth poses); "
                               "pass --gt")
-    truth, used_time = _load_truth(Path(gt), radius, min_gap, min_gap_s, times, summary)
+    truth, used_time = _load_truth(Path(gt), radius, min_gap, min_gap_s, times, summary, world)
     loops = read_csv_table(loops_csv, LOOPS_COLUMNS[:2])  # the pairs are all the operating point needs
     cands = folder.read_candidates()
     ids_seen = np.concatenate([loops[:, :2].ravel(), [] if cands is None else cands[:, :2].ravel()]).astype(np.int64)

@@ -74,8 +74,9 @@ def plot_pr_curve(curve: PRCurve, path: str | Path, score: str = "inliers", oper
 
 
 def plot_trajectory(poses: np.ndarray, path: str | Path, gt_pairs: np.ndarray, detections: np.ndarray,
-                    correct: np.ndarray, title: str = "") -> Path:
-    """The x-z ground track with loops drawn as segments between the two frames' positions.
+                    correct: np.ndarray, title: str = "", up: int = 1) -> Path:
+    """The ground track (the plane across the gravity axis ``up``: x-z for KITTI's y, x-y for a z-up world) with
+    loops drawn as segments between the two frames' positions.
 
     Args:
         poses: ``(N, 3, 4)`` camera-to-world poses, row = frame id (NaN rows for unknown frames are skipped).
@@ -89,7 +90,8 @@ def plot_trajectory(poses: np.ndarray, path: str | Path, gt_pairs: np.ndarray, d
         ``path``.
     """
     poses = np.asarray(poses, np.float64).reshape(-1, 3, 4)
-    xz = poses[:, [0, 2], 3]
+    plane = [a for a in range(3) if a != up]
+    xz = poses[:, plane, 3]
     n = len(xz)
     fig = Figure(figsize=(7.0, 6.4))
     ax = fig.add_subplot()
@@ -125,7 +127,7 @@ def plot_trajectory(poses: np.ndarray, path: str | Path, gt_pairs: np.ndarray, d
             ax.scatter(xz[d[:, 0], 0], xz[d[:, 0], 1], s=16 if marker == "o" else 50, c=colour, marker=marker,
                        zorder=6, label=f"{name} ({len(d)})")
     ax.set_aspect("equal", adjustable="datalim")
-    ax.set(xlabel="x (m)", ylabel="z (m)")
+    ax.set(xlabel=f"{'xyz'[plane[0]]} (m)", ylabel=f"{'xyz'[plane[1]]} (m)")
     ax.set_title(f"{title}\ntrajectory (x-z) with loops drawn between query and match".strip(), fontsize=10)
     ax.grid(alpha=0.3)
     ax.legend(loc="best", fontsize=8)

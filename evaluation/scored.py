@@ -10,16 +10,19 @@ from retrieval import detect
 from retrieval.sequences import open_sequence
 
 from .evaluate import score_run
-from .ground_truth import load_ground_truth
+from .ground_truth import check_world, load_ground_truth
 
 __all__ = ["detect_and_score"]
 
 
 def detect_and_score(path: str | Path | None, out: str | Path | None, conf: dict[str, Any] | None = None,
                      camera: str | None = None, progress: bool = True, topic: str | None = None,
-                     stride: int = 1) -> dict[str, Any]:
+                     stride: int = 1, intrinsics: str | None = None,
+                     camera_info: str | Path | None = None, world: str = "auto",
+                     metric_from_poses: bool = False) -> dict[str, Any]:
     """``detect.main`` on one sequence (same arguments), then the operating point against its ground truth (its
-    ``loops.txt``, or loops derived from TUM / EuRoC poses) added to the summary.
+    ``loops.txt``, or loops derived from TUM / EuRoC poses across the gravity axis of ``world``: ``WORLDS``) added
+    to the summary.
 
     Returns:
         The run's summary (``summary.json``), with ``ground_truth`` when the sequence has one.
@@ -27,10 +30,12 @@ def detect_and_score(path: str | Path | None, out: str | Path | None, conf: dict
     Raises:
         ConfigError: as ``detect.main``; a broken ground-truth file is refused before anything is written.
     """
+    check_world(world)  # refused before anything is written
     seq = open_sequence(detect.SAMPLE_DIR if path is None else path, camera, topic, stride)
     if seq.ground_truth is not None:
         load_ground_truth(seq.ground_truth)
-    summary = detect.main(path, out, conf, camera, progress, topic, stride)
+    summary = detect.main(path, out, conf, camera, progress, topic, stride, intrinsics, camera_info,
+                          metric_from_poses)
     if summary.get("ground_truth_file"):
-        summary = score_run(summary["out"], summary["ground_truth_file"])
+        summary = score_run(summary["out"], summary["ground_truth_file"], world)
     return summary

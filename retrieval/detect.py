@@ -27,16 +27,19 @@ from core.files import prepare_out_dir
 from core.progress import progress_bar
 from core.threads import apply_thread_policy
 
+from verify.camera import CameraModel, camera_from_options
+
 from .calibrate import Calibration, TooFewFrames, calibrate, calibration_frames
 from .database import KeyframeDatabase
 from .descriptors import GlobalDescriptor, create_descriptor
 from .detector import STAGES, LoopDetector, resolve_conf
-from .edges import loop_edges
+from .edges import loop_edges, metric_edges
 from .temporal import create_filter
-from .run_folder import RunFolder
+from .run_folder import FrameKeys, RunFolder
 from .sequences import Sequence, open_sequence
 
-__all__ = ["SAMPLE_DIR", "main", "stage_stats", "check_same_frames", "calibrate_sequence", "default_out"]
+__all__ = ["SAMPLE_DIR", "main", "stage_stats", "check_same_frames", "calibrate_sequence", "default_out", "frame_keys",
+           "with_camera"]
 
 log = logging.getLogger(__name__)
 
@@ -226,6 +229,30 @@ def _run_frames(det: LoopDetector, seq: Sequence, start: int, progress: bool,
     return timings
 
 
+def with_camera(seq: Sequence, conf: dict[str, Any] | None, given: CameraModel | None) -> dict[str, Any]:
+    """The camera a run uses: ``given`` (``--intrinsics`` / ``--camera-info``), else the sequence's own with its
+    distortion (EuRoC ``sensor.yaml``, a bag's ``CameraInfo``); its ``K`` becomes ``seq.K`` and its distortion the
+    conf's ``geometry.distortion_*`` (returned: ``conf`` with them, unchanged without a camera model)."""
+    cam = given if given is not None else seq.camera
+    conf = dict(conf or {})
+    if cam is None:
+        return conf
+    seq.K, seq.camera = cam.K, cam
+    geometry = conf.get("geometry") or {}
+    if not isinstance(geometry, dict):
+        raise ConfigError("config section 'geometry' must be a mapping")
+    conf["geometry"] = {**geometry, **cam.geometry_conf()}
+    if cam.model != "none":
+        log.info("camera %s: %s distortion %s; keypoints undistorted before the geometric check", cam.source,
+                 cam.model, list(cam.coefficients))
+    return conf
+
+
+def frame_keys(seq: Sequence) -> FrameKeys:
+    """Each frame's timestamp and id in its source (``Sequence.source_id``), for the run folder's tables."""
+    return FrameKeys(seq.timestamps, [seq.source_id(i) for i in range(len(seq))])
+
+
 def _log_seconds(seconds: dict[str, float]) -> None:
     """One line: the wall time of the calibration (its own work apart from the run's work it did ahead) and of the
     frames."""
@@ -241,7 +268,8 @@ def _log_seconds(seconds: dict[str, float]) -> None:
 
 def main(path: str | Path | None = None, out: str | Path | None = None, conf: dict[str, Any] | None = None,
          camera: str | None = None, progress: bool = True, topic: str | None = None,
-         stride: int = 1) -> dict[str, Any]:
+         stride: int = 1, intrinsics: str | None = None, camera_info: str | Path | None = None,
+         metric_from_poses: bool = False) -> dict[str, Any]:
     """Runs loop-closure detection over a sequence and writes the run folder.
 
     Args:
@@ -254,6 +282,13 @@ def main(path: str | Path | None = None, out: str | Path | None = None, conf: di
         progress: show a progress bar.
         topic: a bag's image topic; None = the bag's only one.
         stride: a video's frames taken: every ``stride``-th.
+        intrinsics: ``"fx,fy,cx,cy"``: the camera's ``K`` (over the sequence's own, and a ``camera_info``'s).
+        camera_info: a camera file (``verify.camera.read_camera_file``: ROS ``camera_info``, Kalibr camchain,
+            EuRoC ``sensor.yaml`` or ``intrinsics`` + ``distortion_model`` + ``distortion_coefficients``); its
+            distortion undistorts the keypoints before the geometric check. None: the sequence's own camera.
+        metric_from_poses: loop edges at the length between the two frames' positions in the sequence's poses
+            (``retrieval.edges.metric_edges``: poses you trust for the baseline, e.g. your odometry as a TUM
+            ``groundtruth.txt``); False: up to scale.
 
     Returns:
         The summary dict also written to ``summary.json``.
@@ -263,7 +298,9 @@ def main(path: str | Path | None = None, out: str | Path | None = None, conf: di
             anything is written.
         DatabaseError: the database is damaged, locked or cannot be written; files already written stay as they were.
     """
+    given = camera_from_options(intrinsics, camera_info)
     seq = open_sequence(SAMPLE_DIR if path is None else path, camera, topic, stride)
+    conf = with_camera(seq, conf, given)
     resolved = resolve_conf(conf)
     apply_thread_policy(resolved["runtime"]["threads"])  # before the calibration: its whitening uses BLAS too
     out = Path(out) if out is not None else default_out(seq)
@@ -294,10 +331,13 @@ def main(path: str | Path | None = None, out: str | Path | None = None, conf: di
         seconds["frames"] = time.perf_counter() - t0
         seconds.update({f"calibration_{k}": v for k, v in (cal.seconds if cal is not None else {}).items()})
         _log_seconds(seconds)
-        loops = run.write_tables(det.db.results())
+        keys = frame_keys(seq)
+        loops = run.write_tables(det.db.results(), keys)
         verified = bool(cal.inlier_null) if cal is not None else bool(resolved["policy"]["verify"])
-        edges = loop_edges(det.keyframe_features, loops, seq.K, resolved) if verified else []  # a pose only where it was verified
-        run.write_edges(edges, seq.poses)
+        edges = loop_edges(det.keyframe_features, loops, seq.K, resolved) if verified else []  # only where verified
+        if metric_from_poses:
+            edges = metric_edges(edges, seq.poses)
+        run.write_edges(edges, seq.poses, keys)
         frames = det.db.frames()
         keyframes = len(det.db)
     unreadable = [e.source for e in frames if e.kind == "unreadable"]
@@ -305,11 +345,18 @@ def main(path: str | Path | None = None, out: str | Path | None = None, conf: di
     if truth is None and seq.poses_are_truth and seq.poses is not None:
         truth = run.write_ground_truth_poses(seq.poses)
     summary: dict[str, Any] = {
-        "sequence": str(seq.root.resolve()), "frames": len(seq), "processed_this_run": len(timings),
+        "sequence": str(seq.root.resolve()), "frames": len(seq), "stride": stride,
+        "processed_this_run": len(timings),
         "resumed_at": start, "keyframes": keyframes, "gated_out": sum(e.kind == "gated" for e in frames),
         "unreadable": len(unreadable), "unreadable_files": unreadable, "loops": len(loops), "loop_edges": len(edges),
+        "metric_edges": sum(e.metric for e in edges),
         "ms_per_frame": stage_stats(timings), "seconds": seconds, "out": str(run.root),
         "ground_truth_file": None if truth is None else str(truth),
+        "camera": None if seq.camera is None else {"source": seq.camera.source, "K": seq.camera.K.tolist(),
+                                                   "distortion_model": seq.camera.model,
+                                                   "distortion_coefficients": list(seq.camera.coefficients),
+                                                   "T_body_camera": None if seq.camera.T_body_camera is None
+                                                   else seq.camera.T_body_camera.tolist()},
         "calibration": None if cal is None else {"notes": cal.notes, "accept_at_confidence": cal.accept_at,
                                                  "thresholds": cal.thresholds(),
                                                  "verification": bool(cal.inlier_null)},

@@ -196,6 +196,9 @@ def resolve_conf(conf: dict[str, Any] | None = None) -> dict[str, Any]:
         base[section] = units[section].default_conf
     resolved = merge_conf(base, conf)
     check_conf(resolved, {**conf_rules, **{s: unit.conf_rules for s, unit in units.items()}})
+    for section, unit in units.items():  # what one value's rule cannot say (values that must agree)
+        if hasattr(unit, "check_section"):
+            unit.check_section(resolved[section])
     if resolved["calibration"]["enabled"] and units["descriptor"].searched_by != "cosine":
         raise ConfigError(f"calibration.enabled needs a descriptor compared by cosine; "
                           f"'{resolved['descriptor']['name']}' is compared by {units['descriptor'].searched_by}: set "

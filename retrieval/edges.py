@@ -1,40 +1,61 @@
-"""Loop edges for a pose-graph back end: for each accepted loop, the relative pose that the verification found.
+"""Loop edges for a pose-graph back end: for each accepted loop, the relative pose that the verification found, with
+the uncertainty its inliers actually have.
 
-The verification (``verify.verifier``) matches the query's local features against the match's, then RANSAC on the
-essential matrix gives ``R, t`` with ``x_match = R x_query + t`` for a point ``x`` in each camera's frame, i.e. the
-pose of the query camera in the match camera's frame. Here it is computed again from the keyframes' features
-(``LoopDetector.keyframe_features``: stored, cached, or extracted again where the run extracted them lazily) with the
-run's own matcher and geometry settings (the same features as stored, keypoints kept to 1/8 pixel, and the same
-deterministic RANSAC: the inliers of ``loops.csv`` within a few; a resumed run gets its edges too). ``t`` is a unit direction: from two images
-without depth the length of the baseline cannot be known, so **the translation is up to scale**.
+The verification (``verify.verifier``) matches the query's local features against the match's (keypoints undistorted
+when the camera has a distortion model: ``geometry.distortion``), then RANSAC on the essential matrix gives ``R, t``
+with ``x_match = R x_query + t`` for a point ``x`` in each camera's frame, i.e. the pose of the query camera in the
+match camera's frame. Here it is computed again from the keyframes' features (``LoopDetector.keyframe_features``)
+with the run's own matcher and geometry settings (the inliers of ``loops.csv`` within a few; a resumed run gets its
+edges too). From two images without depth the length of the baseline cannot be known: ``t`` is written as a unit
+direction and **the edge says so in its information matrix**.
 
-Information matrix (the rule, in g2o's order ``x y z`` then the three rotation components): each of the ``n``
-inliers is taken as one independent measurement, so variances shrink as ``1 / n``::
+Information (``verify.geometry.pose_information``): the Gauss-Newton information of the inliers' Sampson residuals
+(pixel noise estimated from the residuals themselves), in gtsam's ``Pose3`` tangent (right perturbation), divided by
+``MODEL_VARIANCE`` (what the residuals of one pair cannot see: calibration, the ground-truth-free correlation of
+neighbouring features; measured on KITTI 90 and the bundled sample, ``python -m bench.loop_edges``). Its rank is 5:
+rotation (3) and the translation's direction (2, at the written length 1); along the translation's length it is
+``UNOBSERVED_INFORMATION`` (1e-6: a standard deviation of 1000 units), so an optimiser takes the length from the rest
+of the graph. The files write it in g2o's order (translation ``x y z``, then rotation), the rotation block in
+radians of the rotation vector (as ``gtsam.readG2o`` reads it; g2o's own ``EdgeSE3`` measures the quaternion's
+vector part, half the angle: multiply the rotation rows and columns by 2 there).
 
-    sigma_rot(n)   = ROTATION_SIGMA_1 / sqrt(n)      radians
-    sigma_trans(n) = TRANSLATION_SIGMA_1 / sqrt(n)   in units of the unit translation (scale unknown)
-    information    = diag(1/sigma_trans^2 x 3, 1/sigma_rot^2 x 3)
-
-``ROTATION_SIGMA_1 = 0.1`` rad makes 100 inliers a 0.57-degree standard deviation, above the rotation errors measured
-on KITTI 90 (``python -m bench.loop_edges``, BENCHMARKS.md), so the edges are not over-confident; the translation
-stays weak on purpose (a back end should fit its scale or down-weight it).
+A metric edge (``LoopEdge.scaled``): when the baseline's length is known (stereo, depth, or the distance between the
+two frames of a trajectory the caller trusts), the translation is scaled to it, its direction information divided
+by the length squared and the length given its own standard deviation.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Callable, Iterable
 
 import numpy as np
 
 from verify.features import Features
+from verify.geometry import UNOBSERVED_INFORMATION, pose_information
 from verify.verifier import create_verifier
 
 __all__ = ["LoopEdge", "loop_edges", "edge_errors", "rotation_to_quaternion", "ROTATION_SIGMA_1",
-           "TRANSLATION_SIGMA_1"]
+           "MODEL_VARIANCE", "g2o_order", "metric_edges", "LENGTH_SIGMA"]
 
-ROTATION_SIGMA_1 = 0.1  #: rotation standard deviation (radians) an edge would have from one inlier
-TRANSLATION_SIGMA_1 = 1.0  #: translation-direction standard deviation from one inlier (the translation is unit)
+#: rotation standard deviation (radians) of one inlier, for an edge made without its residuals (no points kept):
+#: ``ROTATION_SIGMA_1 / sqrt(inliers)``, translation unobserved
+ROTATION_SIGMA_1 = 0.1
+#: the residuals' Gauss-Newton covariance times this is the edge's covariance: the errors of KITTI 90's edges
+#: against the ground truth are this much larger (in variance) than the inliers' residuals alone predict
+MODEL_VARIANCE = 70.0
+
+#: a metric edge's standard deviation along its translation (``metric_edges``): this share of its length, at least
+#: ``LENGTH_SIGMA[1]`` metres
+LENGTH_SIGMA = (0.05, 0.02)
+
+_G2O = np.r_[3, 4, 5, 0, 1, 2]  #: gtsam's order (rotation, translation) -> g2o's (translation, rotation), and back
+
+
+def g2o_order(info: np.ndarray) -> np.ndarray:
+    """A ``(6, 6)`` matrix in gtsam's order (rotation, translation) -> g2o's (translation, rotation); the same
+    permutation turns it back."""
+    return np.asarray(info)[np.ix_(_G2O, _G2O)]
 
 
 @dataclass(frozen=True)
@@ -45,17 +66,51 @@ class LoopEdge:
     match: int  #: the earlier frame it closes on (the g2o edge's first vertex)
     inliers: int  #: geometric inliers of the verification
     R: np.ndarray  #: (3, 3) rotation, query camera -> match camera
-    t: np.ndarray  #: (3,) unit translation direction (scale unknown)
+    t: np.ndarray  #: (3,) translation: a unit direction, or metres when ``metric``
+    info: np.ndarray | None = None  #: (6, 6) information, g2o's order; None: the inlier rule (``information``)
+    metric: bool = False  #: the translation has its metric length
+    sigma_px: float = float("nan")  #: standard deviation of the inliers' Sampson residuals, pixels
 
     def information(self) -> np.ndarray:
-        """``(6, 6)`` diagonal information matrix in g2o's order (translation x y z, then rotation): the module's
-        rule."""
+        """``(6, 6)`` information matrix in g2o's order (translation x y z, then rotation vector): the residuals'
+        (module doc), or, for an edge made without them, rotation ``inliers / ROTATION_SIGMA_1^2`` and the
+        translation unobserved."""
+        if self.info is not None:
+            return np.asarray(self.info, np.float64)
         n = max(self.inliers, 1)
-        return np.diag([n / TRANSLATION_SIGMA_1**2] * 3 + [n / ROTATION_SIGMA_1**2] * 3)
+        return np.diag([UNOBSERVED_INFORMATION] * 3 + [n / ROTATION_SIGMA_1**2] * 3)
+
+    def sigmas(self) -> tuple[float, float]:
+        """``(rotation, translation direction)`` standard deviations, radians: the root mean marginal variance of
+        the rotation vector, and of the translation across its direction divided by its length."""
+        info = g2o_order(self.information())  # -> gtsam's order
+        try:
+            cov = np.linalg.inv(info)
+        except np.linalg.LinAlgError:
+            return float("inf"), float("inf")
+        u = self.R.T @ self.t / max(float(np.linalg.norm(self.t)), 1e-12)  # the length direction, query frame
+        across = np.eye(3) - np.outer(u, u)
+        lateral = float(np.trace(across @ cov[3:, 3:] @ across)) / 2
+        return (float(np.sqrt(max(np.trace(cov[:3, :3]) / 3, 0.0))),
+                float(np.sqrt(max(lateral, 0.0))) / max(float(np.linalg.norm(self.t)), 1e-12))
 
     def quaternion(self) -> np.ndarray:
         """``(4,)`` ``qx, qy, qz, qw`` of ``R`` (g2o's order), ``qw >= 0``."""
         return rotation_to_quaternion(self.R)
+
+    def scaled(self, length: float, sigma_length: float) -> "LoopEdge":
+        """This edge with a metric translation of ``length`` metres (its direction kept), the direction's
+        information divided by ``length^2`` and ``1 / sigma_length^2`` along the length (metres)."""
+        if not (length > 0 and sigma_length > 0):
+            raise ValueError(f"length and sigma_length must be > 0; got {length}, {sigma_length}")
+        unit = self.t / np.linalg.norm(self.t)
+        info = g2o_order(self.information())
+        S = np.diag([1.0, 1.0, 1.0] + [1.0 / (length * float(np.linalg.norm(self.t)))] * 3)  # unit -> metres
+        info = S @ info @ S
+        u = np.r_[np.zeros(3), self.R.T @ unit]
+        keep = np.eye(6) - np.outer(u, u)
+        info = keep @ info @ keep + np.outer(u, u) / sigma_length**2
+        return replace(self, t=unit * length, info=g2o_order(info), metric=True)
 
 
 def rotation_to_quaternion(R: np.ndarray) -> np.ndarray:
@@ -85,7 +140,8 @@ def loop_edges(features: Callable[[int], Features], loops: Iterable[tuple[int, i
         conf: the run's resolved conf (its ``matcher`` and ``geometry`` sections are used).
 
     Returns:
-        One ``LoopEdge`` per loop whose essential matrix gave a pose, in the order of ``loops``; ``[]`` without ``K``.
+        One ``LoopEdge`` per loop whose essential matrix gave a pose (and its inliers an information: at least 6),
+        in the order of ``loops``; ``[]`` without ``K``.
     """
     if K is None:
         return []
@@ -94,9 +150,29 @@ def loop_edges(features: Callable[[int], Features], loops: Iterable[tuple[int, i
     for q, m in loops:
         check = verifier.verify(features(int(q)), [features(int(m))], K)[0]
         geo = check.geometry
-        if geo.R is not None and geo.t is not None:
-            out.append(LoopEdge(int(q), int(m), int(geo.inliers), np.asarray(geo.R, np.float64),
-                                np.asarray(geo.t, np.float64).reshape(3)))
+        if geo.R is None or geo.t is None or geo.essential is None:
+            continue
+        R, t = np.asarray(geo.R, np.float64), np.asarray(geo.t, np.float64).reshape(3)
+        _, a, b, K_used = geo.essential
+        info, sigma_px = pose_information(a.reshape(-1, 2), b.reshape(-1, 2), K_used, R, t, MODEL_VARIANCE)
+        if not np.isfinite(sigma_px):
+            continue
+        out.append(LoopEdge(int(q), int(m), int(geo.inliers), R, t, g2o_order(info),
+                            sigma_px=sigma_px))
+    return out
+
+
+def metric_edges(edges: list[LoopEdge], poses: np.ndarray | None) -> list[LoopEdge]:
+    """``edges`` made metric where ``poses`` ``(N, 3|4, 4)`` (camera-to-world, metres) give both frames a position:
+    the length is the distance between them (a baseline the caller trusts: its odometry, stereo or depth), with
+    ``LENGTH_SIGMA``; the direction and rotation stay the images'. Edges without both poses stay up to scale."""
+    if poses is None:
+        return list(edges)
+    out = []
+    for e in edges:
+        ends = [poses[i][:3, 3] for i in (e.query, e.match) if i < len(poses) and np.isfinite(poses[i]).all()]
+        length = float(np.linalg.norm(ends[0] - ends[1])) if len(ends) == 2 else 0.0
+        out.append(e.scaled(length, max(LENGTH_SIGMA[0] * length, LENGTH_SIGMA[1])) if length > 1e-3 else e)
     return out
 
 

@@ -13,9 +13,11 @@ from typing import Any
 import cv2
 import numpy as np
 
-from core.conf import Bool, Choice, ConfigError, Float, Int, configure
+from core.conf import Bool, Choice, ConfigError, Float, Floats, Int, configure
 
-__all__ = ["GeometryResult", "GeometricVerifier"]
+from .camera import COEFFICIENTS, DISTORTION_MODELS, undistort_points
+
+__all__ = ["GeometryResult", "GeometricVerifier", "pose_information", "sampson_residuals"]
 
 _METHODS = {"ransac": cv2.RANSAC, "lmeds": cv2.LMEDS, "magsac": cv2.USAC_MAGSAC, "usac": cv2.USAC_DEFAULT}
 
@@ -57,6 +59,72 @@ class GeometryResult:
         return self._pose[1]
 
 
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def sampson_residuals(xq: np.ndarray, xc: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """``(n,)`` signed Sampson distances of normalised homogeneous points ``xq``, ``xc`` ``(n, 3)`` to the epipolar
+    geometry ``x_c^T [t]x R x_q = 0`` (``x_c = R x_q + t``), in normalised image units (times a focal length:
+    pixels). Invariant to the length of ``t``."""
+    E = _skew(t) @ R
+    Ex, Etx = xq @ E.T, xc @ E
+    den = np.sqrt(Ex[:, 0] ** 2 + Ex[:, 1] ** 2 + Etx[:, 0] ** 2 + Etx[:, 1] ** 2)
+    return np.sum(xc * Ex, axis=1) / np.maximum(den, 1e-15)
+
+
+#: the information along the translation's length (unobservable from two images): near zero, so that a back end
+#: can still invert the matrix (a standard deviation of 1000 units of the unit translation)
+UNOBSERVED_INFORMATION = 1e-6
+_STEP = 1e-6  #: central-difference step of the Jacobian, radians and units of the unit translation
+
+
+def pose_information(pts_q: np.ndarray, pts_c: np.ndarray, K: np.ndarray, R: np.ndarray,
+                     t: np.ndarray, variance_factor: float = 1.0) -> tuple[np.ndarray, float]:
+    """The information of a relative pose from its inliers' epipolar residuals: what these points say about it.
+
+    The pose is perturbed on the right, as gtsam's ``Pose3`` (``T exp(xi)``, ``xi = (omega, delta)``: rotation
+    ``R exp(omega)``, translation ``t + R delta``, i.e. both in the query camera's frame), at the translation's
+    written length ``|t|``. The Sampson residual of each inlier, in pixels, is differentiated numerically (``J``,
+    ``(n, 6)``) and the pixel noise estimated from the residuals themselves (``s^2 = sum r^2 / (n - 5)``: five
+    degrees of freedom are fitted), giving the Gauss-Newton information ``J^T J / s^2``. Its rank is 5: the
+    residuals do not change along the translation's length, where ``UNOBSERVED_INFORMATION`` is put.
+
+    Args:
+        pts_q, pts_c: ``(n, 2)`` inlier pixel coordinates (undistorted) in the query and the match image.
+        K: ``(3, 3)`` intrinsics of both.
+        R, t: ``(3, 3)``, ``(3,)`` the pose (``x_c = R x_q + t``).
+        variance_factor: the covariance is multiplied by this (errors the residuals do not see).
+
+    Returns:
+        ``(info (6, 6) in gtsam's order rotation then translation, s the residuals' standard deviation in pixels)``;
+        with fewer than 6 points, or a degenerate configuration, ``(zeros, nan)``.
+    """
+    n = len(pts_q)
+    R, t = np.asarray(R, np.float64), np.asarray(t, np.float64).reshape(3)
+    if n < 6 or not np.linalg.norm(t) > 0:
+        return np.zeros((6, 6)), float("nan")
+    Kinv = np.linalg.inv(np.asarray(K, np.float64))
+    xq = np.c_[np.asarray(pts_q, np.float64).reshape(-1, 2), np.ones(n)] @ Kinv.T
+    xc = np.c_[np.asarray(pts_c, np.float64).reshape(-1, 2), np.ones(n)] @ Kinv.T
+    focal = float(np.sqrt(abs(K[0, 0] * K[1, 1])))
+
+    def residuals(xi: np.ndarray) -> np.ndarray:
+        Rx = R @ cv2.Rodrigues(xi[:3].reshape(3, 1))[0]
+        return focal * sampson_residuals(xq, xc, Rx, t + R @ xi[3:])
+
+    r0 = residuals(np.zeros(6))
+    J = np.stack([(residuals(h) - residuals(-h)) / (2 * _STEP) for h in np.eye(6) * _STEP], axis=1)
+    s2 = float(r0 @ r0) / (n - 5)
+    if not (np.isfinite(J).all() and s2 > 0):
+        return np.zeros((6, 6)), float("nan")
+    info = J.T @ J / (s2 * variance_factor)
+    along = np.r_[np.zeros(3), R.T @ t / np.linalg.norm(t)]  # the length direction, in the tangent
+    keep = np.eye(6) - np.outer(along, along)
+    info = keep @ info @ keep + UNOBSERVED_INFORMATION * np.outer(along, along)
+    return 0.5 * (info + info.T), float(np.sqrt(s2))
+
+
 class GeometricVerifier:
     """Estimates the two-view geometry of a match set with RANSAC and counts its inliers."""
 
@@ -70,14 +138,32 @@ class GeometricVerifier:
         "prefilter": True,  # essential only: first a fast fundamental-matrix MAGSAC; E runs on its inliers only
         "reject_mirrored": True,  # a pair whose inliers fit a mirror (an orientation-reversing homography) has none:
         #                           no camera motion mirrors an image, a look-alike place (or a flipped frame) can
+        "distortion_model": "none",  # lens model of the keypoints (verify/camera.py): "none", "radtan" (OpenCV's
+        #                              k1 k2 p1 p2 [k3..k6]) or "equidistant" (fisheye k1..k4); undistorted with K
+        #                              before the check (from --camera-info, EuRoC's sensor.yaml, a bag's CameraInfo)
+        "distortion_coefficients": [],  # the model's coefficients (4, 5 or 8 for radtan, 4 for equidistant)
     }
     conf_rules: dict[str, Any] = {
         "model": Choice("auto", "essential", "fundamental", "none"), "method": Choice(*_METHODS),
         "threshold": Float(0, 100, lo_open=True), "confidence": Float(0, 1, lo_open=True, hi_open=True),
-        "max_iters": Int(1, 1_000_000), "recover_pose": Bool(), "prefilter": Bool(), "reject_mirrored": Bool()}
+        "max_iters": Int(1, 1_000_000), "recover_pose": Bool(), "prefilter": Bool(), "reject_mirrored": Bool(),
+        "distortion_model": Choice(*DISTORTION_MODELS), "distortion_coefficients": Floats(-1e3, 1e3, min_len=0)}
 
     def __init__(self, conf: dict[str, Any] | None = None) -> None:
         self.conf = configure(self, conf, "geometry")
+        self.check_section(self.conf)
+
+    @staticmethod
+    def check_section(conf: dict[str, Any]) -> None:
+        """What the rules of single values cannot check: the distortion model's coefficient count.
+
+        Raises:
+            ConfigError: a count the model does not take.
+        """
+        model, n = conf["distortion_model"], len(conf["distortion_coefficients"])
+        if model != "none" and n not in COEFFICIENTS[model]:
+            raise ConfigError(f"geometry.distortion_coefficients: the {model} model takes "
+                              f"{' or '.join(map(str, COEFFICIENTS[model]))} coefficients, got {n}")
 
     def model_for(self, K: np.ndarray | None) -> str:
         model = self.conf["model"]
@@ -92,7 +178,8 @@ class GeometricVerifier:
         """Verifies ``M`` matched points.
 
         Args:
-            pts_q: ``(M, 2)`` query-image points.
+            pts_q: ``(M, 2)`` query-image points (distorted as the camera saw them: undistorted here with ``K`` when
+                the conf has a ``distortion_model``; the essential model's points are the undistorted ones).
             pts_c: ``(M, 2)`` candidate-image points (same order).
             K: ``(3, 3)`` intrinsics shared by both images, or None.
             min_inliers: with ``prefilter``, a pair whose fundamental-matrix inliers are fewer than this stops there
@@ -105,6 +192,9 @@ class GeometricVerifier:
         m = len(pts_q)
         if model == "none":
             return GeometryResult(0, np.zeros(m, bool), "none")
+        if K is not None and self.conf["distortion_model"] != "none":
+            dist = self.conf["distortion_model"], self.conf["distortion_coefficients"]
+            pts_q, pts_c = undistort_points(pts_q, K, *dist), undistort_points(pts_c, K, *dist)
         if m < (5 if model == "essential" else 8):
             return GeometryResult(0, np.zeros(m, bool), model)
         a = np.ascontiguousarray(pts_q, np.float64).reshape(-1, 1, 2)

@@ -18,6 +18,7 @@ import numpy as np
 from core.conf import ConfigError
 from core.errors import ImageError
 from core.images import decode_image, fingerprint, read_file
+from verify.camera import CameraModel
 
 __all__ = ["Sequence", "FrameStream", "read_numbers", "read_stamped_names", "read_file_frame", "poses_at",
            "Z_UP_TO_KITTI"]
@@ -42,6 +43,10 @@ class FrameStream(Protocol):
         """Frame ``i`` as ``(image (H, W[, 3]) or the reason it cannot be read, fingerprint of its bytes)``."""
         ...
 
+    def source_id(self, i: int) -> str:
+        """Frame ``i``'s id in the file as its own tools number it (a video frame number, a bag message index)."""
+        ...
+
 
 @dataclass
 class Sequence:
@@ -54,6 +59,8 @@ class Sequence:
     kind: str = "folder"
     stream: FrameStream | None = field(default=None, repr=False)  #: frames inside one file (bag, video)
     poses_are_truth: bool = False  #: ``poses`` are ground truth: the loop ground truth is derived from them
+    camera: CameraModel | None = field(default=None, repr=False)  #: the camera's own model when the layout gives
+    #: one with its distortion (EuRoC ``sensor.yaml``, a bag's ``CameraInfo``); ``K`` is its ``K``
 
     def __len__(self) -> int:
         return len(self.stream) if self.stream is not None else len(self.frames)
@@ -66,6 +73,15 @@ class Sequence:
     def frame_name(self, i: int) -> str:
         """Frame ``i``'s source as the keyframe database records it (file name, or ``stream.name(i)``)."""
         return self.stream.name(i) if self.stream is not None else self.frames[i].name
+
+    def source_id(self, i: int) -> str:
+        """Frame ``i``'s id in its source, for the user to join results with their own data: the image file's
+        path relative to the sequence (``image_0/000012.png``, ``rgb/1305031102.175304.png``), or the stream's
+        (``FrameStream.source_id``: a video's frame number, a bag's message index on the topic)."""
+        if self.stream is not None:
+            return self.stream.source_id(i)
+        path = self.frames[i]
+        return path.relative_to(self.root).as_posix() if path.is_relative_to(self.root) else path.name
 
     def read_frame(self, i: int) -> tuple[np.ndarray | ImageError, str]:
         """Frame ``i``: ``(image or the reason it cannot be read, fingerprint or "")``."""

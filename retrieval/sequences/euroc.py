@@ -1,7 +1,9 @@
 """EuRoC / ASL layout: ``mav0/cam0/data.csv`` (``timestamp [ns],NAME.png`` a line, images in ``mav0/cam0/data/``),
-intrinsics from ``mav0/cam0/sensor.yaml`` (``intrinsics: [fu, fv, cu, cv]``) and, when present, the ground truth
+the camera from ``mav0/cam0/sensor.yaml`` (``intrinsics: [fu, fv, cu, cv]``, ``distortion_model``,
+``distortion_coefficients``, ``T_BS``: ``verify.camera``) and, when present, the ground truth
 ``mav0/state_groundtruth_estimate0/data.csv`` (``timestamp, p_x, p_y, p_z, q_w, q_x, q_y, q_z, ...``: the body in a
-z-up world), from which each frame gets a pose and ``evaluate`` derives the loop ground truth. PATH may be the
+z-up world), from which each frame gets its camera's pose (the body's times ``T_BS``, in EuRoC's own world) and
+``evaluate`` derives the loop ground truth. PATH may be the
 folder holding ``mav0/`` or ``mav0/`` itself.
 """
 
@@ -11,9 +13,9 @@ import logging
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from core.conf import ConfigError
+from verify.camera import CameraModel, read_camera_file
 
 from .base import Sequence, poses_at, read_numbers, read_stamped_names
 
@@ -33,20 +35,16 @@ def is_euroc(root: Path) -> bool:
     return root.is_dir() and (_mav(root) / "cam0" / "data.csv").is_file()
 
 
-def _intrinsics(path: Path) -> np.ndarray | None:
-    """``K (3, 3)`` from a ``sensor.yaml``; None (with a warning) when absent or without valid ``intrinsics``."""
+def _camera(path: Path) -> CameraModel | None:
+    """The camera of a ``sensor.yaml`` (intrinsics, distortion, ``T_BS``: ``verify.camera``); None (with a warning)
+    when absent or without valid ``intrinsics``."""
     if not path.is_file():
         return None
-    try:  # OpenCV writes a '%YAML:1.0' directive that PyYAML refuses
-        text = "\n".join(ln for ln in path.read_text(encoding="utf-8").splitlines() if not ln.startswith("%"))
-        fu, fv, cu, cv = (float(v) for v in yaml.safe_load(text)["intrinsics"])
-    except (OSError, UnicodeDecodeError, yaml.YAMLError, KeyError, TypeError, ValueError):
-        log.warning("%s: no 'intrinsics: [fu, fv, cu, cv]'; the fundamental matrix is used", path)
+    try:
+        return read_camera_file(path)
+    except ConfigError as err:
+        log.warning("%s; the fundamental matrix is used", err)
         return None
-    if not (np.isfinite([fu, fv, cu, cv]).all() and fu > 0 and fv > 0):
-        log.warning("%s: intrinsics are not finite with fu, fv > 0; the fundamental matrix is used", path)
-        return None
-    return np.array([[fu, 0.0, cu], [0.0, fv, cv], [0.0, 0.0, 1.0]])
 
 
 def open_euroc(root: Path) -> Sequence:
@@ -59,14 +57,17 @@ def open_euroc(root: Path) -> Sequence:
     times, names = read_stamped_names(cam / "data.csv", sep=",", scale=_NS)
     if not names:
         raise ConfigError(f"{cam / 'data.csv'} lists no frame")
-    seq = Sequence(root, [cam / "data" / n for n in names], timestamps=times, K=_intrinsics(cam / "sensor.yaml"),
-                   kind="euroc")
+    camera = _camera(cam / "sensor.yaml")
+    seq = Sequence(root, [cam / "data" / n for n in names], timestamps=times, kind="euroc", camera=camera,
+                   K=None if camera is None else camera.K)
     gt = _mav(root) / "state_groundtruth_estimate0" / "data.csv"
     if gt.is_file():
         rows = read_numbers(gt, None, "ground-truth poses", sep=",")
         if rows.shape[1] < 8:
             raise ConfigError(f"{gt}: expected at least 8 columns (timestamp, p_xyz, q_wxyz), got {rows.shape[1]}")
         track = np.column_stack([rows[:, 0] * _NS, rows[:, 1:4], rows[:, 5:8], rows[:, 4]])  # -> t, xyz, xyzw
-        seq.poses = poses_at(times, track[track[:, 0].argsort()], gt)
+        body = poses_at(times, track[track[:, 0].argsort()], gt, z_up=False)  # the body in EuRoC's z-up world
+        seq.poses = body if body is None or camera is None or camera.T_body_camera is None else \
+            body @ camera.T_body_camera  # T_WB T_BS: the camera's pose (a 3x4 times a 4x4)
         seq.poses_are_truth = seq.poses is not None
     return seq

@@ -21,6 +21,7 @@ import numpy as np
 from core.conf import ConfigError
 from core.errors import ImageError
 from core.images import check_image, decode_image, fingerprint
+from verify.camera import CameraModel, distortion_model
 
 from .base import Sequence
 
@@ -106,8 +107,9 @@ def _image_topic(reader: Any, path: Path, topic: str | None) -> Any:
     return images[0]
 
 
-def _camera_info(reader: Any, image_topic: str) -> np.ndarray | None:
-    """``K (3, 3)`` from the ``CameraInfo`` topic beside ``image_topic`` (or the bag's only one); None when none."""
+def _camera_info(reader: Any, image_topic: str) -> CameraModel | None:
+    """The camera of the ``CameraInfo`` topic beside ``image_topic`` (or the bag's only one): ``K``, and its ``D``
+    with ``distortion_model`` (``verify.camera``); None when none."""
     infos = [c for c in reader.connections if c.msgtype == CAMERA_INFO]
     beside = [c for c in infos if c.topic.rsplit("/", 1)[0] == image_topic.rsplit("/", 1)[0]]
     conns = beside or (infos if len(infos) == 1 else [])
@@ -117,10 +119,16 @@ def _camera_info(reader: Any, image_topic: str) -> np.ndarray | None:
         msg = reader.deserialize(raw, conn.msgtype)
         K = np.asarray(getattr(msg, "k", getattr(msg, "K", ())), np.float64).reshape(-1)
         K = K.reshape(3, 3) if K.size == 9 else np.zeros((3, 3))
-        if np.isfinite(K).all() and K[0, 0] > 0 and K[1, 1] > 0:
-            return K
-        log.warning("%s: CameraInfo K is not a camera matrix (finite, fx and fy > 0); not used", conn.topic)
-        return None
+        if not (np.isfinite(K).all() and K[0, 0] > 0 and K[1, 1] > 0):
+            log.warning("%s: CameraInfo K is not a camera matrix (finite, fx and fy > 0); not used", conn.topic)
+            return None
+        D = np.asarray(getattr(msg, "d", getattr(msg, "D", ())), np.float64).reshape(-1)
+        try:
+            model = distortion_model(msg.distortion_model or "plumb_bob", D.tolist(), f"{conn.topic} CameraInfo")
+            return CameraModel(K, *model, source=f"{conn.topic} CameraInfo")
+        except ConfigError as err:
+            log.warning("%s; the distortion is not used", err)
+            return CameraModel(K, source=f"{conn.topic} CameraInfo")
     return None
 
 
@@ -137,6 +145,10 @@ class BagFrames:
 
     def name(self, i: int) -> str:
         return f"{self.topic}@{int(self.stamps_ns[i])}"
+
+    def source_id(self, i: int) -> str:
+        """The message's index on the topic (0 = its first message)."""
+        return str(i)
 
     def _message(self, i: int) -> Any:
         reader = getattr(self._local, "reader", None)
@@ -187,7 +199,7 @@ def open_bag(root: Path, topic: str | None = None) -> Sequence:
     try:
         conn = _image_topic(reader, root, topic)
         received, stamps = _stamps(reader, conn)
-        K = _camera_info(reader, conn.topic)
+        camera = _camera_info(reader, conn.topic)
     finally:
         reader.close()
     if not len(received):
@@ -196,27 +208,30 @@ def open_bag(root: Path, topic: str | None = None) -> Sequence:
     if not np.any(stamps != 0) or np.any(np.diff(stamps) < 0):
         log.warning("%s: header stamps unset or going backwards; using the bag's receive times", conn.topic)
         times = (received - received[0]) * 1e-9
-    if K is None:
+    if camera is None:
         log.info("%s: no CameraInfo; the fundamental matrix is used", root)
-    return Sequence(root, [], timestamps=times, K=K, kind="rosbag",
-                    stream=BagFrames(root, conn.topic, conn.msgtype, received))
+    return Sequence(root, [], timestamps=times, K=None if camera is None else camera.K, kind="rosbag",
+                    camera=camera, stream=BagFrames(root, conn.topic, conn.msgtype, received))
 
 
-def _camera_info_message(typestore: Any, header: Any, K: np.ndarray, h: int, w: int) -> Any:
+def _camera_info_message(typestore: Any, header: Any, K: np.ndarray, h: int, w: int,
+                         distortion: tuple[str, np.ndarray] = ("plumb_bob", np.zeros(5))) -> Any:
     cls = typestore.types[CAMERA_INFO]
     upper = "K" in cls.__dataclass_fields__  # ROS 1 names the matrices D, K, R, P
-    mats = {"d": np.zeros(5), "k": K.reshape(-1), "r": np.eye(3).reshape(-1),
+    mats = {"d": np.asarray(distortion[1], np.float64), "k": K.reshape(-1), "r": np.eye(3).reshape(-1),
             "p": np.hstack([K, np.zeros((3, 1))]).reshape(-1)}
     roi = typestore.types["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0,
                                                              do_rectify=False)
-    return cls(header=header, height=h, width=w, distortion_model="plumb_bob", binning_x=0, binning_y=0, roi=roi,
+    return cls(header=header, height=h, width=w, distortion_model=distortion[0], binning_x=0, binning_y=0, roi=roi,
                **{(k.upper() if upper else k): v.astype(np.float64) for k, v in mats.items()})
 
 
 def write_image_bag(path: Path, images: list[np.ndarray], times: np.ndarray, topic: str = "/cam0/image_raw",
-                    K: np.ndarray | None = None, ros1: bool = False, encoding: str = "mono8") -> None:
+                    K: np.ndarray | None = None, ros1: bool = False, encoding: str = "mono8",
+                    distortion: tuple[str, np.ndarray] = ("plumb_bob", np.zeros(5))) -> None:
     """Writes ``images`` (grey ``(H, W)`` uint8, or BGR ``(H, W, 3)`` with ``encoding="bgr8"``) at ``times`` ``(N,)``
-    seconds as ``sensor_msgs/Image`` on ``topic``, with a ``CameraInfo`` beside it when ``K`` is given: a ROS 2 bag
+    seconds as ``sensor_msgs/Image`` on ``topic``, with a ``CameraInfo`` beside it when ``K`` is given (its
+    ``distortion_model`` and ``D``: ``distortion``): a ROS 2 bag
     folder (sqlite3 storage, or mcap when ``path`` ends in ``.mcap``) or a ROS 1 ``.bag`` with ``ros1``.
     """
     from rosbags.rosbag1 import Writer as Writer1
@@ -241,4 +256,5 @@ def write_image_bag(path: Path, images: list[np.ndarray], times: np.ndarray, top
             ns = int(round(t * 1e9))
             writer.write(cam, ns, serialize(msg, IMAGE))
             if info is not None:
-                writer.write(info, ns, serialize(_camera_info_message(store, header, K, h, w), CAMERA_INFO))
+                writer.write(info, ns, serialize(_camera_info_message(store, header, K, h, w, distortion),
+                                                 CAMERA_INFO))

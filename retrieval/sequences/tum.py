@@ -1,7 +1,8 @@
 """TUM RGB-D layout: ``rgb.txt`` (``timestamp rgb/NAME.png`` a line), ``groundtruth.txt`` (``timestamp tx ty tz qx
-qy qz qw``, the camera in a z-up world) when present. The ground truth gives each frame a pose (interpolated at
-its timestamp), from which ``evaluate`` derives the loop ground truth; TUM ships no intrinsics file (the
-fundamental matrix is used).
+qy qz qw``, the camera in the recording's world: z up for TUM's own, y down for one ``evo`` wrote from KITTI poses)
+when present. The ground truth gives each frame a pose (interpolated at its timestamp, kept in the file's world),
+from which ``evaluate`` derives the loop ground truth (the gravity axis found, or ``--world``); TUM ships no
+intrinsics file (the fundamental matrix is used, unless ``--intrinsics`` or ``--camera-info`` gives the camera).
 """
 
 from __future__ import annotations
@@ -33,6 +34,6 @@ def open_tum(root: Path) -> Sequence:
     gt = root / "groundtruth.txt"
     if gt.is_file():
         track = read_numbers(gt, 8, "ground-truth poses")
-        seq.poses = poses_at(times, track[track[:, 0].argsort()], gt)
+        seq.poses = poses_at(times, track[track[:, 0].argsort()], gt, z_up=False)  # in the file's own world
         seq.poses_are_truth = seq.poses is not None
     return seq

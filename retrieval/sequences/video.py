@@ -62,6 +62,10 @@ class VideoFrames:
     def name(self, i: int) -> str:
         return f"{self.path.name}:{i * self.stride:06d}"
 
+    def source_id(self, i: int) -> str:
+        """The video's own frame number of frame ``i`` (``i * stride``)."""
+        return str(i * self.stride)
+
     def times(self) -> np.ndarray | None:
         """``(N,)`` seconds from the video's frame rate; None when it gives none."""
         return np.arange(self._len) * self.stride / self.fps if self.fps > 0 else None

@@ -15,6 +15,7 @@ import yaml
 from core.images import read_image
 from cli.main import main
 from retrieval.database import KeyframeDatabase, KeyframeRecord
+from retrieval.detect import SAMPLE_DIR
 from retrieval.detector import resolve_conf
 
 
@@ -45,9 +46,19 @@ class TestDetectSample:
         code, out = cli_sample_run
         assert code == 0
         loops = read_csv(out / "loops.csv")
-        assert loops[0] == ["query", "match", "score", "matches", "inliers", "seq_score", "confidence"]
+        assert loops[0] == ["query", "match", "score", "matches", "inliers", "seq_score", "confidence",
+                            "query_time", "match_time", "query_source", "match_source"]
         cands = read_csv(out / "candidates.csv")
-        assert cands[0] == ["query", "candidate", "score", "matches", "inliers", "seq_score", "confidence", "accepted"]
+        assert cands[0] == ["query", "candidate", "score", "matches", "inliers", "seq_score", "confidence", "accepted",
+                            "query_time", "candidate_time", "query_source", "candidate_source"]
+        # each frame's stamp (the sample's times.txt) and file, to join with the user's own trajectory
+        times = np.loadtxt(SAMPLE_DIR / "times.txt")
+        for row in loops[1:] + cands[1:]:
+            q, m = int(row[0]), int(row[1])
+            assert float(row[-4]) == pytest.approx(times[q], abs=1e-9) and float(row[-3]) == pytest.approx(times[m])
+            assert row[-2:] == [f"image_0/{q:06d}.jpg", f"image_0/{m:06d}.jpg"]
+        tum = np.loadtxt(out / "loops_tum.txt")
+        assert np.allclose(tum, [[times[int(r[0])], times[int(r[1])]] for r in loops[1:]])
         summary = json.loads((out / "summary.json").read_text())
         gt = summary["ground_truth"]
         assert gt["precision"] == 1.0
@@ -61,7 +72,7 @@ class TestDetectSample:
         _, out = cli_sample_run
         summary = json.loads((out / "summary.json").read_text())
         accept_at = summary["calibration"]["accept_at_confidence"]
-        loops = [tuple(r) for r in read_csv(out / "loops.csv")[1:]]
+        loops = [tuple(r[:7]) for r in read_csv(out / "loops.csv")[1:]]
         accepted = [tuple(r[:7]) for r in read_csv(out / "candidates.csv")[1:] if r[7] == "1"]
         assert sorted(loops) == sorted(accepted)
         for q, m, score, matches, inliers, seq_score, confidence in loops:
@@ -277,3 +288,55 @@ class TestCalibrateCommand:
         err = capsys.readouterr().err
         assert code == 2 and err.startswith("error: ") and "Traceback" not in err
         assert not (tmp_path / "o").exists()
+
+
+class TestCameraOptions:
+    """``--intrinsics`` and ``--camera-info``: a plain folder (no calib.txt) gets the essential matrix and loop
+    edges; a bad camera is one error before anything is written."""
+
+    def test_intrinsics_give_a_plain_folder_its_edges(self, tmp_path, copy_sample_frames, cli_sample_run, sample_K):
+        from retrieval.run_folder import RunFolder
+
+        folder = tmp_path / "plain"
+        copy_sample_frames(range(100), folder)
+        out = tmp_path / "run"
+        out.mkdir()
+        shutil.copyfile(RunFolder(cli_sample_run[1]).calibration, RunFolder(out).calibration)  # same pixels
+        fx, fy, cx, cy = sample_K[0, 0], sample_K[1, 1], sample_K[0, 2], sample_K[1, 2]
+        assert main(["detect", str(folder), "--out", str(out), "--no-progress",
+                     "--intrinsics", f"{fx},{fy},{cx},{cy}"]) == 0
+        run = RunFolder(out)
+        assert len(run.read_edges()) == len(run.read_loops()) > 0
+        summary = json.loads(run.summary.read_text())
+        assert np.allclose(summary["camera"]["K"], sample_K) and summary["camera"]["distortion_model"] == "none"
+
+    @pytest.mark.parametrize("args, message", [
+        (["--intrinsics", "1,2,3"], "--intrinsics must be four numbers"),
+        (["--camera-info", "missing.yaml"], "cannot read camera file"),
+        (["--camera-info", "{bad}"], "takes 4 coefficients"),
+        (["--config", "{badconf}"], "takes 4 coefficients"),  # the conf's own check, before anything is written
+    ])
+    def test_a_bad_camera_is_one_error_and_nothing_is_written(self, tmp_path, args, message, capsys):
+        bad = tmp_path / "bad.yaml"
+        bad.write_text("intrinsics: [1, 2, 3, 4]\ndistortion_model: equidistant\ndistortion_coefficients: [1]\n")
+        badconf = tmp_path / "conf.yaml"
+        badconf.write_text("geometry:\n  distortion_model: equidistant\n  distortion_coefficients: [0.1]\n")
+        args = [a.replace("{bad}", str(bad)).replace("{badconf}", str(badconf))
+                .replace("missing.yaml", str(tmp_path / "missing.yaml")) for a in args]
+        out = tmp_path / "run"
+        assert main(["detect", "--out", str(out), "--no-progress", *args]) != 0
+        assert message in capsys.readouterr().err and not out.exists()
+
+    def test_metric_edges_from_the_sequence_poses(self, tmp_path, cli_sample_run, sample_poses):
+        from retrieval.run_folder import RunFolder
+
+        out = tmp_path / "run"
+        out.mkdir()
+        shutil.copyfile(RunFolder(cli_sample_run[1]).calibration, RunFolder(out).calibration)
+        assert main(["detect", "--out", str(out), "--no-progress", "--metric-edges"]) == 0
+        edges = RunFolder(out).read_edge_list()
+        assert edges and all(e.metric for e in edges)
+        for e in edges:
+            assert np.linalg.norm(e.t) == pytest.approx(np.linalg.norm(sample_poses[e.query][:, 3]
+                                                                       - sample_poses[e.match][:, 3]), rel=1e-6)
+        assert json.loads(RunFolder(out).summary.read_text())["metric_edges"] == len(edges)

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from core.conf import ConfigError
-from evaluation.ground_truth import load_ground_truth, loops_from_poses, pair_matrix, read_loop_pairs, sniff_ground_truth
+from evaluation.ground_truth import (load_ground_truth, loops_from_poses, pair_matrix, read_loop_pairs,
+                                     sniff_ground_truth, up_axis)
 from retrieval.detect import SAMPLE_DIR
 from retrieval.sequences import read_kitti_poses
 
@@ -137,3 +138,48 @@ class TestPairMatrix:
     def test_empty(self):
         assert pair_matrix(np.zeros((0, 2)), 0).shape == (0, 0)
         assert not pair_matrix(np.zeros((0, 2)), 4).any()
+
+
+def _quat(R):
+    from retrieval.edges import rotation_to_quaternion
+
+    return rotation_to_quaternion(R)
+
+
+@pytest.mark.parametrize("world", ["y-down", "z-up"])
+def test_a_tum_ground_truth_in_either_world_gives_kittis_pairs(kitti_sequences, tmp_path, world, caplog):
+    """KITTI 90's poses written as a TUM ``groundtruth.txt`` in a y-down world (evo from KITTI poses) or turned
+    z-up: the reader keeps the file's world, the gravity axis is found, and the derived ground truth is KITTI's
+    own 749 pairs / 100 queries. Told the wrong world, it warns that the ground truth looks degenerate."""
+    from retrieval.run_folder import RunFolder
+    from retrieval.sequences import open_sequence
+    from retrieval.sequences.base import Z_UP_TO_KITTI
+
+    kitti = open_sequence(kitti_sequences / "90")
+    poses = kitti.poses if world == "y-down" else Z_UP_TO_KITTI.T @ kitti.poses
+    root = tmp_path / "tum"
+    (root / "rgb").mkdir(parents=True)
+    lines, truth = [], []
+    for t, frame, pose in zip(kitti.timestamps, kitti.frames, poses):
+        (root / "rgb" / f"{t:.6f}.png").symlink_to(frame)
+        lines.append(f"{t:.6f} rgb/{t:.6f}.png\n")
+        truth.append(" ".join(f"{v:.9f}" for v in (t, *pose[:, 3], *_quat(pose[:, :3]))) + "\n")
+    (root / "rgb.txt").write_text("".join(lines))
+    (root / "groundtruth.txt").write_text("# timestamp tx ty tz qx qy qz qw\n" + "".join(truth))
+    seq = open_sequence(root)
+    np.testing.assert_allclose(seq.poses, poses, atol=1e-4)  # the file's own world
+    (tmp_path / "run").mkdir()
+    gt_file = RunFolder(tmp_path / "run").write_ground_truth_poses(seq.poses)
+    truth = load_ground_truth(gt_file)
+    assert truth.up == (1 if world == "y-down" else 2)
+    assert len(truth.pairs) == 749 and len(truth.queries) == 100
+    np.testing.assert_array_equal(truth.pairs, load_ground_truth(kitti_sequences / "90" / "loops.txt").pairs)
+    assert load_ground_truth(gt_file, world=world).pairs.shape == (749, 2)
+    caplog.clear()
+    wrong = load_ground_truth(gt_file, world="z-up" if world == "y-down" else "y-down")
+    assert len(wrong.pairs) != 749 and "likely wrong" in caplog.text
+
+
+def test_an_unknown_world_is_refused():
+    with pytest.raises(ConfigError, match="--world must be one of"):
+        up_axis(np.zeros((3, 3, 4)), "x-left")

@@ -130,3 +130,29 @@ def detect_like_sample(cli_sample_run):
         return RunFolder(out).read_loops()[:, :2]
 
     return run
+
+
+@pytest.fixture(scope="session")
+def assert_frame_keys():
+    """``assert_frame_keys(run_dir, times, sources)``: ``_frame_keys_match``."""
+    return _frame_keys_match
+
+
+def _frame_keys_match(run_dir: Path, times: np.ndarray, sources: list[str]) -> int:
+    """Every row of the run's ``loops.csv``, ``candidates.csv`` and ``loop_edges.csv`` carries its frames' stamps
+    ``times[id]`` and source ids ``sources[id]``, and ``loops_tum.txt`` the loops' stamps; returns the rows checked."""
+    import csv
+
+    run = RunFolder(run_dir)
+    checked = 0
+    for path, other in ((run.loops, "match"), (run.candidates, "candidate"), (run.edges_csv, "match")):
+        for row in csv.DictReader(open(path, newline="")):
+            q, m = int(row["query"]), int(row[other])
+            assert float(row["query_time"]) == pytest.approx(times[q], abs=1e-6), (path.name, q)
+            assert float(row[f"{other}_time"]) == pytest.approx(times[m], abs=1e-6), (path.name, m)
+            assert (row["query_source"], row[f"{other}_source"]) == (sources[q], sources[m]), path.name
+            checked += 1
+    loops = run.read_loops()[:, :2].astype(int)
+    tum = np.loadtxt(run.loops_tum, ndmin=2)
+    np.testing.assert_allclose(tum, times[loops], atol=1e-6)
+    return checked

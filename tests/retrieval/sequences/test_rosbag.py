@@ -44,10 +44,25 @@ def test_reads_frames_stamps_and_camera_info(bags, name, storage, has_K, sample_
 
 
 @pytest.mark.parametrize("name", ["ros2", "ros2.mcap", "ros1.bag"])
-def test_same_loops_as_the_sample(bags, name, sample_loops, detect_like_sample, tmp_path):
+def test_same_loops_as_the_sample(bags, name, sample_loops, detect_like_sample, tmp_path, sample_seq,
+                                  assert_frame_keys):
     """``cae-lcd detect rec --topic /cam0/image_raw`` reads the bag lazily through the detector (ROS 2 sqlite3 and
     mcap, ROS 1)."""
     np.testing.assert_array_equal(detect_like_sample(bags / name, tmp_path / "run", "--topic", TOPIC), sample_loops)
+    # round trip: each row's stamps are the messages' header stamps, its source ids their index on the topic
+    times = sample_seq.timestamps + 1000.0
+    assert assert_frame_keys(tmp_path / "run", times, [str(i) for i in range(len(times))]) > len(sample_loops)
+
+
+def test_camera_info_distortion_is_read(tmp_path, sample_seq, sample_images):
+    """A bag whose ``CameraInfo`` has an equidistant ``D``: the sequence's camera has it (``detect`` undistorts the
+    keypoints with it)."""
+    D = np.array([0.01, -0.02, 0.003, -0.001])
+    write_image_bag(tmp_path / "fish", sample_images[:3], np.arange(3) + 1.0, TOPIC, K=sample_seq.K,
+                    distortion=("equidistant", D))
+    seq = open_sequence(tmp_path / "fish", topic=TOPIC)
+    assert seq.camera.model == "equidistant" and np.allclose(seq.camera.coefficients, D)
+    assert np.allclose(seq.K, sample_seq.K) and seq.source_id(2) == "2"
 
 
 def test_topic_errors(bags):

@@ -11,6 +11,7 @@ from cli.main import main
 from core.conf import ConfigError
 from retrieval.run_folder import RunFolder
 from retrieval.sequences import open_sequence
+from retrieval.sequences.base import Z_UP_TO_KITTI
 
 
 def test_reads_frames_times_and_poses(tum_folder, sample_seq, assert_same_frames):
@@ -18,13 +19,18 @@ def test_reads_frames_times_and_poses(tum_folder, sample_seq, assert_same_frames
     assert (seq.kind, seq.K) == ("tum", None)
     assert_same_frames(seq)  # rgb.txt's order is by time, not by line
     np.testing.assert_allclose(seq.timestamps, sample_seq.timestamps + 1000.0)
-    np.testing.assert_allclose(seq.poses, sample_seq.poses, atol=1e-4)  # z-up ground truth back in KITTI's frame
+    # in the file's own z-up world (issue 30: no longer turned into KITTI's frame)
+    np.testing.assert_allclose(seq.poses, Z_UP_TO_KITTI.T @ sample_seq.poses, atol=1e-4)
     assert seq.poses_are_truth
 
 
-def test_same_loops_as_the_sample_and_scored_from_poses(tum_folder, sample_loops, detect_like_sample, tmp_path):
+def test_same_loops_as_the_sample_and_scored_from_poses(tum_folder, sample_loops, detect_like_sample, tmp_path,
+                                                        sample_truth, assert_frame_keys):
     out = tmp_path / "run"
     np.testing.assert_array_equal(detect_like_sample(tum_folder, out), sample_loops)
+    # round trip: each row's stamps are rgb.txt's, its source ids the image paths rgb.txt lists
+    times = sample_truth[:, 0]
+    assert assert_frame_keys(out, times, [f"rgb/{t:.6f}.jpg" for t in times]) > len(sample_loops)
     summary = json.loads(RunFolder(out).summary.read_text())
     assert summary["ground_truth_file"] == str(RunFolder(out).ground_truth_poses)
     assert summary["ground_truth"]["precision"] == 1.0 and summary["ground_truth"]["recall"] >= 0.9

@@ -41,9 +41,38 @@ def test_bad_options_are_one_error(video_file, sample_dir, tmp_path):
         open_sequence(tmp_path / "broken.mp4")
 
 
-def test_same_loops_as_the_sample(video_file, sample_loops, detect_like_sample, tmp_path):
+def test_same_loops_as_the_sample(video_file, sample_loops, detect_like_sample, tmp_path, assert_frame_keys):
     """A lossless video of the sample: the frames are the sample's, so are the loops (read lazily, in order)."""
     np.testing.assert_array_equal(detect_like_sample(video_file, tmp_path / "run"), sample_loops)
+    n = 100  # 10 fps: frame i at i / 10 s, its source id the video's frame number
+    assert assert_frame_keys(tmp_path / "run", np.arange(n) / 10, [str(i) for i in range(n)]) > len(sample_loops)
+
+
+def test_a_strided_video_keeps_the_videos_frame_numbers(kitti_sequences, tmp_path, assert_frame_keys):
+    """KITTI 90 as a lossless 10 fps video, ``detect video --stride 2``: the rows carry the video's frame numbers
+    (2 x the run's ids) and stamps, and scoring against the video's own ground truth (KITTI 90's ``loops.txt``,
+    numbered by its frames) counts every loop right."""
+    import json
+
+    from cli.main import main
+    from retrieval.run_folder import RunFolder
+
+    seq = open_sequence(kitti_sequences / "90")
+    video = tmp_path / "kitti90.avi"
+    first = seq.read_frame(0)[0]
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"FFV1"), 10, first.shape[::-1], isColor=False)
+    for i in range(len(seq)):
+        writer.write(seq.read_frame(i)[0])
+    writer.release()
+    out = tmp_path / "run"
+    assert main(["detect", str(video), "--stride", "2", "--out", str(out), "--no-progress"]) == 0
+    loops = RunFolder(out).read_loops()
+    assert len(loops) > 30
+    assert assert_frame_keys(out, np.arange(100) * 2 / 10, [str(2 * i) for i in range(100)]) > len(loops)
+    assert main(["evaluate", str(out), "--gt", str(seq.ground_truth)]) == 0
+    op = json.loads((out / "evaluation.json").read_text())["operating_point"]
+    assert op["precision"] == 1.0 and op["recall"] >= 0.9
+    assert json.loads(RunFolder(out).summary.read_text())["stride"] == 2
 
 
 @pytest.mark.parametrize("fourcc, ext", [("MJPG", ".avi"), ("mp4v", ".mp4"), ("FFV1", ".avi")])
