@@ -240,7 +240,7 @@ class TestHashBudget:
                 assert FleetClient(server.url, token).overlaps() == []
                 honest.append(time.monotonic() - start)
             assert len(hashes) <= 11 and codes.count(401) == len(hashes) and codes.count(429) == 200 - len(hashes)
-            assert max(honest) < 1.0
+            assert sorted(honest)[len(honest) // 2] < 0.5 and max(honest) < 3.0  # loose: a loaded CI machine
             # one robot's name from many addresses: its own budget (the server's has none left either)
             store.verify_token = verify
             codes = [httpx.get(f"{server.url}/overlaps", headers={"Authorization": f"Bearer A.bad{j}"}).status_code
