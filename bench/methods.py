@@ -227,6 +227,7 @@ def training_study(sets: Sequence[StudySet], run_dir: str | Path, tune_conf: dic
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     base = _study_variants(run_dir)
+    window = int(resolve_conf(merge_conf({}, override, strict=False))["search"]["exclude_recent"])
     res: dict[str, Any] = {"sets": {}, "tuned": {}}
     for n, st in enumerate(sets):
         rows = dict(base)
@@ -237,7 +238,8 @@ def training_study(sets: Sequence[StudySet], run_dir: str | Path, tune_conf: dic
         frames = list(open_sequence(st.folder).frames)
         res["sets"][st.name] = {}
         for i, (label, desc) in enumerate(rows.items()):
-            rk = single_frame_retrieval(frame_codes(frames, create_descriptor(desc)), st.n_first, st.truth)
+            rk = single_frame_retrieval(frame_codes(frames, create_descriptor(desc)), st.n_first, st.truth,
+                                        exclude_recent=window)
             row: dict[str, Any] = {"r1": rk[1], "r10": rk[10]}
             if detector:
                 conf = merge_conf({"descriptor": desc}, override, strict=False)

@@ -262,8 +262,8 @@ def _methods_md(b: _Bench) -> str:
 def _training(b: _Bench) -> None:
     d = b.data
     sets = _quick_study_sets(d) if b.quick else _study_sets(b.run_dir, d)
-    tune = {"epochs": 1 if b.quick else b.training_epochs, "patience": 0, "threads": 2, **({"batch_size": 8}
-                                                                                             if b.quick else {})}
+    tune = {"epochs": 1 if b.quick else b.training_epochs, "patience": 0, "threads": 2,
+            **({"batch_size": 8, "max_images": 24} if b.quick else {})}
     log.info("training study on %s (fine-tuning for %d epochs)", ", ".join(s.name for s in sets), tune["epochs"])
     r = training_study(sets, b.run_dir / "training", tune, override=d.override)
     b.results["training"] = r

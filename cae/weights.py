@@ -24,7 +24,7 @@ __all__ = ["DEFAULT_WEIGHTS", "CHECKPOINT_VERSION", "DEVICE_PATTERN", "save_chec
 
 log = logging.getLogger(__name__)
 
-DEFAULT_WEIGHTS = Path(__file__).with_name("weights") / "cae_mixed.pt"  #: shipped: KITTI 00+07 and Nordland summer
+DEFAULT_WEIGHTS = Path(__file__).with_name("weights") / "cae_mixed.pt"  #: shipped: every frame of ../shared, place term
 CHECKPOINT_VERSION = 1
 DEVICE_PATTERN = r"auto|cpu|cuda(:[0-9]+)?"  #: the devices a conf may name
 
