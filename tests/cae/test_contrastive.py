@@ -95,3 +95,14 @@ def test_sequence_order_per_folder(tmp_path):
     folder, position = sequence_order(files)
     assert folder[0] == folder[2] != folder[1]
     assert position.tolist() == [1, 0, 0]
+
+
+def test_views_keep_shape_range_and_seed(real_frames):
+    conf = merge_conf(default_conf, {"views": {"night": 1.0, "low_res": 1.0, "jpeg": 1.0, "blur": 1.0}})
+    x = training._to_batch(real_frames.images[:3], torch.device("cpu"))
+    target, a = _view(x, np.random.default_rng(5), conf)
+    _, b = _view(x, np.random.default_rng(5), conf)
+    assert a.shape == target.shape == x.shape and torch.equal(a, b)  # one seed, one view
+    assert 0 <= float(a.min()) and float(a.max()) <= 1 and float(a.mean()) < float(x.mean())  # all made dark
+    empty = _view(x[:0], np.random.default_rng(0), conf)[1]
+    assert empty.shape == (0, *x.shape[1:])
