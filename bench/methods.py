@@ -182,14 +182,18 @@ def single_frame_retrieval(codes: np.ndarray, n_first: int, truth: np.ndarray, k
 
 
 def _study_variants(run_dir: Path) -> dict[str, dict[str, Any]]:
-    """Descriptor confs of the rows every set has: shipped weights, the same network at random init, a thumbnail."""
+    """Descriptor confs of the rows every set has: shipped weights, the place-term weights (when in the package),
+    the same network at random init, a thumbnail."""
     from cae.model import Encoder
-    from cae.weights import save_checkpoint
+    from cae.weights import PLACES_WEIGHTS, save_checkpoint
 
     torch.manual_seed(0)
     random_ckpt = run_dir / "random_encoder.pt"
     save_checkpoint(random_ckpt, Encoder(), {"init": "N(0, 0.05), torch.manual_seed(0)"})
-    return {"shipped weights": {"name": "cae"}, "same network, random init": {"name": "cae", "weights": str(random_ckpt)},
+    places = {"place-term weights (cae_places.pt)": {"name": "cae", "weights": str(PLACES_WEIGHTS)}} \
+        if PLACES_WEIGHTS.is_file() else {}
+    return {"shipped weights": {"name": "cae"}, **places,
+            "same network, random init": {"name": "cae", "weights": str(random_ckpt)},
             "thumbnail 64x48": {"name": "thumbnail"}}
 
 

@@ -271,8 +271,10 @@ def _training(b: _Bench) -> None:
                       f"{t['wall_s']:.0f} s in all" for name, t in r["tuned"].items())
     b.md["training"] = ("### Does the learned code earn its place? Shipped weights, random weights, a thumbnail and "
                         "fine-tuned weights where conditions change\n\n" + training_table(r)
-                        + "\n\n- Single frame: the second traversal against the first, codes whitened by a PCA fitted "
-                        "on the sequence's own codes (256-d at most, as the detector), cosine, no temporal filter. "
+                        + "\n\n- Single frame: each frame of the second traversal against every frame at least "
+                        "`search.exclude_recent` (50) frames older, first traversal and its own alike, codes whitened "
+                        "by a PCA fitted on the sequence's own codes (256-d at most, as the detector), cosine, no "
+                        "temporal filter. "
                         "Detector: the default config, only the descriptor differs (calibrated; max recall at 100 % "
                         "precision swept on its confidence).\n- Fine-tuned: `cae-lcd train --images DIR --init "
                         f"shipped`, 2 torch threads, without labels ({tuned or 'none'}).\n- "
