@@ -35,10 +35,10 @@ from evaluation.metrics import precision_recall, recall_at_k
 from retrieval.run_folder import RunFolder
 from retrieval.sequences import open_sequence
 
-from .augment import darken
+from .augment import darken, dusk
 from .common import detect_run, md_table, study_parser
 
-__all__ = ["plain_folder", "dark_proxy_folder", "stress_folders", "stress_sets", "evaluate", "aliasing_table", "main"]
+__all__ = ["plain_folder", "dark_proxy_folder", "dusk_folder", "stress_folders", "stress_sets", "evaluate", "aliasing_table", "main"]
 
 log = logging.getLogger(__name__)
 
@@ -84,6 +84,13 @@ def dark_proxy_folder(dst: Path, frames90: list[Path], seed: int = 0) -> Path:
     retrieval still finds the place. The proxy of issues 27 and 28 for the held-out night and indoor sets."""
     rng = np.random.default_rng(seed)
     return plain_folder(dst, frames90, (160, 120), lambda image: darken(image, rng), len(frames90) // 2)
+
+
+def dusk_folder(dst: Path, frames90: list[Path], seed: int = 0) -> Path:
+    """KITTI 90 at full size (plain folder) with its second pass turned from day to dusk by ``bench.augment.dusk``
+    (one generator seeded ``seed``): the learned-code study's third set (issue 28)."""
+    rng = np.random.default_rng(seed)
+    return plain_folder(dst, frames90, None, lambda image: dusk(image, rng), len(frames90) // 2)
 
 
 def stress_sets(data: Path, run_dir: Path) -> dict[str, tuple[Path, np.ndarray | None]]:

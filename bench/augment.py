@@ -16,7 +16,7 @@ import numpy as np
 
 from core.images import image_entries, read_image
 
-__all__ = ["shared_frames", "augment", "augmented_frames", "darken"]
+__all__ = ["shared_frames", "augment", "augmented_frames", "darken", "dusk"]
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "datasets"  #: the real data sets
 
@@ -66,6 +66,29 @@ def darken(image: np.ndarray, rng: np.random.Generator, scale: float = 0.35, gam
     """
     grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
     x = scale * np.power(grey.astype(np.float32) / 255.0, gamma) + floor
+    x = cv2.GaussianBlur(x, (0, 0), blur_sigma)
+    x = np.clip(x + rng.normal(0.0, noise_sigma, x.shape).astype(np.float32), 0, 1)
+    return (x * 255 + 0.5).astype(np.uint8)
+
+
+def dusk(image: np.ndarray, rng: np.random.Generator, scale: float = 0.45, gamma: float = 1.4, floor: float = 0.04,
+         top: float = 1.1, bottom: float = 0.7, blur_sigma: float = 0.6, noise_sigma: float = 0.012) -> np.ndarray:
+    """The day -> dusk change of the learned-code study (issue 28): less light, the ground darker than the sky.
+
+    On grey in [0, 1]: ``scale * im ** gamma + floor``, times a vertical shading from ``top`` (first row: the sky
+    keeps its light) to ``bottom`` (last row: the road loses it), a Gaussian blur of ``blur_sigma`` px, Gaussian
+    noise of ``noise_sigma``, clipped and rounded back to uint8 (a colour frame is turned grey first).
+
+    Args:
+        image: ``(H, W[, C])`` uint8.
+        rng: the noise's generator.
+
+    Returns:
+        ``(H, W)`` uint8.
+    """
+    grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    x = scale * np.power(grey.astype(np.float32) / 255.0, gamma) + floor
+    x *= np.linspace(top, bottom, x.shape[0], dtype=np.float32)[:, None]
     x = cv2.GaussianBlur(x, (0, 0), blur_sigma)
     x = np.clip(x + rng.normal(0.0, noise_sigma, x.shape).astype(np.float32), 0, 1)
     return (x * 255 + 0.5).astype(np.uint8)

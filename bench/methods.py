@@ -1,13 +1,15 @@
 """Methods side by side on the same frames: the paper's config, the default config, two baselines (thumbnail
 cosine, tf-idf bag of visual words) followed by the same verification, and MILD alone and in front of that
-verification; and "does training help?" (shipped, random and other-data weights)."""
+verification; and "does the learned code earn its place?" (shipped weights, random weights, a thumbnail and
+fine-tuned weights, single frames and the detector, where conditions change)."""
 
 from __future__ import annotations
 
 import logging
 import re
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 import torch
@@ -21,7 +23,7 @@ from retrieval.sequences import open_sequence
 from .common import REPO, Budget, detect_run, ground_truth_pairs, md_table, run_metrics
 
 __all__ = ["slug", "method_confs", "method_metrics", "run_methods", "false_loops", "methods_table",
-           "training_study", "training_table"]
+           "StudySet", "frame_codes", "single_frame_retrieval", "fine_tune", "training_study", "training_table"]
 
 log = logging.getLogger(__name__)
 
@@ -121,83 +123,145 @@ def methods_table(res: dict[str, dict[str, Any]], confs: dict[str, dict[str, Any
     return md_table(header, rows)
 
 
-def training_study(sequence: str | Path, train_images: str | Path, run_dir: str | Path, epochs: int = 5,
-                   max_images: int | None = None, override: dict[str, Any] | None = None,
-                   augment: float = 0.4) -> dict[str, dict[str, Any]]:
-    """Single-frame Recall@1, the run's Recall@k and max recall at 100 % precision with the shipped weights, random
-    weights, and weights trained on ``train_images`` (reconstruction only, and with photometric augmentation).
+@dataclass(frozen=True)
+class StudySet:
+    """One set of the training study: a first traversal, then a second under changed conditions."""
+
+    name: str  #: as the table names it
+    folder: Path  #: the sequence (KITTI layout or a plain folder), first traversal then second
+    n_first: int  #: frames of the first traversal; the rest are the queries
+    truth: np.ndarray  #: ``(P, 2)`` true pairs
+    tune: Path | None = None  #: unlabeled images the fine-tuned row adapts the shipped weights to (None: no such row)
+
+
+def frame_codes(frames: Sequence[Path], descriptor: Any, batch: int = 32) -> np.ndarray:
+    """``(N, dim)`` float32 codes of image files with a ``retrieval.descriptors`` descriptor (batched when it can)."""
+    from core.images import read_image
+
+    out = [np.empty((0, descriptor.dim), np.float32)]
+    for i in range(0, len(frames), batch):
+        images = [read_image(p) for p in frames[i:i + batch]]
+        out.append(np.stack(descriptor.encode_batch(images) if descriptor.encodes_in_batches
+                            else [descriptor(im) for im in images]).reshape(len(images), -1))
+    return np.concatenate(out).astype(np.float32)
+
+
+def single_frame_retrieval(codes: np.ndarray, n_first: int, truth: np.ndarray, ks: tuple[int, ...] = (1, 10),
+                           exclude_recent: int = 50) -> dict[int, float]:
+    """Recall@k of the second traversal's frames, single frames: the codes whitened by a PCA fitted on the
+    sequence's own codes (``cae.whitening``, the detector's defaults), cosine, no temporal filter; each query
+    searches every frame at least ``exclude_recent`` frames older (the detector's window), so a second-traversal
+    frame may also be drawn to the other frames of its own light or season.
 
     Args:
-        sequence: evaluated sequence (with ground truth), e.g. Nordland (summer then winter).
-        train_images: images for the trained weights, e.g. Nordland's summer half only (no labels).
-        run_dir: folder for the checkpoints, the training runs and the detect runs.
-        epochs: training epochs of each trained variant.
-        max_images: train on at most this many images (None = all).
-        override: detector conf overrides applied to every run.
-        augment: ``cae.train`` ``augment`` strength of the augmented variant.
-    """
-    from cae.model import Encoder
-    from cae.weights import save_checkpoint
+        codes: ``(N, D)`` codes in sequence order; rows ``>= n_first`` are the queries.
+        n_first: length of the first traversal.
+        truth: ``(P, 2)`` true pairs (either order); queries without a true pair do not count.
+        exclude_recent: frames younger than this are not searched (``search.exclude_recent``).
 
-    run_dir = Path(run_dir)
+    Returns:
+        ``{k: recall}`` (nan when no query has a true pair).
+    """
+    from cae.whitening import Whitening
+
+    refs: dict[int, set[int]] = {}
+    for a, b in np.asarray(truth, np.int64).reshape(-1, 2).tolist():
+        q, r = max(a, b), min(a, b)
+        if q >= n_first and r <= q - exclude_recent:
+            refs.setdefault(q, set()).add(r)
+    if not refs:
+        return {k: float("nan") for k in ks}
+    x = Whitening.fit(codes).transform(codes)
+    hits = {k: 0 for k in ks}
+    for q, true in refs.items():
+        sims = x[:q - exclude_recent + 1] @ x[q]
+        top = np.argsort(-sims, kind="stable")[:max(ks)].tolist()
+        for k in ks:
+            hits[k] += bool(true & set(top[:k]))
+    return {k: hits[k] / len(refs) for k in ks}
+
+
+def _study_variants(run_dir: Path) -> dict[str, dict[str, Any]]:
+    """Descriptor confs of the rows every set has: shipped weights, the place-term weights (when in the package),
+    the same network at random init, a thumbnail."""
+    from cae.model import Encoder
+    from cae.weights import PLACES_WEIGHTS, save_checkpoint
+
     torch.manual_seed(0)
     random_ckpt = run_dir / "random_encoder.pt"
     save_checkpoint(random_ckpt, Encoder(), {"init": "N(0, 0.05), torch.manual_seed(0)"})
-    variants = {"shipped weights (cae/weights)": (None, ""), "random init (seed 0, untrained)": (str(random_ckpt), "")}
-    for label, strength in (("reconstruction only", 0.0), (f"augmented {augment:g}", augment)):
-        variants.update(_trained_variant(train_images, run_dir / f"train_{strength:g}", epochs, max_images, label,
-                                         strength))
-    truth = ground_truth_pairs(sequence)
-    res = {}
-    for i, (label, (weights, note)) in enumerate(variants.items()):
-        conf = merge_conf({"descriptor": {"weights": weights}} if weights else {}, override, strict=False)
-        summary = detect_run(sequence, run_dir / f"w{i}", conf)
-        res[label] = {**method_metrics(summary["out"], conf, truth), "note": note,
-                      "single_frame_r1": single_frame_recall(summary["out"], truth)}
-    return res
+    places = {"place-term weights (cae_places.pt)": {"name": "cae", "weights": str(PLACES_WEIGHTS)}} \
+        if PLACES_WEIGHTS.is_file() else {}
+    return {"shipped weights": {"name": "cae"}, **places,
+            "same network, random init": {"name": "cae", "weights": str(random_ckpt)},
+            "thumbnail 64x48": {"name": "thumbnail"}}
 
 
-def _trained_variant(images: str | Path, out: Path, epochs: int, max_images: int | None, label: str,
-                     augment: float) -> dict[str, tuple[str, str]]:
+def fine_tune(images: Path, out: Path, conf: dict[str, Any] | None = None) -> dict[str, Any]:
+    """``cae-lcd train --images IMAGES --init shipped`` (``conf`` on top): the summary plus ``wall_s`` and
+    ``s_per_epoch``."""
     import time
 
     from cae.train import main as train
 
     t0 = time.perf_counter()
-    trained = train(images, out, {"epochs": epochs, "max_images": max_images, "patience": 0, "augment": augment},
-                    restart=True)
-    note = (f"val loss {trained['first_val_loss']:.4f} -> {trained['best_val_loss']:.4f}, "
-            f"{time.perf_counter() - t0:.0f} s")
-    return {f"trained on {Path(images).name}, {label}, {trained['epochs_run']} epochs": (trained["best"], note)}
+    summary = train(images, out, {"init": "shipped", **(conf or {})}, restart=True)
+    epochs = [h["seconds"] for h in summary["history"][1:]]
+    return {**summary, "wall_s": time.perf_counter() - t0, "s_per_epoch": float(np.mean(epochs)) if epochs else 0.0}
 
 
-def single_frame_recall(run: str | Path, truth: np.ndarray) -> float:
-    """Recall@1 of the whitened single-frame codes of a run (cosine ranking, exclusion window as in the run)."""
-    from core.conf import load_conf_file
-    from evaluation.metrics import recall_at_k
-    from retrieval.database import KeyframeDatabase
-    from retrieval.run_folder import RunFolder
+def training_study(sets: Sequence[StudySet], run_dir: str | Path, tune_conf: dict[str, Any] | None = None,
+                   detector: bool = True, override: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Does the learned code earn its place? Per set: shipped weights, random init, a 64x48 thumbnail and (where the
+    set names ``tune`` images) the shipped weights fine-tuned on them, without labels.
 
-    folder = RunFolder(Path(run))
-    window = int(load_conf_file(folder.conf)["search"]["exclude_recent"])
-    with KeyframeDatabase(folder.database, mode="r") as db:
-        x, ids = db.codes()  # the searched codes: already whitened as the run searched them
-    sims = x @ x.T
+    Args:
+        sets: the study's sets.
+        run_dir: folder for the random checkpoint, the fine-tuning runs and the detect runs.
+        tune_conf: ``cae.train`` overrides of the fine-tuning (``init`` is ``shipped``).
+        detector: also run the default detector with each descriptor (precision / recall); False: retrieval only.
+        override: detector conf overrides applied to every run.
+
+    Returns:
+        ``{"sets": {set: {row: {"r1", "r10", ["precision", "recall", "max_recall_100"]}}}, "tuned": {set: fine-tune
+        summary}}``.
+    """
+    from retrieval.descriptors import create_descriptor
+
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    base = _study_variants(run_dir)
+    window = int(resolve_conf(merge_conf({}, override, strict=False))["search"]["exclude_recent"])
+    res: dict[str, Any] = {"sets": {}, "tuned": {}}
+    for n, st in enumerate(sets):
+        rows = dict(base)
+        if st.tune is not None:
+            tuned = fine_tune(st.tune, run_dir / f"tuned_{n}", tune_conf)
+            res["tuned"][st.name] = {k: tuned[k] for k in ("wall_s", "s_per_epoch", "epochs_run", "images", "best")}
+            rows[f"fine-tuned on {st.tune.name} (unlabeled)"] = {"name": "cae", "weights": tuned["best"]}
+        frames = list(open_sequence(st.folder).frames)
+        res["sets"][st.name] = {}
+        for i, (label, desc) in enumerate(rows.items()):
+            rk = single_frame_retrieval(frame_codes(frames, create_descriptor(desc)), st.n_first, st.truth,
+                                        exclude_recent=window)
+            row: dict[str, Any] = {"r1": rk[1], "r10": rk[10]}
+            if detector:
+                conf = merge_conf({"descriptor": desc}, override, strict=False)
+                summary = detect_run(st.folder, run_dir / f"set{n}_row{i}", conf)
+                m = method_metrics(summary["out"], conf, st.truth)
+                row.update(precision=m["precision"], recall=m["recall"], max_recall_100=m["r100"])
+            log.info("%s, %s: %s", st.name, label, row)
+            res["sets"][st.name][label] = row
+    return res
+
+
+def training_table(res: dict[str, Any]) -> str:
+    """Markdown: one row per set and descriptor."""
     rows = []
-    for i, q in enumerate(ids):
-        ok = np.flatnonzero(ids <= q - window)
-        if len(ok):
-            j = ok[np.argmax(sims[i, ok])]
-            rows.append((q, ids[j], sims[i, j], 0, 0, sims[i, j], 0, 0))
-    return recall_at_k(np.array(rows, np.float64).reshape(-1, 8), truth, (1,))[1]
-
-
-def training_table(res: dict[str, dict[str, Any]]) -> str:
-    """Markdown: one row per weights variant."""
-    rows = []
-    for label, r in res.items():
-        rk = r["recall_at_k"]
-        rows.append([label, f"{r['single_frame_r1']:.3f}", f"{rk[1]:.3f}", f"{r['r100']:.3f}",
-                     f"{r['precision']:.3f} / {r['recall']:.3f}", f"{r['ms_total']:.1f}", r["note"]])
-    return md_table(["weights", "Recall@1 single frame (whitened)", "Recall@1 (+ temporal)",
-                     "max recall @ 100% P", "precision / recall (calibrated)", "ms/frame", "notes"], rows)
+    for name, by_row in res["sets"].items():
+        for label, r in by_row.items():
+            det = "not run" if "precision" not in r else \
+                f"{r['precision']:.3f} / {r['recall']:.3f} / {r['max_recall_100']:.3f}"
+            rows.append([name, label, f"{r['r1']:.3f} / {r['r10']:.3f}", det])
+    return md_table(["set", "code", "single frame Recall@1 / @10", "detector precision / recall / max recall @ 100% P"],
+                    rows)

@@ -1,11 +1,15 @@
 """Training the autoencoder on a folder of images (``cae-lcd train --images DIR``, or ``python train.py ...``).
 
-Seeded 70/30 train/validation split, sigmoid cross-entropy on the logits, Adam, mini-batches of 32, validation loss
-each epoch, best-validation weights kept (``best.pt``, loadable by ``cae.load_encoder``), resumable from ``last.pt``,
-the resolved conf saved as ``conf.yaml`` and the loss curves as ``loss.png``.
+The loss: the paper's reconstruction (sigmoid cross-entropy on the logits, the target the clean frame) plus,
+weighted by ``contrastive``, a place term (``cae.contrastive``: InfoNCE on the code between two views of a frame or
+of a frame and its temporal neighbour, ``cae.views``), so that the code keeps the place and drops the light, the
+camera and the framing; no labels, each folder read as one sequence in name order. ``init: shipped`` fine-tunes the
+package's weights. Seeded 70/30 train/validation split, Adam, mini-batches of 32, validation loss each epoch,
+best-validation weights kept (``best.pt``, loadable by ``cae.load_encoder``), resumable from ``last.pt``, the
+resolved conf saved as ``conf.yaml`` and the loss curves as ``loss.png``.
 
-The paper trained for 5000 epochs on a GPU. The CPU-sane default here is 40 epochs with early stopping (patience 8):
-on the 360 KITTI frames that is about 25 minutes on 2 cores and reaches most of the validation-loss drop.
+The paper trained for 5000 epochs on a GPU. The CPU default is 40 epochs with early stopping (patience 8); with the
+place term an epoch costs about 0.5 s a frame on 2 busy cores (each frame is encoded in two views).
 
 Every conf value and the device are checked before anything is read or written; images that cannot be read
 (corrupt, too small, too large, broken links, folders named like images) are skipped with a warning naming the file
@@ -33,13 +37,15 @@ from core.conf import ConfigError, Float, Int, Text, check_conf, conf_diff, dump
 from core.errors import ImageError
 from core.files import prepare_out_dir, write_text_atomic
 from core.images import IMAGE_EXTENSIONS, image_entries, read_image
+from .contrastive import far_mask, info_nce, neighbour_partners
 from .model import INPUT_SIZE, ConvAutoencoder
 from .preprocess import to_network_u8
 from .encode import encode_images
-from .weights import DEVICE_PATTERN, load_checkpoint, resolve_device, save_checkpoint
+from .views import default_views, photometric, view_rules, warp
+from .weights import DEFAULT_WEIGHTS, DEVICE_PATTERN, load_checkpoint, resolve_device, save_checkpoint
 from .whitening import DEFAULT_DIM, DEFAULT_SHRINK, MIN_FIT_CODES, Whitening
 
-__all__ = ["default_conf", "conf_rules", "list_images", "load_image_folder", "main"]
+__all__ = ["default_conf", "conf_rules", "list_images", "load_image_folder", "sequence_order", "main"]
 
 log = logging.getLogger(__name__)
 
@@ -56,6 +62,19 @@ default_conf: dict[str, Any] = {
     "augment": 0.4,  # photometric augmentation strength (0: none): the input's gain, offset and gamma are jittered
     #                  by up to this fraction and the target stays the clean image (a denoising autoencoder),
     #                  so the code learns to ignore light and exposure (measured: BENCHMARKS.md, training study)
+    "init": None,  # starting weights: None = random N(0, 0.05) (the paper), "shipped" = the weights in the package
+    #               (fine-tuning), or a checkpoint path; a run resumed from last.pt keeps its own weights
+    "contrastive": 1.0,  # weight of the place term (cae.contrastive, InfoNCE on the code) beside the reconstruction;
+    #                     0 = reconstruction only (the paper; then `views` and the keys below are unused)
+    "temperature": 0.1,  # the InfoNCE softmax temperature
+    "neighbours": 1,  # positives: two views of a frame, or of a frame and one at most this many frames away in
+    #                  its folder (name order = time order; 0 = the frame itself only)
+    "far": 20,  # negatives: frames of the batch at least this many frames apart in one folder (or in another
+    #            folder); nearer ones are left out of the loss
+    "recon_share": 0.5,  # share of each batch whose first view is decoded for the reconstruction term (the decoder
+    #                     costs 3x the encoder: less is faster; the term is kept, >= one image a batch)
+    "threads": None,  # torch CPU threads while training; None = torch's default
+    "views": dict(default_views),  # the two views' changes of light, camera and framing (cae.views)
     "whitening_dim": DEFAULT_DIM,  # whitening fitted on all the images' codes, saved in best.pt; 0 = none
     "whitening_shrink": DEFAULT_SHRINK,  # its variance shrinkage (see cae.whitening)
 }
@@ -73,6 +92,14 @@ conf_rules: dict[str, Any] = {
     "augment": Float(0, 0.9),
     "whitening_dim": Int(0, 4096),
     "whitening_shrink": Float(0, 100),
+    "init": Text(optional=True),
+    "contrastive": Float(0, 100),
+    "temperature": Float(0.01, 10),
+    "neighbours": Int(0, 1000),
+    "far": Int(0, 1_000_000),
+    "recon_share": Float(0, 1, lo_open=True),
+    "threads": Int(1, 1024, optional=True),
+    "views": {k: Float(lo, hi) for k, (lo, hi) in view_rules.items()},
 }
 
 _RESUME_KEYS = ("state_dict", "optimizer", "epoch", "best_val_loss", "best_epoch", "history")
@@ -151,6 +178,10 @@ def _prepare(images: str | Path | Sequence[str | Path], out: Path, conf: dict[st
     conf = merge_conf(default_conf, conf)
     check_conf(conf, conf_rules)
     device = resolve_device(conf["device"])
+    if conf["contrastive"] and conf["far"] <= conf["neighbours"]:
+        raise ConfigError(f"'far' ({conf['far']}) must be larger than 'neighbours' ({conf['neighbours']}): a "
+                          "positive cannot also be a negative")
+    _initial_weights(conf)
     _check_out(out)
     folders = [str(images)] if isinstance(images, (str, Path)) else [str(f) for f in images]
     if not folders:
@@ -162,26 +193,70 @@ def _prepare(images: str | Path | Sequence[str | Path], out: Path, conf: dict[st
     return conf, device, folders, files
 
 
-def _split(data: np.ndarray, files: list[Path], conf: dict[str, Any]
-           ) -> tuple[np.ndarray, np.ndarray, dict[str, list[str]]]:
+@dataclass
+class _Frames:
+    """Training frames and where each stands in its sequence (a folder, read in name order)."""
+
+    images: np.ndarray  #: ``(N, 256, 256, 3)`` uint8 RGB
+    folder: np.ndarray  #: ``(N,)`` int, the frame's folder
+    position: np.ndarray  #: ``(N,)`` int, its rank in that folder
+
+    def __len__(self) -> int:
+        return len(self.images)
+
+    def take(self, idx: np.ndarray) -> "_Frames":
+        return _Frames(self.images[idx], self.folder[idx], self.position[idx])
+
+
+def sequence_order(files: Sequence[Path]) -> tuple[np.ndarray, np.ndarray]:
+    """Each file's folder (an id per parent directory) and its rank among that folder's files, in path order.
+
+    Returns:
+        ``(N,)`` int folder ids and ``(N,)`` int positions.
+    """
+    parents: dict[Path, list[int]] = {}
+    for i, f in enumerate(files):
+        parents.setdefault(Path(f).parent, []).append(i)
+    folder, position = np.zeros(len(files), np.int64), np.zeros(len(files), np.int64)
+    for fid, members in enumerate(parents.values()):
+        ordered = sorted(members, key=lambda i: str(files[i]))
+        folder[ordered], position[ordered] = fid, np.arange(len(ordered))
+    return folder, position
+
+
+def _split(frames: _Frames, files: list[Path], conf: dict[str, Any]) -> tuple[_Frames, _Frames, dict[str, list[str]]]:
     """Seeded train/validation split.
 
     Returns:
-        Training images, validation images, and ``{"train": [paths], "val": [paths]}`` (for ``split.json``).
+        Training frames, validation frames, and ``{"train": [paths], "val": [paths]}`` (for ``split.json``).
 
     Raises:
         ConfigError: fewer than 2 images (no split possible).
     """
-    if len(data) < 2:
-        raise ConfigError(f"need at least 2 readable images to train with a validation split; found {len(data)}")
-    order = np.random.default_rng(conf["seed"]).permutation(len(data))
-    n_val = min(len(data) - 1, max(1, int(round(conf["val_fraction"] * len(data)))))
+    if len(frames) < 2:
+        raise ConfigError(f"need at least 2 readable images to train with a validation split; found {len(frames)}")
+    order = np.random.default_rng(conf["seed"]).permutation(len(frames))
+    n_val = min(len(frames) - 1, max(1, int(round(conf["val_fraction"] * len(frames)))))
     val_idx, train_idx = np.sort(order[:n_val]), np.sort(order[n_val:])
     split = {"train": [str(files[i]) for i in train_idx], "val": [str(files[i]) for i in val_idx]}
-    return data[train_idx], data[val_idx], split
+    return frames.take(train_idx), frames.take(val_idx), split
 
 
-def _resume_or_start(last_path: Path, conf: dict[str, Any], device: torch.device, val_set: np.ndarray,
+def _initial_weights(conf: dict[str, Any]) -> Path | None:
+    """The checkpoint ``init`` names (``"shipped"``: the package's weights), or None for a random start.
+
+    Raises:
+        ConfigError: the file is missing.
+    """
+    if not conf["init"]:
+        return None
+    path = DEFAULT_WEIGHTS if conf["init"] == "shipped" else Path(conf["init"])
+    if not path.is_file():
+        raise ConfigError(f"init: weights file not found: {path} (use 'shipped', a checkpoint path, or null)")
+    return path
+
+
+def _resume_or_start(last_path: Path, conf: dict[str, Any], device: torch.device, val_set: _Frames,
                      restart: bool) -> tuple[ConvAutoencoder, torch.optim.Optimizer, _Progress]:
     """A seeded model and optimizer, restored from ``last_path`` when it exists (unless ``restart``).
 
@@ -189,10 +264,18 @@ def _resume_or_start(last_path: Path, conf: dict[str, Any], device: torch.device
         ConfigError: ``last_path`` is damaged, not a training checkpoint, or does not fit the model.
     """
     torch.manual_seed(conf["seed"])
-    model = ConvAutoencoder().to(device, memory_format=torch.channels_last)
+    model = ConvAutoencoder()
+    init = _initial_weights(conf)
+    if init is not None and (restart or not last_path.exists()):
+        try:
+            model.load_state_dict(load_checkpoint(init)["state_dict"], strict=True)
+        except RuntimeError as err:
+            raise ConfigError(f"init: {init} does not fit the autoencoder: {str(err).splitlines()[0]}") from None
+        log.info("starting from the weights in %s", init)
+    model = model.to(device, memory_format=torch.channels_last)
     optim = torch.optim.Adam(model.parameters(), lr=conf["lr"])
     if restart or not last_path.exists():
-        val = _evaluate(model, val_set, conf["batch_size"], device)
+        val = _evaluate(model, val_set, conf, device)
         log.info("initial validation loss %.5f", val)
         return model, optim, _Progress(history=[{"epoch": 0, "train_loss": float("nan"), "val_loss": val,
                                                  "seconds": 0.0}])
@@ -225,17 +308,46 @@ def _to_batch(images: np.ndarray, device: torch.device) -> torch.Tensor:
     return x.contiguous(memory_format=torch.channels_last)
 
 
-def _evaluate(model: ConvAutoencoder, images: np.ndarray, batch_size: int, device: torch.device) -> float:
+def _evaluate(model: ConvAutoencoder, frames: _Frames, conf: dict[str, Any], device: torch.device) -> float:
+    """Validation loss: reconstruction of the clean frames, plus ``contrastive`` times the place term on two views
+    of each frame drawn from a fixed seed (the same views every epoch)."""
     model.eval()
-    total = 0.0
+    total, batch = 0.0, conf["batch_size"]
+    rng = np.random.default_rng([conf["seed"], 2**31])
     with torch.inference_mode():
-        for start in range(0, len(images), batch_size):
-            x = _to_batch(images[start:start + batch_size], device)
+        for start in range(0, len(frames), batch):
+            x = _to_batch(frames.images[start:start + batch], device)
             total += F.binary_cross_entropy_with_logits(model(x), x, reduction="sum").item() / x[0].numel()
-    return total / max(1, len(images))
+            if conf["contrastive"] and len(x) > 1:
+                a, b = (model.encoder(_view(x, rng, conf)[1]) for _ in range(2))
+                neg = torch.as_tensor(far_mask(frames.folder[start:start + batch], frames.position[start:start + batch],
+                                               conf["far"]))
+                total += conf["contrastive"] * info_nce(a, b, neg, conf["temperature"]).item() * len(x)
+    return total / max(1, len(frames))
 
 
-def _train_epoch(model: ConvAutoencoder, optim: torch.optim.Optimizer, train_set: np.ndarray, epoch: int,
+def _view(x: torch.Tensor, rng: np.random.Generator, conf: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor]:
+    """A view of each image: ``(warped clean target, warped and photometrically changed input)``."""
+    geo = warp(x, rng, conf["views"]["crop"], conf["views"]["rotate"])
+    return geo, photometric(geo, rng, conf["augment"], conf["views"])
+
+
+def _place_step(model: ConvAutoencoder, train_set: _Frames, picks: np.ndarray, rng: np.random.Generator,
+                conf: dict[str, Any], device: torch.device) -> torch.Tensor:
+    """The loss of one batch with the place term: two views (of a frame and of a temporal neighbour), both encoded;
+    the first ``recon_share`` of the first views decoded and scored against their warped clean frames."""
+    partners = neighbour_partners(train_set.folder, train_set.position, picks, conf["neighbours"], rng)
+    target, view_a = _view(_to_batch(train_set.images[picks], device), rng, conf)
+    _, view_b = _view(_to_batch(train_set.images[partners], device), rng, conf)
+    code_a = model.encoder.forward_map(view_a)
+    code_b = model.encoder(view_b)
+    n_rec = max(1, int(round(conf["recon_share"] * len(picks))))
+    loss = F.binary_cross_entropy_with_logits(model.decoder(code_a[:n_rec]), target[:n_rec])
+    neg = torch.as_tensor(far_mask(train_set.folder[picks], train_set.position[picks], conf["far"]))
+    return loss + conf["contrastive"] * info_nce(code_a.reshape(len(picks), -1), code_b, neg, conf["temperature"])
+
+
+def _train_epoch(model: ConvAutoencoder, optim: torch.optim.Optimizer, train_set: _Frames, epoch: int,
                  conf: dict[str, Any], device: torch.device) -> float:
     """One pass over ``train_set`` in a batch order seeded by ``(seed, epoch)``; returns the mean training loss."""
     model.train()
@@ -243,13 +355,17 @@ def _train_epoch(model: ConvAutoencoder, optim: torch.optim.Optimizer, train_set
     perm = rng.permutation(len(train_set))
     total = 0.0
     for start in range(0, len(perm), conf["batch_size"]):
-        x = _to_batch(train_set[np.sort(perm[start:start + conf["batch_size"]])], device)
-        x_in = _jitter(x, conf["augment"], rng) if conf["augment"] else x
-        loss = F.binary_cross_entropy_with_logits(model(x_in), x)
+        picks = np.sort(perm[start:start + conf["batch_size"]])
+        if conf["contrastive"] and len(picks) > 1:
+            loss = _place_step(model, train_set, picks, rng, conf, device)
+        else:
+            x = _to_batch(train_set.images[picks], device)
+            x_in = _jitter(x, conf["augment"], rng) if conf["augment"] else x
+            loss = F.binary_cross_entropy_with_logits(model(x_in), x)
         optim.zero_grad(set_to_none=True)
         loss.backward()
         optim.step()
-        total += loss.item() * len(x)
+        total += loss.item() * len(picks)
     return total / len(train_set)
 
 
@@ -262,7 +378,7 @@ def _jitter(x: torch.Tensor, strength: float, rng: np.random.Generator) -> torch
     return (x.clamp(1e-4, 1).pow(gamma) * gain + offset).clamp(0, 1)
 
 
-def _fit(model: ConvAutoencoder, optim: torch.optim.Optimizer, train_set: np.ndarray, val_set: np.ndarray,
+def _fit(model: ConvAutoencoder, optim: torch.optim.Optimizer, train_set: _Frames, val_set: _Frames,
          conf: dict[str, Any], device: torch.device, out: Path, progress: _Progress) -> _Progress:
     """Trains from ``progress.start_epoch`` to ``conf["epochs"]`` (or an early stop); saves ``best.pt``,
     ``last.pt`` and ``loss.png`` after every epoch.
@@ -275,7 +391,7 @@ def _fit(model: ConvAutoencoder, optim: torch.optim.Optimizer, train_set: np.nda
     for epoch in bar:
         t0 = time.perf_counter()
         train_loss = _train_epoch(model, optim, train_set, epoch, conf, device)
-        val = _evaluate(model, val_set, conf["batch_size"], device)
+        val = _evaluate(model, val_set, conf, device)
         if not (math.isfinite(train_loss) and math.isfinite(val)):
             raise ConfigError(f"training diverged in epoch {epoch + 1} (loss {train_loss}, validation {val}); "
                               f"lower 'lr' (now {conf['lr']:g}); nothing of this epoch was saved")
@@ -323,7 +439,7 @@ def _plot_history(history: list[dict[str, float]], path: Path) -> None:
     ax.plot(epochs, [h["train_loss"] for h in history], label="train")
     ax.plot(epochs, [h["val_loss"] for h in history], label="validation")
     ax.set_xlabel("epoch")
-    ax.set_ylabel("sigmoid cross-entropy per pixel")
+    ax.set_ylabel("loss: reconstruction + contrastive x place term")
     ax.set_title("CAE training")
     ax.legend()
     ax.grid(alpha=0.3)
@@ -354,7 +470,9 @@ def main(images: str | Path | Sequence[str | Path], out: str | Path = "runs/trai
     """
     conf, device, folders, files = _prepare(images, Path(out), conf)
     data, used = load_image_folder(files)
-    train_set, val_set, split = _split(data, used, conf)
+    if conf["threads"]:
+        torch.set_num_threads(conf["threads"])
+    train_set, val_set, split = _split(_Frames(data, *sequence_order(used)), used, conf)
     out = prepare_out_dir(out)
     model, optim, progress = _resume_or_start(out / "last.pt", conf, device, val_set, restart)
     write_text_atomic(out / "split.json", json.dumps(split, indent=1))

@@ -25,6 +25,8 @@ def add_parser(sub: Any) -> None:
                    help="run folder; its last.pt is resumed (default: %(default)s)")
     p.add_argument("--epochs", type=int, help="override conf 'epochs'")
     p.add_argument("--device", help="override conf 'device' (auto, cpu, cuda, cuda:N)")
+    p.add_argument("--init", help="override conf 'init': start from 'shipped' (fine-tune the package's weights on "
+                                  "your images) or a checkpoint path")
     p.add_argument("--restart", action="store_true", help="do not resume from OUT/last.pt")
     p.set_defaults(func=run)
 
@@ -43,4 +45,6 @@ def run(args: Any) -> None:
         conf["epochs"] = args.epochs
     if args.device is not None:
         conf["device"] = args.device
+    if args.init is not None:
+        conf["init"] = args.init
     log_summary(training.main(args.images, args.out, conf, restart=args.restart))

@@ -1,0 +1,78 @@
+"""The place term of the training loss: a contrastive (InfoNCE) loss on the code, without labels.
+
+Frames come from folders, each read as one sequence in name order. A pair is two views of one frame, or of a frame
+and a temporal neighbour (at most ``neighbours`` frames away in the same folder): the same place. Every other frame
+of the batch is a negative, as long as it is at least ``far`` frames away in the same folder (or in another folder);
+frames nearer than that are left out of the loss, neither pulled nor pushed.
+
+Shapes: codes ``(B, D)``; folder ids and positions ``(B,)`` int. Numpy for the sampling, torch for the loss.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+__all__ = ["neighbour_partners", "far_mask", "info_nce"]
+
+
+def neighbour_partners(folder: np.ndarray, position: np.ndarray, picks: np.ndarray, neighbours: int,
+                       rng: np.random.Generator) -> np.ndarray:
+    """For each picked frame, a random frame of the same folder at most ``neighbours`` positions away (itself when
+    it has none in the set).
+
+    Args:
+        folder: ``(N,)`` folder id of every frame of the set.
+        position: ``(N,)`` position of every frame in its folder (name order).
+        picks: ``(B,)`` indices into the set.
+        neighbours: the largest position gap of a positive (0: the frame itself).
+
+    Returns:
+        ``(B,)`` indices into the set.
+    """
+    out = np.asarray(picks, np.int64).copy()
+    if neighbours <= 0 or len(out) == 0:
+        return out
+    for k, i in enumerate(out):
+        near = np.flatnonzero((folder == folder[i]) & (np.abs(position - position[i]) <= neighbours))
+        out[k] = near[rng.integers(len(near))]
+    return out
+
+
+def far_mask(folder: np.ndarray, position: np.ndarray, far: int) -> np.ndarray:
+    """``(B, B)`` bool: True where two frames may be used as each other's negatives (other folder, or at least
+    ``far`` positions apart)."""
+    folder, position = np.asarray(folder), np.asarray(position)
+    return (folder[:, None] != folder[None, :]) | (np.abs(position[:, None] - position[None, :]) >= far)
+
+
+def info_nce(a: torch.Tensor, b: torch.Tensor, negatives: torch.Tensor, temperature: float) -> torch.Tensor:
+    """Symmetric InfoNCE over two views: row ``i`` of ``a`` and of ``b`` are one place.
+
+    The codes are centred on the batch's mean code and L2-normalised first (as the whitening used at retrieval
+    removes the mean every code of a camera shares). For each of the ``2B`` codes the positive is its partner; the
+    candidates are the partner and the views of every frame ``j`` with ``negatives[i, j]``.
+
+    Args:
+        a, b: ``(B, D)`` codes of the two views.
+        negatives: ``(B, B)`` bool (``far_mask``).
+        temperature: softmax temperature (> 0).
+
+    Returns:
+        Scalar loss (0 for an empty batch).
+    """
+    n = len(a)
+    if n == 0:
+        return a.sum() * 0.0
+    z = torch.cat([a, b])
+    z = F.normalize(z - z.mean(0, keepdim=True), dim=1)
+    sims = z @ z.T / temperature
+    neg = negatives.to(z.device).bool()
+    allowed = neg.repeat(2, 2)
+    idx = torch.arange(2 * n, device=z.device)
+    partner = (idx + n) % (2 * n)
+    allowed[idx, partner] = True
+    allowed[idx, idx] = False
+    logits = sims.masked_fill(~allowed, float("-inf"))
+    return F.cross_entropy(logits, partner)

@@ -1,0 +1,108 @@
+"""The place term (issue 28): on real frames it pulls two views of one frame together and pushes other frames away;
+the sampling of positives and negatives follows the folder order; the views keep shapes and ranges."""
+
+import numpy as np
+import pytest
+import torch
+
+import cae.train as training
+from cae.contrastive import far_mask, info_nce, neighbour_partners
+from cae.model import ConvAutoencoder
+from cae.train import _Frames, _place_step, _view, default_conf, sequence_order
+from core.conf import merge_conf
+from core.images import read_image
+from cae.preprocess import to_network_u8
+
+FRAMES = [0, 20, 40, 60, 80, 98]  # sample frames far apart: different places
+
+
+@pytest.fixture(scope="module")
+def real_frames(copy_sample_frames, tmp_path_factory):
+    """6 real frames of the bundled sample, at the network size, one folder in time order."""
+    folder = tmp_path_factory.mktemp("contrastive")
+    paths = copy_sample_frames(FRAMES, folder)
+    images = np.stack([to_network_u8(read_image(p)) for p in paths])
+    return _Frames(images, *sequence_order(paths))
+
+
+def view_margin(model, frames, seed):
+    """The worst frame's margin: cosine (centred codes) between its two views minus that between its first view and
+    the nearest view of another frame (what retrieval needs: the other view ranked first); views from ``seed``."""
+    conf = merge_conf(default_conf, {})
+    rng = np.random.default_rng(seed)
+    x = training._to_batch(frames.images, torch.device("cpu"))
+    with torch.no_grad():
+        a, b = (model.encoder(_view(x, rng, conf)[1]) for _ in range(2))
+    z = torch.cat([a, b])
+    z = torch.nn.functional.normalize(z - z.mean(0, keepdim=True), dim=1)
+    sims = (z[:len(a)] @ z[len(a):].T).numpy()
+    others = np.where(np.eye(len(a), dtype=bool), -np.inf, sims)
+    return float((np.diag(sims) - others.max(1)).min())
+
+
+def train_steps(frames, contrastive, steps=6):
+    torch.manual_seed(0)
+    model = ConvAutoencoder()
+    optim = torch.optim.Adam(model.parameters(), lr=2e-3)
+    conf = merge_conf(default_conf, {"contrastive": contrastive, "far": 2, "neighbours": 0, "recon_share": 0.25})
+    before = view_margin(model, frames, seed=0)
+    for _ in range(steps):
+        rng = np.random.default_rng(0)  # the same two views every step (as view_margin(seed=0) draws them)
+        if contrastive:
+            loss = _place_step(model, frames, np.arange(len(frames)), rng, conf, torch.device("cpu"))
+        else:  # the same step without the place term: reconstruction of the same views only
+            target, view = _view(training._to_batch(frames.images, torch.device("cpu")), rng, conf)
+            loss = torch.nn.functional.binary_cross_entropy_with_logits(model(view[:2]), target[:2])
+        optim.zero_grad()
+        loss.backward()
+        optim.step()
+    return before, view_margin(model, frames, seed=0)
+
+
+def test_place_term_pulls_views_of_one_frame_together(real_frames):
+    """A few steps on 6 real frames: the worst frame's two (strongly changed) views end nearer to each other than
+    to any other frame's view by a wider margin; reconstruction alone does not do that (the test goes red without
+    the place term)."""
+    before, after = train_steps(real_frames, contrastive=1.0)
+    _, recon_only = train_steps(real_frames, contrastive=0.0)
+    assert after > before + 0.2, (before, after)
+    assert after > recon_only + 0.2, (after, recon_only)
+
+
+def test_info_nce_prefers_the_partner():
+    g = torch.Generator().manual_seed(0)
+    a = torch.randn(6, 32, generator=g)
+    neg = torch.as_tensor(far_mask(np.zeros(6, int), np.arange(6) * 10, 5))
+    same = info_nce(a, a + 0.01 * torch.randn(6, 32, generator=g), neg, 0.1)
+    shuffled = info_nce(a, a[torch.tensor([1, 2, 3, 4, 5, 0])], neg, 0.1)
+    assert same < 0.1 < shuffled
+    assert info_nce(a[:0], a[:0], neg[:0, :0], 0.1) == 0
+
+
+def test_sampling_follows_the_folder_order():
+    folder, position = np.array([0, 0, 0, 0, 1, 1]), np.array([0, 1, 2, 3, 0, 1])
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        p = neighbour_partners(folder, position, np.arange(6), 1, rng)
+        assert (folder[p] == folder).all() and (np.abs(position[p] - position) <= 1).all()
+    assert (neighbour_partners(folder, position, np.arange(6), 0, rng) == np.arange(6)).all()
+    m = far_mask(folder, position, 2)
+    assert m[0, 2] and not m[0, 1] and not m[0, 0] and m[0, 4]  # 2 apart: negative; 1 apart: left out
+
+
+def test_sequence_order_per_folder(tmp_path):
+    files = [tmp_path / "b" / "2.png", tmp_path / "a" / "1.png", tmp_path / "b" / "1.png"]
+    folder, position = sequence_order(files)
+    assert folder[0] == folder[2] != folder[1]
+    assert position.tolist() == [1, 0, 0]
+
+
+def test_views_keep_shape_range_and_seed(real_frames):
+    conf = merge_conf(default_conf, {"views": {"night": 1.0, "low_res": 1.0, "jpeg": 1.0, "blur": 1.0}})
+    x = training._to_batch(real_frames.images[:3], torch.device("cpu"))
+    target, a = _view(x, np.random.default_rng(5), conf)
+    _, b = _view(x, np.random.default_rng(5), conf)
+    assert a.shape == target.shape == x.shape and torch.equal(a, b)  # one seed, one view
+    assert 0 <= float(a.min()) and float(a.max()) <= 1 and float(a.mean()) < float(x.mean())  # all made dark
+    empty = _view(x[:0], np.random.default_rng(0), conf)[1]
+    assert empty.shape == (0, *x.shape[1:])
