@@ -45,15 +45,15 @@ def log_summary(s: dict[str, Any]) -> None:
 
 
 def add_parser(sub: Any) -> None:
-    p = sub.add_parser("detect", help="detect loop closures over a sequence, or many on Ray (no PATH: the bundled sample)",
+    p = sub.add_parser("detect", help="detect loop closures over a sequence, or many (on Ray with --workers; no PATH: the bundled sample)",
                        description=detect.__doc__.split("\n\n")[0])
     add_sequence_arguments(p)
     p.add_argument("--out", help="run folder (default: runs/<sequence name>); an existing run is resumed. PATH "
                    "holding many sequences (a folder of them, or a .txt list): one run folder a sequence in OUT")
     p.add_argument("--workers", type=int, default=_BATCH["workers"],
-                   help="many sequences: sequences at once on a local Ray (default: one a core)")
+                   help="many sequences: sequences at once on a local Ray (default: no Ray, one after the other)")
     p.add_argument("--ray-address", default=_BATCH["address"],
-                   help="many sequences: a Ray cluster to run on (default: a local Ray)")
+                   help="many sequences: a Ray cluster to run on (default: a local Ray with --workers, else no Ray)")
     p.set_defaults(func=run)
 
 

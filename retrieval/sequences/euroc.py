@@ -15,7 +15,7 @@ import yaml
 
 from core.conf import ConfigError
 
-from .base import Sequence, poses_at, read_numbers, read_stamped_names
+from .base import Sequence, poses_at, read_numbers, read_stamped_names, unit_quaternion
 
 __all__ = ["is_euroc", "open_euroc"]
 
@@ -49,11 +49,19 @@ def _intrinsics(path: Path) -> np.ndarray | None:
     return np.array([[fu, 0.0, cu], [0.0, fv, cv], [0.0, 0.0, 1.0]])
 
 
+def _pose_row(values: list[float]) -> str | None:
+    """A ground-truth line: at least 8 columns, ``q_w, q_x, q_y, q_z`` (columns 5-8) a unit quaternion."""
+    if len(values) < 8:
+        return f"expected at least 8 columns (timestamp, p_xyz, q_wxyz), got {len(values)}"
+    return unit_quaternion(4)(values)
+
+
 def open_euroc(root: Path) -> Sequence:
     """Opens a EuRoC / ASL sequence (``cam0``).
 
     Raises:
-        ConfigError: ``data.csv`` or the ground truth cannot be parsed, or no frame is listed.
+        ConfigError: ``data.csv`` or the ground truth cannot be parsed (a quaternion that is not a unit one
+            included), a frame's path leaves the folder, or no frame is listed.
     """
     cam = _mav(root) / "cam0"
     times, names = read_stamped_names(cam / "data.csv", sep=",", scale=_NS)
@@ -63,10 +71,11 @@ def open_euroc(root: Path) -> Sequence:
                    kind="euroc")
     gt = _mav(root) / "state_groundtruth_estimate0" / "data.csv"
     if gt.is_file():
-        rows = read_numbers(gt, None, "ground-truth poses", sep=",")
-        if rows.shape[1] < 8:
+        rows = read_numbers(gt, None, "ground-truth poses", sep=",", row_check=_pose_row)
+        if len(rows) and rows.shape[1] < 8:
             raise ConfigError(f"{gt}: expected at least 8 columns (timestamp, p_xyz, q_wxyz), got {rows.shape[1]}")
-        track = np.column_stack([rows[:, 0] * _NS, rows[:, 1:4], rows[:, 5:8], rows[:, 4]])  # -> t, xyz, xyzw
+        track = np.column_stack([rows[:, 0] * _NS, rows[:, 1:4], rows[:, 5:8], rows[:, 4]]) if len(rows) \
+            else np.zeros((0, 8))  # -> t, xyz, xyzw
         seq.poses = poses_at(times, track[track[:, 0].argsort()], gt)
         seq.poses_are_truth = seq.poses is not None
     return seq
