@@ -24,7 +24,7 @@ import numpy as np
 from core.conf import ConfigError, dump_conf
 from core.errors import ImageError
 from core.files import prepare_out_dir
-from core.progress import progress_bar
+from core.progress import Counted, progress_bar
 from core.threads import apply_thread_policy
 
 from .calibrate import Calibration, TooFewFrames, calibrate, calibration_frames
@@ -148,7 +148,7 @@ def calibrate_sequence(seq: Sequence, conf: dict[str, Any], descriptor: GlobalDe
                     codes[i] = code
                 yield i, image
 
-    return calibrate(frames(), len(seq), conf, descriptor, create_filter(conf["temporal"]), seq.K, progress,
+    return calibrate(Counted(frames(), len(picks)), len(seq), conf, descriptor, create_filter(conf["temporal"]), seq.K, progress,
                      codes, features)
 
 
