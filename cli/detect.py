@@ -65,7 +65,8 @@ def add_sequence_arguments(p: Any) -> None:
     p.add_argument("--method", choices=list(METHODS), default="cae",
                    help="detection method (default: cae; mild: MILD, Han & Fang 2017; mild+verify: MILD's "
                         "candidates + SIFT/geometric verification); --config merges on top")
-    p.add_argument("--config", help="YAML config (default: the built-in defaults = configs/default.yaml)")
+    p.add_argument("--config", help="YAML config file, or a shipped preset by name: paper, mild, mild_verify, "
+                   "default (default: the built-in defaults = the default preset)")
     p.add_argument("--camera", choices=["image_0", "image_1", "image_2", "image_3", "images"],
                    help="camera folder inside PATH")
     p.add_argument("--weights", help="encoder checkpoint (default: the shipped weights)")
