@@ -100,8 +100,8 @@ def test_import_beside_a_users_own_core(fresh_venv, tmp_path):
     """A project with its own ``core/`` package (the wheel installed a top-level ``core`` before: ``import cae``
     failed with No module named 'core.errors')."""
     (tmp_path / "core").mkdir()
-    (tmp_path / "core" / "__init__.py").write_text("MINE = True\n")
-    code = "import core, cae, retrieval.detect, verify; assert core.MINE; cae.load_encoder(device='cpu')"
+    (tmp_path / "core" / "__init__.py").write_text("mine = True\n")
+    code = "import core, cae, retrieval.detect, verify; assert core.mine; cae.load_encoder(device='cpu')"
     run = _in_venv(fresh_venv, [str(fresh_venv / "bin" / "python"), "-c", code], tmp_path)
     assert run.returncode == 0, run.stderr[-2000:]
 
