@@ -239,14 +239,15 @@ def _log_seconds(seconds: dict[str, float]) -> None:
              seconds["frames"])
 
 
-def main(path: str | Path | None = None, out: str | Path | None = None, conf: dict[str, Any] | None = None,
-         camera: str | None = None, progress: bool = True, topic: str | None = None,
-         stride: int = 1) -> dict[str, Any]:
+def main(path: str | Path | Sequence | None = None, out: str | Path | None = None,
+         conf: dict[str, Any] | None = None, camera: str | None = None, progress: bool = True,
+         topic: str | None = None, stride: int = 1) -> dict[str, Any]:
     """Runs loop-closure detection over a sequence and writes the run folder.
 
     Args:
         path: a sequence of any layout ``retrieval.sequences.open_sequence`` reads (KITTI, TUM, EuRoC or image
-            folder, bag, video); None = the bundled sample.
+            folder, bag, video), or one already opened (a ``Sequence``: ``camera``, ``topic`` and ``stride`` are
+            then its own; opened once, its readers' warnings are said once); None = the bundled sample.
         out: run folder; None = ``runs/<sequence name>`` (``runs/sample`` for the sample). An existing run there
             is resumed (same conf, weights and images required).
         conf: overrides of the detector's ``default_conf``.
@@ -263,7 +264,8 @@ def main(path: str | Path | None = None, out: str | Path | None = None, conf: di
             anything is written.
         DatabaseError: the database is damaged, locked or cannot be written; files already written stay as they were.
     """
-    seq = open_sequence(SAMPLE_DIR if path is None else path, camera, topic, stride)
+    seq = path if isinstance(path, Sequence) else open_sequence(SAMPLE_DIR if path is None else path, camera, topic,
+                                                                stride)
     resolved = resolve_conf(conf)
     apply_thread_policy(resolved["runtime"]["threads"])  # before the calibration: its whitening uses BLAS too
     out = Path(out) if out is not None else default_out(seq)

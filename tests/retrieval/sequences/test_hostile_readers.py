@@ -229,3 +229,16 @@ def test_cli_refuses_before_writing(name, args, tmp_path, sample_images, capsys)
     assert code == 2 and len(lines) == 1 and "Traceback" not in err, err
     assert CASES[name].error in lines[0]
     assert not (tmp_path / "run").exists()
+
+
+def test_a_reader_warning_is_said_once_a_run(tmp_path, sample_images, caplog):
+    """``detect`` opened the sequence twice (to check its ground truth, then to run): every reader warning was
+    printed twice. A TUM ground truth that ends before the last frame."""
+    from cli.main import main
+
+    root = _tum()(tmp_path, sample_images)
+    (root / "groundtruth.txt").write_text("0.0 0 0 0 0 0 0 1\n1.0 1 0 0 0 0 0 1\n")
+    caplog.set_level(logging.WARNING)
+    assert main(["detect", str(root), "--out", str(tmp_path / "run"), "--no-progress"]) == 0
+    said = [r.getMessage() for r in caplog.records if "outside the ground truth's time range" in r.getMessage()]
+    assert len(said) == 1, said
