@@ -65,7 +65,8 @@ class VideoFrames:
         self.fps = float(self._cap.get(cv2.CAP_PROP_FPS))
         self._len = (count + stride - 1) // stride
         self._next = 0  # the video frame the next read() returns
-        self._ahead: tuple[int, np.ndarray] | None = None  # a frame decoded past the one asked for (frames lost)
+        #: (first frame lost, frame decoded past them, its image) after a damaged stretch, else None
+        self._ahead: tuple[int, int, np.ndarray] | None = None
         self._pts_offset: int | None = None  # presentation time of frame 0, in frames (``_position``)
 
     def __len__(self) -> int:
@@ -93,16 +94,16 @@ class VideoFrames:
     def _decode(self, target: int) -> tuple[bool, np.ndarray | None]:
         """Video frame ``target`` (under the lock): grabbed forward, or sought; ``(False, None)`` when it cannot be
         decoded or was lost (the frame decoded in its place is another one: kept for its own number)."""
-        if self._ahead is not None and self._ahead[0] <= target:
-            at, image = self._ahead
-            if at == target:
+        if self._ahead is not None:
+            lost_from, at, image = self._ahead
+            if lost_from <= target < at:  # lost in the damaged stretch
+                return False, None
+            if target == at:
                 self._ahead, self._next = None, target + 1
                 return True, image
-            if target < at:
-                return False, None
+            self._ahead = None
         seek = not 0 <= target - self._next <= _SEEK_AHEAD
         if seek:
-            self._ahead = None
             self._cap.set(cv2.CAP_PROP_POS_FRAMES, target)
             self._next = target
         while self._next < target and self._cap.grab():
@@ -113,7 +114,7 @@ class VideoFrames:
         at = self._position(target) if ok else None
         self._next = target + 1 if ok else -_SEEK_AHEAD - 1  # after a failure: seek next time
         if at is not None and at > target:  # frames lost in a damaged stretch: this one is frame ``at``
-            self._ahead, self._next = (at, image), at + 1
+            self._ahead, self._next = (target, at, image), at + 1
             return False, None
         return ok, image
 
