@@ -8,7 +8,7 @@ TORCH ?= torch==2.13.0
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: install demo fleet-demo test bench clean
+.PHONY: install demo fleet-demo test bench docs clean
 
 install: $(STAMP)
 
@@ -32,5 +32,8 @@ test: install
 bench: install
 	$(VENV)/bin/cae-lcd bench
 
+docs: install
+	$(VENV)/bin/mkdocs build --strict
+
 clean:
-	rm -rf runs .pytest_cache
+	rm -rf runs site .pytest_cache

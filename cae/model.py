@@ -14,7 +14,10 @@ Weights are initialised from N(0, 0.05), biases at zero, as in the paper.
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import nn
+
+from core.errors import ImageError
 
 __all__ = ["Encoder", "Decoder", "ConvAutoencoder", "INPUT_SIZE", "CODE_SHAPE", "CODE_DIM"]
 
@@ -33,8 +36,10 @@ def _init(module: nn.Module, std: float = 0.05) -> None:
 class Encoder(nn.Module):
     """Image -> 4096-d code.
 
-    Input ``(B, 3, 256, 256)`` float in [0, 1]; output ``(B, 4096)`` (not normalised; the retrieval stage
-    L2-normalises). Accepts channels-last input, which is faster on CPU.
+    Input ``(B, 3, 256, 256)`` float in [0, 1] (any other shape is refused: a 224x224 input gave a 3136-d code);
+    output ``(B, 4096)`` of unit L2 norm, as ``cae.encode_images`` gives (an all-zero code stays zero);
+    ``forward_map`` gives the code map before normalisation (what the decoder reads). Accepts channels-last input,
+    which is faster on CPU.
     """
 
     filters = (32, 32, 32, 16)
@@ -50,11 +55,19 @@ class Encoder(nn.Module):
         _init(self)
 
     def forward_map(self, x: torch.Tensor) -> torch.Tensor:
-        """``(B, 3, 256, 256)`` -> the code as a feature map ``(B, 16, 16, 16)``."""
+        """``(B, 3, 256, 256)`` -> the code as a feature map ``(B, 16, 16, 16)``, not normalised.
+
+        Raises:
+            ImageError: an input of another shape (``cae.preprocess`` makes the network's input from any image).
+        """
+        if x.ndim != 4 or tuple(x.shape[1:]) != (3, INPUT_SIZE, INPUT_SIZE):
+            raise ImageError(f"the encoder takes (B, 3, {INPUT_SIZE}, {INPUT_SIZE}) images; got {tuple(x.shape)} "
+                             "(cae.preprocess or cae.encode_images make them from any image)")
         return self.features(x)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.forward_map(x).reshape(x.shape[0], -1)
+        """``(B, 3, 256, 256)`` -> codes ``(B, 4096)`` of unit L2 norm."""
+        return F.normalize(self.forward_map(x).reshape(x.shape[0], -1), dim=1, eps=1e-12)
 
 
 class Decoder(nn.Module):

@@ -49,13 +49,13 @@ def log_summary(s: dict[str, Any]) -> None:
 
 
 def add_parser(sub: Any) -> None:
-    p = sub.add_parser("detect", help="detect loop closures over a sequence, or many on Ray (no PATH: the bundled sample)",
+    p = sub.add_parser("detect", help="detect loop closures over a sequence, or many (on Ray with --workers; no PATH: the bundled sample)",
                        description=detect.__doc__.split("\n\n")[0])
     add_sequence_arguments(p)
     p.add_argument("--out", help="run folder (default: runs/<sequence name>); an existing run is resumed. PATH "
                    "holding many sequences (a folder of them, or a .txt list): one run folder a sequence in OUT")
     p.add_argument("--workers", type=int, default=_BATCH["workers"],
-                   help="many sequences: sequences at once on a local Ray (default: one a core)")
+                   help="many sequences: sequences at once on a local Ray (default: no Ray, one after the other)")
     p.add_argument("--intrinsics", default=_DEFAULTS["intrinsics"], metavar="FX,FY,CX,CY",
                    help="the camera's intrinsics in pixels (over the sequence's own and --camera-info's): enables the "
                         "essential matrix and the loop edges for a folder, a video or TUM")
@@ -68,7 +68,7 @@ def add_parser(sub: Any) -> None:
                    help="loop edges at the distance between the two frames in the sequence's poses (poses you trust "
                         "for the baseline: your odometry); default: up to scale, the length unobserved")
     p.add_argument("--ray-address", default=_BATCH["address"],
-                   help="many sequences: a Ray cluster to run on (default: a local Ray)")
+                   help="many sequences: a Ray cluster to run on (default: a local Ray with --workers, else no Ray)")
     p.set_defaults(func=run)
 
 
@@ -80,7 +80,8 @@ def add_sequence_arguments(p: Any) -> None:
     p.add_argument("--method", choices=list(METHODS), default="cae",
                    help="detection method (default: cae; mild: MILD, Han & Fang 2017; mild+verify: MILD's "
                         "candidates + SIFT/geometric verification); --config merges on top")
-    p.add_argument("--config", help="YAML config (default: the built-in defaults = configs/default.yaml)")
+    p.add_argument("--config", help="YAML config file, or a shipped preset by name: paper, mild, mild_verify, "
+                   "default (default: the built-in defaults = the default preset)")
     p.add_argument("--camera", choices=["image_0", "image_1", "image_2", "image_3", "images"],
                    help="camera folder inside PATH")
     p.add_argument("--weights", help="encoder checkpoint (default: the shipped weights)")

@@ -16,7 +16,7 @@ from typing import Any, Callable
 
 from .errors import ConfigError, LCDError
 
-__all__ = ["setup_logging", "run_cli", "api_defaults", "add_missing_extra", "EXPECTED_ERRORS"]
+__all__ = ["setup_logging", "run_cli", "api_defaults", "add_missing_extra", "add_unavailable", "EXPECTED_ERRORS"]
 
 #: errors that are the user's input or environment, not a bug: reported as ``error: ...`` with exit code 2
 EXPECTED_ERRORS = (LCDError, OSError, MemoryError)
@@ -30,9 +30,13 @@ def api_defaults(fn: Callable[..., object]) -> dict[str, Any]:
 
 def add_missing_extra(sub: Any, command: str, extra: str, err: ImportError) -> None:
     """Adds ``command`` as a subcommand that only says which optional extra it needs (its package is missing)."""
-    why = (f"cae-lcd {command} needs the '{extra}' extra ({err.name or err} is not installed): "
-           f"pip install 'cae-loop-closure[{extra}]'")
-    p = sub.add_parser(command, help=f"(needs the '{extra}' extra)", description=why, prefix_chars="\x01")
+    add_unavailable(sub, command, f"cae-lcd {command} needs the '{extra}' extra ({err.name or err} is not "
+                    f"installed): pip install 'cae-loop-closure[{extra}]'", f"needs the '{extra}' extra")
+
+
+def add_unavailable(sub: Any, command: str, why: str, short: str) -> None:
+    """Adds ``command`` as a subcommand that cannot run here and only says ``why`` (``short`` in the help list)."""
+    p = sub.add_parser(command, help=f"({short})", description=why, prefix_chars="\x01")
     p.add_argument("args", nargs="*", help=argparse.SUPPRESS)  # whatever was passed: the command cannot run anyway
 
     def refuse(args: Any) -> None:

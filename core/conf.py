@@ -23,7 +23,7 @@ import yaml
 from .errors import ConfigError
 
 __all__ = ["ConfigError", "merge_conf", "load_conf_file", "dump_conf", "Registry", "Rule", "Int", "Float", "Floats",
-           "Bool", "Choice", "Text", "check_conf", "configure", "conf_diff", "conf_get"]
+           "Bool", "Choice", "Text", "check_conf", "configure", "conf_diff", "conf_get", "presets", "PRESETS_DIR"]
 
 
 def merge_conf(defaults: Mapping[str, Any], override: Mapping[str, Any] | None, where: str = "",
@@ -94,16 +94,30 @@ class _UniqueKeyLoader(yaml.SafeLoader):
         return super().construct_mapping(node, deep)
 
 
+#: the YAML presets shipped with the package (``--config paper`` = ``PRESETS_DIR / "paper.yaml"``): ``configs/``
+#: beside the base layer's folder, in the repository and once installed
+PRESETS_DIR = Path(__file__).resolve().parents[1] / "configs"
+
+
+def presets() -> list[str]:
+    """The names of the shipped presets (``default``, ``paper``, ``mild``, ...), sorted."""
+    return sorted(p.stem for p in PRESETS_DIR.glob("*.yaml"))
+
+
 def load_conf_file(path: str | Path) -> dict[str, Any]:
-    """Reads a YAML (or JSON) config file into a dict; an empty file gives ``{}``.
+    """Reads a YAML (or JSON) config file into a dict; an empty file gives ``{}``. A bare name that is no file
+    (``paper``) names a shipped preset (``presets``), so that ``--config paper`` works wherever the package is.
 
     Raises:
-        ConfigError: the file is missing, unreadable, not YAML, not a mapping at the top level, a key given twice
-            in one mapping, or nested deeper than ``MAX_CONF_DEPTH``.
+        ConfigError: the file is missing (and no preset of that name), unreadable, not YAML, not a mapping at the
+            top level, a key given twice in one mapping, or nested deeper than ``MAX_CONF_DEPTH``.
     """
     path = Path(path)
+    if not path.is_file() and len(path.parts) == 1 and not path.suffix and (PRESETS_DIR / f"{path}.yaml").is_file():
+        path = PRESETS_DIR / f"{path}.yaml"
     if not path.is_file():
-        raise ConfigError(f"config file not found: {path}")
+        hint = f" (presets: {', '.join(presets())})" if len(path.parts) == 1 and not path.suffix else ""
+        raise ConfigError(f"config file not found: {path}{hint}")
     try:
         data = yaml.load(path.read_text(encoding="utf-8"), Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader
     except (OSError, UnicodeDecodeError, yaml.YAMLError) as err:

@@ -2,7 +2,8 @@
 
 - ``plot_pr_curve``: precision-recall curve of a swept score, with the operating point and max recall at 100 %.
 - ``plot_trajectory``: the x-z trajectory with true loops, correct detections (green) and false ones (red).
-- ``plot_similarity``: the code cosine-similarity matrix beside the ground-truth pair matrix.
+- ``plot_similarity``: the code cosine-similarity matrix beside the ground-truth pairs (one side of the diagonal,
+  where the detections are drawn: ``ground_truth_panel``).
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from cae.encode import normalize_codes
 from .ground_truth import pair_matrix
 from .metrics import PRCurve, PRResult
 
-__all__ = ["plot_pr_curve", "plot_trajectory", "plot_similarity"]
+__all__ = ["plot_pr_curve", "plot_trajectory", "plot_similarity", "ground_truth_panel"]
 
 GT_COLOUR, TP_COLOUR, FP_COLOUR = "tab:blue", "tab:green", "tab:red"
 _MAX_MATRIX = 1500  # larger similarity matrices are shown subsampled
@@ -135,6 +136,19 @@ def plot_trajectory(poses: np.ndarray, path: str | Path, gt_pairs: np.ndarray, d
     return _save(fig, Path(path))
 
 
+def ground_truth_panel(gt_pairs: np.ndarray, m: int, step: int = 1) -> np.ndarray:
+    """The ground-truth panel of ``plot_similarity``: ``(m, m)`` bool, True at (query block, earlier block) for every
+    pair, one side of the diagonal only (query down, earlier frame across, where the detections are drawn); a block
+    of ``step`` frames is marked when any pair falls in it.
+
+    Args:
+        gt_pairs: ``(P, 2)`` true pairs, either order.
+        m: blocks a side.
+        step: frames a block.
+    """
+    return np.tril(pair_matrix(np.asarray(gt_pairs, np.int64).reshape(-1, 2) // step, m))
+
+
 def plot_similarity(codes: np.ndarray, frame_ids: np.ndarray, n_frames: int, gt_pairs: np.ndarray,
                     path: str | Path, detections: np.ndarray | None = None, correct: np.ndarray | None = None,
                     title: str = "") -> Path:
@@ -166,7 +180,7 @@ def plot_similarity(codes: np.ndarray, frame_ids: np.ndarray, n_frames: int, gt_
         c = normalize_codes(codes[sub])
         r = ids[sub] // step
         sim[np.ix_(r, r)] = c @ c.T
-    gt = pair_matrix(np.asarray(gt_pairs, np.int64).reshape(-1, 2) // step, m)  # a block is marked if any pair is in it
+    gt = ground_truth_panel(gt_pairs, m, step)
     fig = Figure(figsize=(12.0, 5.6))
     ax1, ax2 = fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)
     extent = (-0.5, n_frames - 0.5, n_frames - 0.5, -0.5)

@@ -34,8 +34,8 @@ def detect_and_score(path: str | Path | None, out: str | Path | None, conf: dict
     seq = open_sequence(detect.SAMPLE_DIR if path is None else path, camera, topic, stride)
     if seq.ground_truth is not None:
         load_ground_truth(seq.ground_truth)
-    summary = detect.main(path, out, conf, camera, progress, topic, stride, intrinsics, camera_info,
-                          metric_from_poses)
+    summary = detect.main(seq, out, conf, progress=progress, intrinsics=intrinsics, camera_info=camera_info,
+                          metric_from_poses=metric_from_poses)  # opened once: each reader warning said once
     if summary.get("ground_truth_file"):
         summary = score_run(summary["out"], summary["ground_truth_file"], world)
     return summary

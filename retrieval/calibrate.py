@@ -324,10 +324,11 @@ def _encode_all(frames: Iterable[tuple[int, np.ndarray]], gate: EdgeGate, descri
         gate_s += time.perf_counter() - t0
     reference = float(np.median(list(ratios.values()))) if ratios else 0.0
     gate.reference = reference
-    codes = {}
-    for fid in tqdm(list(images), desc="calibrate: encode", unit="frame", disable=not progress, leave=False):
-        if not gate.conf["enabled"] or ratios[fid] >= gate.threshold:
-            codes[fid] = known[fid] if fid in known else descriptor(images[fid])
+    passing = [fid for fid in images if not gate.conf["enabled"] or ratios[fid] >= gate.threshold]
+    todo = [fid for fid in passing if fid not in known]  # a bar only for the codes computed here
+    encoded = {fid: descriptor(images[fid]) for fid in tqdm(todo, desc="calibrate: encode", unit="frame",
+                                                           disable=not progress or not todo, leave=False)}
+    codes = {fid: encoded[fid] if fid in encoded else known[fid] for fid in passing}
     return images, codes, reference, gate_s
 
 

@@ -294,7 +294,9 @@ class Decision:
         single: True where one pair may decide alone (geometry separates on this sequence).
         horizon: the "too recent" rule, or None (the frame floor only).
         floor: the fewest inliers that count as evidence (a 7-point model always fits 7).
-        span, tol, min_support: frames fused, offset tolerance, frames with evidence a loop needs when not single.
+        span: frames fused.
+        tol: offset tolerance.
+        min_support: frames with evidence a loop needs when not single.
         spans: the score path's fused windows (``ScoreSpans``), or None (the ``fallback`` confidences decide).
         stops: the "a stop is matched to a stop" rule (``Stops``), or None (not applied).
     """

@@ -24,7 +24,7 @@ import numpy as np
 from core.conf import ConfigError, dump_conf
 from core.errors import ImageError
 from core.files import prepare_out_dir
-from core.progress import progress_bar
+from core.progress import Counted, progress_bar
 from core.threads import apply_thread_policy
 
 from verify.camera import CameraModel, camera_from_options
@@ -151,7 +151,7 @@ def calibrate_sequence(seq: Sequence, conf: dict[str, Any], descriptor: GlobalDe
                     codes[i] = code
                 yield i, image
 
-    return calibrate(frames(), len(seq), conf, descriptor, create_filter(conf["temporal"]), seq.K, progress,
+    return calibrate(Counted(frames(), len(picks)), len(seq), conf, descriptor, create_filter(conf["temporal"]), seq.K, progress,
                      codes, features)
 
 
@@ -266,15 +266,16 @@ def _log_seconds(seconds: dict[str, float]) -> None:
              seconds["frames"])
 
 
-def main(path: str | Path | None = None, out: str | Path | None = None, conf: dict[str, Any] | None = None,
-         camera: str | None = None, progress: bool = True, topic: str | None = None,
-         stride: int = 1, intrinsics: str | None = None, camera_info: str | Path | None = None,
-         metric_from_poses: bool = False) -> dict[str, Any]:
+def main(path: str | Path | Sequence | None = None, out: str | Path | None = None,
+         conf: dict[str, Any] | None = None, camera: str | None = None, progress: bool = True,
+         topic: str | None = None, stride: int = 1, intrinsics: str | None = None,
+         camera_info: str | Path | None = None, metric_from_poses: bool = False) -> dict[str, Any]:
     """Runs loop-closure detection over a sequence and writes the run folder.
 
     Args:
         path: a sequence of any layout ``retrieval.sequences.open_sequence`` reads (KITTI, TUM, EuRoC or image
-            folder, bag, video); None = the bundled sample.
+            folder, bag, video), or one already opened (a ``Sequence``: ``camera``, ``topic`` and ``stride`` are
+            then its own; opened once, its readers' warnings are said once); None = the bundled sample.
         out: run folder; None = ``runs/<sequence name>`` (``runs/sample`` for the sample). An existing run there
             is resumed (same conf, weights and images required).
         conf: overrides of the detector's ``default_conf``.
@@ -299,7 +300,8 @@ def main(path: str | Path | None = None, out: str | Path | None = None, conf: di
         DatabaseError: the database is damaged, locked or cannot be written; files already written stay as they were.
     """
     given = camera_from_options(intrinsics, camera_info)
-    seq = open_sequence(SAMPLE_DIR if path is None else path, camera, topic, stride)
+    seq = path if isinstance(path, Sequence) else open_sequence(SAMPLE_DIR if path is None else path, camera, topic,
+                                                                stride)
     conf = with_camera(seq, conf, given)
     resolved = resolve_conf(conf)
     apply_thread_policy(resolved["runtime"]["threads"])  # before the calibration: its whitening uses BLAS too

@@ -448,7 +448,7 @@ class LoopDetector:
         Raises:
             ImageError: ``image`` is not an image array we can use (not an array, bad shape, too small, ...).
             ConfigError: a bad ``frame_id``, ``timestamp``, ``pose`` or ``code``, or the detector is closed.
-            In every case the detector's state is left as it was.
+                In every case the detector's state is left as it was.
         """
         fid = self._frame_id(frame_id)
         check_image(image, "image")

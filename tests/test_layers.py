@@ -12,16 +12,28 @@ import pytest
 
 REPO = Path(__file__).parents[1]
 
-#: package -> layer; a package may import only packages of a strictly lower layer (and itself)
+#: package -> layer; a package may import only packages of a strictly lower layer (and itself). A dotted name is a
+#: package inside a namespace folder (``cae_lcd.core`` lives in ``cae_lcd/core/``).
 LAYERS = {"core": 0, "cae": 1, "verify": 1, "retrieval": 2, "evaluation": 3, "fleet": 3, "bench": 4, "cli": 5}
 SCRIPTS = {"train.py": 6}  #: top-level scripts and their layer (above the CLI they call)
 
 
+def package_of(module: str) -> str | None:
+    """The package of ``LAYERS`` a dotted module name belongs to (the longest that is it or holds it), or None."""
+    parts = module.split(".")
+    return next((".".join(parts[:k]) for k in range(len(parts), 0, -1) if ".".join(parts[:k]) in LAYERS), None)
+
+
+def module_of(path: Path) -> str:
+    """The dotted module name of a project file (``cae_lcd/core/conf.py`` -> ``cae_lcd.core.conf``)."""
+    return ".".join(path.relative_to(REPO).with_suffix("").parts)
+
+
 def project_imports(path: Path, text: str | None = None) -> list[tuple[int, str]]:
-    """``(line, top-level package)`` of every import of a project package in ``path`` (or in ``text`` given as its
-    content), relative ones resolved."""
+    """``(line, package)`` of every import of a project package in ``path`` (or in ``text`` given as its content),
+    relative ones resolved."""
     tree = ast.parse(path.read_text() if text is None else text, str(path))
-    own = path.relative_to(REPO).parts[0]
+    own = package_of(module_of(path)) or ""
     found = []
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
@@ -30,19 +42,30 @@ def project_imports(path: Path, text: str | None = None) -> list[tuple[int, str]
             names = [own] if node.level else [node.module or ""]
         else:
             continue
-        found += [(node.lineno, n.split(".")[0]) for n in names if n.split(".")[0] in LAYERS]
+        found += [(node.lineno, pkg) for pkg in map(package_of, names) if pkg is not None]
     return found
 
 
 def sources() -> list[Path]:
-    files = [p for pkg in LAYERS for p in sorted((REPO / pkg).rglob("*.py"))]
+    files = [p for pkg in LAYERS for p in sorted((REPO / pkg.replace(".", "/")).rglob("*.py"))]
     return files + [REPO / s for s in SCRIPTS]
 
 
 def layer_of(path: Path) -> tuple[str, int]:
-    rel = path.relative_to(REPO)
-    name = rel.parts[0]
-    return name, SCRIPTS[name] if name in SCRIPTS else LAYERS[name]
+    name = path.relative_to(REPO).parts[0]
+    if name in SCRIPTS:
+        return name, SCRIPTS[name]
+    pkg = package_of(module_of(path))
+    return pkg, LAYERS[pkg]
+
+
+def packages_found() -> set[str]:
+    """The packages in the checkout: top-level folders with ``__init__.py``, and those inside a namespace folder
+    (a top-level folder without one)."""
+    top = {p.parent.name for p in REPO.glob("*/__init__.py")}
+    inside = {f"{p.parts[-3]}.{p.parts[-2]}" for p in REPO.glob("*/*/__init__.py")
+              if p.parts[-3] not in top and not p.parts[-3].startswith(".") and p.parts[-3] != "tests"}
+    return (top | inside) - {"tests"}
 
 
 class TestImportDirection:
@@ -66,5 +89,4 @@ class TestImportDirection:
         assert found and found[0][1] == upward and LAYERS[upward] >= layer
 
     def test_every_package_is_known(self):
-        packages = {p.parent.name for p in REPO.glob("*/__init__.py")}
-        assert packages - {"tests"} == set(LAYERS), "add the new package to LAYERS (and to DESIGN/README)"
+        assert packages_found() == set(LAYERS), "add the new package to LAYERS (and to DESIGN/README)"

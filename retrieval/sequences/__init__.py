@@ -10,6 +10,7 @@ with a distance and a gap (``evaluation.ground_truth``).
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
@@ -22,10 +23,12 @@ from .euroc import is_euroc, open_euroc
 from .kitti import CAMERAS, kitti_metadata_file, open_folder, read_kitti_calib, read_kitti_poses, read_times
 from .rosbag import is_bag, open_bag
 from .tum import is_tum, open_tum
-from .video import is_video, open_video
+from .video import MAX_STRIDE, is_video, open_video
 
 __all__ = ["Sequence", "FrameStream", "Layout", "LAYOUTS", "open_sequence", "find_sequences", "read_kitti_calib", "read_kitti_poses",
            "read_numbers", "read_stamped_names", "read_times", "kitti_metadata_file", "CAMERAS", "OPTIONS"]
+
+log = logging.getLogger(__name__)
 
 #: what each option of ``open_sequence`` is, for the message when a layout does not take it
 OPTIONS = {"camera": "--camera (a KITTI camera folder)", "topic": "--topic (a bag's image topic)",
@@ -67,8 +70,8 @@ def open_sequence(path: str | Path, camera: str | None = None, topic: str | None
     root = Path(path)
     if not root.exists():
         raise ConfigError(f"sequence not found: {root}")
-    if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
-        raise ConfigError(f"--stride must be an integer >= 1; got {stride!r}")
+    if isinstance(stride, bool) or not isinstance(stride, int) or not 1 <= stride <= MAX_STRIDE:
+        raise ConfigError(f"--stride must be an integer from 1 to {MAX_STRIDE}; got {stride!r}")
     layout = next((lay for lay in LAYOUTS if lay.matches(root)), None)
     if layout is None:
         raise ConfigError(f"{root} is not a sequence: pass a folder of images (KITTI, TUM, EuRoC), a bag "
@@ -111,7 +114,12 @@ def find_sequences(root: str | Path) -> list[Path] | None:
         return paths
     if not root.is_dir() or _is_sequence(root):
         return None
-    found = sorted(p for p in root.iterdir() if not p.name.startswith(".") and _is_sequence(p))
+    entries = sorted(p for p in root.iterdir() if not p.name.startswith("."))
+    found = [p for p in entries if _is_sequence(p)]
     if not found:
         raise ConfigError(f"no images found in {root}, and no sequence inside it")
+    empty = [p.name for p in entries if p.is_dir() and p not in found]
+    if empty:
+        log.warning("%s: %d folder(s) hold no sequence and are left out: %s", root, len(empty),
+                    ", ".join(empty[:10]) + (", ..." if len(empty) > 10 else ""))
     return found

@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Protocol
+from typing import Callable, Protocol
 
 import numpy as np
 
@@ -21,7 +21,7 @@ from core.images import decode_image, fingerprint, read_file
 from verify.camera import CameraModel
 
 __all__ = ["Sequence", "FrameStream", "read_numbers", "read_stamped_names", "read_file_frame", "poses_at",
-           "Z_UP_TO_KITTI"]
+           "unit_quaternion", "rotation_in_pose", "Z_UP_TO_KITTI"]
 
 log = logging.getLogger(__name__)
 
@@ -101,15 +101,17 @@ def read_file_frame(path: Path) -> tuple[np.ndarray | ImageError, str]:
 
 
 def read_numbers(path: str | Path, per_line: int | None = None, what: str = "numbers",
-                 sep: str | None = None) -> np.ndarray:
-    """A numeric text file -> ``(R, C)`` float64; ``#`` comments and blank lines skipped.
+                 sep: str | None = None, row_check: RowCheck | None = None) -> np.ndarray:
+    """A numeric text file -> ``(R, C)`` float64 (``(0, per_line or 0)`` when it holds none); ``#`` comments and
+    blank lines skipped.
 
     Args:
         sep: the separator (None: whitespace; ``","`` for CSV).
+        row_check: ``row_check(values)`` -> what is wrong with a line's values, or None (``unit_quaternion``).
 
     Raises:
-        ConfigError: unreadable file, a non-numeric or non-finite value, or a line of another length (the message
-            names the file and line).
+        ConfigError: unreadable file, a non-numeric or non-finite value, a line of another length or refused by
+            ``row_check`` (the message names the file and line).
     """
     path = Path(path)
     try:
@@ -129,11 +131,44 @@ def read_numbers(path: str | Path, per_line: int | None = None, what: str = "num
             raise ConfigError(f"{path}, line {n}: expected {per_line} numbers, got {len(values)}")
         if not np.isfinite(values).all():
             raise ConfigError(f"{path}, line {n}: NaN or infinite value in {what}")
+        wrong = row_check(values) if row_check is not None else None
+        if wrong:
+            raise ConfigError(f"{path}, line {n}: {wrong}")
         rows.append(values)
     width = per_line if per_line is not None else (len(rows[0]) if rows else 0)
+    if not rows:
+        return np.zeros((0, width), np.float64)
     if any(len(r) != width for r in rows):
         raise ConfigError(f"{path}: lines of different lengths")
     return np.array(rows, np.float64).reshape(-1, width)
+
+
+RowCheck = Callable[[list[float]], "str | None"]
+
+#: how far from 1 a ground-truth quaternion's norm may be (files print 4-9 decimals); it is normalised
+QUATERNION_NORM_TOLERANCE = 0.01
+#: how far from the identity a KITTI pose's ``R R^T`` may be, entry by entry
+ROTATION_TOLERANCE = 0.01
+
+
+def unit_quaternion(start: int) -> RowCheck:
+    """A ``row_check`` for ``read_numbers``: the 4 values from column ``start`` are a unit quaternion."""
+
+    def check(values: list[float]) -> str | None:
+        norm = float(np.linalg.norm(values[start:start + 4]))
+        if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
+            return f"the quaternion (columns {start + 1}-{start + 4}) has norm {norm:.4g}, not 1"
+        return None
+
+    return check
+
+
+def rotation_in_pose(values: list[float]) -> str | None:
+    """A ``row_check`` for a 3x4 row-major pose: its left 3x3 block is a rotation."""
+    R = np.asarray(values[:12], np.float64).reshape(3, 4)[:, :3]
+    if np.abs(R @ R.T - np.eye(3)).max() > ROTATION_TOLERANCE or np.linalg.det(R) < 0:
+        return "the pose's 3x3 block is not a rotation"
+    return None
 
 
 def _quat_to_matrix(q: np.ndarray) -> np.ndarray:
@@ -154,7 +189,10 @@ def poses_at(times: np.ndarray, track: np.ndarray, path: Path, z_up: bool = True
     the trajectory's time range.
     """
     t = track[:, 0]
-    if len(t) == 0 or not (np.any((times >= t[0]) & (times <= t[-1]))):
+    if len(t) == 0:
+        log.warning("%s holds no pose; no ground truth", path)
+        return None
+    if not (np.any((times >= t[0]) & (times <= t[-1]))):
         log.warning("%s: no frame lies within the ground truth's time range; no poses", path)
         return None
     outside = int(np.sum((times < t[0]) | (times > t[-1])))
@@ -174,7 +212,8 @@ def read_stamped_names(path: Path, sep: str | None = None, scale: float = 1.0) -
     seconds (the file's unit times ``scale``) and the names, in time order; ``#`` lines skipped.
 
     Raises:
-        ConfigError: unreadable file, a line without a timestamp and a name, or two frames at the same time.
+        ConfigError: unreadable file, a line without a timestamp and a name, a name that leaves the folder
+            (absolute, or through ``..``), or two frames at the same time.
     """
     try:
         text = path.read_text(encoding="utf-8")
@@ -191,6 +230,10 @@ def read_stamped_names(path: Path, sep: str | None = None, scale: float = 1.0) -
         except ValueError:
             raise ConfigError(f"{path}, line {n}: expected 'timestamp{sep or ' '}file name', got "
                               f"{line.strip()[:60]!r}") from None
+        name = Path(parts[1])
+        if name.is_absolute() or ".." in name.parts:
+            raise ConfigError(f"{path}, line {n}: {parts[1]!r} leaves the sequence's folder (a name inside it, "
+                              "relative, without '..', is expected)")
         rows.append((float(parts[0]) * scale, parts[1]))
     rows.sort(key=lambda r: r[0])
     times = np.array([r[0] for r in rows], np.float64)

@@ -17,7 +17,7 @@ import numpy as np
 from core.conf import ConfigError
 from verify.camera import CameraModel, read_camera_file
 
-from .base import Sequence, poses_at, read_numbers, read_stamped_names
+from .base import Sequence, poses_at, read_numbers, read_stamped_names, unit_quaternion
 
 __all__ = ["is_euroc", "open_euroc"]
 
@@ -47,11 +47,19 @@ def _camera(path: Path) -> CameraModel | None:
         return None
 
 
+def _pose_row(values: list[float]) -> str | None:
+    """A ground-truth line: at least 8 columns, ``q_w, q_x, q_y, q_z`` (columns 5-8) a unit quaternion."""
+    if len(values) < 8:
+        return f"expected at least 8 columns (timestamp, p_xyz, q_wxyz), got {len(values)}"
+    return unit_quaternion(4)(values)
+
+
 def open_euroc(root: Path) -> Sequence:
     """Opens a EuRoC / ASL sequence (``cam0``).
 
     Raises:
-        ConfigError: ``data.csv`` or the ground truth cannot be parsed, or no frame is listed.
+        ConfigError: ``data.csv`` or the ground truth cannot be parsed (a quaternion that is not a unit one
+            included), a frame's path leaves the folder, or no frame is listed.
     """
     cam = _mav(root) / "cam0"
     times, names = read_stamped_names(cam / "data.csv", sep=",", scale=_NS)
@@ -62,10 +70,11 @@ def open_euroc(root: Path) -> Sequence:
                    K=None if camera is None else camera.K)
     gt = _mav(root) / "state_groundtruth_estimate0" / "data.csv"
     if gt.is_file():
-        rows = read_numbers(gt, None, "ground-truth poses", sep=",")
-        if rows.shape[1] < 8:
+        rows = read_numbers(gt, None, "ground-truth poses", sep=",", row_check=_pose_row)
+        if len(rows) and rows.shape[1] < 8:
             raise ConfigError(f"{gt}: expected at least 8 columns (timestamp, p_xyz, q_wxyz), got {rows.shape[1]}")
-        track = np.column_stack([rows[:, 0] * _NS, rows[:, 1:4], rows[:, 5:8], rows[:, 4]])  # -> t, xyz, xyzw
+        track = np.column_stack([rows[:, 0] * _NS, rows[:, 1:4], rows[:, 5:8], rows[:, 4]]) if len(rows) \
+            else np.zeros((0, 8))  # -> t, xyz, xyzw
         body = poses_at(times, track[track[:, 0].argsort()], gt, z_up=False)  # the body in EuRoC's z-up world
         seq.poses = body if body is None or camera is None or camera.T_body_camera is None else \
             body @ camera.T_body_camera  # T_WB T_BS: the camera's pose (a 3x4 times a 4x4)

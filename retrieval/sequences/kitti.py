@@ -15,7 +15,7 @@ import numpy as np
 from core.conf import ConfigError
 from core.images import image_entries
 
-from .base import Sequence, read_numbers
+from .base import Sequence, read_numbers, rotation_in_pose
 
 __all__ = ["open_folder", "read_kitti_calib", "read_kitti_poses", "read_times", "kitti_metadata_file", "CAMERAS"]
 
@@ -64,9 +64,10 @@ def read_kitti_poses(path: str | Path) -> np.ndarray:
     """KITTI poses file (12 finite numbers a line, 3x4 row-major) -> ``(N, 3, 4)``.
 
     Raises:
-        ConfigError: unreadable file, a line without 12 numbers, or a NaN/inf value (file and line named).
+        ConfigError: unreadable file, a line without 12 numbers, a NaN/inf value or a 3x3 block that is not a
+            rotation (file and line named).
     """
-    return read_numbers(path, 12, "poses").reshape(-1, 3, 4)
+    return read_numbers(path, 12, "poses", row_check=rotation_in_pose).reshape(-1, 3, 4)
 
 
 def read_times(path: str | Path) -> np.ndarray:

@@ -3,8 +3,11 @@
 
 One image topic (``sensor_msgs/Image``: mono8, mono16, rgb8, bgr8, rgba8, bgra8, bayer_*8/16;
 ``sensor_msgs/CompressedImage``: any image file format) is the sequence: ``--topic`` names it, or the bag's only
-image topic is taken. Timestamps are the messages' header stamps (the bag's receive times where the stamps are
-unset or go backwards). Intrinsics come from a ``CameraInfo`` topic when present (the one beside the image topic,
+image topic is taken. Frames are in the order of the messages' header stamps, the time each image was taken (a
+bag's messages are stored in the order they were received, which a network can swap), and timestamps are those
+stamps (the bag's receive times where they are all unset). A damaged message is one unreadable frame: its stamp,
+when it cannot be read, is its receive time shifted as the others' are, and the frame is skipped with a warning
+when it is read. Intrinsics come from a ``CameraInfo`` topic when present (the one beside the image topic,
 else the only one). Frames are read lazily, one message at a time, by index: a bag is never loaded whole.
 """
 
@@ -25,7 +28,7 @@ from verify.camera import CameraModel, distortion_model
 
 from .base import Sequence
 
-__all__ = ["BAG_SUFFIXES", "BagFrames", "is_bag", "open_bag", "image_from_message", "write_image_bag"]
+__all__ = ["BAG_SUFFIXES", "BagFrames", "frame_order", "is_bag", "open_bag", "image_from_message", "write_image_bag"]
 
 log = logging.getLogger(__name__)
 
@@ -116,7 +119,11 @@ def _camera_info(reader: Any, image_topic: str) -> CameraModel | None:
     if not conns:  # (no connections would mean every message to rosbags)
         return None
     for conn, _, raw in reader.messages(connections=conns[:1]):
-        msg = reader.deserialize(raw, conn.msgtype)
+        try:
+            msg = reader.deserialize(raw, conn.msgtype)
+        except Exception:  # noqa: BLE001 - a damaged message, as for images
+            log.warning("%s: the first CameraInfo message cannot be read; not used", conn.topic)
+            return None
         K = np.asarray(getattr(msg, "k", getattr(msg, "K", ())), np.float64).reshape(-1)
         K = K.reshape(3, 3) if K.size == 9 else np.zeros((3, 3))
         if not (np.isfinite(K).all() and K[0, 0] > 0 and K[1, 1] > 0):
@@ -135,9 +142,14 @@ def _camera_info(reader: Any, image_topic: str) -> CameraModel | None:
 class BagFrames:
     """The messages of one image topic, read by index (each thread reads through its own open bag)."""
 
-    def __init__(self, path: Path, topic: str, msgtype: str, stamps_ns: np.ndarray) -> None:
+    def __init__(self, path: Path, topic: str, msgtype: str, stamps_ns: np.ndarray,
+                 same: np.ndarray | None = None, index: np.ndarray | None = None) -> None:
         self.path, self.topic, self.msgtype = path, topic, msgtype
         self.stamps_ns = stamps_ns  #: (N,) int64 the bag's receive times, the index used to find a message
+        #: (N,) how many earlier-received messages of the topic share frame i's receive time (None: in receive order)
+        self.same = same
+        #: (N,) frame i's message index on the topic in receive order (None: frames in receive order)
+        self.index = index
         self._local = threading.local()
 
     def __len__(self) -> int:
@@ -147,8 +159,8 @@ class BagFrames:
         return f"{self.topic}@{int(self.stamps_ns[i])}"
 
     def source_id(self, i: int) -> str:
-        """The message's index on the topic (0 = its first message)."""
-        return str(i)
+        """The message's index on the topic in the order the bag received them (0 = its first message)."""
+        return str(i if self.index is None else int(self.index[i]))
 
     def _message(self, i: int) -> Any:
         reader = getattr(self._local, "reader", None)
@@ -158,7 +170,7 @@ class BagFrames:
         if not conns:
             raise ImageError(f"{self.name(i)}: topic gone from {self.path}")
         t = int(self.stamps_ns[i])
-        same = int(np.sum(self.stamps_ns[:i] == t))  # earlier messages received in the same nanosecond
+        same = int(self.same[i]) if self.same is not None else int(np.sum(self.stamps_ns[:i] == t))
         for k, (conn, _, raw) in enumerate(reader.messages(connections=conns, start=t, stop=t + 1)):
             if k == same:
                 return reader.deserialize(raw, conn.msgtype)
@@ -180,17 +192,46 @@ class BagFrames:
 
 
 def _stamps(reader: Any, conn: Any) -> tuple[np.ndarray, np.ndarray]:
-    """The topic's receive times ``(N,)`` int64 ns and header stamps ``(N,)`` seconds, one message at a time."""
+    """The topic's receive times ``(N,)`` int64 ns and header stamps ``(N,)`` seconds (NaN where a damaged message's
+    header cannot be read), one message at a time, in receive order."""
     received, stamps = [], []
     for c, t, raw in reader.messages(connections=[conn]):
-        stamp = reader.deserialize(raw, c.msgtype).header.stamp
+        try:
+            stamp = reader.deserialize(raw, c.msgtype).header.stamp
+            value = stamp.sec + stamp.nanosec * 1e-9
+        except Exception:  # noqa: BLE001 - a damaged message: its frame is reported when it is read
+            value = np.nan
         received.append(t)
-        stamps.append(stamp.sec + stamp.nanosec * 1e-9)
+        stamps.append(value)
     return np.array(received, np.int64), np.array(stamps, np.float64)
 
 
+def frame_order(received: np.ndarray, stamps: np.ndarray, topic: str) -> tuple[np.ndarray, np.ndarray]:
+    """The frames' order (indices into receive order) ``(N,)`` and their timestamps ``(N,)`` seconds, from receive
+    times ``(N,)`` ns and header stamps ``(N,)`` s (NaN: unreadable, 0: unset).
+
+    Frames go in header-stamp order (receive order among equal stamps); a message whose stamp is unreadable or
+    unset, among others that are set, takes its receive time shifted by the median of the others' stamp minus
+    receive time; when no stamp is set the receive times are the timestamps (from 0).
+    """
+    rx = received * 1e-9
+    known = np.isfinite(stamps) & (stamps != 0)
+    if not known.any():
+        log.warning("%s: header stamps unset; using the bag's receive times", topic)
+        return np.arange(len(received)), rx - rx[0] if len(rx) else rx
+    if not known.all():
+        log.warning("%s: %d message(s) without a readable header stamp; placed by their receive time", topic,
+                    int(np.sum(~known)))
+    times = np.where(known, stamps, rx + float(np.median(stamps[known] - rx[known])))
+    order = np.argsort(times, kind="stable")
+    if np.any(order != np.arange(len(order))):
+        log.warning("%s: messages received out of the order of their header stamps; frames ordered by the stamps",
+                    topic)
+    return order, times[order]
+
+
 def open_bag(root: Path, topic: str | None = None) -> Sequence:
-    """Opens one image topic of a ROS 1 or ROS 2 bag as a sequence.
+    """Opens one image topic of a ROS 1 or ROS 2 bag as a sequence, frames in header-stamp order.
 
     Raises:
         ConfigError: not a readable bag, no such image topic (or several and none chosen), or no message on it.
@@ -204,14 +245,17 @@ def open_bag(root: Path, topic: str | None = None) -> Sequence:
         reader.close()
     if not len(received):
         raise ConfigError(f"{root}: no message on {conn.topic}")
-    times = stamps
-    if not np.any(stamps != 0) or np.any(np.diff(stamps) < 0):
-        log.warning("%s: header stamps unset or going backwards; using the bag's receive times", conn.topic)
-        times = (received - received[0]) * 1e-9
+    order, times = frame_order(received, stamps, conn.topic)
+    same = np.zeros(len(received), np.int64)  # how many earlier messages share each one's receive time
+    seen: dict[int, int] = {}
+    for k, t in enumerate(received.tolist()):
+        same[k] = seen.get(t, 0)
+        seen[t] = int(same[k]) + 1
     if camera is None:
         log.info("%s: no CameraInfo; the fundamental matrix is used", root)
     return Sequence(root, [], timestamps=times, K=None if camera is None else camera.K, kind="rosbag",
-                    camera=camera, stream=BagFrames(root, conn.topic, conn.msgtype, received))
+                    camera=camera, stream=BagFrames(root, conn.topic, conn.msgtype, received[order], same[order],
+                                                    order))
 
 
 def _camera_info_message(typestore: Any, header: Any, K: np.ndarray, h: int, w: int,

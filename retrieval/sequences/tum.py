@@ -11,7 +11,7 @@ from pathlib import Path
 
 from core.conf import ConfigError
 
-from .base import Sequence, poses_at, read_numbers, read_stamped_names
+from .base import Sequence, poses_at, read_numbers, read_stamped_names, unit_quaternion
 
 __all__ = ["is_tum", "open_tum"]
 
@@ -25,7 +25,8 @@ def open_tum(root: Path) -> Sequence:
     """Opens a TUM RGB-D sequence folder.
 
     Raises:
-        ConfigError: ``rgb.txt`` or ``groundtruth.txt`` cannot be parsed, or lists no frame.
+        ConfigError: ``rgb.txt`` or ``groundtruth.txt`` cannot be parsed (a quaternion that is not a unit one
+            included), a frame's path leaves the folder, or no frame is listed.
     """
     times, names = read_stamped_names(root / "rgb.txt")
     if not names:
@@ -33,7 +34,7 @@ def open_tum(root: Path) -> Sequence:
     seq = Sequence(root, [root / n for n in names], timestamps=times, kind="tum")
     gt = root / "groundtruth.txt"
     if gt.is_file():
-        track = read_numbers(gt, 8, "ground-truth poses")
+        track = read_numbers(gt, 8, "ground-truth poses", row_check=unit_quaternion(4))
         seq.poses = poses_at(times, track[track[:, 0].argsort()], gt, z_up=False)  # in the file's own world
         seq.poses_are_truth = seq.poses is not None
     return seq

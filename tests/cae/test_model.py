@@ -22,8 +22,23 @@ class TestEncoder:
             fmap = enc.forward_map(batch)
         assert out.shape == (3, CODE_DIM) == (3, 4096)
         assert fmap.shape == (3, *CODE_SHAPE)
-        # the flat code is the channel-major (C, H, W) flattening of the map
-        torch.testing.assert_close(out, fmap.reshape(3, -1))
+        # the flat code is the channel-major (C, H, W) flattening of the map, of unit norm (as encode_images')
+        torch.testing.assert_close(out, F.normalize(fmap.reshape(3, -1), dim=1))
+        torch.testing.assert_close(out.norm(dim=1), torch.ones(3))
+
+    def test_codes_are_those_of_encode_images(self, encoder, batch, sample_image):
+        from cae import encode_images
+
+        with torch.no_grad():
+            out = encoder(batch).numpy()
+        np.testing.assert_allclose(out, encode_images(encoder, [sample_image(i) for i in (0, 20, 60)]), atol=1e-6)
+
+    @pytest.mark.parametrize("shape", [(1, 3, 224, 224), (1, 1, 256, 256), (3, 256, 256), (1, 3, 256, 128)])
+    def test_other_input_shapes_refused(self, shape):
+        from core.errors import ImageError
+
+        with pytest.raises(ImageError, match=r"the encoder takes \(B, 3, 256, 256\) images; got"):
+            Encoder()(torch.zeros(shape))
 
     def test_deterministic(self, encoder, batch):
         with torch.no_grad():

@@ -126,3 +126,20 @@ class TestRegistry:
             reg.get("c")
         with pytest.raises(ValueError, match="twice"):
             reg.register("a")(B)
+
+
+class TestPresets:
+    """``--config paper``: a bare name is a shipped preset, wherever the package is installed."""
+
+    def test_a_bare_name_is_a_preset(self, tmp_path, monkeypatch):
+        from core.conf import PRESETS_DIR, load_conf_file, presets
+
+        monkeypatch.chdir(tmp_path)  # outside the repository: no configs/ here
+        assert {"default", "paper", "mild", "mild_verify", "train"} <= set(presets())
+        assert load_conf_file("paper") == load_conf_file(PRESETS_DIR / "paper.yaml") != {}
+        (tmp_path / "paper").write_text("search: {k: 3}\n")  # a file of that name wins
+        assert load_conf_file("paper") == {"search": {"k": 3}}
+        with pytest.raises(ConfigError, match=r"config file not found: nope \(presets: default, mild"):
+            load_conf_file("nope")
+        with pytest.raises(ConfigError, match=r"config file not found: sub/paper$"):
+            load_conf_file("sub/paper")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import shutil
 import json
 
 import numpy as np
@@ -29,6 +30,45 @@ def collection(tmp_path_factory, copy_sample_frames):
         copy_sample_frames([*range(start, start + 8), *range(start + 50, start + 58)], root / name)
     (root.parent / "conf.yaml").write_text(yaml.safe_dump(CONF))
     return root
+
+
+@pytest.fixture
+def no_ray(monkeypatch):
+    """Ray not installed (``import ray`` fails), and none running in this process (these tests come before the
+    module's local Ray)."""
+    import sys
+
+    if "ray" in sys.modules and sys.modules["ray"] is not None and sys.modules["ray"].is_initialized():
+        pytest.skip("a Ray runs in this process")
+    monkeypatch.setitem(sys.modules, "ray", None)
+
+
+def test_without_workers_no_ray_is_needed(collection, tmp_path, no_ray, caplog):
+    """Without --workers or --ray-address the sequences run one after the other in this process: Ray may be
+    missing; a folder holding no sequence is named in a warning, one with unreadable frames in another and in
+    ``summary.csv``'s ``unreadable`` column."""
+    root = tmp_path / "sequences"
+    shutil.copytree(collection, root)
+    (root / "notes").mkdir()  # holds no sequence
+    (root / "b" / "000016.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"garbage" * 50)
+    (root / "b" / "000017.png").write_bytes(b"not an image")
+    out = tmp_path / "out"
+    args = ["detect", str(root), "--out", str(out), "--no-progress", "--config", str(collection.parent / "conf.yaml")]
+    assert main(args) == 0
+    rows = list(csv.DictReader((out / "summary.csv").open()))
+    assert [(r["status"], r["unreadable"], r["frames"]) for r in rows] == [("ok", "0", "16"), ("ok", "2", "18")]
+    messages = [r.getMessage() for r in caplog.records]
+    assert any("hold no sequence" in m and "notes" in m for m in messages), messages
+    assert any(m.endswith("2 unreadable frame(s) skipped (their run folder's summary.json names them)")
+               for m in messages), messages
+    assert len(RunFolder(out / "a").read_loops()) > 0
+
+
+def test_workers_without_ray_writes_nothing(collection, tmp_path, no_ray, capsys):
+    out = tmp_path / "out"
+    assert main(["detect", str(collection), "--out", str(out), "--workers", "2", "--no-progress"]) == 2
+    assert "this needs Ray" in capsys.readouterr().err
+    assert not out.exists()
 
 
 @pytest.fixture(scope="module")
