@@ -319,7 +319,7 @@ def _evaluate(model: ConvAutoencoder, frames: _Frames, conf: dict[str, Any], dev
             x = _to_batch(frames.images[start:start + batch], device)
             total += F.binary_cross_entropy_with_logits(model(x), x, reduction="sum").item() / x[0].numel()
             if conf["contrastive"] and len(x) > 1:
-                a, b = (model.encoder(_view(x, rng, conf)[1]) for _ in range(2))
+                a, b = (model.encoder.forward_map(_view(x, rng, conf)[1]).flatten(1) for _ in range(2))
                 neg = torch.as_tensor(far_mask(frames.folder[start:start + batch], frames.position[start:start + batch],
                                                conf["far"]))
                 total += conf["contrastive"] * info_nce(a, b, neg, conf["temperature"]).item() * len(x)
@@ -340,7 +340,7 @@ def _place_step(model: ConvAutoencoder, train_set: _Frames, picks: np.ndarray, r
     target, view_a = _view(_to_batch(train_set.images[picks], device), rng, conf)
     _, view_b = _view(_to_batch(train_set.images[partners], device), rng, conf)
     code_a = model.encoder.forward_map(view_a)
-    code_b = model.encoder(view_b)
+    code_b = model.encoder.forward_map(view_b).reshape(len(partners), -1)  # raw codes both: info_nce centres them
     n_rec = max(1, int(round(conf["recon_share"] * len(picks))))
     loss = F.binary_cross_entropy_with_logits(model.decoder(code_a[:n_rec]), target[:n_rec])
     neg = torch.as_tensor(far_mask(train_set.folder[picks], train_set.position[picks], conf["far"]))

@@ -300,8 +300,10 @@ def main(path: str | Path | Sequence | None = None, out: str | Path | None = Non
         DatabaseError: the database is damaged, locked or cannot be written; files already written stay as they were.
     """
     given = camera_from_options(intrinsics, camera_info)
-    seq = path if isinstance(path, Sequence) else open_sequence(SAMPLE_DIR if path is None else path, camera, topic,
-                                                                stride)
+    if isinstance(path, Sequence):  # opened by the caller: its stride is the one it was opened with
+        seq, stride = path, getattr(path.stream, "stride", 1)
+    else:
+        seq = open_sequence(SAMPLE_DIR if path is None else path, camera, topic, stride)
     conf = with_camera(seq, conf, given)
     resolved = resolve_conf(conf)
     apply_thread_policy(resolved["runtime"]["threads"])  # before the calibration: its whitening uses BLAS too

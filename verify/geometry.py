@@ -91,9 +91,11 @@ def pose_information(pts_q: np.ndarray, pts_c: np.ndarray, K: np.ndarray, R: np.
     residuals do not change along the translation's length, where ``UNOBSERVED_INFORMATION`` is put.
 
     Args:
-        pts_q, pts_c: ``(n, 2)`` inlier pixel coordinates (undistorted) in the query and the match image.
+        pts_q: ``(n, 2)`` inlier pixel coordinates (undistorted) in the query image.
+        pts_c: ``(n, 2)`` the same inliers' coordinates in the match image.
         K: ``(3, 3)`` intrinsics of both.
-        R, t: ``(3, 3)``, ``(3,)`` the pose (``x_c = R x_q + t``).
+        R: ``(3, 3)`` the pose's rotation (``x_c = R x_q + t``).
+        t: ``(3,)`` its translation.
         variance_factor: the covariance is multiplied by this (errors the residuals do not see).
 
     Returns:

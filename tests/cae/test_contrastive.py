@@ -32,7 +32,7 @@ def view_margin(model, frames, seed):
     rng = np.random.default_rng(seed)
     x = training._to_batch(frames.images, torch.device("cpu"))
     with torch.no_grad():
-        a, b = (model.encoder(_view(x, rng, conf)[1]) for _ in range(2))
+        a, b = (model.encoder.forward_map(_view(x, rng, conf)[1]).flatten(1) for _ in range(2))
     z = torch.cat([a, b])
     z = torch.nn.functional.normalize(z - z.mean(0, keepdim=True), dim=1)
     sims = (z[:len(a)] @ z[len(a):].T).numpy()
