@@ -325,3 +325,19 @@ class TestConfirmations:
         assert replayed.keys() == confirmed.keys()
         for q, (r, c) in replayed.items():
             assert r == confirmed[q][0] and c == pytest.approx(confirmed[q][1], abs=1e-4)  # stored as float32
+
+    def test_detect_writes_delayed_loops(self, small, tmp_path):
+        """``detect`` on the same frames: the delayed loop is a row of loops.csv (the accepting run's confidence, at
+        least the acceptance level), marked accepted in candidates.csv, counted in the summary."""
+        from evaluation.ground_truth import read_loop_pairs
+        from retrieval.detect import main as detect
+        from retrieval.run_folder import RunFolder
+
+        seq, _ = small
+        summary = detect(seq, tmp_path / "run", {}, progress=False)
+        run = RunFolder(tmp_path / "run")
+        loops = {int(r[0]): (int(r[1]), float(r[6])) for r in run.read_loops()}
+        assert summary["confirmed"] >= 1 and 51 in loops  # measured: 51 -> 1, confirmed at frame 52
+        assert loops[51][0] == 1 and loops[51][1] >= summary["calibration"]["accept_at_confidence"]
+        truth = {tuple(p) for p in read_loop_pairs(seq / "loops.txt").tolist()}
+        assert all((q, r) in truth for q, (r, _) in loops.items())  # precision 1.000
