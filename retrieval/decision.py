@@ -19,6 +19,9 @@ verified as in the run), and what a loop looks like: the **positives** (a frame 
   00 then 07, frame after frame: 0 loops).
 - **One threshold**: ``confidence = -log10(tests * P_E(E))``; a loop needs ``confidence >= accept_at``
   (``NFA <= expected_false_loops / 2``) and positive evidence of its own pair (geometry can always veto).
+- **Delayed loops** (``Confirmations``): a run of ``m`` frames accepted at frame ``t`` certifies its earlier
+  members: each of ``t - m + 1 .. t - 1`` with evidence on the run's offset, not yet a loop and whose pair was
+  admissible then (not too recent, not a stop), is reported at ``t`` (once); a refused run certifies nothing.
 - **Whether one pair may decide alone**: only where geometry separates on this sequence (the median positive pair
   would be accepted alone and no hard negative is); elsewhere a loop needs evidence from ``min_support`` frames.
 - **The score path fuses too** (``ScoreSpans``, where local features are too few to verify): the temporal score of
@@ -48,6 +51,7 @@ Shapes: ``Decision.confidences(query_id, refs (m,) int64, inliers (m,) int64, so
 
 from __future__ import annotations
 
+import copy
 import math
 from collections import deque
 from dataclasses import dataclass
@@ -56,7 +60,7 @@ from typing import Any
 import numpy as np
 
 __all__ = ["TailModel", "EmpiricalTail", "MeasuredTail", "gamma_log10_sf", "gaussian_log10_sf", "Horizon", "Stops",
-           "ScoreSpans", "Decision", "SPAN", "TOL", "GAP"]
+           "Confirmations", "ScoreSpans", "Decision", "SPAN", "TOL", "GAP"]
 
 LN10 = math.log(10.0)
 SPAN = 5  #: frames (inlier path) or windows (score path) one decision fuses at most, the query's and those before it
@@ -341,14 +345,40 @@ class Decision:
         Gamma(m) null (every frame of the run counted, with or without support) or the measured sequence tail,
         whichever is heavier; ``-inf`` where fewer than ``min_support`` frames carry evidence. The run's ``tests``
         count every ``m`` (the calibration multiplies them)."""
+        return self.best_run(e0, more)[0]
+
+    def best_run(self, e0: float, more: list[tuple[int, float]]) -> tuple[float, int]:
+        """``fused``'s confidence and the length ``m`` of the run that gives it (0 where no run qualifies)."""
+        best, best_m, base = -math.inf, 0, -math.log10(self.tests)
         if 1 + len(more) < self.min_support:
-            return -math.inf
-        best, base = -math.inf, -math.log10(self.tests)
+            return best, best_m
         for m in range(max(self.min_support, 1), self.span + 1):
             used = [v for d, v in more if d < m]
             if 1 + len(used) >= self.min_support:
-                best = max(best, base - self.fused_log10_sf(e0 + sum(used), m))
-        return best
+                value = base - self.fused_log10_sf(e0 + sum(used), m)
+                if value > best:
+                    best, best_m = value, m
+        return best, best_m
+
+    def run_members(self, query_id: int, ref: int, inliers: float) -> list[tuple[int, int]]:
+        """The earlier frames of the accepted run of ``(query_id, ref)`` (``inliers``: the pair's counted inliers):
+        ``(q', r')`` for each frame ``q'`` of the best run (``best_run``) with evidence on its offset, ``r'`` its most
+        evident consistent keyframe; empty where the run alone does not reach ``accept_at`` (a pair accepted alone,
+        ``single``, certifies no other frame). Call before ``commit(query_id, ...)``."""
+        e0 = self.evidence(inliers)
+        if self.pair_tail is None or e0 <= 0:
+            return []
+        value, m = self.best_run(e0, self.support(query_id, ref))
+        if value < self.accept_at:
+            return []
+        out, choice = [], math.log10(2 * self.tol + 1)
+        for q, refs, ev in self._recent:
+            if not 0 < query_id - q < m or not len(refs):
+                continue
+            ok = np.flatnonzero(np.abs((q - refs) - (query_id - ref)) <= self.tol)
+            if len(ok) and ev[ok].max() > choice:
+                out.append((int(q), int(refs[ok[np.argmax(ev[ok])]])))
+        return out
 
     def confidences(self, query_id: int, refs: np.ndarray, inliers: np.ndarray, source: Any,
                     fallback: np.ndarray | None = None) -> np.ndarray:
@@ -378,9 +408,49 @@ class Decision:
             out[i] = best
         return out
 
+    def fresh(self) -> "Decision":
+        """The same decision with no frame recorded yet (a replay of a run from its start)."""
+        out = copy.copy(self)
+        out._recent = deque(maxlen=self._recent.maxlen)
+        return out
+
     def commit(self, query_id: int, refs: np.ndarray, inliers: np.ndarray) -> None:
         """Records a processed frame's verified candidates (a resumed run replays its stored ones here)."""
         refs = np.asarray(refs, np.int64)
         inl = np.asarray(inliers, np.float64)
         ev = np.array([self.evidence(x) for x in inl.tolist()], np.float64)
         self._recent.append((int(query_id), refs, ev))
+
+
+class Confirmations:
+    """Delayed confirmations (issue 27): a run of ``m`` consecutive verified frames on one offset, accepted at frame
+    ``t``, certifies its earlier members too. This keeps the last ``span - 1`` frames' admissible candidates (those
+    whose confidence was not vetoed: too recent, a stop, no evidence of their own) and whether each frame is a loop
+    already, and gives the members of an accepted run that are not (``Decision.run_members``), once each.
+
+    Args:
+        span: frames a run covers at most (``Decision.span``).
+    """
+
+    VETO = -1e9  #: the confidence a vetoed candidate is stored with (``LoopDetector``: ``max(value, -1e9)``)
+
+    def __init__(self, span: int = SPAN) -> None:
+        self._frames: deque[tuple[int, dict[int, Any], list[bool]]] = deque(maxlen=max(span - 1, 1))
+
+    def add(self, query_id: int, candidates: dict[int, tuple[float, Any]], looped: bool) -> None:
+        """Records a decided frame: ``candidates`` ``{ref: (confidence, payload)}`` (the payload is returned with a
+        confirmation: a ``Candidate``, a stored row), ``looped`` whether the frame is a loop."""
+        kept = {r: p for r, (c, p) in candidates.items() if c > self.VETO}
+        self._frames.append((int(query_id), kept, [bool(looped)]))
+
+    def confirm(self, decision: Decision, query_id: int, ref: int, inliers: float) -> list[tuple[int, Any]]:
+        """``[(q', payload)]``: the members of the run of ``(query_id, ref)``, accepted now, that were not loops; each
+        marked a loop (reported once). Call before ``decision.commit(query_id, ...)``."""
+        members = dict(decision.run_members(query_id, ref, inliers))
+        out = []
+        for q, kept, looped in self._frames:
+            r = members.get(q)
+            if r is not None and not looped[0] and r in kept:
+                looped[0] = True
+                out.append((q, kept[r]))
+        return out

@@ -253,6 +253,18 @@ def frame_keys(seq: Sequence) -> FrameKeys:
     return FrameKeys(seq.timestamps, [seq.source_id(i) for i in range(len(seq))])
 
 
+def _with_confirmed(query: int, cands: np.ndarray, loop: int,
+                    confirmed: tuple[int, float] | None) -> tuple[int, np.ndarray, int]:
+    """A stored row ``(query, candidates (k, 6), loop)`` with its delayed loop, if any
+    (``LoopDetector.confirmed_loops``: the keyframe and the accepting run's confidence, written as the candidate's, as
+    the API reports it)."""
+    if confirmed is None or loop >= 0:
+        return query, cands, loop
+    cands = cands.copy()
+    cands[cands[:, 0] == confirmed[0], 5] = confirmed[1]
+    return query, cands, confirmed[0]
+
+
 def _log_seconds(seconds: dict[str, float]) -> None:
     """One line: the wall time of the calibration (its own work apart from the run's work it did ahead) and of the
     frames."""
@@ -336,7 +348,9 @@ def main(path: str | Path | Sequence | None = None, out: str | Path | None = Non
         seconds.update({f"calibration_{k}": v for k, v in (cal.seconds if cal is not None else {}).items()})
         _log_seconds(seconds)
         keys = frame_keys(seq)
-        loops = run.write_tables(det.db.results(), keys)
+        rows = list(det.db.results())
+        confirmed = det.confirmed_loops(rows)  # delayed loops: a run accepted at t certifies its earlier frames
+        loops = run.write_tables((_with_confirmed(q, cands, loop, confirmed.get(q)) for q, cands, loop in rows), keys)
         verified = bool(cal.inlier_null) if cal is not None else bool(resolved["policy"]["verify"])
         edges = loop_edges(det.keyframe_features, loops, seq.K, resolved) if verified else []  # only where verified
         if metric_from_poses:
@@ -352,8 +366,8 @@ def main(path: str | Path | Sequence | None = None, out: str | Path | None = Non
         "sequence": str(seq.root.resolve()), "frames": len(seq), "stride": stride,
         "processed_this_run": len(timings),
         "resumed_at": start, "keyframes": keyframes, "gated_out": sum(e.kind == "gated" for e in frames),
-        "unreadable": len(unreadable), "unreadable_files": unreadable, "loops": len(loops), "loop_edges": len(edges),
-        "metric_edges": sum(e.metric for e in edges),
+        "unreadable": len(unreadable), "unreadable_files": unreadable, "loops": len(loops), "confirmed": len(confirmed),
+        "loop_edges": len(edges), "metric_edges": sum(e.metric for e in edges),
         "ms_per_frame": stage_stats(timings), "seconds": seconds, "out": str(run.root),
         "ground_truth_file": None if truth is None else str(truth),
         "camera": None if seq.camera is None else {"source": seq.camera.source, "K": seq.camera.K.tolist(),

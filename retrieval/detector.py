@@ -14,12 +14,17 @@ default, searched by cosine; MILD's ORB descriptors, searched by multi-index has
     candidates  list[Candidate]  top-k hypotheses (recent keyframes excluded) with score, seq_score, matches,
                                  inliers and confidence
     loop        Candidate | None  the accepted match, if any
+    confirmed   list[(int, Candidate)]  delayed loops (calibrated, verified): the run of consecutive frames on one
+                                 offset that accepted ``loop`` certifies its earlier members; ``(earlier frame_id,
+                                 its keyframe)`` for each that was not a loop yet (reported once, with the run's
+                                 confidence; their candidates were in those frames' results)
     R, t        (3, 3), (3,)  relative pose of the loop (essential-matrix model only), else None
     ms          dict[str, float]  milliseconds by stage: gate, encode, features, search, verify, insert, total
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
 import math
@@ -28,7 +33,7 @@ import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterable
 
 import numpy as np
 import torch
@@ -44,7 +49,7 @@ from verify.gate import EdgeGate
 from verify.geometry import GeometricVerifier
 from verify.verifier import MATCHERS, Verification, create_verifier
 
-from .decision import Stops
+from .decision import Confirmations, Decision, Stops
 from .database import CANDIDATE_ROW, FeatureStore, KeyframeDatabase, KeyframeRecord
 from .calibrate import Calibration, calibrated_features
 from .descriptors import DESCRIPTORS, GlobalDescriptor, create_descriptor
@@ -240,12 +245,14 @@ class FrameResult:
     ms: dict[str, float] = field(default_factory=dict)
     entry: np.ndarray | None = field(default=None, repr=False)  #: the searched entry (``places.entry``), None gated
     verification: Verification | None = field(default=None, repr=False)  #: the loop's check: matches, transform
+    confirmed: list[tuple[int, Candidate]] = field(default_factory=list)  #: delayed loops of earlier frames (above)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready view (the fleet server and logs use it)."""
         return {"frame_id": self.frame_id, "gated": self.gated, "edge_ratio": self.edge_ratio,
                 "candidates": [c.__dict__ for c in self.candidates],
                 "loop": None if self.loop is None else self.loop.__dict__,
+                "confirmed": [{"frame_id": q, "loop": c.__dict__} for q, c in self.confirmed],
                 "R": None if self.R is None else self.R.tolist(), "t": None if self.t is None else self.t.tolist(),
                 "ms": self.ms}
 
@@ -317,6 +324,8 @@ class LoopDetector:
         if self.calibration is not None:
             self.decision = self.calibration.decision(c["search"]["exclude_recent"], self.filter)
             self._min_inliers = int(self.decision.floor)  # weaker pairs still add fused evidence
+        self._confirm = Confirmations(self.decision.span) \
+            if self.decision is not None and self.decision.pair_tail is not None else None  # delayed loops
         still = c["policy"]["still_cos"]  # uncalibrated: the stop a still camera has not left is too recent
         self._still = Stops(still) \
             if self.decision is None and still is not None and self.descriptor.searched_by == "cosine" else None
@@ -369,7 +378,9 @@ class LoopDetector:
         each keyframe is registered again in frame order (searched again only for a filter whose state depends on
         every search: it is updated with what it saw then), then committed with its stored hypotheses and inserted."""
         n = 0
-        results = {q: cands for q, cands, _ in db.results()}
+        results, loops = {}, {}
+        for q, cands, loop in db.results():
+            results[q], loops[q] = cands, loop
         if not self.filter.replays_history:  # else every search is replayed against the index as it was then
             restored = self.places.restore_index(db.index_path, db.keyframe_ids())
             if restored:
@@ -387,9 +398,7 @@ class LoopDetector:
                 self.places.register(fid, entry, timestamp)
             self.filter.commit(fid, results[fid][:, 0].astype(np.int64))
             if self.decision is not None:  # stored rows: frame_id, score, matches, inliers, ... (CANDIDATE_ROW)
-                rows = results[fid]
-                self.decision.commit(fid, rows[:, 0].astype(np.int64),
-                                     np.where(rows[:, 2] >= self.conf["policy"]["min_matches"], rows[:, 3], -1))
+                self._replay(self.decision, self._confirm, fid, results[fid], loops[fid])
             self.places.insert(fid, entry, timestamp)
             # database mode (feats None): read back from the database when needed
             if db.has_image(fid) or (feats is not None and not len(feats) and self._frame_source is not None):
@@ -475,21 +484,23 @@ class LoopDetector:
 
         feats, code, entry, candidates = self._describe_and_search(image, gray, prep, net, fid, ts, ms, code)
         try:
-            loop, best = self._verify_and_insert(fid, gate.edge_ratio, feats, code, entry, prep, candidates, ts,
-                                                 pose34, source, fingerprint, ms)
+            loop, best, confirmed = self._verify_and_insert(fid, gate.edge_ratio, feats, code, entry, prep,
+                                                            candidates, ts, pose34, source, fingerprint, ms)
         except BaseException:
             self.places.undo(fid)  # the frame is not in the map: the state is as it was
             raise
         ms["total"] = (time.perf_counter() - t_start) * 1e3
         geo = best.geometry if best is not None else None
         return FrameResult(fid, False, gate.edge_ratio, candidates, loop, getattr(geo, "R", None),
-                           getattr(geo, "t", None), ms, entry, best)
+                           getattr(geo, "t", None), ms, entry, best, confirmed)
 
     def _verify_and_insert(self, fid: int, edge_ratio: float, feats: Features | None, code: np.ndarray,
                            entry: np.ndarray, prep: Callable[[], tuple[np.ndarray, float, bytes]],
                            candidates: list[Candidate], ts: float | None, pose34: np.ndarray | None, source: str,
-                           fingerprint: str, ms: dict[str, float]) -> tuple[Candidate | None, Verification | None]:
-        """Verifies the hypotheses, decides, and stores the keyframe (database first, then memory)."""
+                           fingerprint: str, ms: dict[str, float]
+                           ) -> tuple[Candidate | None, Verification | None, list[tuple[int, Candidate]]]:
+        """Verifies the hypotheses, decides (the loop, its check, the delayed loops it confirms: ``_confirmed``), and
+        stores the keyframe (database first, then memory)."""
         t0, f0 = time.perf_counter(), ms["features"]
         feats, checks = self._check(fid, feats, prep, candidates, ms)
         if feats is None:
@@ -507,6 +518,7 @@ class LoopDetector:
             for cand, value in zip(candidates, fused):
                 cand.confidence = float(max(value, -1e9))
         loop, best = self._decide(fid, candidates, checks)
+        confirmed = self._confirmed(fid, candidates, loop)
         ms["verify"] = (time.perf_counter() - t0) * 1e3 - (ms["features"] - f0)  # late extraction not counted
 
         t0 = time.perf_counter()
@@ -532,7 +544,7 @@ class LoopDetector:
                 self._copies[fid] = grey_copy(small, scale)
         self._next_id = fid + 1
         ms["insert"] = (time.perf_counter() - t0) * 1e3
-        return loop, best
+        return loop, best, confirmed
 
     def _describe_and_search(self, image: np.ndarray, gray: np.ndarray,
                              prep: Callable[[], tuple[np.ndarray, float, bytes]], net: np.ndarray | None, fid: int,
@@ -711,6 +723,48 @@ class LoopDetector:
         if self._frame_source is not None:
             return self.extractor.extract(to_gray_u8(to_uint8(self._frame_source(fid))))
         return _copy_features(self._copy_of(fid), self.extractor)
+
+    def _confirmed(self, fid: int, candidates: list[Candidate],
+                   loop: Candidate | None) -> list[tuple[int, Candidate]]:
+        """The delayed loops the run accepting ``loop`` certifies (``retrieval.decision.Confirmations``), each a copy of
+        the earlier frame's candidate with the run's confidence; records this frame. Before ``decision.commit``."""
+        if self._confirm is None:
+            return []
+        out = [] if loop is None else [(q, dataclasses.replace(c, confidence=loop.confidence)) for q, c in
+                                       self._confirm.confirm(self.decision, fid, loop.frame_id, self._counted(loop))]
+        self._confirm.add(fid, {cd.frame_id: (cd.confidence, cd) for cd in candidates}, loop is not None)
+        return out
+
+    def confirmed_loops(self, rows: Iterable[tuple[int, np.ndarray, int]]) -> dict[int, tuple[int, float]]:
+        """``{frame_id: (keyframe, confidence)}``: the delayed loops (``FrameResult.confirmed``, with the accepting
+        run's confidence) of a whole run, replayed from its stored rows (``KeyframeDatabase.results``: ``(frame_id,
+        candidates (k, 6), loop)``), as the stream reported them; a resumed run's too. Empty without a calibrated,
+        verified decision."""
+        if self._confirm is None:
+            return {}
+        decision, confirm = self.decision.fresh(), Confirmations(self.decision.span)
+        out: dict[int, tuple[int, float]] = {}
+        for fid, cands, loop in rows:
+            out.update(self._replay(decision, confirm, fid, cands, loop))
+        return out
+
+    def _replay(self, decision: Decision, confirm: Confirmations | None, fid: int, rows: np.ndarray,
+                loop: int) -> dict[int, tuple[int, float]]:
+        """Replays one stored frame (``rows`` ``(k, 6)`` in ``CANDIDATE_ROW`` order, ``loop`` -1 or its keyframe)
+        into ``decision`` and ``confirm``; returns the delayed loops ``{frame_id: (keyframe, confidence)}`` it
+        confirms."""
+        refs = rows[:, 0].astype(np.int64)
+        counted = np.where(rows[:, 2] >= self.conf["policy"]["min_matches"], rows[:, 3], -1).astype(np.int64)
+        out = {}
+        if confirm is not None:
+            hit = np.flatnonzero(refs == loop)
+            if loop >= 0 and len(hit):
+                out = {q: (r, float(rows[hit[0], 5])) for q, r in
+                       confirm.confirm(decision, fid, int(loop), int(counted[hit[0]]))}
+            confirm.add(fid, {int(r): (float(c), int(r)) for r, c in zip(refs.tolist(), rows[:, 5].tolist())},
+                        loop >= 0)
+        decision.commit(fid, refs, counted)
+        return out
 
     def _counted(self, cand: Candidate) -> int:
         """The inliers that count as evidence (-1 where the check did not run or the matches are too few)."""

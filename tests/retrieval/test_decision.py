@@ -253,3 +253,91 @@ class TestScoreSpans:
         assert back.spans == cal.spans and back.identity() == cal.identity()
         dec = back.decision(50, create_filter({}))
         assert dec.spans is not None and dec.spans.tests == cal.tests["score"]
+
+
+class TestConfirmations:
+    """A run accepted at frame t certifies its earlier members (delayed loops), once; a refused run certifies
+    nothing. On the sample's true revisit at 160x120 (80 + j -> 29 + j, weak pairs: none passes alone)."""
+
+    @staticmethod
+    def _run(cal, inl, pairs):
+        from retrieval.decision import Confirmations
+
+        dec, conf = _decision(cal), Confirmations()
+        for (q, r), x in zip(pairs, inl):
+            conf.add(q, {r: (0.0, f"c{q}")}, False)
+            dec.commit(q, np.array([r]), np.array([x]))
+        return dec, conf
+
+    def test_accepted_run_reports_its_earlier_members_once(self, small):
+        seq, cal = small
+        pairs = [(80 + j, 29 + j) for j in range(3)]
+        inl = TestFusedEvidence()._inliers(seq, pairs)
+        dec, conf = self._run(cal, inl[:-1], pairs[:-1])
+        q, r = pairs[-1]
+        assert dec.confidences(q, np.array([r]), np.array([inl[-1]]), _NoSource())[0] >= cal.accept_at
+        assert conf.confirm(dec, q, r, inl[-1]) == [(80, "c80"), (81, "c81")]
+        assert conf.confirm(dec, q, r, inl[-1]) == []  # reported once
+
+    def test_refused_run_reports_nothing(self, small):
+        seq, cal = small
+        pairs = [(80 + j, 29 + j) for j in range(3)]
+        inl = TestFusedEvidence()._inliers(seq, pairs)
+        dec, conf = self._run(cal, inl[:-1], pairs[:-1])
+        dec.tests *= 1e6  # the same run, a million times more hypotheses tested: no longer accepted
+        q, r = pairs[-1]
+        assert dec.confidences(q, np.array([r]), np.array([inl[-1]]), _NoSource())[0] < dec.accept_at
+        assert conf.confirm(dec, q, r, inl[-1]) == []
+
+    def test_vetoed_or_already_looped_member_not_reported(self, small):
+        from retrieval.decision import Confirmations
+
+        seq, cal = small
+        pairs = [(80 + j, 29 + j) for j in range(3)]
+        inl = TestFusedEvidence()._inliers(seq, pairs)
+        dec, conf = _decision(cal), Confirmations()
+        conf.add(80, {29: (Confirmations.VETO, "c80")}, False)  # too recent then: its pair was not admissible
+        conf.add(81, {30: (5.0, "c81")}, True)  # a loop already
+        for (q, r), x in zip(pairs[:-1], inl[:-1]):
+            dec.commit(q, np.array([r]), np.array([x]))
+        assert conf.confirm(dec, 82, 31, inl[-1]) == []
+
+    def test_stream_reports_delayed_loops_and_detect_replays_them(self, small, tmp_path):
+        """Through the API on real frames: the revisit's first frame, too weak alone, is reported once the run
+        through it is accepted (on the later frame's result); the stored run replays to the same delayed loops."""
+        from core.images import read_image
+        from evaluation.ground_truth import read_loop_pairs
+        from retrieval.detector import LoopDetector
+
+        seq, cal = small
+        truth = {tuple(p) for p in read_loop_pairs(seq / "loops.txt").tolist()}
+        looped, confirmed = set(), {}
+        with LoopDetector(calibration=cal, database=tmp_path / "k.h5") as det:
+            for i in range(100):
+                res = det.process(read_image(seq / "image_0" / f"{i:06d}.png"), i)
+                looped |= {i} if res.loop is not None else set()
+                for q, cand in res.confirmed:
+                    assert q < i and q not in looped and q not in confirmed  # not a loop yet, reported once
+                    confirmed[q] = (cand.frame_id, cand.confidence)
+                    assert cand.confidence == res.loop.confidence  # the accepting run's
+            replayed = det.confirmed_loops(det.db.results())
+        assert confirmed and all((q, r) in truth for q, (r, _) in confirmed.items())  # measured: 51 -> 1, at 52
+        assert replayed.keys() == confirmed.keys()
+        for q, (r, c) in replayed.items():
+            assert r == confirmed[q][0] and c == pytest.approx(confirmed[q][1], abs=1e-4)  # stored as float32
+
+    def test_detect_writes_delayed_loops(self, small, tmp_path):
+        """``detect`` on the same frames: the delayed loop is a row of loops.csv (the accepting run's confidence, at
+        least the acceptance level), marked accepted in candidates.csv, counted in the summary."""
+        from evaluation.ground_truth import read_loop_pairs
+        from retrieval.detect import main as detect
+        from retrieval.run_folder import RunFolder
+
+        seq, _ = small
+        summary = detect(seq, tmp_path / "run", {}, progress=False)
+        run = RunFolder(tmp_path / "run")
+        loops = {int(r[0]): (int(r[1]), float(r[6])) for r in run.read_loops()}
+        assert summary["confirmed"] >= 1 and 51 in loops  # measured: 51 -> 1, confirmed at frame 52
+        assert loops[51][0] == 1 and loops[51][1] >= summary["calibration"]["accept_at_confidence"]
+        truth = {tuple(p) for p in read_loop_pairs(seq / "loops.txt").tolist()}
+        assert all((q, r) in truth for q, (r, _) in loops.items())  # precision 1.000
