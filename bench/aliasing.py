@@ -29,9 +29,9 @@ from typing import Any, Callable
 import cv2
 import numpy as np
 
-from core.images import read_image
-from evaluation.ground_truth import read_loop_pairs
-from evaluation.metrics import precision_recall, recall_at_k
+from cae_lcd.core.images import read_image
+from cae_lcd.evaluation.ground_truth import read_loop_pairs
+from cae_lcd.evaluation.metrics import precision_recall, recall_at_k
 from retrieval.run_folder import RunFolder
 from retrieval.sequences import open_sequence
 

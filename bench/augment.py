@@ -14,7 +14,7 @@ from typing import Iterator, Sequence
 import cv2
 import numpy as np
 
-from core.images import image_entries, read_image
+from cae_lcd.core.images import image_entries, read_image
 
 __all__ = ["shared_frames", "augment", "augmented_frames", "darken", "dusk"]
 

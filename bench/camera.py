@@ -20,7 +20,7 @@ from typing import Any
 
 import cv2
 
-from core.images import read_image
+from cae_lcd.core.images import read_image
 from retrieval.detect import SAMPLE_DIR
 
 from .common import REPO, detect_run, ground_truth_pairs, md_table

@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from core.conf import load_conf_file
-from evaluation.metrics import best_per_query, correct_mask
+from cae_lcd.core.conf import load_conf_file
+from cae_lcd.evaluation.metrics import best_per_query, correct_mask
 from retrieval.detect import main as detect
 from retrieval.run_folder import CANDIDATE_COLUMNS, RunFolder, read_csv_table
 

@@ -15,9 +15,9 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from evaluation.evaluate import KS
-from evaluation.ground_truth import read_loop_pairs
-from evaluation.metrics import best_per_query, pr_curve, precision_recall, recall_at_k
+from cae_lcd.evaluation.evaluate import KS
+from cae_lcd.evaluation.ground_truth import read_loop_pairs
+from cae_lcd.evaluation.metrics import best_per_query, pr_curve, precision_recall, recall_at_k
 from retrieval.run_folder import CANDIDATE_COLUMNS, RunFolder, read_csv_table
 from retrieval.sequences import open_sequence
 
@@ -101,7 +101,7 @@ def run_metrics(out: str | Path, ground_truth: np.ndarray | None, min_matches: i
         out: run folder written by ``retrieval.detect.main``.
         ground_truth: ``(P, 2)`` true pairs, or None (then only the loop count is known).
         min_matches: the run's ``policy.min_matches`` (candidates below it are ineligible in the sweep).
-        score: one of ``evaluation.metrics.SCORES`` (``"confidence"``, ``"inliers"``, ``"cosine"``, ``"seq_score"``).
+        score: one of ``cae_lcd.evaluation.metrics.SCORES`` (``"confidence"``, ``"inliers"``, ``"cosine"``, ``"seq_score"``).
 
     Returns:
         ``loops``, ``ms_total`` (median end-to-end ms/frame) and ``score``; with ground truth also the operating

@@ -65,7 +65,7 @@ def rotation_gaps(a: list, b: list) -> np.ndarray:
 
 def main(out: str | Path = "runs/bench/fisheye", write: bool = True) -> dict[str, Any]:
     """Runs the three detections and returns their comparison (and writes BENCHMARKS.md's section)."""
-    from evaluation.ground_truth import read_loop_pairs
+    from cae_lcd.evaluation.ground_truth import read_loop_pairs
     from retrieval import detect
     from retrieval.edges import edge_errors
     from retrieval.run_folder import RunFolder

@@ -27,9 +27,9 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from core.files import prepare_out_dir, write_text_atomic
-from fleet.client import FleetClient
-from fleet.demo import kitti_stream
+from cae_lcd.core.files import prepare_out_dir, write_text_atomic
+from cae_lcd.fleet.client import FleetClient
+from cae_lcd.fleet.demo import kitti_stream
 
 from .common import REPO, md_table
 
@@ -48,7 +48,7 @@ def _serve(state: str, port: int) -> None:
     ``_RAY``, ``_RECOGNITION``) when given."""
     import uvicorn
 
-    from fleet.server import create_app
+    from cae_lcd.fleet.server import create_app
 
     app = create_app(state, os.environ["FLEET_BENCH_TOKEN"], store=os.environ.get("FLEET_BENCH_STORE") or None,
                      workers=int(os.environ.get("FLEET_BENCH_WORKERS", "1")),
@@ -255,7 +255,7 @@ def scale_test(kitti_root: str | Path, out: Path, robots: int = 32, keyframes: i
     Returns:
         ``{"single": {"saturated", "half_load"}, "scale_out": {...}, "cpu_s_per_keyframe", "capacity_per_s", ...}``.
     """
-    from fleet.pg_local import LocalPostgres
+    from cae_lcd.fleet.pg_local import LocalPostgres
 
     single = {"saturated": _run_mode(kitti_root, out / "state", robots, keyframes, 0.0, 1, {})}
     cost = single["saturated"]["server_cpu_s"] / single["saturated"]["keyframes"]

@@ -39,12 +39,12 @@ from typing import Any, Callable
 import cv2
 import numpy as np
 
-from core.errors import DatabaseError
-from core.files import prepare_out_dir, write_text_atomic
-from fleet.client import FleetClient, FleetError
-from fleet.runner import ServerThread
-from fleet.server import create_app
-from fleet.store import SQLiteStore
+from cae_lcd.core.errors import DatabaseError
+from cae_lcd.core.files import prepare_out_dir, write_text_atomic
+from cae_lcd.fleet.client import FleetClient, FleetError
+from cae_lcd.fleet.runner import ServerThread
+from cae_lcd.fleet.server import create_app
+from cae_lcd.fleet.store import SQLiteStore
 from retrieval.detect import SAMPLE_DIR
 from retrieval.sequences import read_kitti_poses
 
@@ -74,7 +74,7 @@ def _free_port() -> int:
 
 def _serve(state: Path, port: int) -> subprocess.Popen:
     """``cae-lcd serve`` on loopback, up once ``/map`` answers."""
-    proc = subprocess.Popen([sys.executable, "-m", "cli.main", "serve", "--state", str(state), "--port", str(port),
+    proc = subprocess.Popen([sys.executable, "-m", "cae_lcd.cli.main", "serve", "--state", str(state), "--port", str(port),
                              "--admin-token", ADMIN], cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                             env={**os.environ, "PYTHONPATH": str(REPO)})
     deadline = time.monotonic() + 120

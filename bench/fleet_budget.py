@@ -18,11 +18,11 @@ from typing import Any, Sequence
 
 import cv2
 
-from core.files import prepare_out_dir, write_text_atomic
-from fleet.demo import kitti_stream
-from fleet import recognition
-from fleet.budget import shortlist
-from fleet.recognition import FleetRecognizer
+from cae_lcd.core.files import prepare_out_dir, write_text_atomic
+from cae_lcd.fleet.demo import kitti_stream
+from cae_lcd.fleet import recognition
+from cae_lcd.fleet.budget import shortlist
+from cae_lcd.fleet.recognition import FleetRecognizer
 from retrieval.descriptors import create_descriptor
 
 from .common import REPO, md_table
@@ -55,7 +55,7 @@ def _run(kitti_root: Path, robots: int, keyframes: int, budget: int, descriptor:
 
 
 def _counting(verified: list[int]) -> Any:
-    """``fleet.budget.shortlist`` that adds the number of candidates it chooses (those verified) to ``verified[0]``."""
+    """``cae_lcd.fleet.budget.shortlist`` that adds the number of candidates it chooses (those verified) to ``verified[0]``."""
 
     def counted(*args: Any) -> dict[str, Any]:
         chosen = shortlist(*args)

@@ -1,6 +1,6 @@
 """A screenshot of the fleet server's live map during the fleet demo: ``python -m bench.fleet_map``.
 
-Runs ``fleet.demo.run_demo`` (the same as ``make fleet-demo``) and, once the robots have streamed and while the
+Runs ``cae_lcd.fleet.demo.run_demo`` (the same as ``make fleet-demo``) and, once the robots have streamed and while the
 server still runs, opens ``/map#token=...`` in headless Chromium and saves the page as ``docs/fleet_map.png``
 (PNG, maximum compression). Needs ``chromium`` on PATH (``apt-get install -y chromium``).
 """
@@ -16,8 +16,8 @@ from pathlib import Path
 
 import cv2
 
-from core.errors import LCDError
-from fleet.demo import run_demo
+from cae_lcd.core.errors import LCDError
+from cae_lcd.fleet.demo import run_demo
 
 __all__ = ["main", "screenshot", "chromium_command"]
 

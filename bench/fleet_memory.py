@@ -20,13 +20,13 @@ import time
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
-from core.files import prepare_out_dir, write_text_atomic
-from core.images import read_image
-from core.threads import reexec_with_server_malloc
-from fleet.demo import kitti_stream
-from fleet.recognition import FleetRecognizer
-from fleet.service import FleetService
-from fleet.store import SQLiteStore
+from cae_lcd.core.files import prepare_out_dir, write_text_atomic
+from cae_lcd.core.images import read_image
+from cae_lcd.core.threads import reexec_with_server_malloc
+from cae_lcd.fleet.demo import kitti_stream
+from cae_lcd.fleet.recognition import FleetRecognizer
+from cae_lcd.fleet.service import FleetService
+from cae_lcd.fleet.store import SQLiteStore
 from retrieval.detector import LoopDetector
 
 from .common import REPO, md_table
@@ -104,7 +104,7 @@ def main(argv: Sequence[str] | None = None) -> None:
                     help="the detectors' runtime.features (the fleet's default: database)")
     ap.add_argument("--bare", action="store_true", help="one LoopDetector with the fleet's detector conf, no fleet")
     ap.add_argument("--server-malloc", action=argparse.BooleanOptionalAction, default=True,
-                    help="glibc's malloc as `cae-lcd serve` sets it: arenas capped, mmap threshold fixed (core.threads)")
+                    help="glibc's malloc as `cae-lcd serve` sets it: arenas capped, mmap threshold fixed (cae_lcd.core.threads)")
     ap.add_argument("--out", type=Path, default=REPO / "runs" / "bench" / "fleet_memory")
     args = ap.parse_args(argv)
     if args.server_malloc:

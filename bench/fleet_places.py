@@ -22,8 +22,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from core.files import prepare_out_dir, write_text_atomic
-from fleet.places import FleetPlaces, create_fleet_places, resolve_places
+from cae_lcd.core.files import prepare_out_dir, write_text_atomic
+from cae_lcd.fleet.places import FleetPlaces, create_fleet_places, resolve_places
 from retrieval.descriptors import create_descriptor
 from retrieval.detector import resolve_conf
 

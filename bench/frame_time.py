@@ -36,7 +36,7 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from core.images import read_image
+from cae_lcd.core.images import read_image
 from retrieval.calibrate import Calibration
 from retrieval.detector import LoopDetector
 from retrieval.sequences import open_sequence

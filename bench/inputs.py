@@ -17,8 +17,8 @@ import shutil
 import time
 from pathlib import Path
 
-from evaluation.evaluate import score_run
-from evaluation.scored import detect_and_score
+from cae_lcd.evaluation.evaluate import score_run
+from cae_lcd.evaluation.scored import detect_and_score
 from retrieval.sequences import open_sequence
 from retrieval.sequences.rosbag import write_image_bag
 

@@ -31,7 +31,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def _detect(path: Path, out: Path, config: Path | None) -> subprocess.Popen:
-    args = [sys.executable, "-m", "cli.main", "detect", str(path), "--out", str(out), "--no-progress"]
+    args = [sys.executable, "-m", "cae_lcd.cli.main", "detect", str(path), "--out", str(out), "--no-progress"]
     args += ["--config", str(config)] if config is not None else []
     return subprocess.Popen(args, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
 

@@ -19,7 +19,7 @@ from functools import partial
 from pathlib import Path
 
 
-from evaluation.scored import detect_and_score
+from cae_lcd.evaluation.scored import detect_and_score
 from retrieval.batch import run_batch
 from retrieval.run_folder import RunFolder
 

@@ -14,7 +14,7 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from core.conf import load_conf_file, merge_conf
+from cae_lcd.core.conf import load_conf_file, merge_conf
 from retrieval.descriptors import create_descriptor
 from retrieval.detector import resolve_conf
 from retrieval.methods import METHODS
@@ -136,7 +136,7 @@ class StudySet:
 
 def frame_codes(frames: Sequence[Path], descriptor: Any, batch: int = 32) -> np.ndarray:
     """``(N, dim)`` float32 codes of image files with a ``retrieval.descriptors`` descriptor (batched when it can)."""
-    from core.images import read_image
+    from cae_lcd.core.images import read_image
 
     out = [np.empty((0, descriptor.dim), np.float32)]
     for i in range(0, len(frames), batch):

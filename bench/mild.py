@@ -24,7 +24,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from core.images import read_image
+from cae_lcd.core.images import read_image
 from retrieval.methods import METHODS, method_conf
 from retrieval.mild import DESCRIPTOR_BITS, MildDescriptor, MultiIndexHash, expected_recall, recall_probability
 from retrieval.places import RowTable

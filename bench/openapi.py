@@ -14,10 +14,10 @@ import tempfile
 import time
 from typing import Any, Sequence
 
-from core.files import prepare_out_dir, write_text_atomic
-from fleet.client import FleetClient
-from fleet.runner import ServerThread
-from fleet.server import create_app
+from cae_lcd.core.files import prepare_out_dir, write_text_atomic
+from cae_lcd.fleet.client import FleetClient
+from cae_lcd.fleet.runner import ServerThread
+from cae_lcd.fleet.server import create_app
 
 from .common import REPO, md_table
 

@@ -19,7 +19,7 @@ import torch
 
 import cae
 from cae.model import Encoder
-from core.images import read_image
+from cae_lcd.core.images import read_image
 from retrieval.sequences import open_sequence
 
 from .common import ground_truth_pairs

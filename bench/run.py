@@ -23,7 +23,7 @@ The tables go between ``<!-- bench:begin -->`` and ``<!-- bench:end -->`` (train
 output file; everything outside the markers is kept. Run folders go under ``runs/bench/``. ``--quick`` uses tiny
 sizes (16 frames cut from the bundled sample, 500/2000 codes) to check the command end to end in < 1 min.
 
-``main`` is the Python API; the command line is ``cli/bench.py``. Each section is one step below (``_stages``,
+``main`` is the Python API; the command line is ``cae_lcd/cli/bench.py``. Each section is one step below (``_stages``,
 ``_encoder``, ``_methods``, ``_index``, ``_false_loops``, ``_training``) working on one ``_Bench`` state.
 """
 
@@ -38,9 +38,9 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from core.conf import ConfigError
-from core.images import read_image
-from evaluation.ground_truth import read_loop_pairs
+from cae_lcd.core.conf import ConfigError
+from cae_lcd.core.images import read_image
+from cae_lcd.evaluation.ground_truth import read_loop_pairs
 from retrieval.baselines import build_vocabulary
 from retrieval.detect import SAMPLE_DIR
 from retrieval.sequences import open_sequence

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from core.images import read_image
+from cae_lcd.core.images import read_image
 from retrieval.detector import LoopDetector
 from retrieval.sequences import open_sequence
 from verify.features import SIFT

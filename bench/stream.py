@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from core.conf import merge_conf
+from cae_lcd.core.conf import merge_conf
 from retrieval.detector import LoopDetector
 
 from .augment import augmented_frames, shared_frames

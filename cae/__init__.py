@@ -5,8 +5,8 @@
     >>> codes = cae.encode_images(encoder, [img1, img2])  # (2, 4096), unit norm   # doctest: +SKIP
 """
 
-from core.errors import ConfigError, ImageError
-from core.images import read_image, to_gray_u8
+from cae_lcd.core.errors import ConfigError, ImageError
+from cae_lcd.core.images import read_image, to_gray_u8
 
 from .encode import encode_images, normalize_codes
 from .model import CODE_DIM, INPUT_SIZE, ConvAutoencoder, Decoder, Encoder

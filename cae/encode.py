@@ -7,7 +7,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from core.errors import ConfigError, ImageError
+from cae_lcd.core.errors import ConfigError, ImageError
 
 from .model import CODE_DIM, INPUT_SIZE, Encoder
 from .preprocess import network_tensor, preprocess

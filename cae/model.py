@@ -17,7 +17,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from core.errors import ImageError
+from cae_lcd.core.errors import ImageError
 
 __all__ = ["Encoder", "Decoder", "ConvAutoencoder", "INPUT_SIZE", "CODE_SHAPE", "CODE_DIM"]
 

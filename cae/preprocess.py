@@ -1,6 +1,6 @@
 """From what OpenCV reads to what the network takes: ``(B, 3, 256, 256)`` float in [0, 1], RGB, channels-last.
 
-Image reading and dtype/layout conversion are the base layer's (``core.images``); this module only adds the
+Image reading and dtype/layout conversion are the base layer's (``cae_lcd.core.images``); this module only adds the
 network's resize and tensor layout.
 """
 
@@ -11,7 +11,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from core.images import check_image, resize_square, to_rgb_u8, to_uint8
+from cae_lcd.core.images import check_image, resize_square, to_rgb_u8, to_uint8
 
 from .model import INPUT_SIZE
 

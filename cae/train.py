@@ -31,12 +31,12 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 import torch.nn.functional as F
-from core.progress import progress_bar as tqdm  # a bar on a terminal, log lines in a log
+from cae_lcd.core.progress import progress_bar as tqdm  # a bar on a terminal, log lines in a log
 
-from core.conf import ConfigError, Float, Int, Text, check_conf, conf_diff, dump_conf, merge_conf
-from core.errors import ImageError
-from core.files import prepare_out_dir, write_text_atomic
-from core.images import IMAGE_EXTENSIONS, image_entries, read_image
+from cae_lcd.core.conf import ConfigError, Float, Int, Text, check_conf, conf_diff, dump_conf, merge_conf
+from cae_lcd.core.errors import ImageError
+from cae_lcd.core.files import prepare_out_dir, write_text_atomic
+from cae_lcd.core.images import IMAGE_EXTENSIONS, image_entries, read_image
 from .contrastive import far_mask, info_nce, neighbour_partners
 from .model import INPUT_SIZE, ConvAutoencoder
 from .preprocess import to_network_u8

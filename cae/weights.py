@@ -15,7 +15,7 @@ from typing import Any
 
 import torch
 
-from core.errors import ConfigError
+from cae_lcd.core.errors import ConfigError
 from .model import ConvAutoencoder, Encoder
 from .whitening import Whitening
 

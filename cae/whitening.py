@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from core.errors import ConfigError
+from cae_lcd.core.errors import ConfigError
 
 __all__ = ["Whitening", "MIN_FIT_CODES", "DEFAULT_DIM", "DEFAULT_SHRINK"]
 

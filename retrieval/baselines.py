@@ -25,9 +25,9 @@ import cv2
 import faiss
 import numpy as np
 
-from core.conf import ConfigError, Float, Int, Text
+from cae_lcd.core.conf import ConfigError, Float, Int, Text
 from cae.encode import normalize_codes
-from core.images import read_image, to_gray_u8
+from cae_lcd.core.images import read_image, to_gray_u8
 from verify.features import Features, create_extractor
 
 from .descriptors import DESCRIPTORS, GlobalDescriptor

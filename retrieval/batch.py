@@ -17,11 +17,11 @@ import logging
 from pathlib import Path
 from typing import Any, Callable
 
-from core.cluster import start_ray
-from core.conf import ConfigError
-from core.files import prepare_out_dir, write_text_atomic
-from core.progress import progress_bar
-from core.threads import cpu_count
+from cae_lcd.core.cluster import start_ray
+from cae_lcd.core.conf import ConfigError
+from cae_lcd.core.files import prepare_out_dir, write_text_atomic
+from cae_lcd.core.progress import progress_bar
+from cae_lcd.core.threads import cpu_count
 
 __all__ = ["run_batch", "batch_outs", "SUMMARY_COLUMNS"]
 

@@ -72,13 +72,13 @@ from typing import Any, Iterable
 
 import h5py
 import numpy as np
-from core.progress import progress_bar as tqdm  # a bar on a terminal, log lines in a log
+from cae_lcd.core.progress import progress_bar as tqdm  # a bar on a terminal, log lines in a log
 
 from cae.whitening import MIN_FIT_CODES, Whitening
-from core.conf import ConfigError
-from core.errors import DatabaseError
-from core.files import atomic_write
-from core.threads import cpu_count
+from cae_lcd.core.conf import ConfigError
+from cae_lcd.core.errors import DatabaseError
+from cae_lcd.core.files import atomic_write
+from cae_lcd.core.threads import cpu_count
 from verify.features import create_extractor
 from verify.gate import EdgeGate
 from verify.verifier import create_verifier
@@ -560,7 +560,7 @@ def _score_path(cal: Calibration, null: np.ndarray, filt: TemporalFilter, table:
 
 def _extract_side_by_side(fconf: dict[str, Any], images: dict[int, np.ndarray], fids: list[int]) -> dict[int, Any]:
     """Local features of ``images[fid]`` for ``fids``, on every core: one single-threaded extractor per worker
-    (``core.threads``), the same features as one after another."""
+    (``cae_lcd.core.threads``), the same features as one after another."""
     n = min(cpu_count(), max(1, len(fids)))
 
     def part(chunk: list[int]) -> list[tuple[int, Any]]:

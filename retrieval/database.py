@@ -56,8 +56,8 @@ from typing import Any, Iterator
 import h5py
 import numpy as np
 
-from core.conf import conf_diff, conf_get
-from core.errors import ConfigError, DatabaseError
+from cae_lcd.core.conf import conf_diff, conf_get
+from cae_lcd.core.errors import ConfigError, DatabaseError
 from verify.features import KEYPOINT_STEP, Features
 
 from .wal import FrameLog, read_records
@@ -148,7 +148,7 @@ class KeyframeRecord:
     edge_ratio: float = float("nan")
     candidates: np.ndarray | None = None  #: (k, len(CANDIDATE_ROW)) rows in CANDIDATE_ROW order
     loop: int = -1  #: accepted match, -1 if none
-    fingerprint: str = ""  #: "size:hash" of the source file (``core.images.fingerprint``), "" when unknown
+    fingerprint: str = ""  #: "size:hash" of the source file (``cae_lcd.core.images.fingerprint``), "" when unknown
     image: bytes = b""  #: its grey copy (``retrieval.feature_jobs.grey_copy``) when it keeps one, else b""
 
 

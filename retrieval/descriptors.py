@@ -12,10 +12,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from core.conf import Bool, Registry, Text, configure
+from cae_lcd.core.conf import Bool, Registry, Text, configure
 from cae.encode import encode_images
 from cae.preprocess import to_network_u8
-from core.images import to_uint8
+from cae_lcd.core.images import to_uint8
 from cae.model import CODE_DIM
 from cae.weights import DEVICE_PATTERN, load_encoder
 from verify.features import Features

@@ -21,11 +21,11 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from core.conf import ConfigError, dump_conf
-from core.errors import ImageError
-from core.files import prepare_out_dir
-from core.progress import Counted, progress_bar
-from core.threads import apply_thread_policy
+from cae_lcd.core.conf import ConfigError, dump_conf
+from cae_lcd.core.errors import ImageError
+from cae_lcd.core.files import prepare_out_dir
+from cae_lcd.core.progress import Counted, progress_bar
+from cae_lcd.core.threads import apply_thread_policy
 
 from verify.camera import CameraModel, camera_from_options
 
@@ -77,7 +77,7 @@ def _read_and_encode(seq: Sequence, ids: list[int], descriptor: GlobalDescriptor
 def _ahead(seq: Sequence, ids: list[int], descriptor: GlobalDescriptor | None = None,
            batch: int = 8) -> Iterator[Ahead]:
     """Reads, decodes and encodes frames ``ids`` of ``seq`` (batches of ``batch``) in a worker thread, one batch
-    ahead of the frame being processed: with single-threaded libraries (``core.threads``) the worker and the caller
+    ahead of the frame being processed: with single-threaded libraries (``cae_lcd.core.threads``) the worker and the caller
     each hold a core.
 
     Yields:

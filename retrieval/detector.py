@@ -40,10 +40,10 @@ import torch
 
 from cae.preprocess import to_network_u8
 from cae.whitening import DEFAULT_DIM, DEFAULT_SHRINK
-from core.checks import check_frame_id, check_intrinsics, check_pose, check_timestamp
-from core.conf import Bool, Choice, ConfigError, Float, Int, check_conf, merge_conf
-from core.images import check_image, to_gray_u8, to_uint8
-from core.threads import BesideExecutor, apply_thread_policy
+from cae_lcd.core.checks import check_frame_id, check_intrinsics, check_pose, check_timestamp
+from cae_lcd.core.conf import Bool, Choice, ConfigError, Float, Int, check_conf, merge_conf
+from cae_lcd.core.images import check_image, to_gray_u8, to_uint8
+from cae_lcd.core.threads import BesideExecutor, apply_thread_policy
 from verify.features import FEATURES, FeatureExtractor, Features, create_extractor
 from verify.gate import EdgeGate
 from verify.geometry import GeometricVerifier
@@ -124,7 +124,7 @@ default_conf: dict[str, Any] = {
         #                     None: off (the paper's literal rule)
     },
     "runtime": {
-        "threads": 1,  # threads of each library's pool (torch, OpenCV, faiss: ``core.threads``); 1 = the cores go to
+        "threads": 1,  # threads of each library's pool (torch, OpenCV, faiss: ``cae_lcd.core.threads``); 1 = the cores go to
         #                the pipeline's own workers (``detect`` reads and encodes ahead), which a busy neighbour
         #                process slows but cannot stall; None = all cores
         "lazy_features": True,  # local features only for frames that verify a candidate (extracted when needed,
@@ -450,7 +450,7 @@ class LoopDetector:
             timestamp: seconds, finite (used by ``search.exclude_recent_s`` and stored).
             pose: ``(3, 4)`` (or ``(4, 4)``) camera-to-world pose, finite, stored with the keyframe when given.
             source: free text stored with the keyframe (e.g. the file name).
-            fingerprint: ``"size:hash"`` of the source file (``core.images.fingerprint``), stored to check resumes.
+            fingerprint: ``"size:hash"`` of the source file (``cae_lcd.core.images.fingerprint``), stored to check resumes.
             code: this frame's raw ``(dim,)`` global code when it was already computed from the same image (``detect``
                 encodes ahead, in batches, and reuses the calibration's codes); None: encoded here.
 

@@ -26,8 +26,8 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from core.errors import DatabaseError
-from core.threads import BesideCaller
+from cae_lcd.core.errors import DatabaseError
+from cae_lcd.core.threads import BesideCaller
 from verify.features import FeatureExtractor, Features
 
 __all__ = ["FeatureJobs", "grey_copy", "read_grey_copy"]

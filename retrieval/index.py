@@ -37,8 +37,8 @@ from typing import Any, Iterator, Mapping
 import faiss
 import numpy as np
 
-from core.conf import Choice, Float, Int, Registry, configure
-from core.errors import ConfigError
+from cae_lcd.core.conf import Choice, Float, Int, Registry, configure
+from cae_lcd.core.errors import ConfigError
 
 log = logging.getLogger(__name__)
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 import copy
 from typing import Any
 
-from core.conf import ConfigError, merge_conf
+from cae_lcd.core.conf import ConfigError, merge_conf
 
 __all__ = ["METHODS", "method_conf"]
 

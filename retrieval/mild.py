@@ -37,9 +37,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from core.conf import Float, Int
-from core.errors import ConfigError
-from core.images import to_gray_u8
+from cae_lcd.core.conf import Float, Int
+from cae_lcd.core.errors import ConfigError
+from cae_lcd.core.images import to_gray_u8
 from verify.features import ORB, Features
 
 from .descriptors import DESCRIPTORS, GlobalDescriptor

@@ -1,5 +1,5 @@
 """A code index on Milvus (``index.name: milvus``), and the one home of the Milvus client's setup (``milvus_client``,
-``serve_lite``: also used by the fleet's shared place memory, ``fleet.places.MilvusPlaces``).
+``serve_lite``: also used by the fleet's shared place memory, ``cae_lcd.fleet.places.MilvusPlaces``).
 
 The same ``CodeIndex`` interface as the faiss indexes (``retrieval.index``): ``add`` appends codes whose positions
 continue from ``ntotal``, ``search`` returns ``D (nq, k)`` inner products and ``I (nq, k)`` positions with ``-1``
@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from core.conf import ConfigError, Int, Text, configure
+from cae_lcd.core.conf import ConfigError, Int, Text, configure
 
 from .index import INDEXES, CodeIndex
 

@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from cae.whitening import SAMPLES_PER_DIM, Whitening
-from core.conf import ConfigError, Registry
+from cae_lcd.core.conf import ConfigError, Registry
 
 from .descriptors import GlobalDescriptor
 from .index import AdmissionQueue, KeyframeIndex

@@ -19,7 +19,7 @@ columns.
                      they mean
     ground_truth_poses.txt  the sequence's ground-truth camera poses in the data set's own world, one KITTI row a
                      frame (TUM, EuRoC: layouts whose poses are ground truth; ``evaluate`` derives the loop ground
-                     truth from them across the gravity axis, ``evaluation.ground_truth.up_axis``)
+                     truth from them across the gravity axis, ``cae_lcd.evaluation.ground_truth.up_axis``)
 
 Tables and the summary are written to a temporary file and renamed, so a crash never leaves half a file where a
 good one was; what is read back is checked (numeric, finite, integer frame ids).
@@ -36,8 +36,8 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-from core.errors import ConfigError
-from core.files import atomic_write, write_text_atomic
+from cae_lcd.core.errors import ConfigError
+from cae_lcd.core.files import atomic_write, write_text_atomic
 
 from .database import LOG_SUFFIX
 from .edges import LoopEdge, rotation_to_quaternion

@@ -36,7 +36,7 @@ from typing import Any, Callable, Protocol
 
 import numpy as np
 
-from core.conf import Float, Floats, Int, Registry, configure
+from cae_lcd.core.conf import Float, Floats, Int, Registry, configure
 
 __all__ = ["SimilaritySource", "CodeTable", "TemporalFilter", "SequenceFilter", "NoFilter", "BayesFilter",
            "FILTERS", "create_filter"]

@@ -55,7 +55,7 @@ def sample_frames(sample_dir):
 @pytest.fixture(scope="session")
 def sample_image():
     """``sample_image(i)`` -> grey uint8 ``(188, 620)`` frame ``i`` of the sample (read once, cached)."""
-    from core.images import read_image
+    from cae_lcd.core.images import read_image
 
     cache: dict[int, np.ndarray] = {}
 
@@ -100,7 +100,7 @@ def kitti_sequences() -> Path:
 @pytest.fixture(scope="session")
 def kitti_image(kitti_sequences):
     """``kitti_image(seq, i)`` -> frame ``i`` of ``../shared/datasets/kitti/sequences/<seq>`` (full resolution)."""
-    from core.images import read_image
+    from cae_lcd.core.images import read_image
 
     def get(seq: str, i: int) -> np.ndarray:
         path = kitti_sequences / seq / "image_0" / f"{i:06d}.png"
@@ -123,7 +123,7 @@ def encoder():
 def nordland_codes(encoder):
     """``{frame_id: raw (4096,) code}`` of the real Nordland frames ``NORDLAND_FRAMES`` (64x32; skips when the shared
     data set is absent), encoded once per session."""
-    from core.images import read_image
+    from cae_lcd.core.images import read_image
     from retrieval.descriptors import create_descriptor
 
     if not (NORDLAND / "images").is_dir():
@@ -154,7 +154,7 @@ def _copy_sample_frames(indices, dst: Path, transform=None, ext: str = ".jpg") -
     and re-encoded with OpenCV)."""
     import cv2
 
-    from core.images import read_image
+    from cae_lcd.core.images import read_image
 
     dst.mkdir(parents=True, exist_ok=True)
     out = []
@@ -204,7 +204,7 @@ def cli_sample_run(tmp_path_factory, detect_config_args):
 
     Shared by the detector and CLI tests. Returns ``(exit_code, out_dir)``.
     """
-    from cli.main import main
+    from cae_lcd.cli.main import main
 
     out = tmp_path_factory.mktemp("cli_sample") / "run"
     code = main(["detect", "--out", str(out), *detect_config_args, "--no-progress"])
@@ -213,9 +213,9 @@ def cli_sample_run(tmp_path_factory, detect_config_args):
 
 @pytest.fixture(scope="session")
 def local_postgres():
-    """A PostgreSQL server of this session (``fleet.pg_local.LocalPostgres``), stopped at the end; skips with the
+    """A PostgreSQL server of this session (``cae_lcd.fleet.pg_local.LocalPostgres``), stopped at the end; skips with the
     reason where PostgreSQL is not installed."""
-    from fleet.pg_local import LocalPostgres, postgres_available
+    from cae_lcd.fleet.pg_local import LocalPostgres, postgres_available
 
     why = postgres_available()
     if why:

@@ -14,7 +14,8 @@ REPO = Path(__file__).parents[1]
 
 #: package -> layer; a package may import only packages of a strictly lower layer (and itself). A dotted name is a
 #: package inside a namespace folder (``cae_lcd.core`` lives in ``cae_lcd/core/``).
-LAYERS = {"core": 0, "cae": 1, "verify": 1, "retrieval": 2, "evaluation": 3, "fleet": 3, "bench": 4, "cli": 5}
+LAYERS = {"cae_lcd.core": 0, "cae": 1, "verify": 1, "retrieval": 2, "cae_lcd.evaluation": 3, "cae_lcd.fleet": 3, "bench": 4,
+          "cae_lcd.cli": 5}
 SCRIPTS = {"train.py": 6}  #: top-level scripts and their layer (above the CLI they call)
 
 
@@ -77,9 +78,9 @@ class TestImportDirection:
         assert not bad, f"{path.relative_to(REPO)} ({own}, layer {layer}) imports upward or sideways: {bad}"
 
     @pytest.mark.parametrize("where, text, upward", [
-        ("retrieval/x.py", "def f():\n    from evaluation.metrics import x\n", "evaluation"),
+        ("retrieval/x.py", "def f():\n    from cae_lcd.evaluation.metrics import x\n", "cae_lcd.evaluation"),
         ("verify/x.py", "import cae.model\n", "cae"),
-        ("core/x.py", "from retrieval import detect\n", "retrieval"),
+        ("cae_lcd/core/x.py", "from retrieval import detect\n", "retrieval"),
     ])
     def test_detects_an_upward_import(self, where, text, upward):
         """The check itself can fail: an import that goes up (or sideways, verify -> cae) is reported."""

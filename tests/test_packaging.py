@@ -1,6 +1,6 @@
 """Packaging: the wheel builds without setuptools' licence deprecation warning, holds the code, the shipped weights
 and sample (not bench/ nor tests/), declares the extras (the detector alone needs no fleet, Ray or ROS package), and
-works once installed in a fresh virtual environment: beside a user's own ``core/`` package, and with ``--config
+works once installed in a fresh virtual environment: beside a user's own ``cae_lcd/core/`` package, and with ``--config
 paper`` outside the repository (both once the base layer lives under the ``cae_lcd`` namespace).
 
 Cheap and offline: the wheel is built without build isolation and installed with ``--no-deps --no-index``; the
@@ -41,7 +41,7 @@ def test_contents_and_extras(wheel):
     with zipfile.ZipFile(wheel[0]) as z:
         names = set(z.namelist())
         meta = next(z.read(n).decode() for n in names if n.endswith(".dist-info/METADATA"))
-    assert {"cli/main.py", "retrieval/sequences/rosbag.py", "retrieval/batch.py", "core/progress.py",
+    assert {"cae_lcd/cli/main.py", "retrieval/sequences/rosbag.py", "retrieval/batch.py", "cae_lcd/core/progress.py",
             "retrieval/sample/loops.txt", "retrieval/sample/image_0/000099.jpg"} <= names
     assert any(n.startswith("cae/weights/") and n.endswith(".pt") for n in names)
     assert not any(n.startswith(("tests/", "bench/")) for n in names)
@@ -97,8 +97,8 @@ AFTER_RENAME = pytest.mark.skipif(not (REPO / "cae_lcd").is_dir(),
 
 @AFTER_RENAME
 def test_import_beside_a_users_own_core(fresh_venv, tmp_path):
-    """A project with its own ``core/`` package (the wheel installed a top-level ``core`` before: ``import cae``
-    failed with No module named 'core.errors')."""
+    """A project with its own ``cae_lcd/core/`` package (the wheel installed a top-level ``core`` before: ``import cae``
+    failed with No module named 'cae_lcd.core.errors')."""
     (tmp_path / "core").mkdir()
     (tmp_path / "core" / "__init__.py").write_text("mine = True\n")
     code = "import core, cae, retrieval.detect, verify; assert core.mine; cae.load_encoder(device='cpu')"
@@ -127,7 +127,7 @@ class Absent(importlib.abc.MetaPathFinder):
         if name.split(".")[0] in {"fastapi", "uvicorn", "httpx", "gtsam", "ray", "rosbags", "starlette", "pydantic"}:
             raise ModuleNotFoundError(f"No module named {name!r}", name=name)
 sys.meta_path.insert(0, Absent())
-from cli.main import main
+from cae_lcd.cli.main import main
 assert main(["detect", "--help"]) == 0
 assert main(["serve", "--state", "x"]) == 2
 assert not {"fastapi", "gtsam", "ray", "rosbags", "httpx"} & set(sys.modules)

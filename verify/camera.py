@@ -37,8 +37,8 @@ import cv2
 import numpy as np
 import yaml
 
-from core.checks import check_intrinsics
-from core.conf import ConfigError
+from cae_lcd.core.checks import check_intrinsics
+from cae_lcd.core.conf import ConfigError
 
 __all__ = ["CameraModel", "DISTORTION_MODELS", "MODEL_NAMES", "read_camera_file", "camera_from_options",
            "undistort_points", "parse_intrinsics", "distortion_model"]

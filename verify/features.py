@@ -17,8 +17,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from core.conf import Bool, ConfigError, Float, Int, Registry, configure
-from core.images import to_gray_u8
+from cae_lcd.core.conf import Bool, ConfigError, Float, Int, Registry, configure
+from cae_lcd.core.images import to_gray_u8
 
 __all__ = ["KEYPOINT_STEP", "Features", "FeatureExtractor", "SIFT", "ORB", "FEATURES", "METRICS", "create_extractor"]
 

@@ -20,8 +20,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from core.conf import Bool, Choice, Float, Int, configure
-from core.images import resize_square, to_gray_u8
+from cae_lcd.core.conf import Bool, Choice, Float, Int, configure
+from cae_lcd.core.images import resize_square, to_gray_u8
 
 __all__ = ["EdgeGate", "GateResult"]
 

@@ -13,7 +13,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from core.conf import Bool, Choice, ConfigError, Float, Floats, Int, configure
+from cae_lcd.core.conf import Bool, Choice, ConfigError, Float, Floats, Int, configure
 
 from .camera import COEFFICIENTS, DISTORTION_MODELS, undistort_points
 

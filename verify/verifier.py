@@ -15,7 +15,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from core.conf import Bool, ConfigError, Float, Registry, configure
+from cae_lcd.core.conf import Bool, ConfigError, Float, Registry, configure
 
 from .features import Features
 from .geometry import GeometricVerifier, GeometryResult

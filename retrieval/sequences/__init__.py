@@ -5,7 +5,7 @@ folder (``euroc``), a KITTI odometry sequence or a plain folder of images (``kit
 A ``Sequence`` gives its frames in order (``read_frame(i)``, lazily), and when known timestamps ``(N,)``, poses
 ``(N, 3, 4)`` camera-to-world, intrinsics ``K (3, 3)`` and its ground truth: a loop pairs file (KITTI's
 ``loops.txt``), or poses that are ground truth (TUM, EuRoC: ``poses_are_truth``), from which the loops are derived
-with a distance and a gap (``evaluation.ground_truth``).
+with a distance and a gap (``cae_lcd.evaluation.ground_truth``).
 """
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-from core.conf import ConfigError
-from core.images import image_entries
+from cae_lcd.core.conf import ConfigError
+from cae_lcd.core.images import image_entries
 
 from .base import FrameStream, Sequence, read_numbers, read_stamped_names
 from .euroc import is_euroc, open_euroc

@@ -15,9 +15,9 @@ from typing import Callable, Protocol
 
 import numpy as np
 
-from core.conf import ConfigError
-from core.errors import ImageError
-from core.images import decode_image, fingerprint, read_file
+from cae_lcd.core.conf import ConfigError
+from cae_lcd.core.errors import ImageError
+from cae_lcd.core.images import decode_image, fingerprint, read_file
 from verify.camera import CameraModel
 
 __all__ = ["Sequence", "FrameStream", "read_numbers", "read_stamped_names", "read_file_frame", "poses_at",
@@ -26,7 +26,7 @@ __all__ = ["Sequence", "FrameStream", "read_numbers", "read_stamped_names", "rea
 log = logging.getLogger(__name__)
 
 #: rotates a z-up world (TUM, EuRoC: gravity along -z) into the KITTI convention (y down, x-z the ground plane),
-#: so that ground truth is derived on the ground plane for every layout (``evaluation.ground_truth``)
+#: so that ground truth is derived on the ground plane for every layout (``cae_lcd.evaluation.ground_truth``)
 Z_UP_TO_KITTI = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
 
 

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from core.conf import ConfigError
+from cae_lcd.core.conf import ConfigError
 from verify.camera import CameraModel, read_camera_file
 
 from .base import Sequence, poses_at, read_numbers, read_stamped_names, unit_quaternion

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from core.conf import ConfigError
-from core.images import image_entries
+from cae_lcd.core.conf import ConfigError
+from cae_lcd.core.images import image_entries
 
 from .base import Sequence, read_numbers, rotation_in_pose
 

@@ -21,9 +21,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from core.conf import ConfigError
-from core.errors import ImageError
-from core.images import check_image, decode_image, fingerprint
+from cae_lcd.core.conf import ConfigError
+from cae_lcd.core.errors import ImageError
+from cae_lcd.core.images import check_image, decode_image, fingerprint
 from verify.camera import CameraModel, distortion_model
 
 from .base import Sequence

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from core.conf import ConfigError
+from cae_lcd.core.conf import ConfigError
 
 from .base import Sequence, poses_at, read_numbers, read_stamped_names, unit_quaternion
 

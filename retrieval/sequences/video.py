@@ -16,9 +16,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from core.conf import ConfigError
-from core.errors import ImageError
-from core.images import check_image, fingerprint
+from cae_lcd.core.conf import ConfigError
+from cae_lcd.core.errors import ImageError
+from cae_lcd.core.images import check_image, fingerprint
 
 from .base import Sequence
 

@@ -1,4 +1,4 @@
-"""``cae-lcd bench`` (``bench/``, command line in ``cli/bench.py``): the marker section of BENCHMARKS.md, the
+"""``cae-lcd bench`` (``bench/``, command line in ``cae_lcd/cli/bench.py``): the marker section of BENCHMARKS.md, the
 index-scaling logic, the sq8 index, run metrics from a run folder, the stage table, the options, the layering, and
 one ``--quick`` run end to end."""
 
@@ -14,10 +14,10 @@ from bench.common import run_metrics
 from bench.index_scaling import index_scaling, synth_codes
 from bench.run import DEFAULT_SECTIONS, write_section
 from bench.speed import STAGE_NAMES, stage_table
-from cli.bench import sections_of
-from cli.main import main as cae_lcd
-from core.conf import ConfigError
-from evaluation.metrics import precision_recall
+from cae_lcd.cli.bench import sections_of
+from cae_lcd.cli.main import main as cae_lcd
+from cae_lcd.core.conf import ConfigError
+from cae_lcd.evaluation.metrics import precision_recall
 from retrieval.detector import STAGES
 from retrieval.index import INDEXES, brute_force_search, create_index
 from retrieval.run_folder import RunFolder
@@ -138,7 +138,7 @@ def test_bench_never_imports_cli():
         for node in ast.walk(ast.parse(path.read_text())):
             names = ([a.name for a in node.names] if isinstance(node, ast.Import)
                      else [node.module or ""] if isinstance(node, ast.ImportFrom) and not node.level else [])
-            assert not any(n == "cli" or n.startswith("cli.") for n in names), f"{path.name} imports {names}"
+            assert not any(n == "cae_lcd.cli" or n.startswith("cae_lcd.cli.") for n in names), f"{path.name} imports {names}"
 
 
 def test_bench_quick_end_to_end(tmp_path, capsys):

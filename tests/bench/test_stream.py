@@ -18,7 +18,7 @@ def kitti():
 
 
 def test_augment_keeps_shape_and_changes_pixels(kitti):
-    from core.images import read_image
+    from cae_lcd.core.images import read_image
 
     img = read_image(kitti[0])
     a, b = augment(img, np.random.default_rng(1)), augment(img, np.random.default_rng(1))

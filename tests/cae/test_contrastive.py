@@ -9,8 +9,8 @@ import cae.train as training
 from cae.contrastive import far_mask, info_nce, neighbour_partners
 from cae.model import ConvAutoencoder
 from cae.train import _Frames, _place_step, _view, default_conf, sequence_order
-from core.conf import merge_conf
-from core.images import read_image
+from cae_lcd.core.conf import merge_conf
+from cae_lcd.core.images import read_image
 from cae.preprocess import to_network_u8
 
 FRAMES = [0, 20, 40, 60, 80, 98]  # sample frames far apart: different places

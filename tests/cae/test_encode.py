@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from cae.encode import encode_images, normalize_codes
-from core.errors import ImageError
+from cae_lcd.core.errors import ImageError
 
 
 @pytest.fixture(scope="module")

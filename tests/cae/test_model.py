@@ -35,7 +35,7 @@ class TestEncoder:
 
     @pytest.mark.parametrize("shape", [(1, 3, 224, 224), (1, 1, 256, 256), (3, 256, 256), (1, 3, 256, 128)])
     def test_other_input_shapes_refused(self, shape):
-        from core.errors import ImageError
+        from cae_lcd.core.errors import ImageError
 
         with pytest.raises(ImageError, match=r"the encoder takes \(B, 3, 256, 256\) images; got"):
             Encoder()(torch.zeros(shape))

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from cae.preprocess import preprocess
-from core.errors import ImageError
+from cae_lcd.core.errors import ImageError
 
 
 @pytest.fixture(scope="module")

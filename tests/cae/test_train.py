@@ -24,9 +24,9 @@ import cae.train as training
 from cae.model import ConvAutoencoder
 from cae.train import conf_rules, default_conf, list_images, load_image_folder, main
 from cae.weights import load_checkpoint, save_checkpoint
-from core.conf import ConfigError, check_conf, load_conf_file, merge_conf
-from core.errors import ImageError
-from core.images import read_image
+from cae_lcd.core.conf import ConfigError, check_conf, load_conf_file, merge_conf
+from cae_lcd.core.errors import ImageError
+from cae_lcd.core.images import read_image
 
 REPO = Path(__file__).parents[2]
 SMALL = {"batch_size": 4, "device": "cpu", "seed": 0}
@@ -34,7 +34,7 @@ SMALL = {"batch_size": 4, "device": "cpu", "seed": 0}
 
 def cli_main(argv):
     """``cae-lcd ARGV`` in-process (imported here so that the API tests run even when another command is broken)."""
-    from cli.main import main as run
+    from cae_lcd.cli.main import main as run
 
     return run(argv)
 
@@ -334,7 +334,7 @@ class TestCli:
         assert str(out / "best.pt") in caplog.text
 
     def test_defaults_come_from_the_api(self):
-        from cli.main import build_parser
+        from cae_lcd.cli.main import build_parser
 
         args = build_parser().parse_args(["train", "--images", "a", "b"])
         assert args.out == "runs/train" == str(training.main.__defaults__[0])

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 import cae
-from core.conf import ConfigError
+from cae_lcd.core.conf import ConfigError
 from cae.model import ConvAutoencoder, Encoder
 from cae.preprocess import preprocess
 from cae.weights import (DEFAULT_WEIGHTS, encoder_identity, load_autoencoder, load_checkpoint, load_encoder,

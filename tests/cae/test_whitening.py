@@ -8,12 +8,12 @@ import pytest
 from cae.encode import encode_images
 from cae.weights import load_encoder, save_checkpoint
 from cae.whitening import Whitening
-from core.conf import ConfigError
+from cae_lcd.core.conf import ConfigError
 
 
 @pytest.fixture(scope="module")
 def sample_codes(encoder, sample_frames):
-    from core.images import read_image
+    from cae_lcd.core.images import read_image
     return encode_images(encoder, [read_image(p) for p in sample_frames[:40]])
 
 

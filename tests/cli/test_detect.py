@@ -1,4 +1,4 @@
-"""``cae-lcd detect`` end to end: in-process through ``cli.main.main``, plus one real subprocess."""
+"""``cae-lcd detect`` end to end: in-process through ``cae_lcd.cli.main.main``, plus one real subprocess."""
 
 import csv
 import json
@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import yaml
 
-from core.images import read_image
-from cli.main import main
+from cae_lcd.core.images import read_image
+from cae_lcd.cli.main import main
 from retrieval.database import KeyframeDatabase, KeyframeRecord
 from retrieval.detect import SAMPLE_DIR
 from retrieval.detector import resolve_conf
@@ -228,7 +228,7 @@ class TestDetectErrors:
     def test_console_script_subprocess(self, tmp_path):
         bad = tmp_path / "bad.yaml"
         bad.write_text("policy: {bogus: 1}\n")
-        proc = subprocess.run([sys.executable, "-m", "cli.main", "detect", "--config", str(bad), "--out",
+        proc = subprocess.run([sys.executable, "-m", "cae_lcd.cli.main", "detect", "--config", str(bad), "--out",
                                str(tmp_path / "out"), "--no-progress"], capture_output=True, text=True, timeout=120)
         assert proc.returncode == 2
         assert "Traceback" not in proc.stderr

@@ -7,10 +7,10 @@ import json
 
 import pytest
 
-from cli.fleet_demo import DEFAULT_KITTI
-from cli.main import build_parser, main
-from core.cli import api_defaults
-from fleet.demo import run_demo
+from cae_lcd.cli.fleet_demo import DEFAULT_KITTI
+from cae_lcd.cli.main import build_parser, main
+from cae_lcd.core.cli import api_defaults
+from cae_lcd.fleet.demo import run_demo
 
 
 class TestFleetDemoCommand:

@@ -25,8 +25,8 @@ import numpy as np
 import pytest
 import torch
 
-from cli.main import main
-from core.images import read_image
+from cae_lcd.cli.main import main
+from cae_lcd.core.images import read_image
 from retrieval.run_folder import RunFolder
 
 REPO = Path(__file__).parents[2]
@@ -385,7 +385,7 @@ class TestDiskFull:
             database.MIN_FREE_BYTES = 1 << 20
             limit = (1 << 20) + 300_000
             resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
-            from cli.main import main
+            from cae_lcd.cli.main import main
             sys.exit(main(sys.argv[1:]))
             """)
         args = ["detect", str(seq), "--out", str(out), "--config", str(conf_file), "--no-progress"]
@@ -393,7 +393,7 @@ class TestDiskFull:
                               timeout=300)
         assert proc.returncode == 2, proc.stderr[-2000:]
         one_error_line(proc.returncode, proc.stderr, "not enough space", "run again to resume")
-        proc = subprocess.run([sys.executable, "-m", "cli.main", *args], capture_output=True, text=True, cwd=REPO,
+        proc = subprocess.run([sys.executable, "-m", "cae_lcd.cli.main", *args], capture_output=True, text=True, cwd=REPO,
                               timeout=300)
         assert proc.returncode == 0, proc.stderr[-2000:]
         assert "resuming at frame" in proc.stderr

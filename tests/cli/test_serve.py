@@ -16,11 +16,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cli.main import main
-from cli.serve import TOKEN_ENV, admin_token
-from fleet.client import FleetClient, FleetError
-from fleet.demo import DEMO_TRUTH
-from fleet.sim3 import Sim3
+from cae_lcd.cli.main import main
+from cae_lcd.cli.serve import TOKEN_ENV, admin_token
+from cae_lcd.fleet.client import FleetClient, FleetError
+from cae_lcd.fleet.demo import DEMO_TRUTH
+from cae_lcd.fleet.sim3 import Sim3
 
 REPO = Path(__file__).resolve().parents[2]
 ADMIN = "serve-admin-secret"
@@ -55,7 +55,7 @@ def start_server(state: Path, port: int, store: str | None = None) -> subprocess
     """``cae-lcd serve`` in its own process (admin token from the environment, ``--store`` when given); returns once
     it answers."""
     env = {**os.environ, TOKEN_ENV: ADMIN}
-    proc = subprocess.Popen([sys.executable, "-m", "cli.main", "serve", "--state", str(state), "--port", str(port)]
+    proc = subprocess.Popen([sys.executable, "-m", "cae_lcd.cli.main", "serve", "--state", str(state), "--port", str(port)]
                             + (["--store", store] if store else []),
                             cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     admin = FleetClient(f"http://127.0.0.1:{port}", ADMIN, timeout=5)

@@ -1,4 +1,4 @@
-"""core.checks: the one home of id, timestamp, pose, intrinsics and depth checks (API, CLI and server alike), on
+"""cae_lcd.core.checks: the one home of id, timestamp, pose, intrinsics and depth checks (API, CLI and server alike), on
 real KITTI poses and intrinsics of the bundled sample."""
 
 from __future__ import annotations
@@ -8,9 +8,9 @@ import io
 import numpy as np
 import pytest
 
-from core.checks import (MAX_FRAME_ID, check_frame_id, check_intrinsics, check_pose, check_rigid_pose,
+from cae_lcd.core.checks import (MAX_FRAME_ID, check_frame_id, check_intrinsics, check_pose, check_rigid_pose,
                          check_timestamp, decode_depth)
-from core.errors import ConfigError
+from cae_lcd.core.errors import ConfigError
 
 
 def npy(array) -> bytes:

@@ -1,9 +1,9 @@
-"""``core.cli.run_cli``: every failure is one line on stderr and an exit code, never a traceback."""
+"""``cae_lcd.core.cli.run_cli``: every failure is one line on stderr and an exit code, never a traceback."""
 
 import pytest
 
-from core.cli import run_cli
-from core.errors import ConfigError, DatabaseError, ImageError
+from cae_lcd.core.cli import run_cli
+from cae_lcd.core.errors import ConfigError, DatabaseError, ImageError
 
 
 def _raise(err):

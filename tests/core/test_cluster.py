@@ -1,4 +1,4 @@
-"""core.cluster: a local Ray of our own (a small object store, no dashboard), tried again when its start fails for a
+"""cae_lcd.core.cluster: a local Ray of our own (a small object store, no dashboard), tried again when its start fails for a
 reason of the moment, and reported in one line when it keeps failing."""
 
 from __future__ import annotations
@@ -7,8 +7,8 @@ import logging
 
 import pytest
 
-from core import cluster
-from core.errors import ConfigError
+from cae_lcd.core import cluster
+from cae_lcd.core.errors import ConfigError
 
 ray = pytest.importorskip("ray")
 
@@ -37,7 +37,7 @@ def test_a_failed_start_is_tried_again(monkeypatch, no_sleep, caplog):
 
     monkeypatch.setattr(ray, "init", flaky_init)
     assert not ray.is_initialized()
-    with caplog.at_level(logging.WARNING, logger="core.cluster"):
+    with caplog.at_level(logging.WARNING, logger="cae_lcd.core.cluster"):
         module, started = cluster.start_ray(cpus=1)
     try:
         assert module is ray and started and ray.is_initialized()

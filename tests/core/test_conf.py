@@ -4,7 +4,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from core.conf import ConfigError, Registry, dump_conf, load_conf_file, merge_conf
+from cae_lcd.core.conf import ConfigError, Registry, dump_conf, load_conf_file, merge_conf
 
 REPO = Path(__file__).parents[2]
 
@@ -132,7 +132,7 @@ class TestPresets:
     """``--config paper``: a bare name is a shipped preset, wherever the package is installed."""
 
     def test_a_bare_name_is_a_preset(self, tmp_path, monkeypatch):
-        from core.conf import PRESETS_DIR, load_conf_file, presets
+        from cae_lcd.core.conf import PRESETS_DIR, load_conf_file, presets
 
         monkeypatch.chdir(tmp_path)  # outside the repository: no configs/ here
         assert {"default", "paper", "mild", "mild_verify", "train"} <= set(presets())

@@ -1,9 +1,9 @@
-"""``core.files``: a failed write never replaces a good file; output folders are checked before writing."""
+"""``cae_lcd.core.files``: a failed write never replaces a good file; output folders are checked before writing."""
 
 import pytest
 
-from core.errors import ConfigError, DatabaseError
-from core.files import atomic_write, prepare_out_dir, write_text_atomic
+from cae_lcd.core.errors import ConfigError, DatabaseError
+from cae_lcd.core.files import atomic_write, prepare_out_dir, write_text_atomic
 
 
 class TestAtomicWrite:

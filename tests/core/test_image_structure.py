@@ -1,4 +1,4 @@
-"""core.images.check_structure (issue 29): hostile files built here (small, generated) whose decoding would cost far
+"""cae_lcd.core.images.check_structure (issue 29): hostile files built here (small, generated) whose decoding would cost far
 more than their size says are refused in one line before any decoder runs, in a bounded time; honest files of every
 kind pass; the decoders' own messages go to the log, not to stderr."""
 
@@ -13,8 +13,8 @@ import cv2
 import numpy as np
 import pytest
 
-from core.errors import ImageError
-from core.images import MAX_JPEG_SCANS, check_structure, decode_image
+from cae_lcd.core.errors import ImageError
+from cae_lcd.core.images import MAX_JPEG_SCANS, check_structure, decode_image
 
 SIDE = 4000  #: the audit's 4000 x 4000 grey image (16 Mpixel: the fleet server's limit)
 

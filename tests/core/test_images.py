@@ -1,4 +1,4 @@
-"""``core.images``: listing and reading image files safely and converting every dtype and layout a camera gives."""
+"""``cae_lcd.core.images``: listing and reading image files safely and converting every dtype and layout a camera gives."""
 
 import os
 
@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from core.errors import ImageError
-from core.images import (MAX_IMAGE_PIXELS, check_image, decode_image, fingerprint, image_entries, read_image,
+from cae_lcd.core.errors import ImageError
+from cae_lcd.core.images import (MAX_IMAGE_PIXELS, check_image, decode_image, fingerprint, image_entries, read_image,
                          to_gray_u8, to_uint8)
 
 
@@ -128,7 +128,7 @@ class TestReadImageHostile:
 
     @pytest.mark.parametrize("ext", [".png", ".jpg", ".tiff", ".bmp", ".webp"])
     def test_every_format_is_sized_from_its_header_before_decoding(self, sample_image, ext, monkeypatch):
-        from core.images import image_header
+        from cae_lcd.core.images import image_header
 
         image = sample_image(0)
         data = cv2.imencode(ext, image)[1].tobytes()

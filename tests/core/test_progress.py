@@ -7,7 +7,7 @@ import logging
 import re
 import time
 
-from core.progress import LOG_STEP_PERCENT, Counted, LogLines
+from cae_lcd.core.progress import LOG_STEP_PERCENT, Counted, LogLines
 
 
 def _lines(caplog) -> list[str]:

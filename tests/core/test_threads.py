@@ -1,4 +1,4 @@
-"""One thread policy for torch, OpenCV, faiss and numpy's BLAS (``core.threads``)."""
+"""One thread policy for torch, OpenCV, faiss and numpy's BLAS (``cae_lcd.core.threads``)."""
 
 import ctypes
 import os
@@ -16,7 +16,7 @@ import pytest
 import torch
 from threadpoolctl import threadpool_info, threadpool_limits
 
-from core.threads import BesideExecutor, apply_thread_policy, cpu_count
+from cae_lcd.core.threads import BesideExecutor, apply_thread_policy, cpu_count
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -52,7 +52,7 @@ def test_detector_applies_its_runtime_threads(restore_threads, encoder):
 _ARENAS_SCRIPT = """
 import ctypes, sys, tempfile, threading
 if sys.argv[1] == "cap":
-    from core.threads import reexec_with_server_malloc
+    from cae_lcd.core.threads import reexec_with_server_malloc
     reexec_with_server_malloc(1)  # runs this script again with MALLOC_ARENA_MAX=1 (and the mmap threshold fixed)
 keep, together = [], threading.Barrier(4)
 def work():  # four threads alive at once, each allocating: glibc gives each its own arena unless capped
@@ -74,7 +74,7 @@ print(open(path).read().count("<heap nr="))
 _THRESHOLD_SCRIPT = """
 import ctypes, sys
 if sys.argv[1] == "cap":
-    from core.threads import reexec_with_server_malloc
+    from cae_lcd.core.threads import reexec_with_server_malloc
     reexec_with_server_malloc()
 class Info(ctypes.Structure):
     _fields_ = [(n, ctypes.c_size_t) for n in "arena ordblks smblks hblks hblkhd usmblks fsmblks uordblks fordblks keepcost".split()]
@@ -110,7 +110,7 @@ class TestServerMalloc:
         assert self._heaps("cap") == 1
 
     def test_the_environment_wins(self, monkeypatch):
-        from core.threads import reexec_with_server_malloc
+        from cae_lcd.core.threads import reexec_with_server_malloc
 
         monkeypatch.setenv("MALLOC_ARENA_MAX", "4")
         monkeypatch.setenv("MALLOC_MMAP_THRESHOLD_", "65536")
@@ -119,7 +119,7 @@ class TestServerMalloc:
 
 _TRIM_SCRIPT = """
 import ctypes, sys
-from core.threads import release_free_memory
+from cae_lcd.core.threads import release_free_memory
 libc = ctypes.CDLL("libc.so.6")
 libc.malloc.restype = ctypes.c_void_p
 def rss():
@@ -189,6 +189,6 @@ def test_feature_jobs_worker_kept_off_the_submitting_core():
 
 
 def test_beside_executor_runs_jobs_where_it_cannot_steer(monkeypatch):
-    monkeypatch.setattr("core.threads._sched_getcpu", lambda: None)
+    monkeypatch.setattr("cae_lcd.core.threads._sched_getcpu", lambda: None)
     with BesideExecutor("t") as ex:
         assert ex.submit(sum, [1, 2]).result() == 3 and ex.steering._tid is None

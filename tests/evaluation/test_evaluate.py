@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from core.conf import ConfigError
-from evaluation import evaluate
-from cli import main as cli
+from cae_lcd.core.conf import ConfigError
+from cae_lcd.evaluation import evaluate
+from cae_lcd.cli import main as cli
 from retrieval.detect import SAMPLE_DIR
 
 PNGS = ("pr_curve.png", "trajectory.png", "similarity.png")

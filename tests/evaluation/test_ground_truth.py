@@ -5,8 +5,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from core.conf import ConfigError
-from evaluation.ground_truth import (load_ground_truth, loops_from_poses, pair_matrix, read_loop_pairs,
+from cae_lcd.core.conf import ConfigError
+from cae_lcd.evaluation.ground_truth import (load_ground_truth, loops_from_poses, pair_matrix, read_loop_pairs,
                                      sniff_ground_truth, up_axis)
 from retrieval.detect import SAMPLE_DIR
 from retrieval.sequences import read_kitti_poses
@@ -55,7 +55,7 @@ class TestLoopsFromPoses:
         assert loops_from_poses(poses_at([[0, 0]])).shape == (0, 2)
 
     def test_chunked_equals_brute_force(self, monkeypatch):
-        import evaluation.ground_truth as g
+        import cae_lcd.evaluation.ground_truth as g
         rng = np.random.default_rng(1)
         p = poses_at(rng.uniform(0, 30, (300, 2)))
         full = g.loops_from_poses(p, 4.0, 20)

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from evaluation.metrics import (PRCurve, best_per_query, correct_mask, pr_curve, precision_recall,
+from cae_lcd.evaluation.metrics import (PRCurve, best_per_query, correct_mask, pr_curve, precision_recall,
                                 recall_at_k)
 
 GT = np.array([[10, 0], [10, 1], [11, 1], [12, 2]])  # 3 queries with a true loop: 10, 11, 12

@@ -1,4 +1,4 @@
-"""Montages of accepted and missed loops (``evaluation.montage``) on the bundled sample's real frames: wrong loops
+"""Montages of accepted and missed loops (``cae_lcd.evaluation.montage``) on the bundled sample's real frames: wrong loops
 framed red, correct ones green, missed ones orange, and ``evaluate`` writes both pictures."""
 
 from __future__ import annotations
@@ -6,8 +6,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from evaluation import evaluate
-from evaluation.montage import BORDER, COLOURS, MAX_PAIRS, missed_pairs, pick_pairs, write_montage
+from cae_lcd.evaluation import evaluate
+from cae_lcd.evaluation.montage import BORDER, COLOURS, MAX_PAIRS, missed_pairs, pick_pairs, write_montage
 from retrieval.detect import SAMPLE_DIR
 
 TRUE_PAIR, FAR_PAIR = (55, 5), (55, 30)  #: a real revisit of the sample, and two frames far apart

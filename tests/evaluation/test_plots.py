@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from evaluation.plots import ground_truth_panel, plot_similarity
+from cae_lcd.evaluation.plots import ground_truth_panel, plot_similarity
 
 
 def test_one_side_of_the_diagonal(sample_dir):

@@ -15,7 +15,7 @@ CAMERA_OFFSETS = np.array([[-6.0, -3.0, 12.0], [6.0, -3.0, 12.0], [-4.0, 1.6, 8.
 @pytest.fixture(scope="session")
 def known_sim3():
     """The similarity robot B's frame differs by in these tests: s = 2.5, a 75 deg rotation, a translation."""
-    from fleet.sim3 import Sim3
+    from cae_lcd.fleet.sim3 import Sim3
 
     return Sim3(2.5, cv2.Rodrigues(np.array([0.3, -1.2, 0.5]))[0], np.array([10.0, -4.0, 7.0]))
 
@@ -84,10 +84,10 @@ def jpeg(sample_dir):
 
 @pytest.fixture(scope="session")
 def fleet_demo_run(tmp_path_factory):
-    """A short real fleet demo (``fleet.demo.run_demo``, 40 frames of KITTI 00, two robots): ``(out, summary,
+    """A short real fleet demo (``cae_lcd.fleet.demo.run_demo``, 40 frames of KITTI 00, two robots): ``(out, summary,
     admin token)``; its state (``out/state``) can be served again with that token."""
-    from cli.fleet_demo import DEFAULT_KITTI
-    from fleet.demo import run_demo
+    from cae_lcd.cli.fleet_demo import DEFAULT_KITTI
+    from cae_lcd.fleet.demo import run_demo
 
     out = tmp_path_factory.mktemp("fleet_demo")
     token = "demo-admin-secret"

@@ -1,11 +1,11 @@
-"""fleet.budget: the candidates a keyframe verifies over all other robots, against a brute-force selection."""
+"""cae_lcd.fleet.budget: the candidates a keyframe verifies over all other robots, against a brute-force selection."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from fleet.budget import shortlist
+from cae_lcd.fleet.budget import shortlist
 
 
 def brute(scores, k, min_score, budget):

@@ -1,4 +1,4 @@
-"""fleet.consistency: inter-robot edges that agree with nothing are left out of the pose graph, so a robot that sends
+"""cae_lcd.fleet.consistency: inter-robot edges that agree with nothing are left out of the pose graph, so a robot that sends
 garbage (random rigid poses, edges made of them) moves no other robot's map; on real KITTI 00 ground-truth poses
 (robots A and B as in test_graph, a hostile robot H)."""
 
@@ -8,9 +8,9 @@ import cv2
 import numpy as np
 import pytest
 
-from fleet.consistency import PairwiseConsistency
-from fleet.graph import Node, PoseGraph
-from fleet.sim3 import Sim3
+from cae_lcd.fleet.consistency import PairwiseConsistency
+from cae_lcd.fleet.graph import Node, PoseGraph
+from cae_lcd.fleet.sim3 import Sim3
 
 EVEN, ODD = list(range(0, 200, 2)), list(range(1, 200, 2))
 

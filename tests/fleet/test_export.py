@@ -1,4 +1,4 @@
-"""Trajectories out of the fleet (``fleet.export``): TUM and KITTI files that ``evo`` reads, and ``evo_ape`` on the
+"""Trajectories out of the fleet (``cae_lcd.fleet.export``): TUM and KITTI files that ``evo`` reads, and ``evo_ape`` on the
 fleet demo's exported trajectory against KITTI ground truth gives the demo's own RMSE."""
 
 from __future__ import annotations
@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cli.fleet_demo import DEFAULT_KITTI
-from core.conf import ConfigError
-from fleet.export import format_trajectory, trajectory_rows, write_trajectory
+from cae_lcd.cli.fleet_demo import DEFAULT_KITTI
+from cae_lcd.core.conf import ConfigError
+from cae_lcd.fleet.export import format_trajectory, trajectory_rows, write_trajectory
 from retrieval.sequences import read_kitti_poses, read_times
 
 EVO_APE = Path(sys.executable).with_name("evo_ape")

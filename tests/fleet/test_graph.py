@@ -1,4 +1,4 @@
-"""fleet.graph: the global pose graph on real KITTI ground-truth poses. Robot A has KITTI 00's even frames, robot B the
+"""cae_lcd.fleet.graph: the global pose graph on real KITTI ground-truth poses. Robot A has KITTI 00's even frames, robot B the
 odd frames in another frame (the known similarity of conftest), overlap edges from the ground truth; a drifting
 odometry is ground truth with a small yaw bias and noise on every step."""
 
@@ -9,9 +9,9 @@ import gtsam
 import numpy as np
 import pytest
 
-from core.errors import ConfigError
-from fleet.graph import Node, PoseGraph, from_gtsam, mean_sim3, to_gtsam
-from fleet.sim3 import Sim3
+from cae_lcd.core.errors import ConfigError
+from cae_lcd.fleet.graph import Node, PoseGraph, from_gtsam, mean_sim3, to_gtsam
+from cae_lcd.fleet.sim3 import Sim3
 
 EVEN, ODD = list(range(0, 200, 2)), list(range(1, 200, 2))
 

@@ -1,4 +1,4 @@
-"""The fleet server over real HTTP on loopback (uvicorn in a thread on a free port, ``fleet.runner.ServerThread``),
+"""The fleet server over real HTTP on loopback (uvicorn in a thread on a free port, ``cae_lcd.fleet.runner.ServerThread``),
 with the bundled sample's real KITTI JPEG frames: concurrent robots, tokens, and hostile input that must be refused
 with a clear 4xx and leave the state as it was."""
 
@@ -13,9 +13,9 @@ import httpx
 import numpy as np
 import pytest
 
-from fleet.client import FleetClient
-from fleet.runner import ServerThread
-from fleet.server import create_app
+from cae_lcd.fleet.client import FleetClient
+from cae_lcd.fleet.runner import ServerThread
+from cae_lcd.fleet.server import create_app
 
 ADMIN = "http-admin-secret"
 LIMITS = {"limits": {"max_request_mb": 1.0, "max_image_pixels": 500_000}}
@@ -42,7 +42,7 @@ def body(i, sample_poses, jpeg, K=None, **change):
 
 def state_of(state, robot):
     """What a refused request must not change: the robot's acknowledged keyframes and its database's bytes."""
-    from fleet.store import SQLiteStore
+    from cae_lcd.fleet.store import SQLiteStore
 
     store = SQLiteStore(state / "fleet.sqlite")
     try:

@@ -1,4 +1,4 @@
-"""fleet.limits over real HTTP on loopback: a chunked body that lies about its length, half-sent requests, and a
+"""cae_lcd.fleet.limits over real HTTP on loopback: a chunked body that lies about its length, half-sent requests, and a
 flood of wrong tokens, against a live server with small limits (bounded counts and times, loopback only)."""
 
 from __future__ import annotations
@@ -10,10 +10,10 @@ import time
 import httpx
 import pytest
 
-from fleet.client import FleetClient
-from fleet.limits import AuthThrottle
-from fleet.runner import ServerThread
-from fleet.server import create_app
+from cae_lcd.fleet.client import FleetClient
+from cae_lcd.fleet.limits import AuthThrottle
+from cae_lcd.fleet.runner import ServerThread
+from cae_lcd.fleet.server import create_app
 
 ADMIN = "limits-admin-secret"
 LIMITS = {"limits": {"max_request_mb": 1.0, "header_timeout_s": 1.0, "body_timeout_s": 2.0, "auth_failures": 5,
@@ -248,7 +248,7 @@ class TestHashBudget:
             assert codes == [429] * 3
 
     def test_per_name_buckets_refill_and_are_bounded(self, monkeypatch):
-        from fleet.limits import HashBudget
+        from cae_lcd.fleet.limits import HashBudget
 
         clock = [0.0]
         monkeypatch.setattr(time, "monotonic", lambda: clock[0])

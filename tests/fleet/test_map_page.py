@@ -1,4 +1,4 @@
-"""The live map page (``GET /map``, ``fleet.map_page``) over the state of a real fleet demo: the page is
+"""The live map page (``GET /map``, ``cae_lcd.fleet.map_page``) over the state of a real fleet demo: the page is
 self-contained, the JSON routes it polls exist and give what it reads, the trajectory route serves the corrected
 poses, and in headless Chromium (skipped where it is not installed) it draws what the API holds."""
 
@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 
 from bench.fleet_map import chromium_command, screenshot
-from fleet.client import FleetClient
-from fleet.export import format_trajectory
-from fleet.map_page import MAP_ROUTES
-from fleet.runner import ServerThread
-from fleet.server import create_app
+from cae_lcd.fleet.client import FleetClient
+from cae_lcd.fleet.export import format_trajectory
+from cae_lcd.fleet.map_page import MAP_ROUTES
+from cae_lcd.fleet.runner import ServerThread
+from cae_lcd.fleet.server import create_app
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")
 

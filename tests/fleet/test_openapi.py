@@ -9,9 +9,9 @@ schemathesis = pytest.importorskip("schemathesis")
 from hypothesis import HealthCheck, given, settings  # noqa: E402  (hypothesis comes with schemathesis)
 from schemathesis.checks import CHECKS, load_all_checks  # noqa: E402
 
-from fleet.client import FleetClient  # noqa: E402
-from fleet.runner import ServerThread  # noqa: E402
-from fleet.server import create_app  # noqa: E402
+from cae_lcd.fleet.client import FleetClient  # noqa: E402
+from cae_lcd.fleet.runner import ServerThread  # noqa: E402
+from cae_lcd.fleet.server import create_app  # noqa: E402
 
 ADMIN = "openapi-admin-secret"
 EXAMPLES = 120  #: examples per operation (bench.openapi runs many more)

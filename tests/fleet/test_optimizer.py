@@ -1,4 +1,4 @@
-"""fleet.optimizer: the graph of KITTI 00's ground-truth poses solved in a worker thread."""
+"""cae_lcd.fleet.optimizer: the graph of KITTI 00's ground-truth poses solved in a worker thread."""
 
 from __future__ import annotations
 
@@ -7,9 +7,9 @@ import threading
 import numpy as np
 import pytest
 
-from core.conf import ConfigError
-from fleet.graph import Node, PoseGraph
-from fleet.optimizer import BackgroundOptimizer
+from cae_lcd.core.conf import ConfigError
+from cae_lcd.fleet.graph import Node, PoseGraph
+from cae_lcd.fleet.optimizer import BackgroundOptimizer
 
 
 @pytest.fixture

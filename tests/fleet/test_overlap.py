@@ -1,4 +1,4 @@
-"""fleet.overlap: the consecutive-match rule, and 3D-3D correspondences from real KITTI 00 images. Robot A has frames
+"""cae_lcd.fleet.overlap: the consecutive-match rule, and 3D-3D correspondences from real KITTI 00 images. Robot A has frames
 100 and 102 (local poses: ground truth, metres), robot B frames 101 and 103 in its own map (the known similarity of
 conftest: other rotation, translation and a scale of 2.5); the true edge is ``gt_100^-1 o S o b_101``."""
 
@@ -7,9 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.errors import ConfigError
-from fleet.overlap import OverlapRule, OverlapTracker, PointTriangulator, estimate_overlap, points_from_depth
-from fleet.sim3 import Sim3
+from cae_lcd.core.errors import ConfigError
+from cae_lcd.fleet.overlap import OverlapRule, OverlapTracker, PointTriangulator, estimate_overlap, points_from_depth
+from cae_lcd.fleet.sim3 import Sim3
 
 
 @pytest.fixture(scope="module")

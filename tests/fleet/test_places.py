@@ -1,4 +1,4 @@
-"""fleet.places: the place memory across robots behind one interface, in this process (``local``: faiss) and in one
+"""cae_lcd.fleet.places: the place memory across robots behind one interface, in this process (``local``: faiss) and in one
 Milvus collection shared by processes (``milvus``: milvus-lite served on loopback), on real CAE codes of the bundled
 sample; every interface test runs against both kinds."""
 
@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from core.conf import ConfigError
-from fleet.places import LITE_FOLDER, LocalPlaces, MilvusPlaces, create_fleet_places, resolve_places
+from cae_lcd.core.conf import ConfigError
+from cae_lcd.fleet.places import LITE_FOLDER, LocalPlaces, MilvusPlaces, create_fleet_places, resolve_places
 from retrieval.detector import resolve_conf
 
 REPO = Path(__file__).resolve().parents[2]
@@ -113,7 +113,7 @@ class TestMilvus:
         np.save(tmp_path / "b.npy", np.stack([entries[4], entries[1]]))
         child = f"""
 import json, sys, numpy as np
-from fleet.places import create_fleet_places, resolve_places
+from cae_lcd.fleet.places import create_fleet_places, resolve_places
 from retrieval.descriptors import create_descriptor
 from retrieval.detector import resolve_conf
 p = create_fleet_places(create_descriptor({{"name": "cae"}}), None, resolve_conf(),

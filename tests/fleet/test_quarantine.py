@@ -9,8 +9,8 @@ import shutil
 
 import pytest
 
-from fleet.client import FleetClient, FleetError
-from fleet.server import create_app
+from cae_lcd.fleet.client import FleetClient, FleetError
+from cae_lcd.fleet.server import create_app
 
 ADMIN = "quarantine-admin"
 
@@ -52,7 +52,7 @@ def test_a_damaged_robot_is_quarantined_and_the_others_are_served(tmp_path, cae_
     app.state.service.close()
     damage(state / "robots" / "R1")
 
-    with caplog.at_level(logging.ERROR, "fleet.recognition"):
+    with caplog.at_level(logging.ERROR, "cae_lcd.fleet.recognition"):
         app = create_app(state, ADMIN, descriptor=cae_descriptor)  # starts
     try:
         http = TestClient(app)

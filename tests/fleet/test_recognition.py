@@ -1,4 +1,4 @@
-"""fleet.recognition on real KITTI frames: robots A (even frames) and B (odd frames, poses in a known other map) of
+"""cae_lcd.fleet.recognition on real KITTI frames: robots A (even frames) and B (odd frames, poses in a known other map) of
 00 overlap; 00 and 07 never meet."""
 
 from __future__ import annotations
@@ -11,9 +11,9 @@ import cv2
 import numpy as np
 import pytest
 
-from core.conf import ConfigError
-from fleet.recognition import FleetRecognizer
-from fleet.sim3 import Sim3
+from cae_lcd.core.conf import ConfigError
+from cae_lcd.fleet.recognition import FleetRecognizer
+from cae_lcd.fleet.sim3 import Sim3
 
 
 @pytest.fixture(scope="module")
@@ -72,7 +72,7 @@ class TestSeam:
     def test_the_fleet_reaches_no_private_attribute_of_a_detector(self):
         assert private_detector_reads("r.detector._features_of(3)\ndet._late\nself._edges") == \
             ["1: r.detector._features_of", "2: det._late"]  # the check itself can fail
-        fleet = Path(__file__).resolve().parents[2] / "fleet"
+        fleet = Path(__file__).resolve().parents[2] / "cae_lcd" / "fleet"
         found = {p.name: bad for p in sorted(fleet.glob("*.py")) if (bad := private_detector_reads(p.read_text()))}
         assert not found
 

@@ -1,4 +1,4 @@
-"""fleet.server, fleet.client and fleet.service through FastAPI's TestClient, with the bundled sample's real KITTI
+"""cae_lcd.fleet.server, cae_lcd.fleet.client and cae_lcd.fleet.service through FastAPI's TestClient, with the bundled sample's real KITTI
 JPEG frames and ground-truth poses."""
 
 from __future__ import annotations
@@ -7,10 +7,10 @@ import numpy as np
 import psycopg
 import pytest
 
-from fleet.client import FleetClient, FleetError
-from fleet.server import create_app
-from fleet.sim3 import Sim3
-from fleet.store import EdgeRecord
+from cae_lcd.fleet.client import FleetClient, FleetError
+from cae_lcd.fleet.server import create_app
+from cae_lcd.fleet.sim3 import Sim3
+from cae_lcd.fleet.store import EdgeRecord
 
 ADMIN = "admin-secret"
 
@@ -171,7 +171,7 @@ class TestAdminRoutes:
                 call()
         with pytest.raises(FleetError, match="404"):
             admin.reset("nobody")
-        with caplog.at_level("WARNING", "fleet.service"):
+        with caplog.at_level("WARNING", "cae_lcd.fleet.service"):
             assert admin.reset("A", keep_keyframes=True) == 0
             assert sorted(admin.poses("A", wait=True)) == [0, 1, 2]  # kept
             assert submit(a, "A", [3], sample_poses, jpeg) == [True]  # recognition from nothing, ids go on
@@ -208,7 +208,7 @@ class TestAdminRoutes:
 class TestWhatARobotReads:
     def test_a_robots_token_reads_its_own_transform_and_overlaps_the_admin_all(self, server, sample_poses, jpeg,
                                                                                 known_sim3):
-        from fleet.store import OverlapRecord
+        from cae_lcd.fleet.store import OverlapRecord
 
         http, admin = server()
         robots = {n: FleetClient("", admin.register(n), client=http) for n in ("A", "B", "C")}

@@ -1,4 +1,4 @@
-"""fleet.service (issue 29): the global frame never moves under a robot's feet (a stored anchor, both stores), the
+"""cae_lcd.fleet.service (issue 29): the global frame never moves under a robot's feet (a stored anchor, both stores), the
 admin's actions (name the anchor, reset, retire, rotate a token) and a robot that locked itself out reset. Real KITTI
 00 ground-truth poses; overlaps come as edges (no recognition: fast)."""
 
@@ -9,12 +9,12 @@ import logging
 import numpy as np
 import pytest
 
-from core.conf import ConfigError
-from core.errors import ConflictError
-from fleet.service import FleetService
-from fleet.sim3 import Sim3
-from fleet.store import EdgeRecord
-from fleet.stores import open_store
+from cae_lcd.core.conf import ConfigError
+from cae_lcd.core.errors import ConflictError
+from cae_lcd.fleet.service import FleetService
+from cae_lcd.fleet.sim3 import Sim3
+from cae_lcd.fleet.store import EdgeRecord
+from cae_lcd.fleet.stores import open_store
 
 FAST = {"token_iterations": 1000}
 
@@ -108,7 +108,7 @@ class TestAnchor:
             before = maps(service)
             with pytest.raises(ConfigError, match="no keyframes"):
                 service.set_anchor("Z0")
-            with caplog.at_level(logging.WARNING, "fleet.service"):
+            with caplog.at_level(logging.WARNING, "cae_lcd.fleet.service"):
                 service.set_anchor("RB")
             assert any("admin: the anchor" in r.getMessage() for r in caplog.records)
             after = maps(service)
@@ -149,7 +149,7 @@ class TestAdminActions:
             token = service.register("A")
             assert service.authenticate("A", token)
             service.submit_keyframe("A", 0, 0.0, np.eye(4))
-            with caplog.at_level(logging.WARNING, "fleet.service"):
+            with caplog.at_level(logging.WARNING, "cae_lcd.fleet.service"):
                 new = service.rotate_token("A")
                 assert not service.authenticate("A", token) and service.authenticate("A", new)
                 service.retire("A")  # keyframes kept

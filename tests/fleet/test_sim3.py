@@ -1,4 +1,4 @@
-"""fleet.sim3: the Sim3 type, Umeyama's closed form (against gtsam's Align and a brute-force optimality check) and
+"""cae_lcd.fleet.sim3: the Sim3 type, Umeyama's closed form (against gtsam's Align and a brute-force optimality check) and
 RANSAC on 3D points built from real KITTI 00 ground-truth poses, with noise and wrong matches."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
-from core.errors import ConfigError
-from fleet.sim3 import Sim3, Sim3Ransac, ransac_sim3, umeyama
+from cae_lcd.core.errors import ConfigError
+from cae_lcd.fleet.sim3 import Sim3, Sim3Ransac, ransac_sim3, umeyama
 
 
 def cost(T: Sim3, src: np.ndarray, dst: np.ndarray) -> float:

@@ -1,4 +1,4 @@
-"""fleet.store and fleet.postgres: the same suite against SQLiteStore and PostgresStore (a real PostgreSQL server of
+"""cae_lcd.fleet.store and cae_lcd.fleet.postgres: the same suite against SQLiteStore and PostgresStore (a real PostgreSQL server of
 the session, ``local_postgres``): round trips (real KITTI poses), hashed tokens, atomic writes, refusal of other
 databases, and a writer process killed with kill -9 at random moments: every acknowledged keyframe is there and the
 store is consistent."""
@@ -16,11 +16,11 @@ import time
 import numpy as np
 import pytest
 
-from core.errors import ConfigError, DatabaseError
-from fleet.postgres import PostgresStore
-from fleet.sim3 import Sim3
-from fleet.store import FORMAT_VERSION, EdgeRecord, KeyframeAck, OverlapRecord, SQLiteStore
-from fleet.stores import open_store
+from cae_lcd.core.errors import ConfigError, DatabaseError
+from cae_lcd.fleet.postgres import PostgresStore
+from cae_lcd.fleet.sim3 import Sim3
+from cae_lcd.fleet.store import FORMAT_VERSION, EdgeRecord, KeyframeAck, OverlapRecord, SQLiteStore
+from cae_lcd.fleet.stores import open_store
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 FAST = {"token_iterations": 1000}  #: fewer PBKDF2 rounds where hashing is not what is tested
@@ -301,9 +301,9 @@ WRITER = textwrap.dedent("""
     import sys
     import numpy as np
     sys.path.insert(0, {repo!r})
-    from fleet.sim3 import Sim3
-    from fleet.store import EdgeRecord, KeyframeAck
-    from fleet.stores import open_store
+    from cae_lcd.fleet.sim3 import Sim3
+    from cae_lcd.fleet.store import EdgeRecord, KeyframeAck
+    from cae_lcd.fleet.stores import open_store
     store = open_store("unused", {path!r}, {{"token_iterations": 1000}})
     if "A" not in store.robots():
         store.add_robot("A", "t")

@@ -1,4 +1,4 @@
-"""fleet.workers: robots sharded over two Ray workers (one module-scoped local Ray, 2 CPUs) on real KITTI frames: the
+"""cae_lcd.fleet.workers: robots sharded over two Ray workers (one module-scoped local Ray, 2 CPUs) on real KITTI frames: the
 overlap of two robots on different workers is found as in one process, and a killed worker's robots continue."""
 
 from __future__ import annotations
@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.cluster import start_ray
-from fleet.workers import NAMESPACE, RayRecognizer, create_recognizer, host_name, shard_of
+from cae_lcd.core.cluster import start_ray
+from cae_lcd.fleet.workers import NAMESPACE, RayRecognizer, create_recognizer, host_name, shard_of
 
 ray = pytest.importorskip("ray")
 
@@ -26,7 +26,7 @@ def local_ray():
 def frames(kitti_sequences, kitti_poses, ids):
     import cv2
 
-    from fleet.sim3 import Sim3
+    from cae_lcd.fleet.sim3 import Sim3
     from retrieval.sequences import read_kitti_calib
 
     K = read_kitti_calib(kitti_sequences / "00" / "calib.txt")
@@ -71,7 +71,7 @@ def test_overlap_across_workers_and_a_killed_worker(local_ray, tmp_path, kitti_s
     """With ``milvus`` both workers search one collection (milvus-lite served by one more actor): each inserts its own
     robot's entries only, and nothing searched is copied between them; ``local``: each worker's own memory, every
     entry copied."""
-    # one adopted keyframe's features kept per robot: the others' are fetched from their worker (fleet.workers FETCH)
+    # one adopted keyframe's features kept per robot: the others' are fetched from their worker (cae_lcd.fleet.workers FETCH)
     rec = create_recognizer(tmp_path, {"adopted_features": 1, "places": {"name": places}}, workers=2)
     assert isinstance(rec, RayRecognizer) and rec.parallel_robots
     spy = Spy(rec)
@@ -98,7 +98,7 @@ def test_overlap_across_workers_and_a_killed_worker(local_ray, tmp_path, kitti_s
 
 def connect(rec: RayRecognizer):
     """The workers' Milvus place memory, from this process (the URI the host actor gave them)."""
-    from fleet.places import create_fleet_places, resolve_places
+    from cae_lcd.fleet.places import create_fleet_places, resolve_places
     from retrieval.descriptors import create_descriptor
     from retrieval.detector import resolve_conf
 
@@ -112,9 +112,9 @@ def test_two_replicas_over_http_on_postgresql_milvus_and_ray(local_ray, local_po
     Milvus: A streams through one, B through the other, and either replica serves the overlap and both robots."""
     import cv2
 
-    from fleet.client import FleetClient
-    from fleet.runner import ServerThread
-    from fleet.server import create_app
+    from cae_lcd.fleet.client import FleetClient
+    from cae_lcd.fleet.runner import ServerThread
+    from cae_lcd.fleet.server import create_app
 
     url = local_postgres.create_database("replicas")
     apps = [create_app(tmp_path, "admin", store=url, workers=2, recognition={"places": {"name": "milvus"}})

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from core.conf import ConfigError
+from cae_lcd.core.conf import ConfigError
 from retrieval.baselines import BoVWDescriptor, ThumbnailDescriptor, build_vocabulary, load_vocabulary
 from retrieval.descriptors import DESCRIPTORS
 from retrieval.detect import SAMPLE_DIR

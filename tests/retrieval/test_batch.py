@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import yaml
 
-from cli.main import main
-from core.cluster import start_ray
-from core.conf import ConfigError
+from cae_lcd.cli.main import main
+from cae_lcd.core.cluster import start_ray
+from cae_lcd.core.conf import ConfigError
 from retrieval import detect
 from retrieval.batch import batch_outs
 from retrieval.run_folder import RunFolder

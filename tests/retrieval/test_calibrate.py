@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from core.errors import ConfigError, DatabaseError
-from evaluation.ground_truth import load_ground_truth
-from evaluation.metrics import precision_recall
+from cae_lcd.core.errors import ConfigError, DatabaseError
+from cae_lcd.evaluation.ground_truth import load_ground_truth
+from cae_lcd.evaluation.metrics import precision_recall
 from retrieval.calibrate import Calibration, calibrated_features, calibration_frames
 from retrieval.detect import main as detect
 from retrieval.run_folder import RunFolder

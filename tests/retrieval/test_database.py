@@ -4,8 +4,8 @@ import h5py
 import numpy as np
 import pytest
 
-from core.conf import ConfigError
-from core.errors import DatabaseError
+from cae_lcd.core.conf import ConfigError
+from cae_lcd.core.errors import DatabaseError
 from retrieval.database import FORMAT_VERSION, KeyframeDatabase, KeyframeRecord
 from verify.features import Features
 

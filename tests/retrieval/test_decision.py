@@ -103,7 +103,7 @@ class TestSeparation:
 
 class TestFusedEvidence:
     def _inliers(self, seq, pairs):
-        from core.images import read_image
+        from cae_lcd.core.images import read_image
         from verify.features import create_extractor
         from verify.verifier import create_verifier
 
@@ -144,7 +144,7 @@ class TestTooRecent:
     def test_revisit_of_a_long_look_alike_stretch_gives_no_loop(self, small, tmp_path):
         """A robot that stands still for 60 frames (the same real view, sensor noise only), so frames 50 back
         look exactly like the current one: the stretch it is in is one place, not a loop."""
-        from core.images import read_image
+        from cae_lcd.core.images import read_image
         from retrieval.detector import LoopDetector
 
         seq, cal = small
@@ -305,8 +305,8 @@ class TestConfirmations:
     def test_stream_reports_delayed_loops_and_detect_replays_them(self, small, tmp_path):
         """Through the API on real frames: the revisit's first frame, too weak alone, is reported once the run
         through it is accepted (on the later frame's result); the stored run replays to the same delayed loops."""
-        from core.images import read_image
-        from evaluation.ground_truth import read_loop_pairs
+        from cae_lcd.core.images import read_image
+        from cae_lcd.evaluation.ground_truth import read_loop_pairs
         from retrieval.detector import LoopDetector
 
         seq, cal = small
@@ -329,7 +329,7 @@ class TestConfirmations:
     def test_detect_writes_delayed_loops(self, small, tmp_path):
         """``detect`` on the same frames: the delayed loop is a row of loops.csv (the accepting run's confidence, at
         least the acceptance level), marked accepted in candidates.csv, counted in the summary."""
-        from evaluation.ground_truth import read_loop_pairs
+        from cae_lcd.evaluation.ground_truth import read_loop_pairs
         from retrieval.detect import main as detect
         from retrieval.run_folder import RunFolder
 

@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from core.conf import ConfigError, load_conf_file, merge_conf
-from core.errors import ImageError
-from evaluation.ground_truth import read_loop_pairs
-from evaluation.metrics import precision_recall
+from cae_lcd.core.conf import ConfigError, load_conf_file, merge_conf
+from cae_lcd.core.errors import ImageError
+from cae_lcd.evaluation.ground_truth import read_loop_pairs
+from cae_lcd.evaluation.metrics import precision_recall
 from retrieval.database import KeyframeDatabase
 from retrieval.detector import Candidate, FrameResult, LoopDetector, resolve_conf
 
@@ -338,7 +338,7 @@ class TestEveryUnitDeclaresItsRules:
     """Every key of every unit's default_conf has a type-and-range rule (a new key without one fails here)."""
 
     def test_all_registered_units(self):
-        from core.conf import check_conf
+        from cae_lcd.core.conf import check_conf
         from retrieval.detector import conf_rules, default_conf
         from retrieval.descriptors import DESCRIPTORS
         from retrieval.index import INDEXES

@@ -140,7 +140,7 @@ def test_kitti_90_pose_graph_is_helped_by_the_edges_as_written(kitti_sequences, 
     of ``bench.loop_edges`` (the bench runs the detector's own loops)."""
     pytest.importorskip("gtsam")
     from bench.loop_edges import pose_graph
-    from evaluation.ground_truth import read_loop_pairs
+    from cae_lcd.evaluation.ground_truth import read_loop_pairs
     from retrieval.detector import resolve_conf
     from retrieval.sequences import open_sequence
     from verify.features import create_extractor
@@ -173,7 +173,7 @@ def test_fisheye_frames_give_the_pinhole_loops_and_rotations(kitti_sequences, tm
     run's; read as a pinhole, the warped frames' rotations are off (the model is what makes them right). The full
     sequence through ``cae-lcd detect``: ``python -m bench.fisheye``."""
     from bench.fisheye import rotation_gaps, write_fisheye_sequence
-    from evaluation.ground_truth import read_loop_pairs
+    from cae_lcd.evaluation.ground_truth import read_loop_pairs
     from retrieval.detector import resolve_conf
     from retrieval.sequences import open_sequence
     from verify.camera import read_camera_file

@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 
-from core.errors import DatabaseError
+from cae_lcd.core.errors import DatabaseError
 from retrieval.feature_jobs import FeatureJobs, grey_copy, read_grey_copy
 from verify.features import SIFT
 

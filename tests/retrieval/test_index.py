@@ -6,7 +6,7 @@ import os
 import numpy as np
 import pytest
 
-from core.conf import ConfigError
+from cae_lcd.core.conf import ConfigError
 from retrieval.index import (INDEXES, AutoIndex, FlatIndex, FP16Index, HNSWIndex, IVFPQIndex, KeyframeIndex,
                              brute_force_search, create_index, load_index)
 

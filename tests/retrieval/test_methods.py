@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from core.conf import load_conf_file
-from core.errors import ConfigError
+from cae_lcd.core.conf import load_conf_file
+from cae_lcd.core.errors import ConfigError
 from retrieval.detector import resolve_conf
 from retrieval.methods import METHODS, method_conf
 

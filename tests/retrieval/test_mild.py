@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from core.errors import ConfigError
+from cae_lcd.core.errors import ConfigError
 from retrieval.mild import (MildDescriptor, MultiIndexHash, brute_force_similarity, bucket_cap, expected_recall,
                             hamming_distances, recall_probability)
 from verify.features import ORB

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.errors import ConfigError
+from cae_lcd.core.errors import ConfigError
 from retrieval.detector import resolve_conf
 from retrieval.methods import method_conf
 from retrieval.mild import MildDescriptor

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.conf import ConfigError
+from cae_lcd.core.conf import ConfigError
 from retrieval.temporal import BayesFilter, CodeTable, NoFilter, SequenceFilter, create_filter
 
 
@@ -156,7 +156,7 @@ class TestCodeTable:
     def test_float16_rows_give_the_same_similarities_at_half_the_memory(self, sample_frames):
         """Codes rounded to float16 (what ``CodePlaces.entry`` searches and stores) kept as float16: the same
         similarities as float32 rows, bit for bit, in half the bytes."""
-        from core.images import read_image
+        from cae_lcd.core.images import read_image
         from retrieval.descriptors import create_descriptor
         from retrieval.detector import resolve_conf
         from retrieval.places import create_places

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from core.conf import ConfigError
+from cae_lcd.core.conf import ConfigError
 from verify.camera import camera_from_options, parse_intrinsics, read_camera_file, undistort_points
 from verify.geometry import GeometricVerifier
 

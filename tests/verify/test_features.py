@@ -2,7 +2,7 @@ import cv2
 import numpy as np
 import pytest
 
-from core.conf import ConfigError
+from cae_lcd.core.conf import ConfigError
 from verify.features import FEATURES, SIFT, Features, create_extractor
 
 

@@ -2,8 +2,8 @@ import cv2
 import numpy as np
 import pytest
 
-from core.conf import ConfigError
-from core.errors import ImageError
+from cae_lcd.core.conf import ConfigError
+from cae_lcd.core.errors import ImageError
 from verify.gate import EdgeGate, GateResult
 
 
@@ -80,7 +80,7 @@ class TestRelativeGate:
     def test_nordland_small_frames(self):
         if not NORDLAND.is_dir():
             pytest.skip("../shared nordland absent")
-        from core.images import read_image
+        from cae_lcd.core.images import read_image
         frames = [read_image(NORDLAND / f"{i:06d}.png") for i in range(0, 1000, 50)]
         relative, fixed = EdgeGate(), EdgeGate({"mode": "fixed"})
         ratios = [relative.edge_ratio(f) for f in frames]

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from core.conf import ConfigError
+from cae_lcd.core.conf import ConfigError
 from retrieval.sequences import read_kitti_poses
 from verify.geometry import GeometricVerifier, GeometryResult
 from verify.matching import match_ratio

@@ -6,7 +6,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pytest
 
-from core.conf import ConfigError
+from cae_lcd.core.conf import ConfigError
 from verify.features import Features
 from verify.geometry import GeometryResult
 from verify.verifier import NOT_CHECKED, MATCHERS, RatioTestMatcher, Verification, _checked_in_turn, create_verifier

@@ -121,7 +121,7 @@ def detect_like_sample(cli_sample_run):
     """``detect_like_sample(path, out, *args)``: ``cae-lcd detect path`` into ``out``, seeded with the sample run's
     calibration (what detect would compute again from the same pixels: saves a calibration per test), returning
     its loops ``(L, 2)``."""
-    from cli.main import main
+    from cae_lcd.cli.main import main
 
     def run(path, out: Path, *args: str) -> np.ndarray:
         out.mkdir(parents=True)

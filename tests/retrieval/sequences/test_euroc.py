@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.conf import ConfigError
+from cae_lcd.core.conf import ConfigError
 from retrieval.sequences import open_sequence
 from retrieval.sequences.base import Z_UP_TO_KITTI
 

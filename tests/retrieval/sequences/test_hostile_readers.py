@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 import pytest
 
-from core.conf import ConfigError
+from cae_lcd.core.conf import ConfigError
 from retrieval.sequences import open_sequence
 from retrieval.sequences.rosbag import IMAGE
 
@@ -220,7 +220,7 @@ def test_reader_case(name, tmp_path, sample_images, caplog):
                                         ("tum rgb.txt, path up and out", [])])
 def test_cli_refuses_before_writing(name, args, tmp_path, sample_images, capsys):
     """Through ``cae-lcd detect``: exit 2, one ``error:`` line naming the file or option, no run folder."""
-    from cli.main import main
+    from cae_lcd.cli.main import main
 
     path = CASES[name].build(tmp_path, sample_images)
     code = main(["detect", str(path), "--out", str(tmp_path / "run"), "--no-progress", *args])
@@ -234,7 +234,7 @@ def test_cli_refuses_before_writing(name, args, tmp_path, sample_images, capsys)
 def test_a_reader_warning_is_said_once_a_run(tmp_path, sample_images, caplog):
     """``detect`` opened the sequence twice (to check its ground truth, then to run): every reader warning was
     printed twice. A TUM ground truth that ends before the last frame."""
-    from cli.main import main
+    from cae_lcd.cli.main import main
 
     root = _tum()(tmp_path, sample_images)
     (root / "groundtruth.txt").write_text("0.0 0 0 0 0 0 0 1\n1.0 1 0 0 0 0 0 1\n")

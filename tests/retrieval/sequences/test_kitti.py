@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from core.conf import ConfigError
-from evaluation.ground_truth import read_loop_pairs
+from cae_lcd.core.conf import ConfigError
+from cae_lcd.evaluation.ground_truth import read_loop_pairs
 from retrieval.sequences import Sequence, open_sequence, read_kitti_calib, read_kitti_poses
 
 

@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from core.conf import ConfigError
-from core.errors import ImageError
+from cae_lcd.core.conf import ConfigError
+from cae_lcd.core.errors import ImageError
 from retrieval.sequences import open_sequence
 from retrieval.sequences.rosbag import COMPRESSED, IMAGE, image_from_message, write_image_bag
 

@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from cli.main import main
-from core.conf import ConfigError
+from cae_lcd.cli.main import main
+from cae_lcd.core.conf import ConfigError
 from retrieval.run_folder import RunFolder
 from retrieval.sequences import open_sequence
 from retrieval.sequences.base import Z_UP_TO_KITTI

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from core.conf import ConfigError
+from cae_lcd.core.conf import ConfigError
 from retrieval.sequences import open_sequence
 
 
@@ -54,7 +54,7 @@ def test_a_strided_video_keeps_the_videos_frame_numbers(kitti_sequences, tmp_pat
     numbered by its frames) counts every loop right."""
     import json
 
-    from cli.main import main
+    from cae_lcd.cli.main import main
     from retrieval.run_folder import RunFolder
 
     seq = open_sequence(kitti_sequences / "90")

@@ -1,0 +1,550 @@
+"""Place recognition across a fleet: the ``detect`` pipeline on every robot's keyframes, intra-robot loops and
+inter-robot overlaps, each turned into a pose-graph edge (a similarity from 3D-3D matches).
+
+- One ``retrieval.LoopDetector`` per robot, its keyframes in ``STATE/robots/NAME/keyframes.h5`` (resumed on start),
+  all sharing one global descriptor (the CAE encoder is loaded once per server). It reports the robot's own loops,
+  with its usual recent-frame exclusion and its fixed acceptance policy (``policy.min_inliers``).
+- Inter-robot: the query's searched entry (``FrameResult.entry``) is searched in the fleet's one place memory
+  (``cae_lcd.fleet.places``: every robot's entries keyed by robot and keyframe, ``local`` in this process or one ``milvus``
+  collection shared by every worker; no recency exclusion: another robot's frame is never "recent"): the
+  top-``cross.search_k`` of the other robots (of the keyframes this recognizer has: a shared memory may hold another
+  worker's newest one before the service stored it), of each other robot at most ``cross.k``, at most
+  ``cross.budget`` in all (the most similar: ``cae_lcd.fleet.budget``), verified by the robot's
+  detector's verifier (SIFT + geometry, fixed inlier threshold ``cross.min_inliers``). Each robot pair's matches feed ``OverlapTracker``: an overlap is accepted
+  after ``overlap.required`` consecutive matching keyframes; from then on every verified match becomes an edge (at
+  most ``max_edges_per_pair``).
+- A loop edge takes the detector's own verification of the pair (``FrameResult.verification``: its matches and
+  transform); nothing is verified twice.
+- An edge's similarity: 3D points of the matched features on both sides (the depth map when the keyframe came with
+  one, else triangulated from the robot's own neighbouring keyframe with its local poses), then ``estimate_overlap``.
+
+Camera intrinsics are per robot (the first keyframe's), kept in ``STATE/robots/NAME/camera.json``. 3D points of at
+most ``points_cache`` keyframes per robot are kept in memory. Local features are the detector's
+(``LoopDetector.keyframe_features``): with ``detector.runtime.features: database`` (the default here) they are read
+back from the robot's keyframe database, at most ``detector.runtime.feature_cache`` kept per robot; ``memory`` keeps
+them all. Points from depth maps are kept in memory only: after a restart, or once dropped from the cache, keyframes
+that had one fall back to triangulation. The fleet reaches no private attribute of a ``LoopDetector``
+(``tests/fleet/test_recognition.py`` checks it).
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import logging
+import os
+import threading
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from cae_lcd.core.conf import ConfigError, Float, Int, check_conf, merge_conf
+from cae_lcd.core.errors import ConflictError
+from cae_lcd.core.files import write_text_atomic
+from cae_lcd.core.images import check_image, fingerprint
+from retrieval.descriptors import GlobalDescriptor, create_descriptor
+from retrieval.detector import LoopDetector, resolve_conf, weights_whitening
+from verify.verifier import Verification
+
+from .budget import shortlist
+from .places import create_fleet_places, resolve_places
+from .overlap import OverlapTracker, PointTriangulator, estimate_overlap, points_from_depth
+from .sim3 import Sim3, Sim3Ransac
+from .store import EdgeRecord, OverlapRecord
+
+__all__ = ["FleetRecognizer", "Recognition", "SharedKeyframe", "CAMERA_FORMAT_VERSION"]
+
+log = logging.getLogger(__name__)
+
+CAMERA_FORMAT_VERSION = 1  #: format of ``camera.json``
+
+
+@dataclass
+class Recognition:
+    """What one keyframe found: loop and overlap edges (keyframe ``b`` is the query) and newly accepted overlaps."""
+
+    edges: list[EdgeRecord] = field(default_factory=list)
+    overlaps: list[OverlapRecord] = field(default_factory=list)
+    gated: bool = False  #: the quality gate refused the image (no place memory entry)
+
+
+@dataclass(frozen=True)
+class SharedKeyframe:
+    """What another recognizer needs of a keyframe to match it across robots (``export`` -> ``adopt``)."""
+
+    entry: np.ndarray | None  #: ``(d,)`` the searched code (None: the place memory is shared, it is there already)
+    features: Any  #: ``verify.features.Features`` of the keyframe (None: fetched from its owner when needed)
+    pose: np.ndarray  #: ``(4, 4)`` local pose
+    K: np.ndarray | None  #: ``(3, 3)`` the robot's intrinsics
+
+
+class _Adopted:
+    """Stands in for the detector of a robot another recognizer owns: the local features of its ``cache`` most
+    recently used keyframes; the others are fetched from the owner (``fetch(keyframe)``) when a match needs them."""
+
+    def __init__(self, cache: int, fetch: Callable[[int], Any] | None = None) -> None:
+        self.cache, self.fetch = max(1, int(cache)), fetch
+        self.features: OrderedDict[int, Any] = OrderedDict()
+
+    def remember(self, frame_id: int, features: Any) -> None:
+        """Keeps a keyframe's features, dropping the least recently used past ``cache``."""
+        self.features[int(frame_id)] = features
+        self.features.move_to_end(int(frame_id))
+        while len(self.features) > self.cache:
+            self.features.popitem(last=False)
+
+    def keyframe_features(self, frame_id: int) -> Any:
+        """The adopted keyframe's features (``LoopDetector.keyframe_features``'s interface), fetched if not kept.
+
+        Raises:
+            KeyError: not kept, and nothing to fetch them from.
+        """
+        k = int(frame_id)
+        if k in self.features:
+            self.features.move_to_end(k)
+            return self.features[k]
+        if self.fetch is None:
+            raise KeyError(k)
+        features = self.fetch(k)
+        self.remember(k, features)
+        return features
+
+    def close(self) -> None:
+        """Nothing to release."""
+
+
+def _image_fingerprint(image: np.ndarray) -> str:
+    """``cae_lcd.core.images.fingerprint`` of a decoded image's shape and pixels (what a retry is compared by)."""
+    return fingerprint(repr((image.shape, image.dtype.str)).encode() + np.ascontiguousarray(image).tobytes())
+
+
+class _Robot:
+    """One robot's detector, intrinsics, local poses and keyframe ids (its entries are in the fleet's place memory)."""
+
+    def __init__(self, detector: LoopDetector, K: np.ndarray | None, points_cache: int = 256) -> None:
+        self.detector, self.K, self.points_cache = detector, K, points_cache
+        self.poses: dict[int, np.ndarray] = {}  # keyframe -> (4, 4) local pose
+        self.ids: list[int] = []  # keyframes in the place memory (passed the gate), ascending
+        self.points: OrderedDict[int, np.ndarray] = OrderedDict()  # keyframe -> (N, 3) feature points (LRU)
+        self.last: tuple[int, np.ndarray] | None = None  # the latest keyframe's searched entry (for ``export``)
+        self.lock = threading.Lock()  # held while its detector processes a keyframe, and to read its features
+
+    def remember_points(self, keyframe: int, points: np.ndarray) -> np.ndarray:
+        """Caches a keyframe's 3D points, dropping the least recently used past ``points_cache``."""
+        self.points[keyframe] = points
+        self.points.move_to_end(keyframe)
+        while len(self.points) > self.points_cache:
+            self.points.popitem(last=False)
+        return points
+
+    def neighbour(self, keyframe: int) -> int | None:
+        """The keyframe in the place memory nearest to ``keyframe`` (another one), None if there is none."""
+        others = [i for i in self.ids if i != keyframe]
+        return min(others, key=lambda i: (abs(i - keyframe), i)) if others else None
+
+
+class FleetRecognizer:
+    """Loops and overlaps of every robot's keyframes (see the module doc).
+
+    Keyframes of different robots may be processed at once (``parallel_robots``; callers serialise each robot's own):
+    a robot's detector (decode, gate, encode, features, its own search and verification, its database) and the
+    verification of its cross-robot candidates run outside the lock that guards what robots share (the place memory,
+    the overlap rules, the edges); the heavy work is in OpenCV and torch, which release the GIL.
+
+    Args:
+        state_dir: the server's state folder (robots' databases go in ``robots/NAME/``).
+        conf: overrides of ``default_conf``.
+        descriptor: an already built global descriptor; None: built once from ``detector.descriptor``.
+        owns: which robots this recognizer opens from the state folder (None: all); the others' keyframes come
+            through ``adopt`` (``cae_lcd.fleet.workers`` shards robots over several recognizers this way).
+        fetch: ``fetch(robot, keyframe)`` -> the local features of another recognizer's keyframe that this one no
+            longer keeps (``adopted_features``); None: only those kept are matched.
+
+    Raises:
+        ConfigError: a bad conf. DatabaseError: a damaged robot database.
+    """
+
+    default_conf: dict[str, Any] = {
+        "detector": {"calibration": {"enabled": False},  # LoopDetector conf of every robot (fixed policy)
+                     "runtime": {"features": "database",  # features read back from its database when needed,
+                                 "feature_cache": 64,  # at most this many kept per robot (~64 kB each)
+                                 "flush_every": 16}},  # keyframes a robot's store holds in memory (features
+    #                              included, ~70 kB each) before it writes them into its columns: 256 (a detector's
+    #                              default) would be up to 18 MB a robot; every keyframe is in the store's log at once
+        "cross": {
+            "search_k": 64,  # entries of other robots searched in the fleet's place memory per query
+            "k": 3,  # candidates of each other robot verified per query
+            "budget": 8,  # candidates verified per query over all other robots, the most similar (0: no bound)
+            "min_score": 0.0,  # candidates under this cosine similarity are not verified
+            "min_matches": 5,  # putative matches a candidate needs
+            "min_inliers": 50,  # geometric inliers a cross-robot match needs (the detector's fixed policy)
+        },
+        "places": {"name": "local",  # the place memory across robots (cae_lcd.fleet.places): local (in each process)
+                   "index": {"name": "fp16"}},  # or milvus (one collection every worker shares: uri, collection, ...)
+        "overlap": OverlapTracker.default_conf,  # n-consecutive-match acceptance of an overlap
+        "triangulation": PointTriangulator.default_conf,  # 3D points from a robot's neighbouring keyframe
+        "sim3": Sim3Ransac.default_conf,  # RANSAC of an edge's similarity from 3D-3D matches
+        "min_points": 20,  # 3D-3D RANSAC inliers an edge needs
+        "max_edges_per_pair": 30,  # overlap edges kept per robot pair (the accepting run's first)
+        "points_cache": 256,  # keyframes' 3D feature points kept in memory per robot (least recently used dropped)
+        "adopted_features": 64,  # of a robot another Ray worker owns: local features kept per robot (least recently
+        #                          used dropped; the others are fetched from its worker when a match needs them)
+    }
+    conf_rules: dict[str, Any] = {
+        "cross": {"search_k": Int(1, 100_000), "k": Int(1, 1000), "budget": Int(0, 100_000), "min_score": Float(-1, 1), "min_matches": Int(0),
+                  "min_inliers": Int(0)},
+        "overlap": OverlapTracker.conf_rules, "triangulation": PointTriangulator.conf_rules,
+        "sim3": Sim3Ransac.conf_rules, "min_points": Int(3), "max_edges_per_pair": Int(1), "points_cache": Int(1),
+        "adopted_features": Int(1)}
+
+    def __init__(self, state_dir: str | Path, conf: dict[str, Any] | None = None,
+                 descriptor: GlobalDescriptor | None = None, owns: Callable[[str], bool] | None = None,
+                 fetch: Callable[[str, int], Any] | None = None) -> None:
+        self.conf = self.resolve(conf)
+        self.fetch = fetch
+        self.detector_conf = self.conf["detector"]
+        self.root = Path(state_dir) / "robots"
+        self.descriptor = descriptor or create_descriptor(self.detector_conf["descriptor"])
+        self.places = create_fleet_places(self.descriptor, weights_whitening(self.detector_conf, self.descriptor),
+                                          self.detector_conf, self.conf["places"], state_dir)
+        self.tracker = OverlapTracker(self.conf["overlap"])
+        self.triangulator = PointTriangulator(self.conf["triangulation"])
+        self.robots: dict[str, _Robot] = {}
+        self._checks: dict[tuple[str, str], dict[int, Verification]] = {}  # recent verified matches per robot pair
+        self._edges: dict[tuple[str, str], int] = {}
+        self._recorded: set[frozenset[str]] = set()  # robot pairs whose overlap was recorded (this run)
+        self._lock = threading.RLock()  # what robots share: robots, places, tracker, checks, edges, points
+        #: robots whose files cannot be read (name -> why, one line): not opened, the others are (``forget`` resets)
+        self.quarantined: dict[str, str] = {}
+        self._owns = owns
+        for folder in sorted(self.root.iterdir()) if self.root.is_dir() else []:
+            if owns is None or owns(folder.name):
+                self._open_at_start(folder)
+
+    def _open_at_start(self, folder: Path) -> None:
+        """Opens a robot's folder found at start-up; one that cannot be read is quarantined (one log line), so that
+        one robot's damaged files never stop the others."""
+        name = folder.name
+        if name.startswith("."):  # .reset/: folders moved aside by ``forget``
+            return
+        try:
+            if not folder.is_dir():
+                raise ConfigError(f"{folder} is not a folder")
+            if (folder / "camera.json").exists():
+                self._open(name, None)
+        except Exception as err:  # noqa: BLE001 -- any damage (JSON, HDF5, OS): this robot only
+            self.robots.pop(name, None)
+            # the first clause of the first line, paths from the state folder on (an answer to a robot holds it)
+            why = (str(err).strip().splitlines() or [type(err).__name__])[0].split("; ")[0][:300]
+            why = why.replace(f"{self.root.parent}{os.sep}", "")
+            self.quarantined[name] = f"{type(err).__name__}: {why}"
+            log.error("robot %s quarantined: its files cannot be read (%s); its requests are refused until an admin "
+                      "resets or drops it", name, self.quarantined[name])
+
+    @classmethod
+    def resolve(cls, conf: dict[str, Any] | None) -> dict[str, Any]:
+        """``conf`` merged onto ``default_conf`` and checked (``detector`` by the detector's own rules).
+
+        Raises:
+            ConfigError: an unknown key or a bad value.
+        """
+        conf = dict(conf or {})
+        user_detector = conf.pop("detector", None)  # checked by the detector's own rules (its units' sections)
+        user_places = conf.pop("places", None)  # by its kind's rules (cae_lcd.fleet.places)
+        out = merge_conf({k: v for k, v in cls.default_conf.items() if k not in ("detector", "places")}, conf,
+                         "recognition")
+        check_conf(out, cls.conf_rules, "recognition")
+        out["detector"] = resolve_conf(merge_conf(cls.default_conf["detector"], user_detector, strict=False))
+        out["places"] = resolve_places(user_places)
+        return out
+
+    def _open(self, name: str, K: np.ndarray | None) -> _Robot:
+        """The robot's detector, resumed from its database; ``K`` is the stored one when there is a ``camera.json``
+        (written by ``process`` once the robot's first keyframe is accepted)."""
+        folder = self.root / name
+        camera = folder / "camera.json"
+        if camera.exists():
+            stored = json.loads(camera.read_text())
+            if not isinstance(stored, dict) or stored.get("format_version") != CAMERA_FORMAT_VERSION:
+                raise ConfigError(f"{camera}: format_version {stored.get('format_version')} is not "
+                                  f"{CAMERA_FORMAT_VERSION}")
+            K = None if stored["K"] is None else np.asarray(stored["K"], np.float64)
+        folder.mkdir(parents=True, exist_ok=True)
+        det = LoopDetector(self.detector_conf, K=K, database=folder / "keyframes.h5", descriptor=self.descriptor)
+        robot = self.robots[name] = _Robot(det, K, self.conf["points_cache"])
+        if det.db is None:
+            return robot
+        stored = [(fid, entry) for fid, entry, _, _ in det.db.search_entries(features=False)]  # searched entries
+        robot.ids = [fid for fid, _ in stored]
+        if stored:  # a shared memory may hold them already (another replica, a previous run): an upsert
+            self.places.add(name, robot.ids, [entry for _, entry in stored])
+        for fid, pose in zip(robot.ids, det.db.poses()):
+            if np.isfinite(pose).all():
+                robot.poses[fid] = Sim3.from_pose(pose).matrix()
+        return robot
+
+    def _save_camera(self, name: str) -> None:
+        """Writes the robot's ``camera.json`` (its intrinsics) if it has none yet."""
+        camera = self.root / name / "camera.json"
+        if not camera.exists():
+            K = self.robots[name].K
+            write_text_atomic(camera, json.dumps({"format_version": CAMERA_FORMAT_VERSION,
+                                                  "K": None if K is None else np.asarray(K).tolist()}))
+
+    def check_retry(self, robot: str, keyframe: int, image: np.ndarray) -> None:
+        """Refuses (``ConflictError``) a retry of a stored keyframe whose image differs from the stored one's."""
+        r = self.robots.get(robot)
+        if r is None or isinstance(r.detector, _Adopted) or r.detector.db is None:
+            return
+        stored = next((e.fingerprint for e in r.detector.db.frames() if e.frame_id == keyframe), "")
+        if stored and stored != _image_fingerprint(image):
+            raise ConflictError(f"robot {robot!r} sent keyframe {keyframe} before, with another image")
+
+    def export(self, robot: str, keyframes: list[int] | None = None) -> list[tuple[int, SharedKeyframe]]:
+        """The robot's keyframes (all, or those of ``keyframes`` in the place memory) as ``adopt`` takes them: the
+        local features of the latest ``adopted_features`` only (``None`` for the others: ``features`` on demand), the
+        searched entries only when the place memory is not shared (``None``: every worker searches them there)."""
+        r = self.robots[robot]
+        ids = sorted(k for k in (r.ids if keyframes is None else set(keyframes) & set(r.ids)) if k in r.poses)
+        entries = {} if self.places.shared else self._entries(r, ids)
+        with_features = set(ids[-self.conf["adopted_features"]:])
+        return [(k, SharedKeyframe(entries.get(k), r.detector.keyframe_features(k) if k in with_features else None,
+                                   r.poses[k], r.K)) for k in ids]
+
+    @staticmethod
+    def _entries(r: _Robot, ids: list[int]) -> dict[int, np.ndarray]:
+        """The searched entries of the robot's keyframes ``ids``: the one just processed kept, the others read back
+        from its database."""
+        if r.last is not None and ids == [r.last[0]]:
+            return dict([r.last])
+        wanted = set(ids)
+        return {} if r.detector.db is None else {fid: e for fid, e, _, _ in r.detector.db.search_entries(
+            features=False) if fid in wanted}
+
+    def features(self, robot: str, keyframes: list[int]) -> list[Any]:
+        """The local features of keyframes of a robot this recognizer owns (another one's ``fetch``)."""
+        return self._features(robot, keyframes)
+
+    def owned(self) -> list[str]:
+        """The robots this recognizer runs the detector of (not adopted from another)."""
+        return [name for name, r in self.robots.items() if not isinstance(r.detector, _Adopted)]
+
+    def adopt(self, robot: str, shared: list[tuple[int, SharedKeyframe]]) -> None:
+        """Adds another recognizer's keyframes of ``robot`` (``export``) to the robots matched across; a robot this
+        recognizer owns is left alone."""
+        r = self.robots.get(robot)
+        if r is None:
+            fetch = None if self.fetch is None else functools.partial(self.fetch, robot)
+            r = self.robots[robot] = _Robot(_Adopted(self.conf["adopted_features"], fetch),  # type: ignore[arg-type]
+                                            shared[0][1].K if shared else None)
+        if not isinstance(r.detector, _Adopted):
+            return
+        for keyframe, kf in shared:
+            if keyframe not in r.poses:
+                if kf.features is not None:
+                    r.detector.remember(keyframe, kf.features)
+                r.poses[keyframe] = kf.pose
+                r.ids.append(keyframe)
+                if kf.entry is not None:  # a memory of this process (a shared one holds it already)
+                    self.places.add(robot, [keyframe], [kf.entry])
+
+    parallel_robots = True  #: keyframes of different robots may be processed at the same time (see the class doc)
+
+    def committed(self, robot: str) -> None:
+        """The service stored the robot's latest keyframe. Nothing to do here: every robot lives in this one
+        recognizer (``cae_lcd.fleet.workers.RayRecognizer`` shares it with its other workers now)."""
+
+    def has(self, robot: str, keyframe: int) -> bool:
+        """True when the robot's database already holds ``keyframe`` (or a later one)."""
+        r = self.robots.get(robot)
+        return r is not None and not isinstance(r.detector, _Adopted) and keyframe < r.detector.next_frame_id
+
+    def check(self, robot: str, K: np.ndarray | None) -> None:
+        """Refuses intrinsics that differ from the robot's first ones; changes nothing."""
+        r = self.robots.get(robot)
+        if r is not None and K is not None and (r.K is None or not np.allclose(r.K, K)):
+            raise ConfigError(f"robot {robot}: intrinsics differ from its first keyframe's")
+
+    def process(self, robot: str, keyframe: int, timestamp: float, pose: np.ndarray, image: np.ndarray,
+                K: np.ndarray | None = None, depth: np.ndarray | None = None) -> Recognition:
+        """Runs one keyframe through the robot's detector (stored in its database) and across the other robots.
+
+        Args:
+            robot: its name. keyframe: its id (after the robot's last). timestamp: seconds.
+            pose: ``(4, 4)`` camera-to-map pose in the robot's map. image: ``(H, W[, C])`` image.
+            K: ``(3, 3)`` intrinsics (the first keyframe's are kept). depth: ``(H, W)`` depth map, or None.
+
+        Raises:
+            ConfigError, ImageError: a bad input (also a depth map of a robot without intrinsics); nothing was stored.
+        """
+        check_image(image, "image")  # before a new robot's folder is made: a refused keyframe leaves nothing
+        with self._lock:
+            self.check(robot, K)
+            r = self.robots.get(robot)
+            if depth is not None and K is None and (r is None or r.K is None):  # it would be dropped without a word
+                raise ConfigError(f"robot {robot}: a depth map needs intrinsics (with the robot's first keyframe)")
+            if r is None or isinstance(r.detector, _Adopted):  # first keyframe here (adopted keyframes: now owned)
+                r = self._open(robot, K)
+        with r.lock:
+            res = r.detector.process(image, frame_id=keyframe, timestamp=timestamp, pose=pose,
+                                     fingerprint=_image_fingerprint(image))
+        with self._lock:
+            self._save_camera(robot)
+            r.poses[keyframe] = np.asarray(pose, np.float64)
+            if res.gated or res.entry is None:
+                return Recognition(gated=True)
+            r.ids.append(keyframe)
+            r.last = (keyframe, res.entry)
+            if depth is not None and r.K is not None:
+                r.remember_points(keyframe, points_from_depth(self._features(robot, [keyframe])[0].keypoints,
+                                                              depth, r.K))
+            c = self.conf["cross"]
+            found = self._known(self.places.search(robot, res.entry, c["search_k"]))  # {other: (keyframes, scores)}
+            chosen = shortlist({o: s for o, (_, s) in found.items()}, c["k"], c["min_score"], c["budget"])
+        matches = {o: m for o, top in chosen.items() if (m := self._best_match(robot, keyframe, o, found[o][0][top]))}
+        out = Recognition()
+        with self._lock:
+            if res.loop is not None:  # the detector's verification of the pair: not checked again
+                self._add_edge(out, "loop", (robot, res.loop.frame_id), (robot, keyframe), res.verification)
+            self._cross(out, robot, keyframe, matches)
+            self.places.add(robot, [keyframe], [res.entry])
+        return out
+
+    def _known(self, found: dict[str, tuple[np.ndarray, np.ndarray]]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """The search results of keyframes this recognizer has (a shared place memory may hold another worker's
+        newest keyframe before the service stored it and this recognizer adopted it), best first."""
+        out = {}
+        for other, (keyframes, scores) in found.items():
+            r = self.robots.get(other)
+            keep = np.array([r is not None and k in r.poses for k in keyframes.tolist()], bool)
+            if keep.any():
+                out[other] = (keyframes[keep], scores[keep])
+        return out
+
+    def _cross(self, out: Recognition, robot: str, keyframe: int,
+               matches: dict[str, tuple[int, Verification]]) -> None:
+        """Updates the overlap rules with the keyframe's verified matches of other robots, adds edges."""
+        accepted = self.tracker.update(robot, keyframe, {o: m[0] for o, m in matches.items()})
+        keep = self.conf["overlap"]["required"]
+        for other, (match, check) in matches.items():
+            recent = self._checks.setdefault((robot, other), {})
+            recent[keyframe] = check
+            for old in sorted(recent)[:-keep]:
+                del recent[old]
+            if other in accepted:  # the accepting run's matches, each an edge
+                for kf, m in self.tracker.rules[(robot, other)].accepted or []:
+                    if kf in recent:
+                        self._add_edge(out, "overlap", (other, m), (robot, kf), recent[kf])
+            elif self.tracker.accepted(robot, other):
+                self._add_edge(out, "overlap", (other, match), (robot, keyframe), check)
+            pair = frozenset((robot, other))
+            rec = next((e for e in out.edges if e.kind == "overlap" and e.robot_a == other), None)
+            if rec is not None and pair not in self._recorded:  # the first edge of an accepted overlap records it
+                self._recorded.add(pair)
+                out.overlaps.append(self._overlap_record(rec))
+
+    def resume(self, overlaps: list[OverlapRecord], edges: list[EdgeRecord]) -> None:
+        """Continues after a restart: overlaps already accepted (stored) stay accepted, and the overlap edges already
+        stored count towards ``max_edges_per_pair``."""
+        for o in overlaps:
+            self._recorded.add(frozenset((o.robot_a, o.robot_b)))
+            self.tracker.accept(o.robot_a, o.robot_b)
+        for e in edges:
+            if e.kind == "overlap":
+                self._edges[(e.robot_a, e.robot_b)] = self._edges.get((e.robot_a, e.robot_b), 0) + 1
+
+    def _best_match(self, robot: str, keyframe: int, other: str,
+                    top: np.ndarray) -> tuple[int, Verification] | None:
+        """Of the other robot's keyframes ``top`` (its shortlisted candidates), the one that verifies best against
+        the query (None: none passes)."""
+        q, o, c = self.robots[robot], self.robots[other], self.conf["cross"]
+        K = q.K if q.K is not None and o.K is not None and np.allclose(q.K, o.K) else None
+        checks = q.detector.verifier.verify(self._features(robot, [keyframe])[0], self._features(other, top), K,
+                                            c["min_matches"], c["min_inliers"], False)
+        best = max(range(len(top)), key=lambda j: (checks[j].inliers, checks[j].matches))
+        if checks[best].inliers < max(c["min_inliers"], 1):
+            return None
+        return int(top[best]), checks[best]
+
+    def _add_edge(self, out: Recognition, kind: str, a: tuple[str, int], b: tuple[str, int],
+                  check: Verification | None) -> None:
+        """Appends the edge ``a -> b`` (``node_a^-1 o node_b``) when its similarity can be estimated."""
+        pair = (a[0], b[0])
+        if kind == "overlap" and self._edges.get(pair, 0) >= self.conf["max_edges_per_pair"]:
+            return
+        if check is None:  # a loop the detector accepted without verifying it (``policy.verify: false``)
+            rb = self.robots[b[0]]
+            check = rb.detector.verifier.verify(self._features(b[0], [b[1]])[0], self._features(a[0], [a[1]]), rb.K)[0]
+        pts_a, pts_b = self._points(a[0], a[1]), self._points(b[0], b[1])
+        if pts_a is None or pts_b is None or check.inliers <= 0:
+            return
+        pairs = check.pairs[check.geometry.mask][:, ::-1]  # (feature in a, feature in b)
+        found = estimate_overlap(pairs, pts_a, pts_b, self.conf["sim3"])
+        if found is None or found[1].sum() < self.conf["min_points"]:
+            log.debug("%s %s -> %s: no similarity from %d matches", kind, a, b, len(pairs))
+            return
+        self._edges[pair] = self._edges.get(pair, 0) + 1
+        out.edges.append(EdgeRecord(kind, a[0], a[1], b[0], b[1], found[0], float(found[1].sum())))
+
+    def _points(self, robot: str, keyframe: int) -> np.ndarray | None:
+        """``(N, 3)`` 3D points of the keyframe's features in its camera frame (cached), None without intrinsics."""
+        r = self.robots[robot]
+        if keyframe in r.points:
+            r.points.move_to_end(keyframe)
+            return r.points[keyframe]
+        near = r.neighbour(keyframe)
+        if r.K is None or near is None or keyframe not in r.poses or near not in r.poses:
+            return None
+        fk, fn = self._features(robot, [keyframe, near])
+        return r.remember_points(keyframe, self.triangulator(fk, r.poses[keyframe], fn, r.poses[near], r.K))
+
+    def _features(self, robot: str, keyframes: Any) -> list[Any]:
+        """The keyframes' local features (``LoopDetector.keyframe_features``), read while the robot's detector is
+        not processing a keyframe (its own thread may be)."""
+        r = self.robots[robot]
+        with r.lock:
+            return [r.detector.keyframe_features(int(k)) for k in keyframes]
+
+    def _overlap_record(self, edge: EdgeRecord) -> OverlapRecord:
+        """The accepted overlap: the similarity mapping robot b's map into robot a's, from ``edge``."""
+        pa = Sim3.from_pose(self.robots[edge.robot_a].poses[edge.keyframe_a])
+        pb = Sim3.from_pose(self.robots[edge.robot_b].poses[edge.keyframe_b])
+        T = pa.compose(edge.relative).compose(pb.inverse())
+        log.info("overlap accepted: robot %s keyframe %d ~ robot %s keyframe %d (scale %.3f)", edge.robot_b,
+                 edge.keyframe_b, edge.robot_a, edge.keyframe_a, T.s)
+        return OverlapRecord(edge.robot_a, edge.robot_b, T, self.conf["overlap"]["required"], time.time())
+
+    def forget(self, robot: str) -> None:
+        """Starts the robot's recognition again from nothing (an admin's reset): its detector is closed, its folder
+        moved aside to ``robots/.reset/NAME-TIME`` (kept for inspection), its entries taken out of the place memory
+        and its pairs' overlap state forgotten; its next keyframe opens a new database. A quarantined robot is
+        released."""
+        with self._lock:
+            r = self.robots.pop(robot, None)
+            if r is not None and not isinstance(r.detector, _Adopted):
+                with r.lock:
+                    try:
+                        r.detector.close()
+                    except Exception as err:  # noqa: BLE001 -- a damaged database: moved aside all the same
+                        log.warning("robot %s: its database did not close cleanly (%s)", robot, err)
+            folder = self.root / robot
+            if (self._owns is None or self._owns(robot)) and (folder.exists() or folder.is_symlink()):
+                aside = self.root / ".reset" / f"{robot}-{time.strftime('%Y%m%dT%H%M%S')}-{time.time_ns() % 10**9}"
+                aside.parent.mkdir(parents=True, exist_ok=True)
+                folder.rename(aside)
+            self.places.remove(robot)
+            self.tracker.rules = {k: v for k, v in self.tracker.rules.items() if robot not in k}
+            self._checks = {k: v for k, v in self._checks.items() if robot not in k}
+            self._edges = {k: v for k, v in self._edges.items() if robot not in k}
+            self._recorded = {p for p in self._recorded if robot not in p}
+            self.quarantined.pop(robot, None)
+
+    def close(self) -> None:
+        """Flushes and closes every robot's database and the place memory."""
+        for r in self.robots.values():
+            r.detector.close()
+        self.places.close()
