@@ -3,8 +3,8 @@
 Three experiments, each on a fresh state folder, with the bundled sample's real KITTI frames and poses:
 
 - **kill -9 under load**: ``cae-lcd serve`` in a subprocess, two robots streaming keyframes at once, the server
-  killed with SIGKILL at a random moment ``--kills`` times and started again (the robots resume after their last
-  acknowledged keyframe); then every keyframe ever acknowledged (HTTP 200) is looked up in the store: ``lost``.
+  killed with SIGKILL ``--kills`` times, each after a random 3-11 more acknowledged keyframes, and started again (the
+  robots resume after their last acknowledged keyframe); then every keyframe ever acknowledged (HTTP 200) is looked up in the store: ``lost``.
 - **hostile decoding**: the audit's hostile images (generated here, small) sent as keyframes, one at a time, while an
   honest robot streams; each request's CPU time in the server process (``time.process_time`` of this process, which
   runs the server in a thread: an upper bound) and answer; ``over_5s``: requests that cost more than 5 s of CPU.
@@ -107,7 +107,7 @@ def _stream(url: str, token: str, robot: str, frames: list[bytes], poses: np.nda
 
 def kill_under_load(work: Path, kills: int = 3, seed: int = 0) -> dict[str, Any]:
     """Two robots stream the sample (even and odd frames) into ``cae-lcd serve``, killed with SIGKILL ``kills``
-    times at random moments and started again; ``{"kills", "killed_mid_stream", "acknowledged", "stored", "lost"}``.
+    times, each after a random 3-11 more acknowledged keyframes (keyframes in flight), and started again; ``{"kills", "killed_mid_stream", "acknowledged", "stored", "lost"}``.
     """
     frames, poses = _frames()
     state, port = work / "kill_state", _free_port()
@@ -122,8 +122,11 @@ def kill_under_load(work: Path, kills: int = 3, seed: int = 0) -> dict[str, Any]
                    for r in acked]
         for t in threads:
             t.start()
-        if round_ < kills:
-            time.sleep(float(rng.uniform(2.0, 6.0)))
+        if round_ < kills:  # killed once 3-11 more keyframes are acknowledged: mid-stream on a fast machine too
+            target, deadline = sum(map(len, acked.values())) + int(rng.integers(3, 12)), time.monotonic() + 120
+            while sum(map(len, acked.values())) < target and any(t.is_alive() for t in threads) \
+                    and time.monotonic() < deadline:
+                time.sleep(0.005)
             mid_stream += any(t.is_alive() for t in threads)
             proc.send_signal(signal.SIGKILL)  # under load: both robots' keyframes in flight
             proc.wait()
