@@ -1,7 +1,7 @@
 """Packaging: the wheel builds without setuptools' licence deprecation warning, holds the code, the shipped weights
 and sample (not bench/ nor tests/), declares the extras (the detector alone needs no fleet, Ray or ROS package), and
-works once installed in a fresh virtual environment: beside a user's own ``cae_lcd/core/`` package, and with ``--config
-paper`` outside the repository (both once the base layer lives under the ``cae_lcd`` namespace).
+works once installed in a fresh virtual environment: beside a user's own ``core/`` package (the base layer lives
+under the ``cae_lcd`` namespace), and with ``--config paper`` outside the repository.
 
 Cheap and offline: the wheel is built without build isolation and installed with ``--no-deps --no-index``; the
 dependencies come from this interpreter's site-packages.
@@ -91,14 +91,9 @@ def test_installed_wheel_runs(fresh_venv, tmp_path):
     assert bench.returncode == 2 and "cae-lcd bench runs in a checkout of the repository" in bench.stderr
 
 
-AFTER_RENAME = pytest.mark.skipif(not (REPO / "cae_lcd").is_dir(),
-                                  reason="the base layer is not yet under the cae_lcd namespace")
-
-
-@AFTER_RENAME
 def test_import_beside_a_users_own_core(fresh_venv, tmp_path):
-    """A project with its own ``cae_lcd/core/`` package (the wheel installed a top-level ``core`` before: ``import cae``
-    failed with No module named 'cae_lcd.core.errors')."""
+    """A project with its own ``core/`` package (the wheel installed a top-level ``core`` before: ``import cae``
+    failed with No module named 'core.errors')."""
     (tmp_path / "core").mkdir()
     (tmp_path / "core" / "__init__.py").write_text("mine = True\n")
     code = "import core, cae, retrieval.detect, verify; assert core.mine; cae.load_encoder(device='cpu')"
@@ -106,7 +101,6 @@ def test_import_beside_a_users_own_core(fresh_venv, tmp_path):
     assert run.returncode == 0, run.stderr[-2000:]
 
 
-@AFTER_RENAME
 def test_detect_with_a_preset_outside_the_repository(fresh_venv, tmp_path, copy_sample_frames):
     """``cae-lcd detect PATH --config paper`` from a folder that has no ``configs/``: the preset ships inside the
     package."""
