@@ -50,7 +50,8 @@ from retrieval.sequences import read_kitti_poses
 
 from .common import REPO, md_table
 
-__all__ = ["main", "kill_under_load", "hostile_decoding", "damaged_state", "hostile_images", "AUDIT_FORMAT_VERSION"]
+__all__ = ["main", "kill_under_load", "hostile_decoding", "damaged_state", "hostile_images", "repeated_scans",
+           "png_chunk", "AUDIT_FORMAT_VERSION"]
 
 log = logging.getLogger(__name__)
 
@@ -144,8 +145,17 @@ def kill_under_load(work: Path, kills: int = 3, seed: int = 0) -> dict[str, Any]
 
 
 # --------------------------------------------------------------------------------------------- hostile decoding
-def _png_chunk(kind: bytes, payload: bytes) -> bytes:
+def png_chunk(kind: bytes, payload: bytes) -> bytes:
+    """One PNG chunk: length, type, payload, CRC."""
     return struct.pack(">I", len(payload)) + kind + payload + struct.pack(">I", zlib.crc32(kind + payload))
+
+
+def repeated_scans(data: bytes, times: int) -> bytes:
+    """The audit's JPEG: ``data``'s smallest scan (with the Huffman table before it) repeated ``times`` times before
+    the end marker."""
+    starts = [m.start() for m in re.finditer(b"\xff\xc4", data)] + [len(data) - 2]
+    pieces = [data[a:b] for a, b in zip(starts, starts[1:]) if b"\xff\xda" in data[a:b]]
+    return data[:-2] + min(pieces, key=len) * times + b"\xff\xd9"
 
 
 def hostile_images(side: int = 4000) -> dict[str, bytes]:
@@ -154,8 +164,6 @@ def hostile_images(side: int = 4000) -> dict[str, bytes]:
     smooth = cv2.resize((rng.random((100, 100)) * 40 + 100).astype(np.uint8), (side, side))
     progressive = cv2.imencode(".jpg", smooth, [cv2.IMWRITE_JPEG_PROGRESSIVE, 1, cv2.IMWRITE_JPEG_QUALITY, 30])[1]
     progressive = progressive.tobytes()
-    starts = [m.start() for m in re.finditer(b"\xff\xc4", progressive)] + [len(progressive) - 2]
-    scan = min((progressive[a:b] for a, b in zip(starts, starts[1:]) if b"\xff\xda" in progressive[a:b]), key=len)
     small = bytearray(cv2.imencode(".jpg", np.full((96, 320), 128, np.uint8))[1].tobytes())
     sof = small.find(b"\xff\xc0")
     small[sof + 5:sof + 9] = struct.pack(">HH", side, side)
@@ -163,9 +171,9 @@ def hostile_images(side: int = 4000) -> dict[str, bytes]:
     claimed = bytearray(png)
     ihdr = bytes(claimed[12:16]) + struct.pack(">II", side, side) + bytes(claimed[24:29])
     claimed[12:33] = ihdr + struct.pack(">I", zlib.crc32(ihdr))
-    return {"jpeg: 1000 repeated scans": progressive[:-2] + scan * 1000 + b"\xff\xd9",
+    return {"jpeg: 1000 repeated scans": repeated_scans(progressive, 1000),
             "jpeg: 4000x4000 claimed, 320x96 of data": bytes(small),
-            "png: 100 000 text chunks": png[:33] + _png_chunk(b"tEXt", b"k\0v") * 100_000 + png[33:],
+            "png: 100 000 text chunks": png[:33] + png_chunk(b"tEXt", b"k\0v") * 100_000 + png[33:],
             "png: 4000x4000 claimed, 64x64 of data": bytes(claimed),
             "jpeg: honest 4000x4000 progressive": progressive}
 
