@@ -11,7 +11,7 @@ import shutil
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -21,7 +21,7 @@ from cae_lcd.evaluation.metrics import best_per_query, pr_curve, precision_recal
 from retrieval.run_folder import CANDIDATE_COLUMNS, RunFolder, read_csv_table
 from retrieval.sequences import open_sequence
 
-__all__ = ["Budget", "detect_run", "ground_truth_pairs", "run_metrics", "md_table", "fmt", "REPO", "study_parser"]
+__all__ = ["Budget", "detect_run", "ground_truth_pairs", "run_metrics", "md_table", "fmt", "REPO", "study_parser", "work_study_cli"]
 
 log = logging.getLogger(__name__)
 
@@ -146,3 +146,14 @@ def study_parser(doc: str, run_dir: str) -> argparse.ArgumentParser:
     ap.add_argument("--run-dir", type=Path, default=Path(run_dir))
     ap.add_argument("--out", default=str(REPO / "BENCHMARKS.md"), help="Markdown file to update ('' = none)")
     return ap
+
+
+def work_study_cli(main: Callable[[str, bool], Any], doc: str, out: str) -> None:
+    """The command line of a study with its own work folder that rewrites its BENCHMARKS.md section:
+    ``--out`` (the work folder, default ``out``; rewritten) and ``--no-write``; runs ``main(out, write)``."""
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    ap = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    ap.add_argument("--out", default=out, help="work folder (rewritten)")
+    ap.add_argument("--no-write", action="store_true", help="do not rewrite BENCHMARKS.md")
+    args = ap.parse_args()
+    main(args.out, not args.no_write)

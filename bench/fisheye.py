@@ -11,7 +11,6 @@ Writes the ``fisheye`` section of BENCHMARKS.md.
 
 from __future__ import annotations
 
-import argparse
 import logging
 from pathlib import Path
 from typing import Any
@@ -19,11 +18,12 @@ from typing import Any
 import cv2
 import numpy as np
 
+from .common import REPO, work_study_cli
+
 __all__ = ["FISHEYE", "fisheye_warp", "write_camera_yaml", "write_fisheye_sequence", "rotation_gaps", "main"]
 
 log = logging.getLogger(__name__)
 
-REPO = Path(__file__).resolve().parents[1]
 KITTI_90 = REPO.parent / "shared" / "datasets" / "kitti" / "sequences" / "90"
 FISHEYE = (-0.02, 0.01, 0.0, 0.0)  #: equidistant k1..k4 of the warped frames
 
@@ -121,9 +121,4 @@ def main(out: str | Path = "runs/bench/fisheye", write: bool = True) -> dict[str
 
 
 if __name__ == "__main__":
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--out", default="runs/bench/fisheye", help="work folder (rewritten)")
-    ap.add_argument("--no-write", action="store_true", help="do not rewrite BENCHMARKS.md")
-    args = ap.parse_args()
-    main(args.out, not args.no_write)
+    work_study_cli(main, __doc__, "runs/bench/fisheye")

@@ -13,7 +13,6 @@ against its degrees of freedom (the rank the loop factors add). Writes the ``loo
 
 from __future__ import annotations
 
-import argparse
 import logging
 from pathlib import Path
 from typing import Any
@@ -26,14 +25,13 @@ from verify.geometry import UNOBSERVED_INFORMATION
 from retrieval.run_folder import RunFolder
 from retrieval.sequences import open_sequence
 
-from .common import detect_run, md_table
+from .common import REPO, detect_run, md_table, work_study_cli
 from .run import write_section
 
 __all__ = ["main", "edge_report", "pose_graph", "ODOMETRY_SIGMAS", "VARIANTS"]
 
 log = logging.getLogger(__name__)
 
-REPO = Path(__file__).resolve().parents[1]
 KITTI_90 = REPO.parent / "shared" / "datasets" / "kitti" / "sequences" / "90"
 
 
@@ -155,9 +153,4 @@ def main(out: str | Path = "runs/bench/loop_edges", write: bool = True) -> dict[
 
 
 if __name__ == "__main__":
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--out", default="runs/bench/loop_edges", help="work folder (rewritten)")
-    ap.add_argument("--no-write", action="store_true", help="do not rewrite BENCHMARKS.md")
-    args = ap.parse_args()
-    main(args.out, not args.no_write)
+    work_study_cli(main, __doc__, "runs/bench/loop_edges")

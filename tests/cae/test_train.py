@@ -58,6 +58,20 @@ def trajectory(summary):
             summary["best_epoch"], summary["epochs_run"])
 
 
+def spy_first_epoch(monkeypatch) -> list[dict]:
+    """Spies on ``cae.train._train_epoch``: the returned list gets the weights the first epoch starts from."""
+    started_from: list[dict] = []
+    train_epoch = training._train_epoch
+
+    def spy(model, *args, **kwargs):
+        if not started_from:
+            started_from.append({k: v.detach().clone() for k, v in model.state_dict().items()})
+        return train_epoch(model, *args, **kwargs)
+
+    monkeypatch.setattr(training, "_train_epoch", spy)
+    return started_from
+
+
 def same_weights(a, b) -> bool:
     a = a if isinstance(a, dict) else load_checkpoint(a)["state_dict"]
     b = b if isinstance(b, dict) else load_checkpoint(b)["state_dict"]
@@ -205,15 +219,7 @@ class TestResume:
         """Copies the 1-epoch run, resumes it to 2 epochs; returns the summary and the weights trained from."""
         out = tmp_path / "run"
         shutil.copytree(after_one[0], out)
-        started_from = []
-        train_epoch = training._train_epoch
-
-        def spy(model, *args, **kwargs):
-            if not started_from:
-                started_from.append({k: v.detach().clone() for k, v in model.state_dict().items()})
-            return train_epoch(model, *args, **kwargs)
-
-        monkeypatch.setattr(training, "_train_epoch", spy)
+        started_from = spy_first_epoch(monkeypatch)
         return out, main(images5, out, {**RESUME, "epochs": 2}), started_from[0]
 
     def test_resumed_run_equals_uninterrupted_run(self, images5, after_one, straight, tmp_path, monkeypatch):
@@ -448,15 +454,7 @@ class TestPlaceObjective:
         assert not out.exists()
 
     def test_fine_tune_from_shipped_loads_and_changes_the_weights(self, images12, tmp_path, monkeypatch):
-        started_from = []
-        train_epoch = training._train_epoch
-
-        def spy(model, *args, **kwargs):
-            if not started_from:
-                started_from.append({k: v.detach().clone() for k, v in model.state_dict().items()})
-            return train_epoch(model, *args, **kwargs)
-
-        monkeypatch.setattr(training, "_train_epoch", spy)
+        started_from = spy_first_epoch(monkeypatch)
         out = tmp_path / "tuned"
         assert cli_main(["train", "--images", str(images12), "--out", str(out), "--init", "shipped", "--epochs", "1",
                          "--device", "cpu"]) in (0, None)
