@@ -3,7 +3,8 @@
 Frames come from folders, each read as one sequence in name order. A pair is two views of one frame, or of a frame
 and a temporal neighbour (at most ``neighbours`` frames away in the same folder): the same place. Every other frame
 of the batch is a negative, as long as it is at least ``far`` frames away in the same folder (or in another folder);
-frames nearer than that are left out of the loss, neither pulled nor pushed.
+frames nearer than that are left out of the loss, neither pulled nor pushed. A revisit found in the folder
+(``cae.revisits``: a stretch that matches another stretch far away) is a positive too, and never a negative.
 
 Shapes: codes ``(B, D)``; folder ids and positions ``(B,)`` int. Numpy for the sampling, torch for the loss.
 """
@@ -14,7 +15,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-__all__ = ["neighbour_partners", "far_mask", "info_nce"]
+__all__ = ["neighbour_partners", "with_revisits", "far_mask", "not_revisits", "info_nce"]
 
 
 def neighbour_partners(folder: np.ndarray, position: np.ndarray, picks: np.ndarray, neighbours: int,
@@ -37,6 +38,45 @@ def neighbour_partners(folder: np.ndarray, position: np.ndarray, picks: np.ndarr
     for k, i in enumerate(out):
         near = np.flatnonzero((folder == folder[i]) & (np.abs(position - position[i]) <= neighbours))
         out[k] = near[rng.integers(len(near))]
+    return out
+
+
+def with_revisits(partners: np.ndarray, picks: np.ndarray, revisits: np.ndarray, share: float,
+                  rng: np.random.Generator) -> np.ndarray:
+    """Each picked frame that has revisits takes one of them as its partner instead, with probability ``share``.
+
+    Args:
+        partners: ``(B,)`` indices into the set (``neighbour_partners``).
+        picks: ``(B,)`` indices into the set.
+        revisits: ``(M, 2)`` indices into the set, each row one place (``cae.revisits.mine_revisits``).
+        share: probability of taking a revisit where there is one.
+
+    Returns:
+        ``(B,)`` indices into the set.
+    """
+    out = np.asarray(partners, np.int64).copy()
+    revisits = np.asarray(revisits, np.int64).reshape(-1, 2)
+    if len(revisits) == 0 or share <= 0:
+        return out
+    for k, i in enumerate(np.asarray(picks, np.int64)):
+        mine = np.concatenate([revisits[revisits[:, 0] == i, 1], revisits[revisits[:, 1] == i, 0]])
+        if len(mine) and rng.random() < share:
+            out[k] = mine[rng.integers(len(mine))]
+    return out
+
+
+def not_revisits(picks: np.ndarray, revisits: np.ndarray) -> np.ndarray:
+    """``(B, B)`` bool: False where two picked frames are a revisit of each other (never each other's negatives)."""
+    picks = np.asarray(picks, np.int64)
+    out = np.ones((len(picks), len(picks)), bool)
+    revisits = np.asarray(revisits, np.int64).reshape(-1, 2)
+    if len(revisits) == 0:
+        return out
+    pairs = set(map(tuple, revisits.tolist())) | set(map(tuple, revisits[:, ::-1].tolist()))
+    for a, i in enumerate(picks.tolist()):
+        for b, j in enumerate(picks.tolist()):
+            if (i, j) in pairs:
+                out[a, b] = False
     return out
 
 

@@ -37,9 +37,10 @@ from cae_lcd.core.conf import ConfigError, Float, Int, Text, check_conf, conf_di
 from cae_lcd.core.errors import ImageError
 from cae_lcd.core.files import prepare_out_dir, write_text_atomic
 from cae_lcd.core.images import IMAGE_EXTENSIONS, image_entries, read_image
-from .contrastive import far_mask, info_nce, neighbour_partners
+from .contrastive import far_mask, info_nce, neighbour_partners, not_revisits, with_revisits
 from .model import INPUT_SIZE, ConvAutoencoder
 from .preprocess import to_network_u8
+from .revisits import mine_revisits
 from .encode import encode_images
 from .views import default_views, photometric, view_rules, warp
 from .weights import DEFAULT_WEIGHTS, DEVICE_PATTERN, load_checkpoint, resolve_device, save_checkpoint
@@ -71,6 +72,12 @@ default_conf: dict[str, Any] = {
     #                  its folder (name order = time order; 0 = the frame itself only)
     "far": 20,  # negatives: frames of the batch at least this many frames apart in one folder (or in another
     #            folder); nearer ones are left out of the loss
+    "revisit_z": 6.0,  # revisits found in each folder (cae.revisits: a stretch of frames matching another stretch
+    #                   at least `far` frames away, this many robust standard deviations above the frame's other
+    #                   lines) are positives of the place term and never negatives; 0 = none
+    "revisit_span": 5,  # frames either side fused along a pair's line when looking for revisits
+    "revisit_every": 4,  # epochs between two searches for revisits with the current weights
+    "revisit_share": 0.5,  # probability that a frame with revisits takes one as its partner (else a view/neighbour)
     "recon_share": 0.5,  # share of each batch whose first view is decoded for the reconstruction term (the decoder
     #                     costs 3x the encoder: less is faster; the term is kept, >= one image a batch)
     "threads": None,  # torch CPU threads while training; None = torch's default
@@ -98,6 +105,10 @@ conf_rules: dict[str, Any] = {
     "neighbours": Int(0, 1000),
     "far": Int(0, 1_000_000),
     "recon_share": Float(0, 1, lo_open=True),
+    "revisit_z": Float(0, 1000),
+    "revisit_span": Int(0, 100),
+    "revisit_every": Int(1, 100000),
+    "revisit_share": Float(0, 1),
     "threads": Int(1, 1024, optional=True),
     "views": {k: Float(lo, hi) for k, (lo, hi) in view_rules.items()},
 }
@@ -113,6 +124,7 @@ class _Progress:
     best_val: float = float("inf")
     best_epoch: int = -1
     history: list[dict[str, float]] = field(default_factory=list)
+    revisits: np.ndarray | None = None  #: ``(M, 2)`` training-set indices of the revisits last found (None: not yet)
 
 
 def list_images(folder: str | Path) -> list[Path]:
@@ -297,7 +309,8 @@ def _resume_or_start(last_path: Path, conf: dict[str, Any], device: torch.device
         log.warning("resuming %s with changed conf: %s (the checkpoint's weights are kept)", last_path,
                     ", ".join(changed))
     progress = _Progress(int(state["epoch"]), float(state["best_val_loss"]), int(state["best_epoch"]),
-                         list(state["history"]))
+                         list(state["history"]),
+                         None if state.get("revisits") is None else state["revisits"].numpy().astype(np.int64))
     log.info("resuming from %s after epoch %d (best validation loss %.5f)", last_path, progress.start_epoch,
              progress.best_val)
     return model, optim, progress
@@ -333,22 +346,25 @@ def _view(x: torch.Tensor, rng: np.random.Generator, conf: dict[str, Any]) -> tu
 
 
 def _place_step(model: ConvAutoencoder, train_set: _Frames, picks: np.ndarray, rng: np.random.Generator,
-                conf: dict[str, Any], device: torch.device) -> torch.Tensor:
-    """The loss of one batch with the place term: two views (of a frame and of a temporal neighbour), both encoded;
-    the first ``recon_share`` of the first views decoded and scored against their warped clean frames."""
+                conf: dict[str, Any], device: torch.device, revisits: np.ndarray) -> torch.Tensor:
+    """The loss of one batch with the place term: two views (of a frame and of a temporal neighbour or a revisit),
+    both encoded; the first ``recon_share`` of the first views decoded and scored against their warped clean
+    frames."""
     partners = neighbour_partners(train_set.folder, train_set.position, picks, conf["neighbours"], rng)
+    partners = with_revisits(partners, picks, revisits, conf["revisit_share"], rng)
     target, view_a = _view(_to_batch(train_set.images[picks], device), rng, conf)
     _, view_b = _view(_to_batch(train_set.images[partners], device), rng, conf)
     code_a = model.encoder.forward_map(view_a)
     code_b = model.encoder.forward_map(view_b).reshape(len(partners), -1)  # raw codes both: info_nce centres them
     n_rec = max(1, int(round(conf["recon_share"] * len(picks))))
     loss = F.binary_cross_entropy_with_logits(model.decoder(code_a[:n_rec]), target[:n_rec])
-    neg = torch.as_tensor(far_mask(train_set.folder[picks], train_set.position[picks], conf["far"]))
+    neg = torch.as_tensor(far_mask(train_set.folder[picks], train_set.position[picks], conf["far"])
+                          & not_revisits(picks, revisits))
     return loss + conf["contrastive"] * info_nce(code_a.reshape(len(picks), -1), code_b, neg, conf["temperature"])
 
 
 def _train_epoch(model: ConvAutoencoder, optim: torch.optim.Optimizer, train_set: _Frames, epoch: int,
-                 conf: dict[str, Any], device: torch.device) -> float:
+                 conf: dict[str, Any], device: torch.device, revisits: np.ndarray) -> float:
     """One pass over ``train_set`` in a batch order seeded by ``(seed, epoch)``; returns the mean training loss."""
     model.train()
     rng = np.random.default_rng([conf["seed"], epoch])
@@ -357,7 +373,7 @@ def _train_epoch(model: ConvAutoencoder, optim: torch.optim.Optimizer, train_set
     for start in range(0, len(perm), conf["batch_size"]):
         picks = np.sort(perm[start:start + conf["batch_size"]])
         if conf["contrastive"] and len(picks) > 1:
-            loss = _place_step(model, train_set, picks, rng, conf, device)
+            loss = _place_step(model, train_set, picks, rng, conf, device, revisits)
         else:
             x = _to_batch(train_set.images[picks], device)
             x_in = _jitter(x, conf["augment"], rng) if conf["augment"] else x
@@ -367,6 +383,20 @@ def _train_epoch(model: ConvAutoencoder, optim: torch.optim.Optimizer, train_set
         optim.step()
         total += loss.item() * len(picks)
     return total / len(train_set)
+
+
+def _revisits(model: ConvAutoencoder, train_set: _Frames, conf: dict[str, Any], device: torch.device) -> np.ndarray:
+    """``(M, 2)`` training-set indices of the revisits in its folders, found with the current weights' codes
+    (``cae.revisits``); none when the place term or ``revisit_z`` is off."""
+    if not (conf["contrastive"] and conf["revisit_z"]) or len(train_set) < 2:
+        return np.zeros((0, 2), np.int64)
+    model.eval()
+    codes = encode_images(model.encoder, list(train_set.images), batch_size=conf["batch_size"], prepared=True)
+    found = mine_revisits(codes, train_set.folder, train_set.position, conf["far"], conf["revisit_span"],
+                          conf["revisit_z"])
+    log.info("revisits: %d of %d frames have one (cae.revisits, z >= %g)", len(np.unique(found[:, 0])),
+             len(train_set), conf["revisit_z"])
+    return found
 
 
 def _jitter(x: torch.Tensor, strength: float, rng: np.random.Generator) -> torch.Tensor:
@@ -390,7 +420,9 @@ def _fit(model: ConvAutoencoder, optim: torch.optim.Optimizer, train_set: _Frame
                initial=progress.start_epoch, total=conf["epochs"])
     for epoch in bar:
         t0 = time.perf_counter()
-        train_loss = _train_epoch(model, optim, train_set, epoch, conf, device)
+        if progress.revisits is None or epoch % conf["revisit_every"] == 0:
+            progress.revisits = _revisits(model, train_set, conf, device)
+        train_loss = _train_epoch(model, optim, train_set, epoch, conf, device, progress.revisits)
         val = _evaluate(model, val_set, conf, device)
         if not (math.isfinite(train_loss) and math.isfinite(val)):
             raise ConfigError(f"training diverged in epoch {epoch + 1} (loss {train_loss}, validation {val}); "
@@ -401,7 +433,8 @@ def _fit(model: ConvAutoencoder, optim: torch.optim.Optimizer, train_set: _Frame
             progress.best_val, progress.best_epoch = val, epoch + 1
             save_checkpoint(out / "best.pt", model, conf, epoch=epoch + 1, val_loss=val)
         save_checkpoint(out / "last.pt", model, conf, epoch=epoch + 1, optimizer=optim.state_dict(),
-                        best_val_loss=progress.best_val, best_epoch=progress.best_epoch, history=progress.history)
+                        best_val_loss=progress.best_val, best_epoch=progress.best_epoch, history=progress.history,
+                        revisits=torch.as_tensor(progress.revisits))
         _plot_history(progress.history, out / "loss.png")
         bar.set_postfix(train=f"{train_loss:.4f}", val=f"{val:.4f}", best=f"{progress.best_val:.4f}")
         if conf["patience"] and epoch + 1 - progress.best_epoch >= conf["patience"]:
