@@ -215,3 +215,52 @@ def test_metric_edges_take_the_length_from_the_poses(sift_features, sample_K, sa
         assert u @ g2o_order(m.information()) @ u == pytest.approx(1 / max(LENGTH_SIGMA[0] * length,
                                                                            LENGTH_SIGMA[1]) ** 2, rel=1e-6)
     assert not metric[-1].metric and metric_edges(edges, None) == edges
+
+
+def test_body_edges_round_trip_and_keep_every_chi_square(sift_features, sample_K, sample_seq):
+    """``body_edges``: the sample's metric edges through a turned, offset ``T_BS`` are the relative poses of the
+    bodies (``T_WC T_BS^-1``), back through ``T_BS^-1`` they are the camera's again, and an error's chi-square is
+    the same in both frames (the information went through the adjoint)."""
+    from retrieval.edges import adjoint, body_edges, body_poses, metric_edges
+
+    X = np.eye(4)
+    X[:3, :3] = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]) @ _rot([0.1, 0.2, -0.3])
+    X[:3, 3] = [-0.02, -0.06, 0.3]
+    from scipy.linalg import expm
+
+    def hat(xi):  # se(3), gtsam's order (rotation, translation)
+        w = xi[:3]
+        out = np.zeros((4, 4))
+        out[:3, :3] = [[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]]
+        out[:3, 3] = xi[3:]
+        return out
+
+    xi = np.array([0.01, -0.02, 0.03, 0.1, 0.2, -0.1])
+    np.testing.assert_allclose(X @ expm(hat(xi)) @ np.linalg.inv(X), expm(hat(adjoint(X) @ xi)), atol=1e-12)
+    camera = metric_edges(loop_edges(sift_features, PAIRS, sample_K, {}), sample_seq.poses)
+    body = body_edges(camera, X)
+    bodies = body_poses(sample_seq.poses, X)
+    cam_err, body_err = edge_errors(camera, sample_seq.poses), edge_errors(body, bodies)
+    np.testing.assert_allclose(body_err[:, 0], cam_err[:, 0], atol=1e-6)  # the same rotation error, turned
+    for e, b in zip(camera, body):
+        Bm, Bq = np.vstack([bodies[e.match], [0, 0, 0, 1]]), np.vstack([bodies[e.query], [0, 0, 0, 1]])
+        truth = np.linalg.inv(Bm) @ Bq
+        C = np.linalg.inv(np.vstack([sample_seq.poses[e.match], [0, 0, 0, 1]])) @ np.vstack(
+            [sample_seq.poses[e.query], [0, 0, 0, 1]])
+        # the translation error is the camera's, seen from the body: no larger than the camera's own
+        assert np.linalg.norm(b.t - truth[:3, 3]) < np.linalg.norm(e.t - C[:3, 3]) + 0.1 * np.linalg.norm(X[:3, 3])
+        assert np.linalg.norm(b.t - truth[:3, 3]) < 0.1
+        back = body_edges([b], np.linalg.inv(X))[0]
+        np.testing.assert_allclose(back.R, e.R, atol=1e-9)
+        np.testing.assert_allclose(back.t, e.t, atol=1e-9)
+        np.testing.assert_allclose(back.information(), e.information(), rtol=1e-6, atol=1e-6)
+        xi = np.random.default_rng(e.query).normal(size=6) * 1e-2  # an error in the camera's tangent (gtsam order)
+        xi_body = adjoint(X) @ xi
+        assert xi_body @ g2o_order(b.information()) @ xi_body == pytest.approx(
+            xi @ g2o_order(e.information()) @ xi, rel=1e-6)
+
+
+def _rot(v):
+    import cv2
+
+    return cv2.Rodrigues(np.asarray(v, np.float64).reshape(3, 1))[0]
