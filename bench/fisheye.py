@@ -93,28 +93,46 @@ def main(out: str | Path = "runs/bench/fisheye", write: bool = True) -> dict[str
         gaps = rotation_gaps(edges, base[1])
         err = edge_errors(edges, seq.poses)[:, 0]
         pct = (lambda a, q: float(np.percentile(a, q)) if len(a) else float("nan"))
+        near = {q: m for q, m in base[0]}
         results[name] = {"loops": len(loops), "correct": len(loops & truth), "same_loops": len(loops & base[0]),
+                         "same_place": sum(q in near and abs(m - near[q]) <= 1 for q, m in loops),
                          "edges": len(edges), "rot_gap_median": pct(gaps, 50), "rot_gap_p90": pct(gaps, 90),
                          "rot_gap_max": pct(gaps, 100), "rot_err_median": pct(err, 50), "rot_err_max": pct(err, 100),
                          "worst_in_sigmas": float(err.max() / np.degrees(edges[int(err.argmax())].sigmas()[0]))
                          if len(err) else float("nan"),
+                         "worst_pair": (edges[int(err.argmax())].query, edges[int(err.argmax())].match,
+                                        edges[int(err.argmax())].inliers) if len(err) else None,
                          "wall_s": summary["seconds"]["frames"] + summary["seconds"]["calibration"]}
         log.info("%s: %s", name, results[name])
     body = ("## A fisheye camera (`python -m bench.fisheye`)\n\n"
             f"KITTI 90's 200 frames warped through an equidistant lens (KITTI's K, k1..k4 = {list(FISHEYE)}: "
             "`bench.fisheye.fisheye_warp`), detected with the camera's YAML (`--camera-info`: keypoints undistorted "
             "with `cv2.fisheye.undistortPoints` before the geometric check), against the pinhole run on the original "
-            "frames: loops (correct: in `loops.txt`), the same (query, match) pairs as the pinhole run (a query "
-            "may close on a neighbouring frame of the same place), the rotation between the two runs' edges of the "
-            "same pair, and each run's edge rotations against the ground truth (degrees; the worst one also in units "
-            "of the rotation sigma its own information gives: an edge that is off says so). Default config, "
-            "measured under load.\n\n"
-            + md_table(["run", "loops", "correct", "same pairs as pinhole", "edges", "rotation gap median",
+            "frames: loops (correct: in `loops.txt`), the same (query, match) pairs as the pinhole run, the same "
+            "query closing within one frame of the pinhole run's match (a query between two frames of the first "
+            "pass closes on the one with more inliers: a few inliers more or less on the warped frames and it "
+            "takes the neighbour, both in `loops.txt`), the rotation between the two runs' edges of the same pair, "
+            "and each run's edge rotations against the ground truth (degrees; the worst one also in units of the "
+            "rotation sigma its own information gives: an edge that is off says so). Each edge's pose is RANSAC's "
+            "refined on all its inliers (`verify.geometry.refined_pose`: robust Gauss-Newton on the Sampson "
+            "residuals from RANSAC's and MAGSAC's essential matrix, the lower cost kept). Default config, measured "
+            "under load.\n\n"
+            + md_table(["run", "loops", "correct", "same pairs as pinhole", "same query within 1 frame", "edges",
+                        "rotation gap median",
                         "gap p90", "gap max", "rotation error median", "error max", "error max / its sigma"],
-                       [[k, r["loops"], r["correct"], r["same_loops"], r["edges"], r["rot_gap_median"],
+                       [[k, r["loops"], r["correct"], r["same_loops"], r["same_place"], r["edges"], r["rot_gap_median"],
                          r["rot_gap_p90"], r["rot_gap_max"], r["rot_err_median"], r["rot_err_max"],
                          r["worst_in_sigmas"]]
-                        for k, r in results.items()]))
+                        for k, r in results.items()])
+            + "\n\nThe worst edge through the lens with the camera's YAML (query, match, inliers): "
+            f"{results['equidistant frames, --camera-info']['worst_pair']}. When written (198 -> 99, 138 inliers: 2.7 "
+            "degrees off, its translation 45 degrees), that pair was ambiguous on the warped frames: the forward "
+            "motion's second minimum (a sideways translation and a turned rotation) put as many of its 161 matches "
+            "within 2 px as the true pose (143 against 144) and had the lower robust cost on the inliers, so no "
+            "estimator on these points could tell; its information says so (a rotation sigma of 1.2 degrees). On "
+            "the original frames the same pair has 150 inliers spread to the image's edges and is 0.1 degree off. "
+            "The median and p90 gaps are the refinement's (before it: 0.20 and 0.43, max 2.90, RANSAC's five-point "
+            "pose).\n")
     if write:
         write_section(REPO / "BENCHMARKS.md", body, "fisheye")
     return results
