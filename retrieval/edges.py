@@ -4,7 +4,7 @@ the uncertainty its inliers actually have.
 The verification (``verify.verifier``) matches the query's local features against the match's (keypoints undistorted
 when the camera has a distortion model: ``geometry.distortion``), then RANSAC on the essential matrix gives ``R, t``
 with ``x_match = R x_query + t`` for a point ``x`` in each camera's frame, i.e. the pose of the query camera in the
-match camera's frame. Here it is computed again from the keyframes' features (``LoopDetector.keyframe_features``)
+match camera's frame, refined on all its inliers (``GeometryResult.refined``: ``verify.geometry.refined_pose``). Here it is computed again from the keyframes' features (``LoopDetector.keyframe_features``)
 with the run's own matcher and geometry settings (the inliers of ``loops.csv`` within a few; a resumed run gets its
 edges too). From two images without depth the length of the baseline cannot be known: ``t`` is written as a unit
 direction and **the edge says so in its information matrix**.
@@ -205,9 +205,9 @@ def loop_edges(features: Callable[[int], Features], loops: Iterable[tuple[int, i
     for q, m in loops:
         check = verifier.verify(features(int(q)), [features(int(m))], K)[0]
         geo = check.geometry
-        if geo.R is None or geo.t is None or geo.essential is None:
+        if geo.refined is None or geo.essential is None:
             continue
-        R, t = np.asarray(geo.R, np.float64), np.asarray(geo.t, np.float64).reshape(3)
+        R, t = (np.asarray(v, np.float64) for v in geo.refined)
         _, a, b, K_used = geo.essential
         info, sigma_px = pose_information(a.reshape(-1, 2), b.reshape(-1, 2), K_used, R, t, MODEL_VARIANCE)
         if not np.isfinite(sigma_px):

@@ -37,27 +37,37 @@ class GeometryResult:
     mask: np.ndarray  #: (M,) bool, True for inliers
     model: str  #: "essential", "fundamental" or "none"
     #: essential with ``recover_pose``: ``(E (3, 3), query inliers (n, 1, 2), candidate inliers (n, 1, 2), K (3, 3))``,
-    #: turned into ``R``, ``t`` on first use (``refined_pose``; only an accepted loop needs them: ms a pair saved)
+    #: decomposed into ``R``, ``t`` on first use (only an accepted loop needs them: ~1 ms a pair saved)
     essential: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = field(default=None, repr=False,
                                                                                    compare=False)
-    threshold: float = 2.0  #: the check's inlier threshold, pixels (the scale of the pose refinement's robust cost)
+    threshold: float = 2.0  #: the check's inlier threshold, pixels (the scale of ``refined``'s robust cost)
 
     @functools.cached_property
     def _pose(self) -> tuple[np.ndarray | None, np.ndarray | None]:
         if self.essential is None:
             return None, None
         E, a, b, K = self.essential
-        return refined_pose(E, a.reshape(-1, 2), b.reshape(-1, 2), K, self.threshold)
+        _, R, t, _ = cv2.recoverPose(E, a, b, K)
+        return R, t.ravel()
 
     @property
     def R(self) -> np.ndarray | None:
-        """``(3, 3)`` rotation query -> candidate; essential only, else None."""
+        """``(3, 3)`` rotation query -> candidate, RANSAC's (its best five-point sample); essential only, else None."""
         return self._pose[0]
 
     @property
     def t(self) -> np.ndarray | None:
-        """``(3,)`` unit translation direction; essential only, else None."""
+        """``(3,)`` unit translation direction, RANSAC's; essential only, else None."""
         return self._pose[1]
+
+    @functools.cached_property
+    def refined(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(R (3, 3), t (3,) unit)`` refined on all the inliers (``refined_pose``: what a loop edge writes; ~10 ms
+        a pair, so not for every frame's best candidate as ``R``, ``t`` are); essential only, else None."""
+        if self.essential is None:
+            return None
+        E, a, b, K = self.essential
+        return refined_pose(E, a.reshape(-1, 2), b.reshape(-1, 2), K, self.threshold)
 
 
 def _skew(v: np.ndarray) -> np.ndarray:
