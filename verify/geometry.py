@@ -173,9 +173,11 @@ def refine_pose(pts_q: np.ndarray, pts_c: np.ndarray, K: np.ndarray, R: np.ndarr
     degree off the ground truth (median) and the refined one 0.05 (``python -m bench.fisheye``).
 
     Args:
-        pts_q, pts_c: ``(n, 2)`` the inliers' pixel coordinates (undistorted) in the query and match images.
+        pts_q: ``(n, 2)`` the inliers' pixel coordinates (undistorted) in the query image.
+        pts_c: ``(n, 2)`` the same inliers' coordinates in the match image.
         K: ``(3, 3)`` intrinsics of both.
-        R, t: ``(3, 3)``, ``(3,)`` the starting pose (``x_c = R x_q + t``).
+        R: ``(3, 3)`` the starting rotation (``x_c = R x_q + t``).
+        t: ``(3,)`` the starting translation (any length).
         scale: the robust cost's scale, pixels.
 
     Returns:
@@ -224,7 +226,8 @@ def refined_pose(E: np.ndarray, pts_q: np.ndarray, pts_c: np.ndarray, K: np.ndar
 
     Args:
         E: ``(3, 3)`` RANSAC's essential matrix.
-        pts_q, pts_c: ``(n, 2)`` its inliers (undistorted pixels).
+        pts_q: ``(n, 2)`` its inliers in the query image (undistorted pixels).
+        pts_c: ``(n, 2)`` the same inliers in the match image.
         K: ``(3, 3)`` intrinsics.
         threshold: the check's inlier threshold, pixels.
 
