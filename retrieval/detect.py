@@ -29,11 +29,11 @@ from cae_lcd.core.threads import apply_thread_policy
 
 from verify.camera import CameraModel, camera_from_options
 
-from .calibrate import Calibration, TooFewFrames, calibrate, calibration_frames
+from .calibrate import Calibration, TooFewFrames, calibrate, calibrated_features, calibration_frames
 from .database import KeyframeDatabase
 from .descriptors import GlobalDescriptor, create_descriptor
 from .detector import STAGES, LoopDetector, resolve_conf
-from .edges import check_edge_frame, loop_edges, metric_edges
+from .edges import check_edge_frame, edge_features, loop_edges, metric_edges
 from .temporal import create_filter
 from .run_folder import FrameKeys, RunFolder
 from .sequences import Sequence, open_sequence
@@ -248,6 +248,16 @@ def with_camera(seq: Sequence, conf: dict[str, Any] | None, given: CameraModel |
     return conf
 
 
+def _edge_features(seq: Sequence, resolved: dict[str, Any], cal: Calibration | None,
+                   det: LoopDetector) -> Any:
+    """The loop edges' local features (only where the loops were verified): the run's own, or, for a calibrated
+    run whose features are cheaper than the extractor's (``calibration.features_px``), the extractor's own resolution
+    read again from the frames (``retrieval.edges.edge_features``: a more precise pose for 2 extractions a loop)."""
+    if cal is None or calibrated_features(resolved) == resolved["features"]:
+        return det.keyframe_features
+    return edge_features(lambda i: seq.read_frame(i)[0], resolved["features"], det.keyframe_features)
+
+
 def _body_pose(seq: Sequence, edge_frame: str) -> np.ndarray | None:
     """The camera's pose on the body ``(4, 4)`` when the edges are asked for in the body's frame, else None.
 
@@ -373,7 +383,7 @@ def main(path: str | Path | Sequence | None = None, out: str | Path | None = Non
         confirmed = det.confirmed_loops(rows)  # delayed loops: a run accepted at t certifies its earlier frames
         loops = run.write_tables((_with_confirmed(q, cands, loop, confirmed.get(q)) for q, cands, loop in rows), keys)
         verified = bool(cal.inlier_null) if cal is not None else bool(resolved["policy"]["verify"])
-        edges = loop_edges(det.keyframe_features, loops, seq.K, resolved) if verified else []  # only where verified
+        edges = loop_edges(_edge_features(seq, resolved, cal, det), loops, seq.K, resolved) if verified else []
         if metric_from_poses:
             edges = metric_edges(edges, seq.poses)
         run.write_edges(edges, seq.poses, keys, T_body_camera)
