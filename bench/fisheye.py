@@ -124,7 +124,8 @@ def main(out: str | Path = "runs/bench/fisheye", write: bool = True) -> dict[str
                          r["rot_gap_p90"], r["rot_gap_max"], r["rot_err_median"], r["rot_err_max"],
                          r["worst_in_sigmas"]]
                         for k, r in results.items()])
-            + "\n\nThe worst edge through the lens with the camera's YAML (query, match, inliers): "
+            + "\n\nThe edge through the lens farthest from the ground truth, with the camera's YAML (query, match, "
+            "inliers): "
             f"{results['equidistant frames, --camera-info']['worst_pair']}. What made the gaps small (issue 30, "
             "measured when written): the pose refined on all the inliers (RANSAC's five-point pose: gap median "
             "0.20, p90 0.43, max 2.90), and the edges' features at the extractor's own 512 px, read again for the "
