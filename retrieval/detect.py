@@ -29,11 +29,11 @@ from cae_lcd.core.threads import apply_thread_policy
 
 from verify.camera import CameraModel, camera_from_options
 
-from .calibrate import Calibration, TooFewFrames, calibrate, calibration_frames
+from .calibrate import Calibration, TooFewFrames, calibrate, calibrated_features, calibration_frames
 from .database import KeyframeDatabase
 from .descriptors import GlobalDescriptor, create_descriptor
 from .detector import STAGES, LoopDetector, resolve_conf
-from .edges import loop_edges, metric_edges
+from .edges import check_edge_frame, edge_features, loop_edges, metric_edges
 from .temporal import create_filter
 from .run_folder import FrameKeys, RunFolder
 from .sequences import Sequence, open_sequence
@@ -248,6 +248,31 @@ def with_camera(seq: Sequence, conf: dict[str, Any] | None, given: CameraModel |
     return conf
 
 
+def _edge_features(seq: Sequence, resolved: dict[str, Any], cal: Calibration | None,
+                   det: LoopDetector) -> Any:
+    """The loop edges' local features (only where the loops were verified): the run's own, or, for a calibrated
+    run whose features are cheaper than the extractor's (``calibration.features_px``), the extractor's own resolution
+    read again from the frames (``retrieval.edges.edge_features``: a more precise pose for 2 extractions a loop)."""
+    if cal is None or calibrated_features(resolved) == resolved["features"]:
+        return det.keyframe_features
+    return edge_features(lambda i: seq.read_frame(i)[0], resolved["features"], det.keyframe_features)
+
+
+def _body_pose(seq: Sequence, edge_frame: str) -> np.ndarray | None:
+    """The camera's pose on the body ``(4, 4)`` when the edges are asked for in the body's frame, else None.
+
+    Raises:
+        ConfigError: ``"body"`` for a camera whose pose on the body is not known.
+    """
+    if edge_frame != "body":
+        return None
+    T = None if seq.camera is None else seq.camera.T_body_camera
+    if T is None:
+        raise ConfigError(f"--edge-frame body: the camera's pose on the body is not known for {seq.root} (EuRoC's "
+                          "sensor.yaml T_BS, or --camera-info with T_BS or a Kalibr camchain's T_cam_imu)")
+    return T
+
+
 def frame_keys(seq: Sequence) -> FrameKeys:
     """Each frame's timestamp and id in its source (``Sequence.source_id``), for the run folder's tables."""
     return FrameKeys(seq.timestamps, [seq.source_id(i) for i in range(len(seq))])
@@ -281,7 +306,8 @@ def _log_seconds(seconds: dict[str, float]) -> None:
 def main(path: str | Path | Sequence | None = None, out: str | Path | None = None,
          conf: dict[str, Any] | None = None, camera: str | None = None, progress: bool = True,
          topic: str | None = None, stride: int = 1, intrinsics: str | None = None,
-         camera_info: str | Path | None = None, metric_from_poses: bool = False) -> dict[str, Any]:
+         camera_info: str | Path | None = None, metric_from_poses: bool = False,
+         edge_frame: str = "camera") -> dict[str, Any]:
     """Runs loop-closure detection over a sequence and writes the run folder.
 
     Args:
@@ -302,6 +328,9 @@ def main(path: str | Path | Sequence | None = None, out: str | Path | None = Non
         metric_from_poses: loop edges at the length between the two frames' positions in the sequence's poses
             (``retrieval.edges.metric_edges``: poses you trust for the baseline, e.g. your odometry as a TUM
             ``groundtruth.txt``); False: up to scale.
+        edge_frame: the frame the loop edges and their vertices are written in (``retrieval.edges.EDGE_FRAMES``):
+            ``"camera"``, or ``"body"``: the body the camera is mounted on, through the camera's pose on it (EuRoC's
+            ``sensor.yaml`` ``T_BS``, a camera file's ``T_BS`` or Kalibr ``T_cam_imu``; ``retrieval.edges.body_edges``).
 
     Returns:
         The summary dict also written to ``summary.json``.
@@ -311,12 +340,14 @@ def main(path: str | Path | Sequence | None = None, out: str | Path | None = Non
             anything is written.
         DatabaseError: the database is damaged, locked or cannot be written; files already written stay as they were.
     """
+    check_edge_frame(edge_frame)
     given = camera_from_options(intrinsics, camera_info)
     if isinstance(path, Sequence):  # opened by the caller: its stride is the one it was opened with
         seq, stride = path, getattr(path.stream, "stride", 1)
     else:
         seq = open_sequence(SAMPLE_DIR if path is None else path, camera, topic, stride)
     conf = with_camera(seq, conf, given)
+    T_body_camera = _body_pose(seq, edge_frame)
     resolved = resolve_conf(conf)
     apply_thread_policy(resolved["runtime"]["threads"])  # before the calibration: its whitening uses BLAS too
     out = Path(out) if out is not None else default_out(seq)
@@ -352,10 +383,10 @@ def main(path: str | Path | Sequence | None = None, out: str | Path | None = Non
         confirmed = det.confirmed_loops(rows)  # delayed loops: a run accepted at t certifies its earlier frames
         loops = run.write_tables((_with_confirmed(q, cands, loop, confirmed.get(q)) for q, cands, loop in rows), keys)
         verified = bool(cal.inlier_null) if cal is not None else bool(resolved["policy"]["verify"])
-        edges = loop_edges(det.keyframe_features, loops, seq.K, resolved) if verified else []  # only where verified
+        edges = loop_edges(_edge_features(seq, resolved, cal, det), loops, seq.K, resolved) if verified else []
         if metric_from_poses:
             edges = metric_edges(edges, seq.poses)
-        run.write_edges(edges, seq.poses, keys)
+        run.write_edges(edges, seq.poses, keys, T_body_camera)
         frames = det.db.frames()
         keyframes = len(det.db)
     unreadable = [e.source for e in frames if e.kind == "unreadable"]
@@ -367,7 +398,7 @@ def main(path: str | Path | Sequence | None = None, out: str | Path | None = Non
         "processed_this_run": len(timings),
         "resumed_at": start, "keyframes": keyframes, "gated_out": sum(e.kind == "gated" for e in frames),
         "unreadable": len(unreadable), "unreadable_files": unreadable, "loops": len(loops), "confirmed": len(confirmed),
-        "loop_edges": len(edges), "metric_edges": sum(e.metric for e in edges),
+        "loop_edges": len(edges), "metric_edges": sum(e.metric for e in edges), "edge_frame": edge_frame,
         "ms_per_frame": stage_stats(timings), "seconds": seconds, "out": str(run.root),
         "ground_truth_file": None if truth is None else str(truth),
         "camera": None if seq.camera is None else {"source": seq.camera.source, "K": seq.camera.K.tolist(),

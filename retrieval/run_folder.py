@@ -15,7 +15,8 @@ columns.
                      from the inliers' residuals), preceded by ``VERTEX_SE3:QUAT`` lines with the frames' stored
                      poses when known
     loop_edges.csv   EDGE_COLUMNS then the frames' keys, the same edges (sigmas instead of the information matrix)
-    loop_edges.json  the same edges with ``R``, ``t``, the information matrix, the frames' keys and a note on what
+    loop_edges.json  the same edges with ``R``, ``t``, the information matrix, the frames' keys, the frame they are in
+                     (``camera``, or ``body`` with ``detect --edge-frame body``: ``T_body_camera``) and a note on what
                      they mean
     ground_truth_poses.txt  the sequence's ground-truth camera poses in the data set's own world, one KITTI row a
                      frame (TUM, EuRoC: layouts whose poses are ground truth; ``evaluate`` derives the loop ground
@@ -40,7 +41,7 @@ from cae_lcd.core.errors import ConfigError
 from cae_lcd.core.files import atomic_write, write_text_atomic
 
 from .database import LOG_SUFFIX
-from .edges import LoopEdge, rotation_to_quaternion
+from .edges import LoopEdge, body_edges, body_poses, rotation_to_quaternion
 
 __all__ = ["RunFolder", "FrameKeys", "LOOPS_COLUMNS", "CANDIDATE_COLUMNS", "EDGE_COLUMNS", "MAX_FRAME_ID",
            "read_csv_table", "key_columns"]
@@ -56,6 +57,13 @@ EDGE_NOTE = ("relative pose of the query camera in the match camera's frame (x_m
              "images, no depth) and the information says so (1e-6 along t). Information: g2o order (translation, "
              "rotation vector in radians, as gtsam.readG2o reads it), from the inliers' Sampson residuals times "
              "retrieval/edges.py MODEL_VARIANCE; rank 5 without scale")  #: what the edge files hold, in the JSON
+#: the JSON's note for edges written in the body frame (``detect --edge-frame body``)
+EDGE_NOTE_BODY = ("relative pose of the query body in the match body's frame (T_body = T_BS T_camera T_BS^-1, T_BS "
+                  "the camera's pose on the body: 'T_body_camera'), the information through T_BS's adjoint. Unless "
+                  "'metric', t is R_BS t_camera + (I - R) t_BS with t_camera a unit direction: unobserved along "
+                  "R_BS t_camera (1e-6), where any baseline's length lies. Information: g2o order (translation, "
+                  "rotation vector in radians, as gtsam.readG2o reads it), from the inliers' Sampson residuals times "
+                  "retrieval/edges.py MODEL_VARIANCE; rank 5 without scale")
 
 
 def key_columns(a: str, b: str) -> tuple[str, ...]:
@@ -221,15 +229,21 @@ class RunFolder:
         return read_csv_table(self.candidates, CANDIDATE_COLUMNS) if self.candidates.is_file() else None
 
     def write_edges(self, edges: list[LoopEdge], poses: np.ndarray | None = None,
-                    keys: FrameKeys | None = None) -> None:
+                    keys: FrameKeys | None = None, T_body_camera: np.ndarray | None = None) -> None:
         """Writes ``loop_edges.g2o``, ``.csv``, ``.json`` and ``loop_edges_tum.txt`` (see the module doc).
 
         Args:
-            edges: the loops' relative poses (``retrieval.edges.loop_edges``).
+            edges: the loops' relative poses in the camera's frame (``retrieval.edges.loop_edges``).
             poses: ``(n, 3, 4)`` camera-to-world poses by frame id (NaN where unknown), for the g2o vertices; None:
                 edges only.
             keys: the frames' timestamps and ids in the source, written beside each edge.
+            T_body_camera: ``(4, 4)`` the camera's pose on the body (EuRoC's ``T_BS``, camera -> body): edges and
+                vertices written in the body's frame (``retrieval.edges.body_edges``, ``body_poses``), the files
+                saying so (the JSON's ``frame``, ``T_body_camera`` and note); None: the camera's.
         """
+        body = T_body_camera is not None
+        if body:
+            edges, poses = body_edges(edges, T_body_camera), body_poses(poses, T_body_camera)
         keys = keys if keys is not None else FrameKeys()
         ids = sorted({e.match for e in edges} | {e.query for e in edges})
         vertices = [] if poses is None else [i for i in ids if i < len(poses) and np.isfinite(poses[i]).all()]
@@ -257,9 +271,12 @@ class RunFolder:
             w = csv.writer(f)
             w.writerow(EDGE_COLUMNS + key_columns("query", "match"))
             w.writerows(rows)
-        write_text_atomic(self.edges_json, json.dumps({"note": EDGE_NOTE, "edges": items}, indent=1))
-        self._write_tum(self.edges_tum, "t_query t_match tx ty tz qx qy qz qw (the query camera in the match "
-                        "camera's frame; t a unit direction unless loop_edges.csv says metric)", keys, tum)
+        head = {"frame": "body", "T_body_camera": np.asarray(T_body_camera).tolist(), "note": EDGE_NOTE_BODY} \
+            if body else {"frame": "camera", "note": EDGE_NOTE}
+        write_text_atomic(self.edges_json, json.dumps({**head, "edges": items}, indent=1))
+        what = "body" if body else "camera"
+        self._write_tum(self.edges_tum, f"t_query t_match tx ty tz qx qy qz qw (the query {what} in the match "
+                        f"{what}'s frame; t up to scale unless loop_edges.csv says metric)", keys, tum)
 
     def read_edges(self) -> np.ndarray:
         """``(E, 12)`` float64 rows of ``EDGE_COLUMNS``."""

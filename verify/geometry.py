@@ -17,7 +17,8 @@ from cae_lcd.core.conf import Bool, Choice, ConfigError, Float, Floats, Int, con
 
 from .camera import COEFFICIENTS, DISTORTION_MODELS, undistort_points
 
-__all__ = ["GeometryResult", "GeometricVerifier", "pose_information", "sampson_residuals"]
+__all__ = ["GeometryResult", "GeometricVerifier", "pose_information", "sampson_residuals", "refine_pose",
+           "refined_pose"]
 
 _METHODS = {"ransac": cv2.RANSAC, "lmeds": cv2.LMEDS, "magsac": cv2.USAC_MAGSAC, "usac": cv2.USAC_DEFAULT}
 
@@ -39,6 +40,7 @@ class GeometryResult:
     #: decomposed into ``R``, ``t`` on first use (only an accepted loop needs them: ~1 ms a pair saved)
     essential: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = field(default=None, repr=False,
                                                                                    compare=False)
+    threshold: float = 2.0  #: the check's inlier threshold, pixels (the scale of ``refined``'s robust cost)
 
     @functools.cached_property
     def _pose(self) -> tuple[np.ndarray | None, np.ndarray | None]:
@@ -50,13 +52,22 @@ class GeometryResult:
 
     @property
     def R(self) -> np.ndarray | None:
-        """``(3, 3)`` rotation query -> candidate; essential only, else None."""
+        """``(3, 3)`` rotation query -> candidate, RANSAC's (its best five-point sample); essential only, else None."""
         return self._pose[0]
 
     @property
     def t(self) -> np.ndarray | None:
-        """``(3,)`` unit translation direction; essential only, else None."""
+        """``(3,)`` unit translation direction, RANSAC's; essential only, else None."""
         return self._pose[1]
+
+    @functools.cached_property
+    def refined(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(R (3, 3), t (3,) unit)`` refined on all the inliers (``refined_pose``: what a loop edge writes; ~10 ms
+        a pair, so not for every frame's best candidate as ``R``, ``t`` are); essential only, else None."""
+        if self.essential is None:
+            return None
+        E, a, b, K = self.essential
+        return refined_pose(E, a.reshape(-1, 2), b.reshape(-1, 2), K, self.threshold)
 
 
 def _skew(v: np.ndarray) -> np.ndarray:
@@ -77,6 +88,30 @@ def sampson_residuals(xq: np.ndarray, xc: np.ndarray, R: np.ndarray, t: np.ndarr
 #: can still invert the matrix (a standard deviation of 1000 units of the unit translation)
 UNOBSERVED_INFORMATION = 1e-6
 _STEP = 1e-6  #: central-difference step of the Jacobian, radians and units of the unit translation
+
+
+def _normalised(pts: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, float]:
+    """``(n, 2)`` pixels -> ``(n, 3)`` homogeneous normalised points, and the focal length (pixels a unit)."""
+    pts = np.asarray(pts, np.float64).reshape(-1, 2)
+    K = np.asarray(K, np.float64)
+    return np.c_[pts, np.ones(len(pts))] @ np.linalg.inv(K).T, float(np.sqrt(abs(K[0, 0] * K[1, 1])))
+
+
+def _residual_jacobian(xq: np.ndarray, xc: np.ndarray, focal: float, R: np.ndarray,
+                       t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The inliers' Sampson residuals in pixels ``(n,)`` at the pose ``R, t`` and their Jacobian ``(n, 6)`` in the
+    right-perturbed tangent ``(omega, delta)`` (``R exp(omega)``, ``t + R delta``), by central differences."""
+    def residuals(xi: np.ndarray) -> np.ndarray:
+        Rx = R @ cv2.Rodrigues(xi[:3].reshape(3, 1))[0]
+        return focal * sampson_residuals(xq, xc, Rx, t + R @ xi[3:])
+
+    J = np.stack([(residuals(h) - residuals(-h)) / (2 * _STEP) for h in np.eye(6) * _STEP], axis=1)
+    return residuals(np.zeros(6)), J
+
+
+def _along(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """``(6,)`` the translation's length direction in the tangent (unobservable from two images)."""
+    return np.r_[np.zeros(3), R.T @ t / np.linalg.norm(t)]
 
 
 def pose_information(pts_q: np.ndarray, pts_c: np.ndarray, K: np.ndarray, R: np.ndarray,
@@ -106,25 +141,109 @@ def pose_information(pts_q: np.ndarray, pts_c: np.ndarray, K: np.ndarray, R: np.
     R, t = np.asarray(R, np.float64), np.asarray(t, np.float64).reshape(3)
     if n < 6 or not np.linalg.norm(t) > 0:
         return np.zeros((6, 6)), float("nan")
-    Kinv = np.linalg.inv(np.asarray(K, np.float64))
-    xq = np.c_[np.asarray(pts_q, np.float64).reshape(-1, 2), np.ones(n)] @ Kinv.T
-    xc = np.c_[np.asarray(pts_c, np.float64).reshape(-1, 2), np.ones(n)] @ Kinv.T
-    focal = float(np.sqrt(abs(K[0, 0] * K[1, 1])))
-
-    def residuals(xi: np.ndarray) -> np.ndarray:
-        Rx = R @ cv2.Rodrigues(xi[:3].reshape(3, 1))[0]
-        return focal * sampson_residuals(xq, xc, Rx, t + R @ xi[3:])
-
-    r0 = residuals(np.zeros(6))
-    J = np.stack([(residuals(h) - residuals(-h)) / (2 * _STEP) for h in np.eye(6) * _STEP], axis=1)
+    xq, focal = _normalised(pts_q, K)
+    xc, _ = _normalised(pts_c, K)
+    r0, J = _residual_jacobian(xq, xc, focal, R, t)
     s2 = float(r0 @ r0) / (n - 5)
     if not (np.isfinite(J).all() and s2 > 0):
         return np.zeros((6, 6)), float("nan")
     info = J.T @ J / (s2 * variance_factor)
-    along = np.r_[np.zeros(3), R.T @ t / np.linalg.norm(t)]  # the length direction, in the tangent
+    along = _along(R, t)
     keep = np.eye(6) - np.outer(along, along)
     info = keep @ info @ keep + UNOBSERVED_INFORMATION * np.outer(along, along)
     return 0.5 * (info + info.T), float(np.sqrt(s2))
+
+
+_REFINE_ITERATIONS = 20  #: Gauss-Newton steps of the pose refinement at most
+_REFINE_HALVINGS = 8  #: step halvings tried when a full step does not lower the cost
+
+
+def _cauchy_cost(r: np.ndarray, scale: float) -> float:
+    """The robust cost ``sum log(1 + (r / scale)^2)`` of residuals ``r`` (a few bad matches weigh little)."""
+    return float(np.sum(np.log1p((r / scale) ** 2)))
+
+
+def refine_pose(pts_q: np.ndarray, pts_c: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray,
+                scale: float = 1.0) -> tuple[np.ndarray, np.ndarray, float]:
+    """The relative pose ``R, t`` refined on all its inliers: iteratively reweighted Gauss-Newton on their Sampson
+    residuals (pixels) with a Cauchy cost of ``scale`` pixels, in the tangent of ``pose_information`` less the
+    translation's length (5 degrees of freedom: rotation and the unit translation's direction).
+
+    RANSAC's pose is the exact solution of its best five-point sample: on KITTI 90's loops its rotation is 0.16
+    degree off the ground truth (median) and the refined one 0.05 (``python -m bench.fisheye``).
+
+    Args:
+        pts_q: ``(n, 2)`` the inliers' pixel coordinates (undistorted) in the query image.
+        pts_c: ``(n, 2)`` the same inliers' coordinates in the match image.
+        K: ``(3, 3)`` intrinsics of both.
+        R: ``(3, 3)`` the starting rotation (``x_c = R x_q + t``).
+        t: ``(3,)`` the starting translation (any length).
+        scale: the robust cost's scale, pixels.
+
+    Returns:
+        ``(R (3, 3), t (3,) unit, cost)``: the cost (``_cauchy_cost``) never higher than the start's; the start
+        itself with fewer than 6 points.
+    """
+    R, t = np.asarray(R, np.float64), np.asarray(t, np.float64).reshape(3)
+    t = t / np.linalg.norm(t)
+    xq, focal = _normalised(pts_q, K)
+    xc, _ = _normalised(pts_c, K)
+    cost = _cauchy_cost(focal * sampson_residuals(xq, xc, R, t), scale)
+    if len(xq) < 6:
+        return R, t, cost
+    for _ in range(_REFINE_ITERATIONS):
+        r, J = _residual_jacobian(xq, xc, focal, R, t)
+        w = 1.0 / (1.0 + (r / scale) ** 2)  # the Cauchy cost's weights
+        u = _along(R, t)
+        keep = np.eye(6) - np.outer(u, u)
+        A, g = keep @ (J.T * w) @ J @ keep, keep @ (J.T @ (w * r))
+        step = -np.linalg.lstsq(A, g, rcond=None)[0]
+        for _ in range(_REFINE_HALVINGS):
+            Rn = R @ cv2.Rodrigues(step[:3].reshape(3, 1))[0]
+            tn = t + R @ step[3:]
+            tn /= np.linalg.norm(tn)
+            new = _cauchy_cost(focal * sampson_residuals(xq, xc, Rn, tn), scale)
+            if new < cost:
+                break
+            step = step / 2
+        else:
+            break
+        done = cost - new < 1e-9 * max(cost, 1.0)
+        R, t, cost = Rn, tn, new
+        if done:
+            break
+    return R, t, cost
+
+
+def refined_pose(E: np.ndarray, pts_q: np.ndarray, pts_c: np.ndarray, K: np.ndarray,
+                 threshold: float) -> tuple[np.ndarray, np.ndarray]:
+    """The pose of an essential matrix's inliers: RANSAC's ``E`` and MAGSAC's on the same inliers each decomposed
+    (``cv2.recoverPose``) and refined (``refine_pose``, scale ``threshold / 2``), the one of lower cost kept.
+
+    Two starts because a forward-moving camera's epipolar geometry has a second minimum where a sideways translation
+    and a turned rotation explain the inliers about as well: RANSAC's sample lands in it now and then (KITTI 90 seen
+    through a fisheye: one loop 1.8 degrees off, its refinement stays there) and a second estimator rarely does.
+
+    Args:
+        E: ``(3, 3)`` RANSAC's essential matrix.
+        pts_q: ``(n, 2)`` its inliers in the query image (undistorted pixels).
+        pts_c: ``(n, 2)`` the same inliers in the match image.
+        K: ``(3, 3)`` intrinsics.
+        threshold: the check's inlier threshold, pixels.
+
+    Returns:
+        ``(R (3, 3), t (3,) unit)``.
+    """
+    a = np.ascontiguousarray(pts_q, np.float64).reshape(-1, 1, 2)
+    b = np.ascontiguousarray(pts_c, np.float64).reshape(-1, 1, 2)
+    starts = [E]
+    if len(a) >= 6:
+        other, _ = cv2.findEssentialMat(a, b, K, method=cv2.USAC_MAGSAC, prob=0.999, threshold=threshold)
+        starts += [] if other is None else [other[i:i + 3] for i in range(0, len(other) - 2, 3)]
+    poses = [refine_pose(a, b, K, R, t.ravel(), threshold / 2)
+             for R, t in (cv2.recoverPose(start, a, b, K)[1:3] for start in starts)]
+    R, t, _ = min(poses, key=lambda pose: pose[2])
+    return R, t
 
 
 class GeometricVerifier:
@@ -224,7 +343,7 @@ class GeometricVerifier:
         inl = np.zeros(m, bool)
         inl[subset[mask.ravel().astype(bool)]] = True
         essential = (E, a[inl], b[inl], K) if c["recover_pose"] and inl.sum() >= 5 else None
-        return GeometryResult(int(inl.sum()), inl, model, essential)
+        return GeometryResult(int(inl.sum()), inl, model, essential, c["threshold"])
 
     def _unmirrored(self, res: GeometryResult, a: np.ndarray, b: np.ndarray) -> GeometryResult:
         """``res``, or no inliers where most of them fit one orientation-reversing homography (``reject_mirrored``).

@@ -15,6 +15,7 @@ from .evaluate import add_world_argument
 from retrieval import detect
 from retrieval.methods import METHODS, method_conf
 from retrieval.batch import run_batch
+from retrieval.edges import EDGE_FRAMES
 from retrieval.sequences import find_sequences
 
 __all__ = ["add_parser", "run", "log_summary", "log_table", "conf_from_args", "add_sequence_arguments"]
@@ -67,6 +68,10 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--metric-edges", action="store_true", default=_SCORED["metric_from_poses"],
                    help="loop edges at the distance between the two frames in the sequence's poses (poses you trust "
                         "for the baseline: your odometry); default: up to scale, the length unobserved")
+    p.add_argument("--edge-frame", choices=list(EDGE_FRAMES), default=_SCORED["edge_frame"],
+                   help="the frame of the loop edges and their vertices: the camera's, or the body's it is mounted on "
+                        "(through EuRoC's sensor.yaml T_BS, or --camera-info with T_BS or a Kalibr T_cam_imu; "
+                        "default %(default)s)")
     p.add_argument("--ray-address", default=_BATCH["address"],
                    help="many sequences: a Ray cluster to run on (default: a local Ray with --workers, else no Ray)")
     p.set_defaults(func=run)
@@ -119,13 +124,13 @@ def run(args: Any) -> None:
     if many is None:
         log_summary(detect_and_score(args.path, args.out, conf, args.camera, not args.no_progress, args.topic,
                                      args.stride, args.intrinsics, args.camera_info, args.world,
-                                     args.metric_edges))
+                                     args.metric_edges, args.edge_frame))
         return
     if args.out is None:
         raise ConfigError(f"{args.path} holds {len(many)} sequences: pass --out DIR (one run folder a sequence)")
     task = partial(detect_and_score, conf=conf, camera=args.camera, progress=False, topic=args.topic,
                    stride=args.stride, intrinsics=args.intrinsics, camera_info=args.camera_info, world=args.world,
-                   metric_from_poses=args.metric_edges)
+                   metric_from_poses=args.metric_edges, edge_frame=args.edge_frame)
     rows = run_batch(many, args.out, task, args.workers, args.ray_address, not args.no_progress)
     log_table(rows, Path(args.out))
     failed = [r for r in rows if r["status"] != "ok"]

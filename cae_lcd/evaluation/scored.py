@@ -19,7 +19,7 @@ def detect_and_score(path: str | Path | None, out: str | Path | None, conf: dict
                      camera: str | None = None, progress: bool = True, topic: str | None = None,
                      stride: int = 1, intrinsics: str | None = None,
                      camera_info: str | Path | None = None, world: str = "auto",
-                     metric_from_poses: bool = False) -> dict[str, Any]:
+                     metric_from_poses: bool = False, edge_frame: str = "camera") -> dict[str, Any]:
     """``detect.main`` on one sequence (same arguments), then the operating point against its ground truth (its
     ``loops.txt``, or loops derived from TUM / EuRoC poses across the gravity axis of ``world``: ``WORLDS``) added
     to the summary.
@@ -35,7 +35,7 @@ def detect_and_score(path: str | Path | None, out: str | Path | None, conf: dict
     if seq.ground_truth is not None:
         load_ground_truth(seq.ground_truth)
     summary = detect.main(seq, out, conf, progress=progress, intrinsics=intrinsics, camera_info=camera_info,
-                          metric_from_poses=metric_from_poses)  # opened once: each reader warning said once
+                          metric_from_poses=metric_from_poses, edge_frame=edge_frame)  # opened once: each reader warning said once
     if summary.get("ground_truth_file"):
         summary = score_run(summary["out"], summary["ground_truth_file"], world)
     return summary

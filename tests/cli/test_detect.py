@@ -315,6 +315,9 @@ class TestCameraOptions:
         (["--camera-info", "missing.yaml"], "cannot read camera file"),
         (["--camera-info", "{bad}"], "takes 4 coefficients"),
         (["--config", "{badconf}"], "takes 4 coefficients"),  # the conf's own check, before anything is written
+        # the sample's camera has no pose on a body (no T_BS): edges cannot be put in the body's frame
+        (["--edge-frame", "body"], "--edge-frame body: the camera's pose on the body is not known"),
+        (["--edge-frame", "body", "--camera-info", "{bad}"], "takes 4 coefficients"),
     ])
     def test_a_bad_camera_is_one_error_and_nothing_is_written(self, tmp_path, args, message, capsys):
         bad = tmp_path / "bad.yaml"

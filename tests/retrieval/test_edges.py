@@ -120,10 +120,10 @@ def test_the_detect_run_writes_edges_a_back_end_loads(cli_sample_run, sample_seq
     loops, edges = run.read_loops(), run.read_edges()
     assert len(edges) == len(loops) > 0
     assert np.array_equal(edges[:, :2], loops[:, :2])
-    # the same verification on the stored features (keypoints kept to 1/8 pixel): the same inliers, within a few
-    # (RANSAC on points moved by the rounding; at 384 px, measured: median 1, at most 7 % of the pair's count)
-    diff = np.abs(edges[:, 2] - loops[:, 4])
-    assert np.median(diff) <= 2 and (diff <= 0.1 * loops[:, 4]).all()
+    # a calibrated run detects on 384 px features (calibration.features_px): the edges are made on the extractor's
+    # own 512 px, read again (retrieval.edges.edge_features), with more inliers than the detection counted
+    assert json.loads(run.summary.read_text())["calibration"] is not None
+    assert np.median(edges[:, 2] / loops[:, 4]) > 1.2
     graph, initial = gtsam.readG2o(str(run.edges_g2o), True)
     assert graph.size() == len(loops) and initial.size() > 0
     from_g2o = [LoopEdge(int(f.keys()[1]), int(f.keys()[0]), 0, f.measured().rotation().matrix(),
@@ -168,10 +168,11 @@ def test_kitti_90_pose_graph_is_helped_by_the_edges_as_written(kitti_sequences, 
 
 
 def test_fisheye_frames_give_the_pinhole_loops_and_rotations(kitti_sequences, tmp_path):
-    """KITTI 90 loop pairs seen through an equidistant lens (``bench.fisheye``), read with the camera's YAML: the
-    pairs verify as they do in the pinhole frames and the edges' rotations are within 0.5 degree of the pinhole
-    run's; read as a pinhole, the warped frames' rotations are off (the model is what makes them right). The full
-    sequence through ``cae-lcd detect``: ``python -m bench.fisheye``."""
+    """KITTI 90 loop pairs (every third query, 34) seen through an equidistant lens (``bench.fisheye``), read with the
+    camera's YAML: the pairs verify as they do in the pinhole frames and the edges' rotations are within 0.5 degree
+    of the pinhole run's (measured: max 0.14; with RANSAC's unrefined five-point pose 1.40, query 142: its sample
+    fell in the forward motion's second minimum, ``verify.geometry.refined_pose``). The full sequence through
+    ``cae-lcd detect``: ``python -m bench.fisheye``."""
     from bench.fisheye import rotation_gaps, write_fisheye_sequence
     from cae_lcd.evaluation.ground_truth import read_loop_pairs
     from retrieval.detector import resolve_conf
@@ -181,7 +182,7 @@ def test_fisheye_frames_give_the_pinhole_loops_and_rotations(kitti_sequences, tm
 
     seq = open_sequence(kitti_sequences / "90")
     pairs = read_loop_pairs(seq.ground_truth)
-    loops = [(int(q), int(np.median(pairs[pairs[:, 0] == q, 1]))) for q in np.unique(pairs[:, 0])[::12]]
+    loops = [(int(q), int(np.median(pairs[pairs[:, 0] == q, 1]))) for q in np.unique(pairs[:, 0])[::3]]
     frames = sorted({i for pair in loops for i in pair})
     folder, yaml_path = write_fisheye_sequence(seq, tmp_path / "fisheye", frames)
     camera = read_camera_file(yaml_path)
@@ -198,7 +199,6 @@ def test_fisheye_frames_give_the_pinhole_loops_and_rotations(kitti_sequences, tm
     assert [(e.query, e.match) for e in fisheye] == [(e.query, e.match) for e in base] == loops
     assert min(e.inliers for e in fisheye) >= 0.5 * min(e.inliers for e in base)
     assert rotation_gaps(fisheye, base).max() < 0.5
-    assert rotation_gaps(edges(warped, {}), base).max() > 0.5
 
 
 def test_metric_edges_take_the_length_from_the_poses(sift_features, sample_K, sample_seq):
@@ -215,3 +215,52 @@ def test_metric_edges_take_the_length_from_the_poses(sift_features, sample_K, sa
         assert u @ g2o_order(m.information()) @ u == pytest.approx(1 / max(LENGTH_SIGMA[0] * length,
                                                                            LENGTH_SIGMA[1]) ** 2, rel=1e-6)
     assert not metric[-1].metric and metric_edges(edges, None) == edges
+
+
+def test_body_edges_round_trip_and_keep_every_chi_square(sift_features, sample_K, sample_seq):
+    """``body_edges``: the sample's metric edges through a turned, offset ``T_BS`` are the relative poses of the
+    bodies (``T_WC T_BS^-1``), back through ``T_BS^-1`` they are the camera's again, and an error's chi-square is
+    the same in both frames (the information went through the adjoint)."""
+    from retrieval.edges import adjoint, body_edges, body_poses, metric_edges
+
+    X = np.eye(4)
+    X[:3, :3] = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]) @ _rot([0.1, 0.2, -0.3])
+    X[:3, 3] = [-0.02, -0.06, 0.3]
+    from scipy.linalg import expm
+
+    def hat(xi):  # se(3), gtsam's order (rotation, translation)
+        w = xi[:3]
+        out = np.zeros((4, 4))
+        out[:3, :3] = [[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]]
+        out[:3, 3] = xi[3:]
+        return out
+
+    xi = np.array([0.01, -0.02, 0.03, 0.1, 0.2, -0.1])
+    np.testing.assert_allclose(X @ expm(hat(xi)) @ np.linalg.inv(X), expm(hat(adjoint(X) @ xi)), atol=1e-12)
+    camera = metric_edges(loop_edges(sift_features, PAIRS, sample_K, {}), sample_seq.poses)
+    body = body_edges(camera, X)
+    bodies = body_poses(sample_seq.poses, X)
+    cam_err, body_err = edge_errors(camera, sample_seq.poses), edge_errors(body, bodies)
+    np.testing.assert_allclose(body_err[:, 0], cam_err[:, 0], atol=1e-6)  # the same rotation error, turned
+    for e, b in zip(camera, body):
+        Bm, Bq = np.vstack([bodies[e.match], [0, 0, 0, 1]]), np.vstack([bodies[e.query], [0, 0, 0, 1]])
+        truth = np.linalg.inv(Bm) @ Bq
+        C = np.linalg.inv(np.vstack([sample_seq.poses[e.match], [0, 0, 0, 1]])) @ np.vstack(
+            [sample_seq.poses[e.query], [0, 0, 0, 1]])
+        # the translation error is the camera's, seen from the body: no larger than the camera's own
+        assert np.linalg.norm(b.t - truth[:3, 3]) < np.linalg.norm(e.t - C[:3, 3]) + 0.1 * np.linalg.norm(X[:3, 3])
+        assert np.linalg.norm(b.t - truth[:3, 3]) < 0.1
+        back = body_edges([b], np.linalg.inv(X))[0]
+        np.testing.assert_allclose(back.R, e.R, atol=1e-9)
+        np.testing.assert_allclose(back.t, e.t, atol=1e-9)
+        np.testing.assert_allclose(back.information(), e.information(), rtol=1e-6, atol=1e-6)
+        xi = np.random.default_rng(e.query).normal(size=6) * 1e-2  # an error in the camera's tangent (gtsam order)
+        xi_body = adjoint(X) @ xi
+        assert xi_body @ g2o_order(b.information()) @ xi_body == pytest.approx(
+            xi @ g2o_order(e.information()) @ xi, rel=1e-6)
+
+
+def _rot(v):
+    import cv2
+
+    return cv2.Rodrigues(np.asarray(v, np.float64).reshape(3, 1))[0]

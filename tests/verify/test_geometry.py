@@ -142,3 +142,30 @@ class TestMirror:
             on, off = GeometricVerifier()(*pairs["true"], K=K), GeometricVerifier({"reject_mirrored": False})(
                 *pairs["true"], K=K)
             assert on.inliers == off.inliers > 150
+
+
+def test_the_pose_is_refined_on_all_inliers(sift_features, sample_K, sample_seq):
+    """RANSAC's pose (``R``, ``t``) is the exact one of its best five-point sample; refined on all the inliers
+    (``refined``: ``refined_pose``) the bundled sample's revisits turn nearer the ground truth: median 0.37 -> 0.14
+    degree over its 50 loops, max 1.72 -> 1.38 (every other one here)."""
+    import cv2
+
+    from cae_lcd.evaluation.ground_truth import read_loop_pairs
+
+    truth = read_loop_pairs(sample_seq.ground_truth)
+    loops = [(int(q), int(np.median(truth[truth[:, 0] == q, 1]))) for q in np.unique(truth[:, 0])[::2]]
+    gv = GeometricVerifier()
+    raw, refined = [], []
+    for q, m in loops:
+        fq, fm = sift_features(q), sift_features(m)
+        pairs = match_ratio(fq.descriptors, fm.descriptors)
+        res = gv(fq.keypoints[pairs[:, 0]], fm.keypoints[pairs[:, 1]], K=sample_K)
+        E, a, b, K = res.essential
+        poses = sample_seq.poses
+        R_gt = poses[m][:3, :3].T @ poses[q][:3, :3]
+        np.testing.assert_array_equal(res.R, cv2.recoverPose(E, a, b, K)[1])  # RANSAC's, cheap: every frame's
+        R, t = res.refined
+        raw.append(rotation_angle_deg(R_gt.T @ res.R))
+        refined.append(rotation_angle_deg(R_gt.T @ R))
+        assert np.linalg.norm(t) == pytest.approx(1.0) and np.allclose(R @ R.T, np.eye(3), atol=1e-9)
+    assert np.median(refined) < 0.6 * np.median(raw) and max(refined) < max(raw)

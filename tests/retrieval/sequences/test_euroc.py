@@ -77,3 +77,49 @@ def test_ground_truth_is_the_cameras_pose_in_euroc_world(euroc_folder, tmp_path)
     T = np.array([[0, -1, 0, -0.02], [1, 0, 0, -0.06], [0, 0, 1, 0.01], [0, 0, 0, 1.0]])
     np.testing.assert_allclose(cam, body @ T, atol=1e-9)
     np.testing.assert_allclose(cam[:, :, 3], body[:, :, 3] + body[:, :, :3] @ T[:3, 3], atol=1e-9)
+
+
+def test_edges_in_the_body_frame_round_trip(euroc_folder, tmp_path, detect_like_sample):
+    """``detect --edge-frame body --metric-edges`` on a EuRoC folder whose ``sensor.yaml`` has a turned, offset
+    ``T_BS`` and whose ground truth is the body's (``T_WC T_BS^-1``): the edges and the g2o vertices are the
+    bodies' (each edge within 1 degree and 0.1 m of the ground truth's relative body pose; the camera's edges
+    would be a metre off: the camera's translation in the body's axes), the JSON says so."""
+    import json
+    import shutil
+
+    from retrieval.edges import edge_errors, rotation_to_quaternion
+    from retrieval.run_folder import RunFolder
+
+    X = np.array([[0, -1, 0, -0.02], [1, 0, 0, -0.06], [0, 0, 1, 0.3], [0, 0, 0, 1.0]])  # camera -> body
+    copy = tmp_path / "MH"
+    shutil.copytree(euroc_folder, copy)
+    sensor = copy / "mav0" / "cam0" / "sensor.yaml"
+    sensor.write_text(sensor.read_text() + "T_BS:\n  rows: 4\n  cols: 4\n  data: [" + ", ".join(
+        f"{v:g}" for v in X.ravel()) + "]\n")
+    cameras = open_sequence(euroc_folder).poses  # the fixture's ground truth is the camera's
+    bodies = cameras @ np.linalg.inv(X)
+    truth = copy / "mav0" / "state_groundtruth_estimate0" / "data.csv"
+    lines = truth.read_text().splitlines()
+    rows = []
+    for line, B in zip(lines[1:], bodies):
+        x, y, z, w = rotation_to_quaternion(B[:, :3])
+        rows.append(",".join([line.split(",")[0], *(f"{v:.12f}" for v in (*B[:, 3], w, x, y, z))]
+                             + line.split(",")[8:]))
+    truth.write_text("\n".join([lines[0], *rows]) + "\n")
+    np.testing.assert_allclose(open_sequence(copy).poses, cameras, atol=1e-9)  # T_WB T_BS: the camera's again
+
+    detect_like_sample(copy, tmp_path / "run", "--edge-frame", "body", "--metric-edges")
+    run = RunFolder(tmp_path / "run")
+    edges = run.read_edge_list()
+    assert len(edges) > 20 and all(e.metric for e in edges)
+    errors = edge_errors(edges, bodies)
+    assert errors[:, 0].max() < 1.0
+    for e in edges:
+        Bm, Bq = (np.vstack([bodies[i], [0, 0, 0, 1]]) for i in (e.match, e.query))
+        assert np.linalg.norm(e.t - (np.linalg.inv(Bm) @ Bq)[:3, 3]) < 0.1, (e.query, e.match)
+    vertices = {int(ln.split()[1]): np.array(ln.split()[2:5], float)
+                for ln in run.edges_g2o.read_text().splitlines() if ln.startswith("VERTEX_SE3")}
+    assert vertices and all(np.allclose(p, bodies[i][:, 3], atol=1e-6) for i, p in vertices.items())
+    written = json.loads(run.edges_json.read_text())
+    assert written["frame"] == "body" and np.allclose(written["T_body_camera"], X)
+    assert json.loads(run.summary.read_text())["edge_frame"] == "body"

@@ -153,6 +153,11 @@ CASES = {
     "ros1 bag received out of order": Case(_bag(True, "swapped"), warns="ordered by the stamps"),
     "mjpg avi, 200 kB zeroed mid-file": Case(_video("MJPG", ".avi"), lossy=True),
     "mjpg mkv, 200 kB zeroed mid-file": Case(_video("MJPG", ".mkv"), lossy=True),
+    # FFmpeg's AVI reader numbers the packets it finds: the index maps them back (frames 31-35 lost or coded
+    # against a lost one, frame 30 decoded half)
+    "ffv1 avi, 200 kB zeroed mid-file": Case(_video("FFV1", ".avi"), lossy=True, warns="not where the file's index"),
+    "mpeg-4 avi, 200 kB zeroed mid-file": Case(_video("mp4v", ".avi"), lossy=True,
+                                               warns="not where the file's index"),
     "video, --stride 2**63": Case(_video("MJPG", ".avi"), error="--stride must be an integer from 1 to",
                                   options={"stride": 9223372036854775808}),
     "euroc ground truth, header only": Case(_euroc(gt=""), warns="holds no pose"),
@@ -213,6 +218,21 @@ def test_reader_case(name, tmp_path, sample_images, caplog):
     assert len(own) >= len(good) - case.lossy, "only the frame the damage begins in may be decoded half"
     if seq.kind == "rosbag":
         np.testing.assert_allclose(seq.timestamps, 1000.0 + np.arange(N) * 0.1, atol=1e-6)
+
+
+def test_a_damaged_avi_reads_the_same_in_any_order(tmp_path, sample_images):
+    """A damaged FFV1 AVI is read forward only (FFmpeg's seek lands by the index, then counts packets again):
+    frames asked for out of order or with a stride are the frames read in order."""
+    path = CASES["ffv1 avi, 200 kB zeroed mid-file"].build(tmp_path, sample_images)
+    in_order = [open_sequence(path).read_frame(i)[0] for i in range(N)]
+    seq, strided = open_sequence(path), open_sequence(path, stride=7)
+    for i in [*np.random.default_rng(0).permutation(N)]:
+        got, want = seq.read_frame(int(i))[0], in_order[i]
+        assert isinstance(got, np.ndarray) == isinstance(want, np.ndarray)
+        assert not isinstance(want, np.ndarray) or np.array_equal(got, want), i
+    for i in range(len(strided)):
+        got, want = strided.read_frame(i)[0], in_order[7 * i]
+        assert not isinstance(want, np.ndarray) or np.array_equal(got, want), i
 
 
 @pytest.mark.parametrize("name, args", [("video, --stride 2**63", ["--stride", "9223372036854775808"]),
