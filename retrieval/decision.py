@@ -134,10 +134,16 @@ class EmpiricalTail:
 
     def log10_sf(self, x: float) -> float:
         """``log10 P(X >= x)`` (0 at or below the median; at least ``-log10(n + 1)``)."""
-        if x <= self.u or not len(self.x):
-            return 0.0
-        above = len(self.x) - int(np.searchsorted(self.x, x, "left"))
-        return min(0.0, math.log10((above + 1) / (len(self.x) + 1)))
+        return float(self.log10_sfs(np.array([x], np.float64))[0])
+
+    def log10_sfs(self, x: np.ndarray) -> np.ndarray:
+        """``log10_sf`` of every value of ``x`` ``(m,)`` -> ``(m,)`` (NaN counts as no evidence)."""
+        x = np.asarray(x, np.float64)
+        if not len(self.x):
+            return np.zeros(x.shape)
+        above = len(self.x) - np.searchsorted(self.x, x, "left")
+        out = np.minimum(0.0, np.log10((above + 1) / (len(self.x) + 1)))
+        return np.where((x <= self.u) | np.isnan(x), 0.0, out)
 
     def evidence(self, x: float) -> float:
         """``-log10 P(X >= x)``, >= 0 and at most ``log10(n + 1)``."""
@@ -238,8 +244,7 @@ class ScoreSpans:
         0 from the first window that does not agree (under ``AGREE`` decades, the null's 90th percentile: one weak,
         missing or contrary window vetoes the longer spans), NaN where a window is missing (before the first
         frame)."""
-        ev = np.vectorize(self.tail.evidence, otypes=[np.float64])(np.nan_to_num(win, nan=-np.inf)) \
-            if win.size else np.zeros(win.shape)
+        ev = -self.tail.log10_sfs(win)
         agree = np.cumprod(ev >= AGREE, axis=1).astype(bool)
         return np.where(np.isnan(win), np.nan, np.where(agree, np.cumsum(ev, axis=1), 0.0))
 
@@ -264,9 +269,7 @@ class ScoreSpans:
         scores = np.full(len(rs), -np.inf)
         if ok.any():
             scores[ok] = self.score(qs[ok], rs[ok], source)
-        ev = np.vectorize(self.tail.evidence, otypes=[np.float64])(np.nan_to_num(scores, nan=-np.inf)) \
-            if len(scores) else np.zeros(0)
-        ev = ev.reshape(len(queries), len(near))
+        ev = -self.tail.log10_sfs(scores).reshape(len(queries), len(near))
         return ev[:, self.window // 2] >= ev.max(axis=1, initial=0.0) - LOCALISE
 
     def confidences(self, queries: np.ndarray, refs: np.ndarray, source: Any) -> np.ndarray:
