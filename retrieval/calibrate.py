@@ -98,8 +98,8 @@ from verify.features import create_extractor
 from verify.gate import EdgeGate
 from verify.verifier import create_verifier
 
-from .decision import (SPAN, TOL, Decision, EmpiricalTail, Horizon, MeasuredTail, ScoreSpans, Stops, TailModel,
-                       fused_log10_sf, gaussian_log10_sf)
+from .decision import (AGREE, SPAN, TOL, Decision, EmpiricalTail, Horizon, MeasuredTail, ScoreSpans, Stops,
+                       TailModel, fused_log10_sf, gaussian_log10_sf)
 from .descriptors import GlobalDescriptor
 from .temporal import CodeTable, NoFilter, SequenceFilter, TemporalFilter
 
@@ -170,6 +170,16 @@ class Calibration:
     spans: dict[str, Any] = field(default_factory=dict)
     features: dict[str, Any] = field(default_factory=dict)  #: the local features' conf it was made with (empty:
     #                                                          not recorded: made in memory by hand)
+    _tails: dict[str, tuple[np.ndarray, EmpiricalTail]] = field(default_factory=dict, repr=False, compare=False)
+
+    def empirical(self, name: str) -> EmpiricalTail:
+        """The ``EmpiricalTail`` of ``samples[name]``, sorted once (a run reads it for every candidate)."""
+        arr = self.samples[name]
+        kept = self._tails.get(name)
+        if kept is None or kept[0] is not arr:  # the sample itself kept: a new one is read again
+            kept = (arr, EmpiricalTail(arr))
+            self._tails[name] = kept
+        return kept[1]
 
     @property
     def path(self) -> str:
@@ -196,7 +206,7 @@ class Calibration:
         if not n:
             return -math.inf
         if n.get("empirical") and "score_null" in self.samples:
-            return -(math.log10(self.tests["score"]) + EmpiricalTail(self.samples["score_null"]).log10_sf(score))
+            return -(math.log10(self.tests["score"]) + self.empirical("score_null").log10_sf(score))
         return -(math.log10(self.tests["score"]) + gaussian_log10_sf((score - n["median"]) / n["sigma"]))
 
     def pair_tail(self) -> TailModel | EmpiricalTail | None:
@@ -207,7 +217,7 @@ class Calibration:
         if not n:
             return None
         if n.get("empirical") and "hard_inliers" in self.samples:
-            return EmpiricalTail(self.samples["hard_inliers"])
+            return self.empirical("hard_inliers")
         return TailModel(n["u"], n["beta"])
 
     def inlier_confidence(self, inliers: int) -> float:
@@ -226,7 +236,7 @@ class Calibration:
             return None
         fused = np.asarray(self.samples["score_fused"], np.float64).reshape(len(self.samples["score_null"]), -1)
         measured = [MeasuredTail(fused[np.isfinite(fused[:, j]), j]) for j in range(int(self.spans["span"]))]
-        return ScoreSpans(filt.score, int(self.spans["window"]), EmpiricalTail(self.samples["score_null"]), measured,
+        return ScoreSpans(filt.score, int(self.spans["window"]), self.empirical("score_null"), measured,
                           self.tests["score"])
 
     def decision(self, exclude_recent: int, filt: TemporalFilter | None = None) -> Decision:
@@ -462,6 +472,9 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
         if value is not None:
             cal.notes.append(f"accept: {key} >= {value:.4g} (expected false loops over the run "
                              f"<= {cal.expected_false_loops:g} / 2)")
+    if cal.path == "score" and cal.thresholds()["score"] is None:
+        cal.notes.append(f"accept: score: no window alone; {_windows_needed(cal, filt)} (expected false loops over "
+                         f"the run <= {cal.expected_false_loops:g} / 2)")
     if cal.path == "inliers" and cal.thresholds()["inliers"] is None:
         cal.notes.append(f"accept: inliers: {_run_needed(cal, conf['search']['exclude_recent'])} (expected false "
                          f"loops over the run <= {cal.expected_false_loops:g} / 2)")
@@ -576,24 +589,28 @@ def _score_path(cal: Calibration, null: np.ndarray, filt: TemporalFilter, table:
     cal.samples["score_fused"] = fused
     cal.spans = {"window": float(window), "measured": 1.0, "span": float(SPAN)}
     cal.tests["score"] *= SPAN
-    measured = cal.score_spans(filt)
+    top = [f"{j + 1} window{'s' if j else ''}: max {np.nanmax(fused[:, j]) if np.isfinite(fused[:, j]).any() else 0:.1f}"
+           f" of {int(np.isfinite(fused[:, j]).sum())}" for j in range(SPAN)]
     cal.notes.append(
         f"score path: a loop is a run of up to {SPAN} consecutive windows of {window} frames on a line, every window "
-        "above the one-window median, its evidence summed and read from the heavier of the Gamma tail (windows of "
-        "disjoint frames taken as independent) and the fused evidence measured on the far-side lines (decades; "
-        + ", ".join(f"{j + 1} windows: max {np.nanmax(fused[:, j]) if np.isfinite(fused[:, j]).any() else 0:.1f} "
-                    f"of {int(np.isfinite(fused[:, j]).sum())}" for j in range(SPAN))
-        + f"); {cal.tests['score']:.3g} tests, every span counted; " + _windows_needed(cal, measured))
+        f"at least {AGREE:g} decade (above the one-window null's 90th percentile), their evidence summed and read "
+        "from the heavier of the Gamma tail (windows of disjoint frames taken as independent) and the fused evidence "
+        f"measured on the far-side lines (decades; {', '.join(top)}); {cal.tests['score']:.3g} tests, every span "
+        "counted")
 
 
-def _windows_needed(cal: Calibration, spans: ScoreSpans) -> str:
-    """The fewest windows, each above every far-side pair, that the score path accepts (a text)."""
+def _windows_needed(cal: Calibration, filt: TemporalFilter) -> str:
+    """The shortest run of windows on one line, each above every far-side pair, that the score path accepts (a
+    text)."""
+    spans = cal.score_spans(filt)
+    if spans is None:
+        return "one window decides (no fused windows with this temporal filter)"
     top = spans.tail.max_evidence
     for m in range(1, spans.span + 1):
         if -(math.log10(spans.tests) + fused_log10_sf(m, m * top, spans.measured[m - 1])) >= cal.accept_at:
-            return f"accept: a run of {m} window(s) on one line, each above every far-side pair (> " \
-                   f"{spans.tail.x[-1]:.4f})" + ("" if m > 1 else "; one window may decide alone")
-    return f"no run of up to {spans.span} windows can be accepted: the sample is too small for the run's tests"
+            return f"a run of {m} windows of {spans.window} frames on one line, each above every far-side pair " \
+                   f"(> {spans.tail.x[-1]:.4f})"
+    return f"no run of up to {spans.span} windows: the far-side sample is too small for the run's tests"
 
 
 def _extract_side_by_side(fconf: dict[str, Any], images: dict[int, np.ndarray], fids: list[int]) -> dict[int, Any]:

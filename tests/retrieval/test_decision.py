@@ -274,6 +274,7 @@ class TestScoreSpans:
         assert cal.path == "score" and cal.spans["span"] == SPAN and cal.spans["window"] == 10
         assert cal.samples["score_fused"].shape == (len(cal.samples["score_null"]), SPAN)
         assert any("consecutive windows" in n for n in cal.notes)
+        assert any(n.startswith("accept: score") for n in cal.notes)  # what a loop needs, said
         path = tmp_path_factory.mktemp("c") / "c.h5"
         cal.save(path)
         back = Calibration.load(path)
