@@ -21,7 +21,9 @@ verified as in the run), and what a loop looks like: the **positives** (a frame 
   (``NFA <= expected_false_loops / 2``) and positive evidence of its own pair (geometry can always veto).
 - **Delayed loops** (``Confirmations``): a run of ``m`` frames accepted at frame ``t`` certifies its earlier
   members: each of ``t - m + 1 .. t - 1`` with evidence on the run's offset, not yet a loop and whose pair was
-  admissible then (not too recent, not a stop), is reported at ``t`` (once); a refused run certifies nothing.
+  admissible then (not too recent, not a stop), is reported at ``t`` (once); a refused run certifies nothing. On the
+  score path the run is ``m`` windows, ``m * length`` frames: each earlier frame of them with an admissible candidate
+  on the run's line (one frame off at most) is reported.
 - **Whether one pair may decide alone**: only where geometry separates on this sequence (the median positive pair
   would be accepted alone and no hard negative is); elsewhere a loop needs evidence from ``min_support`` frames.
 - **The score path fuses too** (``ScoreSpans``, where local features are too few to verify; issue 27: measured, not
@@ -537,10 +539,11 @@ class Decision:
 
 
 class Confirmations:
-    """Delayed confirmations (issue 27): a run of ``m`` consecutive verified frames on one offset, accepted at frame
-    ``t``, certifies its earlier members too. This keeps the last ``span - 1`` frames' admissible candidates (those
-    whose confidence was not vetoed: too recent, a stop, no evidence of their own) and whether each frame is a loop
-    already, and gives the members of an accepted run that are not (``Decision.run_members``), once each.
+    """Delayed confirmations (issue 27): a run of ``m`` consecutive verified frames (or score-path windows) on one
+    offset, accepted at frame ``t``, certifies its earlier members too. This keeps the last ``span - 1`` frames'
+    admissible candidates (those whose confidence was not vetoed: too recent, a stop, no evidence of their own) and
+    whether each frame is a loop already, and gives the members of an accepted run that are not
+    (``Decision.run_members``), once each.
 
     Args:
         span: frames a run covers at most (``Decision.reach``).
