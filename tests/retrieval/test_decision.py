@@ -198,6 +198,14 @@ class TestStops:
         assert not stops.admissible(744, np.array([240, 242]), table).any()  # waited longer than the reference did
         assert stops.admissible(755, np.array([240, 250]), table).all()  # a moving query: not affected
 
+    def test_a_query_that_just_left_a_stop_reads_it_on_its_line(self, table):
+        """Winter 746 has just left a 40-frame stop: its score-path window reads that stop, so on its line the frame
+        before (745, still 39 frames) must meet a stop as long; summer 229 stood 23 frames, 246 had moved on."""
+        stops = self._stops()
+        assert stops.admissible(746, np.array([229, 246]), table).all()  # the query itself moves
+        assert not stops.line_admissible(746, np.array([229, 246]), 2, table).any()
+        assert stops.line_admissible(755, np.array([255]), 2, table).all()  # moving on both lines: not affected
+
     def test_decision_refuses_only_the_inadmissible(self, table):
         dec = Decision(None, TailModel(0.0, 1.0), 1.0, 1.0, False, stops=self._stops())
         fallback = np.array([10.0])
@@ -236,11 +244,11 @@ class TestScoreSpans:
         win = spans.windows(np.array([300]), np.array([15]), None)  # the third window's pair would be (280, -5)
         assert not np.isnan(win[0, :2]).any() and np.isnan(win[0, 2])
 
-    def test_no_p_value_below_its_sample(self, nordland_codes):
-        """On real Nordland null window scores: one window, however high its score, claims at most
-        ``log10(n + 1)`` decades, and ``m`` windows at most what ``m`` such windows give under the Gamma tail."""
+    @staticmethod
+    def _nordland(nordland_codes):
+        """``(calibration, null rows, code table, filter)``: the score path calibrated on the real Nordland frames of
+        the fixture (a summer and a winter stretch, raw codes)."""
         from retrieval.calibrate import Calibration, _moved, _null_scores, _score_path
-        from retrieval.decision import EmpiricalTail
         from retrieval.temporal import CodeTable, create_filter
 
         ids = np.array(sorted(nordland_codes), np.int64)
@@ -252,6 +260,14 @@ class TestScoreSpans:
         null = _null_scores(ids, table, filt, 50, _moved(codes), 25)
         cal = Calibration(tests={"score": 1e6}, expected_false_loops=0.1)
         _score_path(cal, null, filt, table)
+        return cal, null, table, filt
+
+    def test_no_p_value_below_its_sample(self, nordland_codes):
+        """On real Nordland null window scores: one window, however high its score, claims at most
+        ``log10(n + 1)`` decades, and ``m`` windows at most what ``m`` such windows give under the Gamma tail."""
+        from retrieval.decision import EmpiricalTail
+
+        cal, null, table, filt = self._nordland(nordland_codes)
         n = len(cal.samples["score_null"])
         assert n == len(null) > 500 and EmpiricalTail(null[:, 2]).max_evidence == pytest.approx(math.log10(n + 1))
         tests = cal.tests["score"]
@@ -261,6 +277,13 @@ class TestScoreSpans:
         top = spans.span_confidences(np.array([250]), np.array([180]), _HighSource())[0]
         for m, value in enumerate(top, 1):
             assert value <= -math.log10(tests) - gamma_log10_sf(m, m * math.log10(n + 1)) + 1e-9
+
+    def test_a_line_a_few_frames_off_is_not_localised(self, nordland_codes):
+        """Winter 755 is summer 255 (Nordland, 500 frames on): the line 3 frames off still reads the revisit in its
+        earlier windows, but the query's own window says it is not there."""
+        cal, _, table, filt = self._nordland(nordland_codes)
+        spans = cal.score_spans(filt)
+        assert spans.localised(np.array([755, 755]), np.array([255, 252]), table).tolist() == [True, False]
 
     def test_calibrated_on_real_frames_at_64x32(self, tmp_path_factory):
         from bench.camera import shrunk_sample
