@@ -274,13 +274,19 @@ class ScoreSpans:
         ev = -self.tail.log10_sfs(scores).reshape(len(queries), len(near))
         return ev[:, self.window // 2] >= ev.max(axis=1, initial=0.0) - LOCALISE
 
-    def confidences(self, queries: np.ndarray, refs: np.ndarray, source: Any) -> np.ndarray:
-        """``(n,)`` ``-log10 NFA`` of each pair: the best span's (``-inf`` where no span agrees or the line is not
-        ``localised``)."""
+    def confidences(self, queries: np.ndarray, refs: np.ndarray, source: Any,
+                    accept_at: float = -math.inf) -> np.ndarray:
+        """``(n,)`` ``-log10 NFA`` of each pair: the best span's (``-inf`` where no span agrees, or where it reaches
+        ``accept_at`` and the line is not ``localised``: checked only there, as only there it decides)."""
         by_span = self.span_confidences(queries, refs, source)
         if not by_span.size:
             return np.full(len(by_span), -math.inf)
-        return np.where(self.localised(queries, refs, source), by_span.max(axis=1), -math.inf)
+        best = by_span.max(axis=1)
+        check = np.flatnonzero(best >= accept_at)
+        if len(check):
+            queries, refs = np.asarray(queries, np.int64), np.asarray(refs, np.int64)
+            best[check[~self.localised(queries[check], refs[check], source)]] = -math.inf
+        return best
 
     def best_run(self, query_id: int, ref: int, source: Any) -> tuple[float, int]:
         """The confidence of ``(query_id, ref)`` and the frames its best span covers (``m * window``; 0: none)."""
@@ -507,8 +513,9 @@ class Decision:
         back = 2 if self.pair_tail is None and self.spans is not None else 1
         allowed = self.stops.line_admissible(query_id, refs, back, source) \
             if self.stops is not None and len(refs) else None
-        fused = self.spans.confidences(np.full(len(refs), query_id, np.int64), np.asarray(refs, np.int64), source) \
-            if self.pair_tail is None and self.spans is not None and len(refs) else fallback
+        scored = self.pair_tail is None and self.spans is not None and len(refs)
+        fused = self.spans.confidences(np.full(len(refs), query_id, np.int64), np.asarray(refs, np.int64), source,
+                                       self.accept_at) if scored else fallback
         for i, (ref, inl) in enumerate(zip(np.asarray(refs).tolist(), np.asarray(inliers).tolist())):
             if (oldest is not None and ref >= oldest) or (allowed is not None and not allowed[i]):
                 continue
