@@ -15,11 +15,25 @@ Before a run, the calibration looks at the sequence itself (``cae-lcd calibrate 
    camera has moved on, so they are not loops (a pair between which the camera stood still, its code unchanged frame
    after frame, is one place and is left out, and so is a pair whose *line* passes such a place: the pair moved back
    together over the frames its fused score reads, query and reference must have moved apart at every step, else
-   the line's terms include one stop matched to itself and the nulls' tails hold a place, not a non-loop). Their
-   temporal-filter scores are the score path's null (a Gaussian through the median and the 90th percentile); the
-   same for the fused score of 2 to ``SPAN`` consecutive windows on each pair's line
-   (``retrieval.decision.ScoreSpans``: where the code is weak, as across seasons, evidence repeated over more frames
-   can accept what one window cannot). For the inlier path the null is what the detector really tests:
+   the line's terms include one stop matched to itself and the nulls' tails hold a place, not a non-loop).
+   **The score path's null is measured, not extrapolated** (issue 27): every far-side pair whose line stays half
+   the window apart in frames where the camera *moved* (a stop in between does not make two frames of one station
+   far apart), thousands of them (Nordland: about 11,000). One window's temporal score is read from that sample as
+   it is (``retrieval.decision.EmpiricalTail``: ``(#{null >= s} + 1) / (n + 1)``), so it claims at most
+   ``log10(n + 1)`` decades, never a tail past the sample; the run tests about ``n_keyframes^2 / 2`` pairs at each
+   of ``SPAN`` spans (Nordland: 2e6), which no one window can certify, so **a loop is a run of consecutive windows on
+   one line** (``retrieval.decision.ScoreSpans``): each window must agree (its own p-value at most 0.1, ``AGREE``),
+   their evidence is summed and read from the heavier of the Gamma tail (windows of disjoint frames taken as
+   independent: the one assumption past the sample) and the fused evidence measured on the far-side lines of as many
+   windows (``samples/score_fused``; where look-alike stretches make windows dependent, this raises the bar). The
+   rule a reader can check: ``confidence = -log10(tests * max(Gamma_m(E), measured_m(E)))``, each window's term at
+   most ``log10(n + 1)``; the notes say how many windows above every far-side pair a loop needs (Nordland, KITTI at
+   64x32: 3 windows, 30 frames). Two vetoes keep the line's claim about *which* frame: the query's own window must
+   not be beaten by more than ``LOCALISE`` decades on a line a few frames off (``ScoreSpans.localised``: the earlier
+   windows of a line 3 frames off still read the true revisit), and the stop rule (``Stops``) holds on the query's
+   frame and the one before. An accepted run certifies its earlier frames on the line (delayed loops,
+   ``retrieval.decision.Confirmations``). ``score_null``'s median and 90th percentile only describe the null (the
+   detector's "above chance" gate for verification). For the inlier path the null is what the detector really tests:
    the **hard negatives**, the two far-side keyframes retrieval would return for a sampled query (keeping
    ``exclude_recent // 10`` frames off the boundary), verified as in the run, each followed back ``SPAN - 1``
    frames (look-alike streets look alike for several frames). A random far-side pair per query is verified too (and
@@ -46,7 +60,8 @@ Before a run, the calibration looks at the sequence itself (``cae-lcd calibrate 
    query only to a keyframe where the reference stood still at least as long (``retrieval.decision.Stops``).
 
 ``calibration.h5`` keeps every measured distribution under ``samples/`` (random, hard and positive inliers, hard and
-positive fused evidence, adjacent cosines); the notes (printed, and in ``summary.json``) summarise them.
+positive fused evidence, adjacent cosines; the score path's window scores and fused evidence); the notes (printed,
+and in ``summary.json``) summarise them.
 
 **Its cost, and what is not its cost.** A fresh calibration reads and encodes every frame and extracts the local
 features of the frames it verifies: that is the run's work done ahead (``detect`` hands the codes and features to the
@@ -83,8 +98,8 @@ from verify.features import create_extractor
 from verify.gate import EdgeGate
 from verify.verifier import create_verifier
 
-from .decision import (SPAN, TOL, Decision, EmpiricalTail, Horizon, MeasuredTail, ScoreSpans, Stops, TailModel,
-                       gaussian_log10_sf)
+from .decision import (AGREE, SPAN, TOL, Decision, EmpiricalTail, Horizon, MeasuredTail, ScoreSpans, Stops,
+                       TailModel, fused_log10_sf, gaussian_log10_sf)
 from .descriptors import GlobalDescriptor
 from .temporal import CodeTable, NoFilter, SequenceFilter, TemporalFilter
 
@@ -93,7 +108,8 @@ __all__ = ["Calibration", "TooFewFrames", "CALIBRATION_FORMAT", "calibrate", "ca
 
 log = logging.getLogger(__name__)
 
-CALIBRATION_FORMAT = 3  #: ``format_version`` of calibration.h5 (3: the local features it was made on recorded)
+CALIBRATION_FORMAT = 4  #: ``format_version`` of calibration.h5 (3: the local features it was made on recorded; 4: the
+#                           score path's nulls measured, ``samples/score_null`` and ``samples/score_fused``)
 STILL_COS = 0.999  #: raw codes of adjacent frames this alike: the camera stood still (one place: not a null pair,
 #                     weighed once by the whitening, matched only to a stop as long)
 PROBE = 4  #: one sampled query in this many is looked at first: are there local features enough to verify?
@@ -107,8 +123,10 @@ class Calibration:
     Attributes:
         edge_reference: the sequence's median edge ratio (the relative gate's reference); None = not measured.
         whitening: the code normalisation, or None (raw cosine).
-        score_null: ``{"median", "sigma", "samples"}`` of the null temporal scores (a Gaussian through their median
-            and 90th percentile); empty = the score path is off.
+        score_null: ``{"median", "sigma", "samples", "empirical"}`` of the null temporal scores: with ``empirical``
+            (1.0, what ``calibrate`` makes) one window is read from the measured sample ``samples["score_null"]``
+            (``EmpiricalTail``), else (made by hand) from a Gaussian through the median and sigma (the 90th
+            percentile's); empty = the score path is off.
         inlier_null: ``{"u", "beta", "empirical", "floor", "samples"}``: the pair null; with ``empirical`` (1.0, what
             ``calibrate`` makes) the measured sample ``samples["hard_inliers"]`` itself
             (``retrieval.decision.EmpiricalTail``), else the exponential ``TailModel(u, beta)`` (made by hand);
@@ -125,12 +143,14 @@ class Calibration:
             camera stood still (``retrieval.decision``; a calibration.h5 without it: no stop rule).
         samples: the measured distributions, by name (``random_inliers``, ``hard_inliers`` (the pair null: hard and
             random pairs), ``retrieved_inliers`` (the pairs retrieval returned, each hard sequence's first),
-            ``positive_inliers``, ``hard_fused``, ``positive_fused``, ``adjacent_cos``): saved in ``calibration.h5``
+            ``positive_inliers``, ``hard_fused``, ``positive_fused``, ``adjacent_cos``, ``score_null``,
+            ``score_fused``): saved in ``calibration.h5``
             under ``samples/``.
         features: the conf of the local features its inlier thresholds were calibrated on
             (``calibrated_features``); a run extracting other ones refuses it (empty: not recorded).
-        spans: the score path's fused windows, ``{"window": frames, "nulls": [[median, sigma], ...]}`` (one null per
-            number of windows fused, ``retrieval.decision.ScoreSpans``); empty = one window decides.
+        spans: the score path's fused windows, ``{"window": frames, "measured": 1.0, "span": windows}``: the fused
+            evidence of the far-side lines over 1..span windows is ``samples["score_fused"]`` ``(n, span)``
+            (``retrieval.decision.ScoreSpans``); empty = one window decides.
         seconds: wall time of a fresh calibration, ``{"own": s, "shared": s}``: its own work (edge ratios, whitening,
             nulls, sampled verifications, fits) and the run's work it did ahead (reading and encoding every frame,
             local features the run reuses); empty for a loaded one (not saved).
@@ -150,6 +170,16 @@ class Calibration:
     spans: dict[str, Any] = field(default_factory=dict)
     features: dict[str, Any] = field(default_factory=dict)  #: the local features' conf it was made with (empty:
     #                                                          not recorded: made in memory by hand)
+    _tails: dict[str, tuple[np.ndarray, EmpiricalTail]] = field(default_factory=dict, repr=False, compare=False)
+
+    def empirical(self, name: str) -> EmpiricalTail:
+        """The ``EmpiricalTail`` of ``samples[name]``, sorted once (a run reads it for every candidate)."""
+        arr = self.samples[name]
+        kept = self._tails.get(name)
+        if kept is None or kept[0] is not arr:  # the sample itself kept: a new one is read again
+            kept = (arr, EmpiricalTail(arr))
+            self._tails[name] = kept
+        return kept[1]
 
     @property
     def path(self) -> str:
@@ -169,10 +199,14 @@ class Calibration:
         return -math.log10(self.expected_false_loops / 2)
 
     def score_confidence(self, score: float) -> float:
-        """``-log10 NFA`` of a temporal score (``-inf`` when the score path is off)."""
+        """``-log10 NFA`` of one window's temporal score deciding alone (``-inf`` when the score path is off): the
+        measured null's empirical p-value (``score_null["empirical"]``, what ``calibrate`` makes), else, for a
+        calibration made by hand, a Gaussian through ``score_null``'s median and sigma."""
         n = self.score_null
         if not n:
             return -math.inf
+        if n.get("empirical") and "score_null" in self.samples:
+            return -(math.log10(self.tests["score"]) + self.empirical("score_null").log10_sf(score))
         return -(math.log10(self.tests["score"]) + gaussian_log10_sf((score - n["median"]) / n["sigma"]))
 
     def pair_tail(self) -> TailModel | EmpiricalTail | None:
@@ -183,7 +217,7 @@ class Calibration:
         if not n:
             return None
         if n.get("empirical") and "hard_inliers" in self.samples:
-            return EmpiricalTail(self.samples["hard_inliers"])
+            return self.empirical("hard_inliers")
         return TailModel(n["u"], n["beta"])
 
     def inlier_confidence(self, inliers: int) -> float:
@@ -198,9 +232,11 @@ class Calibration:
 
     def score_spans(self, filt: TemporalFilter | None) -> ScoreSpans | None:
         """The score path's fused windows scored by the run's filter ``filt`` (None where not calibrated)."""
-        if not self.spans or filt is None:
+        if not self.spans or filt is None or "score_fused" not in self.samples:
             return None
-        return ScoreSpans(filt.score, int(self.spans["window"]), [tuple(x) for x in self.spans["nulls"]],
+        fused = np.asarray(self.samples["score_fused"], np.float64).reshape(len(self.samples["score_null"]), -1)
+        measured = [MeasuredTail(fused[np.isfinite(fused[:, j]), j]) for j in range(int(self.spans["span"]))]
+        return ScoreSpans(filt.score, int(self.spans["window"]), self.empirical("score_null"), measured,
                           self.tests["score"])
 
     def decision(self, exclude_recent: int, filt: TemporalFilter | None = None) -> Decision:
@@ -223,10 +259,11 @@ class Calibration:
         a = self.accept_at
         if self.path == "score":
             lo, hi = self.score_null["median"], self.score_null["median"] + 100 * self.score_null["sigma"]
-            for _ in range(60):
-                mid = (lo + hi) / 2
-                lo, hi = (lo, mid) if self.score_confidence(mid) >= a else (mid, hi)
-            out["score"] = hi
+            if self.score_confidence(hi) >= a:
+                for _ in range(60):
+                    mid = (lo + hi) / 2
+                    lo, hi = (lo, mid) if self.score_confidence(mid) >= a else (mid, hi)
+                out["score"] = hi  # else None: one window never decides alone (a measured null)
         if self.inlier_null:
             x, top = int(self.inlier_null["floor"]), int(self.inlier_null["floor"]) + 100_000
             while self.inlier_confidence(x) < a and x < top:
@@ -333,7 +370,7 @@ def _encode_all(frames: Iterable[tuple[int, np.ndarray]], gate: EdgeGate, descri
 
 
 def _null_scores(ids: np.ndarray, table: CodeTable, filt: TemporalFilter, window: int,
-                 moved: np.ndarray | None = None) -> np.ndarray:
+                 moved: np.ndarray | None = None, min_apart: int = 1) -> np.ndarray:
     """``(query, ref, score)`` rows for every far-side pair: ``window // 2 <= query - ref < window``, leaving out
     the pairs whose line passes two frames between which the camera stood still (``moved``: ``(n,)`` bool by position
     in ``ids``, ``_moved``): the pair moved back together over the frames its fused score reads (``SPAN`` windows of
@@ -351,7 +388,7 @@ def _null_scores(ids: np.ndarray, table: CodeTable, filt: TemporalFilter, window
         refs = refs[moves[refs] >= 0]
         qs, rs = q - back[None, :], refs[:, None] - back[None, :]
         mq, mr = moves[np.maximum(qs, 0)], moves[np.maximum(rs, 0)]
-        apart = (rs < 0) | (mq < 0) | (mr < 0) | (mq > mr)
+        apart = (rs < 0) | (mq < 0) | (mr < 0) | (mq - mr >= min_apart)
         refs = refs[apart.all(1)]
         if len(refs):
             scores = filt.score(np.full(len(refs), q, np.int64), refs, table)
@@ -427,13 +464,17 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
     n_keyframes = max(len(ids) * n_frames / max(len(images), 1), 2.0)
     cal.tests = {"score": max(n_keyframes, (n_keyframes - window) ** 2 / 2),  # every query against every keyframe
                  "inliers": n_keyframes * conf["search"]["k"] * SPAN}  # every run length 1..span counted
-    _score_path(cal, null, filt, table)
+    apart = _null_scores(ids, table, filt, window, moved, window // 2)  # far apart in moved frames too
+    _score_path(cal, apart if len(apart) >= 20 else null, filt, table)
     shared += _inlier_path(cal, conf, images, null, table, K, progress, features)
     _stretch(cal, ids, table, moved)
     for key, value in cal.thresholds().items():
         if value is not None:
             cal.notes.append(f"accept: {key} >= {value:.4g} (expected false loops over the run "
                              f"<= {cal.expected_false_loops:g} / 2)")
+    if cal.path == "score" and cal.thresholds()["score"] is None:
+        cal.notes.append(f"accept: score: no window alone; {_windows_needed(cal, filt)} (expected false loops over "
+                         f"the run <= {cal.expected_false_loops:g} / 2)")
     if cal.path == "inliers" and cal.thresholds()["inliers"] is None:
         cal.notes.append(f"accept: inliers: {_run_needed(cal, conf['search']['exclude_recent'])} (expected false "
                          f"loops over the run <= {cal.expected_false_loops:g} / 2)")
@@ -526,36 +567,50 @@ def _moved(codes: np.ndarray) -> np.ndarray:
 
 
 def _score_path(cal: Calibration, null: np.ndarray, filt: TemporalFilter, table: CodeTable) -> None:
-    """A Gaussian through the median and the 90th percentile of the far-side pairs' temporal scores; with a filter
-    whose score is the run's (sequence, none), the same for the fused score of 2..``SPAN`` consecutive windows on
-    each pair's line, among the pairs whose windows all agree (``retrieval.decision.ScoreSpans``), and the run's
-    tests counted at every span."""
+    """The score path's nulls, measured (module doc, item 3): the far-side pairs' temporal scores as they are (an
+    ``EmpiricalTail``: no p-value below ``1 / (n + 1)``) and, with a filter whose score is the run's (sequence,
+    none), the fused evidence of the same pairs' lines over 1..``SPAN`` windows (``retrieval.decision.ScoreSpans``),
+    measured per span; the run's tests counted at every span. ``score_null``'s median and sigma (90th percentile)
+    only describe the null (the detector's "above chance" gate for verification); no Gaussian tail decides."""
     scores = null[:, 2]
     q50, q90, spread = _tail_fit(scores)
-    sigma = max(spread / 1.2816, 1e-4)
-    cal.score_null = {"median": q50, "sigma": sigma, "samples": float(len(scores))}
-    cal.notes.append(f"score null: {len(scores)} far-side pairs, median {q50:.4f}, sigma {sigma:.4f} "
-                     f"(90th percentile {q90:.4f}, max {scores.max():.4f}); {cal.tests['score']:.3g} pairs tested "
-                     "in the run")
+    tail = EmpiricalTail(scores)
+    cal.score_null = {"median": q50, "sigma": max(spread / 1.2816, 1e-4), "samples": float(len(scores)),
+                      "empirical": 1.0}
+    cal.samples["score_null"] = scores
+    cal.notes.append(f"score null: {len(scores)} far-side pairs, median {q50:.4f}, 90th percentile {q90:.4f}, max "
+                     f"{scores.max():.4f}: one window's empirical p-value, at most {tail.max_evidence:.1f} decades "
+                     f"(no tail past the sample); {cal.tests['score']:.3g} pairs tested in the run")
     if not isinstance(filt, (SequenceFilter, NoFilter)):
         return
     window = int(filt.conf.get("length", 1))
-    spans = ScoreSpans(filt.score, window, [(q50, sigma)] * SPAN, 1.0)
+    spans = ScoreSpans(filt.score, window, tail, [MeasuredTail(np.zeros(0))] * SPAN, 1.0)
     fused = spans.fused(spans.windows(null[:, 0], null[:, 1], table))
-    nulls = [[q50, sigma]]
-    for j in range(1, fused.shape[1]):
-        ok = fused[~np.isnan(fused[:, j]), j]
-        if len(ok) < 20:  # too few far-side pairs to see that span's null
-            break
-        f50, _, f_spread = _tail_fit(ok)
-        nulls.append([f50, max(f_spread / 1.2816, 1e-4)])
-    if len(nulls) > 1:
-        cal.spans = {"window": float(window), "nulls": nulls}
-        cal.tests["score"] *= len(nulls)
-        cal.notes.append(f"score path fuses up to {len(nulls)} consecutive windows of {window} frames on a line "
-                         "(every window above the one-window median): null of the fused score " + ", ".join(
-                             f"{j + 1} windows: median {m:.4f}, sigma {sd:.4f}" for j, (m, sd) in enumerate(nulls))
-                         + f"; {cal.tests['score']:.3g} tests, every span counted")
+    cal.samples["score_fused"] = fused
+    cal.spans = {"window": float(window), "measured": 1.0, "span": float(SPAN)}
+    cal.tests["score"] *= SPAN
+    top = [f"{j + 1} window{'s' if j else ''}: max {np.nanmax(fused[:, j]) if np.isfinite(fused[:, j]).any() else 0:.1f}"
+           f" of {int(np.isfinite(fused[:, j]).sum())}" for j in range(SPAN)]
+    cal.notes.append(
+        f"score path: a loop is a run of up to {SPAN} consecutive windows of {window} frames on a line, every window "
+        f"at least {AGREE:g} decade (above the one-window null's 90th percentile), their evidence summed and read "
+        "from the heavier of the Gamma tail (windows of disjoint frames taken as independent) and the fused evidence "
+        f"measured on the far-side lines (decades; {', '.join(top)}); {cal.tests['score']:.3g} tests, every span "
+        "counted")
+
+
+def _windows_needed(cal: Calibration, filt: TemporalFilter) -> str:
+    """The shortest run of windows on one line, each above every far-side pair, that the score path accepts (a
+    text)."""
+    spans = cal.score_spans(filt)
+    if spans is None:
+        return "one window decides (no fused windows with this temporal filter)"
+    top = spans.tail.max_evidence
+    for m in range(1, spans.span + 1):
+        if -(math.log10(spans.tests) + fused_log10_sf(m, m * top, spans.measured[m - 1])) >= cal.accept_at:
+            return f"a run of {m} windows of {spans.window} frames on one line, each above every far-side pair " \
+                   f"(> {spans.tail.x[-1]:.4f})"
+    return f"no run of up to {spans.span} windows: the far-side sample is too small for the run's tests"
 
 
 def _extract_side_by_side(fconf: dict[str, Any], images: dict[int, np.ndarray], fids: list[int]) -> dict[int, Any]:

@@ -21,17 +21,26 @@ verified as in the run), and what a loop looks like: the **positives** (a frame 
   (``NFA <= expected_false_loops / 2``) and positive evidence of its own pair (geometry can always veto).
 - **Delayed loops** (``Confirmations``): a run of ``m`` frames accepted at frame ``t`` certifies its earlier
   members: each of ``t - m + 1 .. t - 1`` with evidence on the run's offset, not yet a loop and whose pair was
-  admissible then (not too recent, not a stop), is reported at ``t`` (once); a refused run certifies nothing.
+  admissible then (not too recent, not a stop), is reported at ``t`` (once); a refused run certifies nothing. On the
+  score path the run is ``m`` windows, ``m * length`` frames: each earlier frame of them with an admissible candidate
+  on the run's line (one frame off at most) is reported.
 - **Whether one pair may decide alone**: only where geometry separates on this sequence (the median positive pair
   would be accepted alone and no hard negative is); elsewhere a loop needs evidence from ``min_support`` frames.
-- **The score path fuses too** (``ScoreSpans``, where local features are too few to verify): the temporal score of
-  a hypothesis is the mean similarity along a line of ``length`` frames; the evidence of the ``span - 1`` windows of
-  ``length`` frames before it, on the same line (a consistent offset), is fused with it: the score of ``m``
-  consecutive windows is their mean, and its null is measured on the far-side pairs at that span (a Gaussian
-  through the median and the 90th percentile, as for one window). Every window must agree (score above its null's
-  median: one missing or contrary window vetoes), the run's tests count every span (``tests`` already multiplied by
-  ``span``), and the confidence is the best span's. Weak but consistent evidence over ``m * length`` frames (a
-  change of season) can then accept what ``length`` frames cannot.
+- **The score path fuses too** (``ScoreSpans``, where local features are too few to verify; issue 27: measured, not
+  extrapolated): the temporal score of a hypothesis is the mean similarity along a line of ``length`` frames (a
+  window). One window's evidence is its empirical p-value among the far-side pairs' window scores (``EmpiricalTail``,
+  at most ``log10(n + 1)`` decades: no Gaussian tail past the sample). ``m`` consecutive windows on the same line
+  (``m`` up to ``span``) fuse: every window must agree (at least ``AGREE`` decades: one weak, missing or contrary
+  window vetoes the longer spans), their evidence is summed, and its null is the heavier of the Gamma(m) tail
+  (disjoint windows taken as independent) and the fused evidence measured on the far-side lines of ``m`` windows
+  (``fused_log10_sf``, the inlier path's rule). The run's tests count every span; the confidence is the best span's.
+  **The promise**: no window claims below ``1 / (n + 1)`` of its sample, and a run of ``m`` windows claims no more
+  than ``m`` independent such windows would under the Gamma tail (and no more than its measured null shows where
+  that is heavier); where the sample cannot certify the run's tests in one window, a loop needs several windows
+  above every far-side pair (the calibration notes say how many). The line must say *where* the query is: its own
+  window is not beaten by more than ``LOCALISE`` decades on a line up to ``length // 2`` frames off (``localised``),
+  and the stop rule holds on the query's frame and the one before (``Stops.line_admissible``). An accepted run
+  certifies its earlier frames on the line (``Confirmations``, ``reach = span * length`` frames).
 - **Too recent** (``Horizon``): a keyframe is not a loop while every stored frame between it and the query still
   looks like the query (cosine at least ``stretch_cos``, the adjacent frames' 10th percentile, with at most
   ``gap - 1`` dissimilar frames in a row): a slow robot stays in a place longer, a fast one leaves it sooner; the
@@ -59,8 +68,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["TailModel", "EmpiricalTail", "MeasuredTail", "gamma_log10_sf", "gaussian_log10_sf", "Horizon", "Stops",
-           "Confirmations", "ScoreSpans", "Decision", "SPAN", "TOL", "GAP"]
+__all__ = ["TailModel", "EmpiricalTail", "MeasuredTail", "gamma_log10_sf", "gaussian_log10_sf", "fused_log10_sf",
+           "Horizon", "Stops", "Confirmations", "ScoreSpans", "Decision", "SPAN", "TOL", "GAP", "AGREE", "LOCALISE"]
 
 LN10 = math.log(10.0)
 SPAN = 5  #: frames (inlier path) or windows (score path) one decision fuses at most, the query's and those before it
@@ -68,6 +77,10 @@ SPAN = 5  #: frames (inlier path) or windows (score path) one decision fuses at 
 TOL = 2  #: frames the offset ``q - r`` may drift between fused frames
 GAP = 3  #: dissimilar frames in a row that end the stretch the query is still in
 MAX_BACK = 2000  #: frames the horizon looks back at most
+LOCALISE = 1.0  #: decades by which a nearby line (reference within ``window // 2`` frames) may beat the query's own
+#                 window before the score path refuses the line as not localised (``ScoreSpans.localised``)
+AGREE = 1.0  #: decades a score-path window needs to agree (its own p-value <= 0.1: above the null's 90th percentile);
+#              a weaker window vetoes the longer spans (earlier windows cannot carry a query whose own is noise)
 
 
 @dataclass(frozen=True)
@@ -123,10 +136,16 @@ class EmpiricalTail:
 
     def log10_sf(self, x: float) -> float:
         """``log10 P(X >= x)`` (0 at or below the median; at least ``-log10(n + 1)``)."""
-        if x <= self.u or not len(self.x):
-            return 0.0
-        above = len(self.x) - int(np.searchsorted(self.x, x, "left"))
-        return min(0.0, math.log10((above + 1) / (len(self.x) + 1)))
+        return float(self.log10_sfs(np.array([x], np.float64))[0])
+
+    def log10_sfs(self, x: np.ndarray) -> np.ndarray:
+        """``log10_sf`` of every value of ``x`` ``(m,)`` -> ``(m,)`` (NaN counts as no evidence)."""
+        x = np.asarray(x, np.float64)
+        if not len(self.x):
+            return np.zeros(x.shape)
+        above = len(self.x) - np.searchsorted(self.x, x, "left")
+        out = np.minimum(0.0, np.log10((above + 1) / (len(self.x) + 1)))
+        return np.where((x <= self.u) | np.isnan(x), 0.0, out)
 
     def evidence(self, x: float) -> float:
         """``-log10 P(X >= x)``, >= 0 and at most ``log10(n + 1)``."""
@@ -175,50 +194,105 @@ def gaussian_log10_sf(z: float) -> float:
     return (-0.5 * z * z - math.log(z * math.sqrt(2 * math.pi))) / LN10
 
 
+def fused_log10_sf(frames: int, decades: float, measured: "MeasuredTail | TailModel | None" = None) -> float:
+    """``log10 P(E >= decades)`` of evidence summed over ``frames`` terms, each a valid ``-log10`` p-value: the
+    heavier of the Gamma(frames) tail (independent terms) and the tail ``measured`` on null sequences of the same
+    statistic (look-alike stretches are not independent: where they are heavier, they raise the bar; beyond the
+    largest measured value the Gamma tail speaks). Both paths fuse with it (``Decision``, ``ScoreSpans``)."""
+    gamma = gamma_log10_sf(frames, decades)
+    return gamma if measured is None else max(gamma, measured.log10_sf(decades))
+
+
 class ScoreSpans:
-    """The score path's fused evidence (see the module doc): ``score(q, r)`` over ``len(nulls)`` consecutive windows
-    of ``window`` frames on the line through ``(q, r)``.
+    """The score path's fused evidence (see the module doc): ``score(q, r)`` over up to ``len(measured)`` consecutive
+    windows of ``window`` frames on the line through ``(q, r)``, every window's evidence read from the measured
+    null of one window (``tail``: an ``EmpiricalTail``, so one window claims at most ``log10(n + 1)`` decades) and
+    the sum over ``m`` windows from ``fused_log10_sf`` with the tail measured on far-side lines of ``m`` windows.
 
     Args:
         score: the temporal filter's pair score, ``(queries (n,), refs (n,), source) -> (n,)``.
         window: frames one score covers (the filter's ``length``).
-        nulls: ``[(median, sigma)]`` of the far-side pairs' fused scores over 1, 2, ... windows.
+        tail: the null of one window's score (``EmpiricalTail`` of the far-side pairs' scores).
+        measured: ``[MeasuredTail]``, one per number of windows fused ``m = 1..span``: the fused evidence of the
+            far-side lines of ``m`` windows.
         tests: hypotheses the run tests (every span counted).
     """
 
-    def __init__(self, score: Any, window: int, nulls: list[tuple[float, float]], tests: float) -> None:
-        self.score, self.window, self.nulls, self.tests = score, int(window), list(nulls), float(tests)
+    def __init__(self, score: Any, window: int, tail: "EmpiricalTail", measured: list["MeasuredTail"],
+                 tests: float) -> None:
+        self.score, self.window, self.tail, self.tests = score, int(window), tail, float(tests)
+        self.measured = list(measured)
+
+    @property
+    def span(self) -> int:
+        """Windows fused at most."""
+        return len(self.measured)
 
     def windows(self, queries: np.ndarray, refs: np.ndarray, source: Any) -> np.ndarray:
         """``(n, span)``: the score of each pair's window ``j`` (the pair moved back ``j * window`` frames on its
         line); NaN where an earlier window's pair lies before the first frame (missing terms inside a window count 0,
         as in the filter's own score)."""
-        shift = np.arange(len(self.nulls), dtype=np.int64) * self.window  # every window of every pair, one call
+        shift = np.arange(self.span, dtype=np.int64) * self.window  # every window of every pair, one call
         qj = (np.asarray(queries, np.int64)[:, None] - shift).ravel()
         rj = (np.asarray(refs, np.int64)[:, None] - shift).ravel()
         out = np.full(len(qj), np.nan)
         ok = rj >= 0
         if ok.any():
             out[ok] = self.score(qj[ok], rj[ok], source)
-        return out.reshape(-1, len(self.nulls))
+        return out.reshape(-1, self.span)
 
     def fused(self, win: np.ndarray) -> np.ndarray:
-        """``(n, span)``: the fused score of spans 1..span (the mean of the first ``m`` windows), NaN where one of
-        them is missing or does not agree (under its own null's median)."""
-        med = np.array([m for m, _ in self.nulls])
-        agree = np.cumprod(np.nan_to_num(win, nan=-np.inf) > med[0], axis=1).astype(bool)
-        out = np.cumsum(np.nan_to_num(win), axis=1) / np.arange(1, win.shape[1] + 1)
-        return np.where(agree, out, np.nan)
+        """``(n, span)``: the fused evidence (decades) of spans 1..span, the sum of the first ``m`` windows' evidence;
+        0 from the first window that does not agree (under ``AGREE`` decades, the null's 90th percentile: one weak,
+        missing or contrary window vetoes the longer spans), NaN where a window is missing (before the first
+        frame)."""
+        ev = -self.tail.log10_sfs(win)
+        agree = np.cumprod(ev >= AGREE, axis=1).astype(bool)
+        return np.where(np.isnan(win), np.nan, np.where(agree, np.cumsum(ev, axis=1), 0.0))
 
-    def confidences(self, queries: np.ndarray, refs: np.ndarray, source: Any) -> np.ndarray:
-        """``(n,)`` ``-log10 NFA`` of each pair: the best span's (``-inf`` where no span agrees)."""
+    def span_confidences(self, queries: np.ndarray, refs: np.ndarray, source: Any) -> np.ndarray:
+        """``(n, span)`` ``-log10 NFA`` of each pair over 1..span windows (``-inf`` where that span does not agree)."""
         fused = self.fused(self.windows(queries, refs, source))
-        best = np.full(len(fused), -math.inf)
-        for j, (median, sigma) in enumerate(self.nulls):
-            for i in np.flatnonzero(~np.isnan(fused[:, j])):
-                z = (fused[i, j] - median) / sigma
-                best[i] = max(best[i], -(math.log10(self.tests) + gaussian_log10_sf(z)))
+        out = np.full(fused.shape, -math.inf)
+        for j, measured in enumerate(self.measured):
+            for i in np.flatnonzero(np.nan_to_num(fused[:, j]) > 0):
+                out[i, j] = -(math.log10(self.tests) + fused_log10_sf(j + 1, fused[i, j], measured))
+        return out
+
+    def localised(self, queries: np.ndarray, refs: np.ndarray, source: Any) -> np.ndarray:
+        """``(n,)`` bool: whether the query's own window on each pair's line is not beaten by more than ``LOCALISE``
+        decades on a nearby line (the reference moved by up to ``window // 2`` frames): evidence carried by the earlier
+        windows does not say which frame the query is at, its own window does (a line a few frames off the true one
+        still reads the true one's earlier windows)."""
+        queries, refs = np.asarray(queries, np.int64), np.asarray(refs, np.int64)
+        near = np.arange(-(self.window // 2), self.window // 2 + 1, dtype=np.int64)
+        qs, rs = np.repeat(queries, len(near)), (refs[:, None] + near[None, :]).ravel()
+        ok = rs >= 0
+        scores = np.full(len(rs), -np.inf)
+        if ok.any():
+            scores[ok] = self.score(qs[ok], rs[ok], source)
+        ev = -self.tail.log10_sfs(scores).reshape(len(queries), len(near))
+        return ev[:, self.window // 2] >= ev.max(axis=1, initial=0.0) - LOCALISE
+
+    def confidences(self, queries: np.ndarray, refs: np.ndarray, source: Any,
+                    accept_at: float = -math.inf) -> np.ndarray:
+        """``(n,)`` ``-log10 NFA`` of each pair: the best span's (``-inf`` where no span agrees, or where it reaches
+        ``accept_at`` and the line is not ``localised``: checked only there, as only there it decides)."""
+        by_span = self.span_confidences(queries, refs, source)
+        if not by_span.size:
+            return np.full(len(by_span), -math.inf)
+        best = by_span.max(axis=1)
+        check = np.flatnonzero(best >= accept_at)
+        if len(check):
+            queries, refs = np.asarray(queries, np.int64), np.asarray(refs, np.int64)
+            best[check[~self.localised(queries[check], refs[check], source)]] = -math.inf
         return best
+
+    def best_run(self, query_id: int, ref: int, source: Any) -> tuple[float, int]:
+        """The confidence of ``(query_id, ref)`` and the frames its best span covers (``m * window``; 0: none)."""
+        by_span = self.span_confidences(np.array([query_id], np.int64), np.array([ref], np.int64), source)[0]
+        j = int(np.argmax(by_span))
+        return float(by_span[j]), (j + 1) * self.window if np.isfinite(by_span[j]) else 0
 
 
 class Horizon:
@@ -275,6 +349,18 @@ class Stops:
         sim = float(source.pairs(np.array([frame], np.int64), np.array([frame - 1], np.int64))[0])
         return not math.isnan(sim) and sim >= self.cos
 
+    def line_admissible(self, query_id: int, refs: np.ndarray, back: int, source: Any) -> np.ndarray:
+        """``(m,)`` bool: ``admissible`` at every frame of each pair's line over ``back`` frames (``(query_id - j,
+        refs - j)``, ``j < back``; pairs before the first frame skipped): a window whose terms match a stop to a
+        shorter one reads one place repeated against a passage, and does not say where the query is."""
+        refs = np.asarray(refs, np.int64)
+        ok = np.ones(len(refs), bool)
+        for j in range(max(int(back), 1)):
+            live = ok & (refs - j >= 0)
+            if query_id - j >= 0 and live.any():
+                ok[live] = self.admissible(query_id - j, refs[live] - j, source)
+        return ok
+
     def admissible(self, query_id: int, refs: np.ndarray, source: Any) -> np.ndarray:
         """``(m,)`` bool: whether each of ``refs`` ``(m,)`` may be the query's loop (a moving query: all; a still one:
         where the reference stood still at least as long as the query has)."""
@@ -313,7 +399,19 @@ class Decision:
         self.stops = stops
         self.accept_at, self.single, self.horizon, self.spans = accept_at, single, horizon, spans
         self.span, self.tol, self.min_support = span, tol, min_support
-        self._recent: deque[tuple[int, np.ndarray, np.ndarray]] = deque(maxlen=max(span - 1, 1))
+        self._recent: deque[tuple[int, np.ndarray, np.ndarray]] = deque(maxlen=max(self.reach - 1, 1))
+
+    @property
+    def reach(self) -> int:
+        """Frames one accepted run covers at most, the query's included: ``span`` frames on the inlier path,
+        ``span`` windows of ``spans.window`` frames on the score path (what ``Confirmations`` keeps)."""
+        return self.span * self.spans.window if self.pair_tail is None and self.spans is not None else self.span
+
+    @property
+    def confirms(self) -> bool:
+        """Whether an accepted run certifies its earlier frames (``Confirmations``): where a run is fused (verified
+        frames, or the score path's windows)."""
+        return self.pair_tail is not None or self.spans is not None
 
     def evidence(self, inliers: float) -> float:
         """Pair evidence ``e`` of an inlier count (0 under the floor or when the check did not run)."""
@@ -324,8 +422,7 @@ class Decision:
     def fused_log10_sf(self, decades: float, frames: int | None = None) -> float:
         """``log10 P_E(E >= decades)`` of the evidence summed over ``frames`` consecutive frames (default ``span``):
         the heavier of the Gamma(frames) and the measured sequence tails."""
-        return max(gamma_log10_sf(self.span if frames is None else frames, decades),
-                   self.fused_tail.log10_sf(decades))
+        return fused_log10_sf(self.span if frames is None else frames, decades, self.fused_tail)
 
     def support(self, query_id: int, ref: int) -> list[tuple[int, float]]:
         """Evidence of the earlier fused frames for the hypothesis ``(query_id, ref)``: ``(frames back, decades)``
@@ -360,11 +457,13 @@ class Decision:
                     best, best_m = value, m
         return best, best_m
 
-    def run_members(self, query_id: int, ref: int, inliers: float) -> list[tuple[int, int]]:
+    def run_members(self, query_id: int, ref: int, inliers: float, source: Any = None) -> list[tuple[int, int]]:
         """The earlier frames of the accepted run of ``(query_id, ref)`` (``inliers``: the pair's counted inliers):
         ``(q', r')`` for each frame ``q'`` of the best run (``best_run``) with evidence on its offset, ``r'`` its most
         evident consistent keyframe; empty where the run alone does not reach ``accept_at`` (a pair accepted alone,
         ``single``, certifies no other frame). Call before ``commit(query_id, ...)``."""
+        if self.pair_tail is None:
+            return self._window_members(query_id, ref, source)
         e0 = self.evidence(inliers)
         if self.pair_tail is None or e0 <= 0:
             return []
@@ -380,6 +479,25 @@ class Decision:
                 out.append((int(q), int(refs[ok[np.argmax(ev[ok])]])))
         return out
 
+    def _window_members(self, query_id: int, ref: int, source: Any) -> list[tuple[int, int]]:
+        """The score path's ``run_members``: the frames of the accepted span (``ScoreSpans.best_run``: ``m`` windows,
+        ``m * window`` frames on the line ``query_id - ref``), each with its keyframe on that line (one frame off at
+        most); empty where the run does not reach ``accept_at`` or the score path does not fuse (``source``: the
+        code store the windows are scored on)."""
+        if self.spans is None or source is None:
+            return []
+        value, frames = self.spans.best_run(query_id, ref, source)
+        if value < self.accept_at:
+            return []
+        out, offset = [], query_id - ref
+        for q, refs, _ in self._recent:
+            if not 0 < query_id - q < frames or not len(refs):
+                continue
+            off = np.abs((q - refs) - offset)
+            if off.min() <= 1:
+                out.append((int(q), int(refs[int(np.argmin(off))])))
+        return out
+
     def confidences(self, query_id: int, refs: np.ndarray, inliers: np.ndarray, source: Any,
                     fallback: np.ndarray | None = None) -> np.ndarray:
         """``-log10 NFA`` of each candidate ``(query_id, refs[i])`` with ``inliers[i]`` (-1: not verified);
@@ -390,9 +508,14 @@ class Decision:
         out = np.full(len(refs), -math.inf)
         oldest = self.horizon(query_id, source) if self.horizon is not None and len(refs) else None
         base = -math.log10(self.tests)
-        allowed = self.stops.admissible(query_id, refs, source) if self.stops is not None and len(refs) else None
-        fused = self.spans.confidences(np.full(len(refs), query_id, np.int64), np.asarray(refs, np.int64), source) \
-            if self.pair_tail is None and self.spans is not None and len(refs) else fallback
+        # score path: the query's frame and the one before on each line (a query that has just left a stop reads that
+        # stop in its window: matched only where the reference's stop, one frame back, was as long)
+        back = 2 if self.pair_tail is None and self.spans is not None else 1
+        allowed = self.stops.line_admissible(query_id, refs, back, source) \
+            if self.stops is not None and len(refs) else None
+        scored = self.pair_tail is None and self.spans is not None and len(refs)
+        fused = self.spans.confidences(np.full(len(refs), query_id, np.int64), np.asarray(refs, np.int64), source,
+                                       self.accept_at) if scored else fallback
         for i, (ref, inl) in enumerate(zip(np.asarray(refs).tolist(), np.asarray(inliers).tolist())):
             if (oldest is not None and ref >= oldest) or (allowed is not None and not allowed[i]):
                 continue
@@ -423,13 +546,14 @@ class Decision:
 
 
 class Confirmations:
-    """Delayed confirmations (issue 27): a run of ``m`` consecutive verified frames on one offset, accepted at frame
-    ``t``, certifies its earlier members too. This keeps the last ``span - 1`` frames' admissible candidates (those
-    whose confidence was not vetoed: too recent, a stop, no evidence of their own) and whether each frame is a loop
-    already, and gives the members of an accepted run that are not (``Decision.run_members``), once each.
+    """Delayed confirmations (issue 27): a run of ``m`` consecutive verified frames (or score-path windows) on one
+    offset, accepted at frame ``t``, certifies its earlier members too. This keeps the last ``span - 1`` frames'
+    admissible candidates (those whose confidence was not vetoed: too recent, a stop, no evidence of their own) and
+    whether each frame is a loop already, and gives the members of an accepted run that are not
+    (``Decision.run_members``), once each.
 
     Args:
-        span: frames a run covers at most (``Decision.span``).
+        span: frames a run covers at most (``Decision.reach``).
     """
 
     VETO = -1e9  #: the confidence a vetoed candidate is stored with (``LoopDetector``: ``max(value, -1e9)``)
@@ -443,10 +567,12 @@ class Confirmations:
         kept = {r: p for r, (c, p) in candidates.items() if c > self.VETO}
         self._frames.append((int(query_id), kept, [bool(looped)]))
 
-    def confirm(self, decision: Decision, query_id: int, ref: int, inliers: float) -> list[tuple[int, Any]]:
+    def confirm(self, decision: Decision, query_id: int, ref: int, inliers: float,
+                source: Any = None) -> list[tuple[int, Any]]:
         """``[(q', payload)]``: the members of the run of ``(query_id, ref)``, accepted now, that were not loops; each
-        marked a loop (reported once). Call before ``decision.commit(query_id, ...)``."""
-        members = dict(decision.run_members(query_id, ref, inliers))
+        marked a loop (reported once); ``source``: the code store (the score path's windows). Call before
+        ``decision.commit(query_id, ...)``."""
+        members = dict(decision.run_members(query_id, ref, inliers, source))
         out = []
         for q, kept, looped in self._frames:
             r = members.get(q)

@@ -324,8 +324,8 @@ class LoopDetector:
         if self.calibration is not None:
             self.decision = self.calibration.decision(c["search"]["exclude_recent"], self.filter)
             self._min_inliers = int(self.decision.floor)  # weaker pairs still add fused evidence
-        self._confirm = Confirmations(self.decision.span) \
-            if self.decision is not None and self.decision.pair_tail is not None else None  # delayed loops
+        self._confirm = Confirmations(self.decision.reach) \
+            if self.decision is not None and self.decision.confirms else None  # delayed loops
         still = c["policy"]["still_cos"]  # uncalibrated: the stop a still camera has not left is too recent
         self._still = Stops(still) \
             if self.decision is None and still is not None and self.descriptor.searched_by == "cosine" else None
@@ -731,7 +731,8 @@ class LoopDetector:
         if self._confirm is None:
             return []
         out = [] if loop is None else [(q, dataclasses.replace(c, confidence=loop.confidence)) for q, c in
-                                       self._confirm.confirm(self.decision, fid, loop.frame_id, self._counted(loop))]
+                                       self._confirm.confirm(self.decision, fid, loop.frame_id, self._counted(loop),
+                                                             self.places.source)]
         self._confirm.add(fid, {cd.frame_id: (cd.confidence, cd) for cd in candidates}, loop is not None)
         return out
 
@@ -739,10 +740,10 @@ class LoopDetector:
         """``{frame_id: (keyframe, confidence)}``: the delayed loops (``FrameResult.confirmed``, with the accepting
         run's confidence) of a whole run, replayed from its stored rows (``KeyframeDatabase.results``: ``(frame_id,
         candidates (k, 6), loop)``), as the stream reported them; a resumed run's too. Empty without a calibrated,
-        verified decision."""
+        fused decision (``Decision.confirms``)."""
         if self._confirm is None:
             return {}
-        decision, confirm = self.decision.fresh(), Confirmations(self.decision.span)
+        decision, confirm = self.decision.fresh(), Confirmations(self.decision.reach)
         out: dict[int, tuple[int, float]] = {}
         for fid, cands, loop in rows:
             out.update(self._replay(decision, confirm, fid, cands, loop))
@@ -760,7 +761,7 @@ class LoopDetector:
             hit = np.flatnonzero(refs == loop)
             if loop >= 0 and len(hit):
                 out = {q: (r, float(rows[hit[0], 5])) for q, r in
-                       confirm.confirm(decision, fid, int(loop), int(counted[hit[0]]))}
+                       confirm.confirm(decision, fid, int(loop), int(counted[hit[0]]), self.places.source)}
             confirm.add(fid, {int(r): (float(c), int(r)) for r, c in zip(refs.tolist(), rows[:, 5].tolist())},
                         loop >= 0)
         decision.commit(fid, refs, counted)

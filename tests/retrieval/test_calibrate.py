@@ -274,3 +274,27 @@ class TestStops:
         assert cal.fused["still_cos"] <= STILL_COS
         assert says_still[~moved[1:]].all() and says_still[moved[1:]].sum() <= 1  # the raw codes' verdict (one at 0.9989)
         assert any("stood still" in n for n in cal.notes)
+
+
+class TestScorePathOnNordland:
+    """The score path (64x32: nothing to verify) on real Nordland frames, with the alternative shipped weights
+    ``cae_places.pt``: summer 0-149 then winter 500-649 (a revisit a season apart). The Gaussian tail it used to
+    extrapolate accepted winter 568 -> summer 57 (the place is 67-69); the measured null accepts none."""
+
+    def test_no_false_loop_with_the_places_weights(self, tmp_path):
+        from bench.aliasing import plain_folder
+        from cae_lcd.evaluation.ground_truth import read_loop_pairs
+        from tests.conftest import NORDLAND, REPO
+
+        if not (NORDLAND / "images").is_dir():
+            pytest.skip(f"shared Nordland data not found at {NORDLAND}")
+        frames = [*range(0, 150), *range(500, 650)]
+        folder = plain_folder(tmp_path / "seq", [NORDLAND / "images" / f"{i:06d}.png" for i in frames])
+        detect(folder, tmp_path / "run", {"descriptor": {"weights": str(REPO / "cae" / "weights" / "cae_places.pt")}},
+               progress=False)
+        run = RunFolder(tmp_path / "run")
+        truth = set(map(tuple, read_loop_pairs(NORDLAND / "loops.txt").tolist()))
+        loops = [(frames[int(q)], frames[int(r)]) for q, r in run.read_loops()[:, :2]]
+        assert [pair for pair in loops if pair not in truth] == []
+        assert len(loops) >= 80  # of 150 winter frames, 146 with a true place in the slice
+        assert run.read_summary()["calibration"]["verification"] is False  # the score path decided

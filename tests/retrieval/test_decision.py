@@ -198,6 +198,14 @@ class TestStops:
         assert not stops.admissible(744, np.array([240, 242]), table).any()  # waited longer than the reference did
         assert stops.admissible(755, np.array([240, 250]), table).all()  # a moving query: not affected
 
+    def test_a_query_that_just_left_a_stop_reads_it_on_its_line(self, table):
+        """Winter 746 has just left a 40-frame stop: its score-path window reads that stop, so on its line the frame
+        before (745, still 39 frames) must meet a stop as long; summer 229 stood 23 frames, 246 had moved on."""
+        stops = self._stops()
+        assert stops.admissible(746, np.array([229, 246]), table).all()  # the query itself moves
+        assert not stops.line_admissible(746, np.array([229, 246]), 2, table).any()
+        assert stops.line_admissible(755, np.array([255]), 2, table).all()  # moving on both lines: not affected
+
     def test_decision_refuses_only_the_inadmissible(self, table):
         dec = Decision(None, TailModel(0.0, 1.0), 1.0, 1.0, False, stops=self._stops())
         fallback = np.array([10.0])
@@ -206,33 +214,76 @@ class TestStops:
 
 
 class TestScoreSpans:
-    """The score path fuses consecutive windows on one line (``ScoreSpans``)."""
+    """The score path fuses consecutive windows on one line (``ScoreSpans``), each window's evidence read from the
+    measured null (issue 27: no p-value below ``1 / (n + 1)`` of its sample)."""
 
     @staticmethod
-    def _spans(values: dict[int, float], nulls=((0.0, 0.1), (0.0, 0.07), (0.0, 0.05))):
-        from retrieval.decision import ScoreSpans
+    def _spans(values: dict[int, float], n: int = 9999):
+        from retrieval.decision import EmpiricalTail, MeasuredTail, ScoreSpans
 
         def score(q, r, source):  # the filter's window score, by the window's query
             return np.array([values.get(int(x), 0.0) for x in q], np.float64)
 
-        return ScoreSpans(score, 10, list(nulls), 1e4)
+        null = EmpiricalTail(np.linspace(-0.1, 0.1, n))  # n null window scores: at most log10(n + 1) = 4 decades each
+        return ScoreSpans(score, 10, null, [MeasuredTail(np.zeros(0))] * 3, 1e4)
 
     def test_weak_consistent_windows_accept_what_one_cannot(self):
         accept_at = -math.log10(0.05)
         one = self._spans({300: 0.35})  # the earlier windows (290, 280) at the null median: they do not agree
         assert one.confidences(np.array([300]), np.array([100]), None)[0] < accept_at
-        three = self._spans({300: 0.35, 290: 0.35, 280: 0.35})  # the same weak evidence, three windows in a row
+        three = self._spans({300: 0.35, 290: 0.35, 280: 0.35})  # the same evidence, three windows in a row
         assert three.confidences(np.array([300]), np.array([100]), None)[0] >= accept_at
 
     def test_a_contrary_window_vetoes_the_longer_spans(self):
         spans = self._spans({300: 0.9, 290: -0.2, 280: 0.9})
         fused = spans.fused(spans.windows(np.array([300]), np.array([100]), None))
-        assert not np.isnan(fused[0, 0]) and np.isnan(fused[0, 1:]).all()
+        assert fused[0, 0] > 0 and (fused[0, 1:] == 0).all()
 
     def test_no_window_before_the_first_frame(self):
         spans = self._spans({300: 0.35, 290: 0.35, 280: 0.35})
         win = spans.windows(np.array([300]), np.array([15]), None)  # the third window's pair would be (280, -5)
         assert not np.isnan(win[0, :2]).any() and np.isnan(win[0, 2])
+
+    @staticmethod
+    def _nordland(nordland_codes):
+        """``(calibration, null rows, code table, filter)``: the score path calibrated on the real Nordland frames of
+        the fixture (a summer and a winter stretch, raw codes)."""
+        from retrieval.calibrate import Calibration, _moved, _null_scores, _score_path
+        from retrieval.temporal import CodeTable, create_filter
+
+        ids = np.array(sorted(nordland_codes), np.int64)
+        codes = np.stack([nordland_codes[int(i)] for i in ids])
+        table = CodeTable(codes.shape[1])
+        for fid, code in zip(ids, codes):
+            table.add(int(fid), code / np.linalg.norm(code))
+        filt = create_filter({"name": "sequence"})
+        null = _null_scores(ids, table, filt, 50, _moved(codes), 25)
+        cal = Calibration(tests={"score": 1e6}, expected_false_loops=0.1)
+        _score_path(cal, null, filt, table)
+        return cal, null, table, filt
+
+    def test_no_p_value_below_its_sample(self, nordland_codes):
+        """On real Nordland null window scores: one window, however high its score, claims at most
+        ``log10(n + 1)`` decades, and ``m`` windows at most what ``m`` such windows give under the Gamma tail."""
+        from retrieval.decision import EmpiricalTail
+
+        cal, null, table, filt = self._nordland(nordland_codes)
+        n = len(cal.samples["score_null"])
+        assert n == len(null) > 500 and EmpiricalTail(null[:, 2]).max_evidence == pytest.approx(math.log10(n + 1))
+        tests = cal.tests["score"]
+        assert cal.score_confidence(10.0) == pytest.approx(math.log10(n + 1) - math.log10(tests))  # far past the max
+        assert cal.thresholds()["score"] is None  # one window cannot certify the run's tests: it never decides alone
+        spans = cal.score_spans(filt)
+        top = spans.span_confidences(np.array([250]), np.array([180]), _HighSource())[0]
+        for m, value in enumerate(top, 1):
+            assert value <= -math.log10(tests) - gamma_log10_sf(m, m * math.log10(n + 1)) + 1e-9
+
+    def test_a_line_a_few_frames_off_is_not_localised(self, nordland_codes):
+        """Winter 755 is summer 255 (Nordland, 500 frames on): the line 3 frames off still reads the revisit in its
+        earlier windows, but the query's own window says it is not there."""
+        cal, _, table, filt = self._nordland(nordland_codes)
+        spans = cal.score_spans(filt)
+        assert spans.localised(np.array([755, 755]), np.array([255, 252]), table).tolist() == [True, False]
 
     def test_calibrated_on_real_frames_at_64x32(self, tmp_path_factory):
         from bench.camera import shrunk_sample
@@ -243,16 +294,25 @@ class TestScoreSpans:
 
         seq = open_sequence(shrunk_sample(tmp_path_factory.mktemp("s64") / "seq", (64, 32)))
         cal = calibrate_sequence(seq, {}, progress=False)
-        assert cal.path == "score" and len(cal.spans["nulls"]) == SPAN and cal.spans["window"] == 10
-        assert all(np.isfinite(m) and s > 0 for m, s in cal.spans["nulls"])
-        assert cal.spans["nulls"][0] == [cal.score_null["median"], cal.score_null["sigma"]]
+        assert cal.path == "score" and cal.spans["span"] == SPAN and cal.spans["window"] == 10
+        assert cal.samples["score_fused"].shape == (len(cal.samples["score_null"]), SPAN)
         assert any("consecutive windows" in n for n in cal.notes)
+        assert any(n.startswith("accept: score") for n in cal.notes)  # what a loop needs, said
         path = tmp_path_factory.mktemp("c") / "c.h5"
         cal.save(path)
         back = Calibration.load(path)
         assert back.spans == cal.spans and back.identity() == cal.identity()
+        assert np.array_equal(back.samples["score_fused"], cal.samples["score_fused"], equal_nan=True)
         dec = back.decision(50, create_filter({}))
         assert dec.spans is not None and dec.spans.tests == cal.tests["score"]
+        assert dec.reach == SPAN * 10 and dec.confirms  # an accepted run of windows certifies its frames
+
+
+class _HighSource:
+    """Every pair of frames identical (cosine 1): each window far above any null."""
+
+    def pairs(self, queries: np.ndarray, refs: np.ndarray) -> np.ndarray:
+        return np.ones(len(refs), np.float32)
 
 
 class TestConfirmations:
