@@ -222,17 +222,20 @@ def test_reader_case(name, tmp_path, sample_images, caplog):
 
 def test_a_damaged_avi_reads_the_same_in_any_order(tmp_path, sample_images):
     """A damaged FFV1 AVI is read forward only (FFmpeg's seek lands by the index, then counts packets again):
-    frames asked for out of order or with a stride are the frames read in order."""
+    frames asked for out of order or with a stride are the frames read in order. The frame the damage begins in,
+    decoded half, is left out of the comparison: FFmpeg's concealment fills it from whatever it decoded last."""
     path = CASES["ffv1 avi, 200 kB zeroed mid-file"].build(tmp_path, sample_images)
     in_order = [open_sequence(path).read_frame(i)[0] for i in range(N)]
+    half = {i for i, f in enumerate(in_order) if isinstance(f, np.ndarray) and not np.array_equal(f, sample_images[i])}
+    assert len(half) <= 1, half
     seq, strided = open_sequence(path), open_sequence(path, stride=7)
     for i in [*np.random.default_rng(0).permutation(N)]:
         got, want = seq.read_frame(int(i))[0], in_order[i]
         assert isinstance(got, np.ndarray) == isinstance(want, np.ndarray)
-        assert not isinstance(want, np.ndarray) or np.array_equal(got, want), i
+        assert not isinstance(want, np.ndarray) or i in half or np.array_equal(got, want), i
     for i in range(len(strided)):
         got, want = strided.read_frame(i)[0], in_order[7 * i]
-        assert not isinstance(want, np.ndarray) or np.array_equal(got, want), i
+        assert not isinstance(want, np.ndarray) or 7 * i in half or np.array_equal(got, want), i
 
 
 @pytest.mark.parametrize("name, args", [("video, --stride 2**63", ["--stride", "9223372036854775808"]),
