@@ -52,7 +52,9 @@ verified as in the run), and what a loop looks like: the **positives** (a frame 
   stood still at least as long (``s`` frames up to it): a stop matched to a stop, along the line. Where the query
   waits longer than the reference ever did there, the line (both traversals moving alike) no longer holds and the
   query's frame within the reference's passage is undetermined: no loop (the query's arrival, a moving frame, was
-  decided on its own evidence). A moving query is not affected.
+  decided on its own evidence). A moving query is not affected. But where the arrival *was* a loop, the stop is that
+  place: each still frame after it carries the arrival's loop (``Decision.stop_carry``: to its candidate in the
+  reference's own stop after the loop's keyframe, with the arrival's confidence; nothing new is claimed).
 
 Shapes: ``Decision.confidences(query_id, refs (m,) int64, inliers (m,) int64, source) -> (m,) float64``;
 ``Decision.commit(query_id, refs (m,), inliers (m,))``.
@@ -400,6 +402,7 @@ class Decision:
         self.accept_at, self.single, self.horizon, self.spans = accept_at, single, horizon, spans
         self.span, self.tol, self.min_support = span, tol, min_support
         self._recent: deque[tuple[int, np.ndarray, np.ndarray]] = deque(maxlen=max(self.reach - 1, 1))
+        self._last_loop: tuple[int, int, float] | None = None  # (frame, its loop's keyframe, confidence): stop_carry
 
     @property
     def reach(self) -> int:
@@ -535,7 +538,31 @@ class Decision:
         """The same decision with no frame recorded yet (a replay of a run from its start)."""
         out = copy.copy(self)
         out._recent = deque(maxlen=self._recent.maxlen)
+        out._last_loop = None
         return out
+
+    def stop_carry(self, query_id: int, refs: np.ndarray, source: Any) -> tuple[np.ndarray, float]:
+        """A stop is one place: where the frame before was a loop and the camera has stood still since (``Stops``),
+        this frame is that place again, matched to a stop: which of ``refs`` ``(m,)`` lie in the reference's own stop
+        after the loop's keyframe (every frame from it to the candidate one where the reference camera stood still),
+        and the confidence the arrival's loop had: the same loop, carried, claiming nothing new. A query still where
+        the reference moved on carries nothing.
+
+        Returns:
+            ``(m,)`` bool and the carried confidence (all False where nothing is carried).
+        """
+        refs = np.asarray(refs, np.int64)
+        last = self._last_loop
+        if self.stops is None or last is None or last[0] != query_id - 1 or not len(refs) or \
+                self.stops.lengths(np.array([query_id], np.int64), source)[0] == 0:
+            return np.zeros(len(refs), bool), 0.0
+        after = refs - last[1]
+        inside = (after >= 1) & (self.stops.lengths(refs, source) >= after)
+        return inside, last[2]
+
+    def note_loop(self, query_id: int, ref: int | None, confidence: float = 0.0) -> None:
+        """Records the decision of frame ``query_id`` (its loop's keyframe, or None) for ``stop_carry``."""
+        self._last_loop = None if ref is None else (int(query_id), int(ref), float(confidence))
 
     def commit(self, query_id: int, refs: np.ndarray, inliers: np.ndarray) -> None:
         """Records a processed frame's verified candidates (a resumed run replays its stored ones here)."""

@@ -518,6 +518,9 @@ class LoopDetector:
             for cand, value in zip(candidates, fused):
                 cand.confidence = float(max(value, -1e9))
         loop, best = self._decide(fid, candidates, checks)
+        if self.decision is not None:
+            self.decision.note_loop(fid, None if loop is None else loop.frame_id,
+                                    0.0 if loop is None else loop.confidence)
         confirmed = self._confirmed(fid, candidates, loop)
         ms["verify"] = (time.perf_counter() - t0) * 1e3 - (ms["features"] - f0)  # late extraction not counted
 
@@ -798,6 +801,8 @@ class LoopDetector:
         """
         if self.calibration is not None:
             passing = [(cd, ch) for cd, ch in zip(candidates, checks) if cd.confidence >= self.calibration.accept_at]
+            if not passing and self.decision is not None:  # a still frame after a loop: the same place (a stop)
+                passing = self._carried(fid, candidates, checks)
             key = (lambda pair: (pair[0].confidence, pair[0].inliers, pair[0].seq_score))
         else:
             passing = [(cd, ch) for cd, ch in zip(candidates, checks) if self._passes_policy(cd)]
@@ -810,6 +815,16 @@ class LoopDetector:
         if not passing:
             return None, None
         return max(passing, key=key)
+
+    def _carried(self, fid: int, candidates: list[Candidate],
+                 checks: list[Verification | None]) -> list[tuple[Candidate, Verification | None]]:
+        """The candidates in the reference's stop that the frame before's loop carries into this still frame
+        (``Decision.stop_carry``), given the carried confidence."""
+        inside, confidence = self.decision.stop_carry(fid, np.array([cd.frame_id for cd in candidates], np.int64),
+                                                      self.places.source)
+        for cd in (cd for cd, ok in zip(candidates, inside) if ok):
+            cd.confidence = max(cd.confidence, confidence)
+        return [(cd, ch) for cd, ch, ok in zip(candidates, checks, inside) if ok]
 
     def close(self) -> None:
         """Flushes and closes the database and stops the worker thread; ``process`` refuses to run afterwards."""

@@ -212,6 +212,22 @@ class TestStops:
         assert dec.confidences(730, np.array([240]), np.array([-1]), table, fallback)[0] == 10.0
         assert dec.confidences(744, np.array([240]), np.array([-1]), table, fallback)[0] == -math.inf
 
+    def test_a_stop_carries_the_loop_of_its_arrival(self, table):
+        """Winter 730 stands still in the station after 729 closed a loop to summer 230: the loop is carried to its
+        candidates in the summer stop after 230, with 729's confidence; to nothing else, and only from the frame
+        before."""
+        dec = Decision(None, TailModel(0.0, 1.0), 1.0, 1.0, False, stops=self._stops())
+        refs = np.array([231, 235, 250, 229])
+        dec.note_loop(729, 230, 9.0)
+        inside, confidence = dec.stop_carry(730, refs, table)
+        assert inside.tolist() == [True, True, False, False] and confidence == 9.0
+        assert not dec.stop_carry(731, refs, table)[0].any()  # 730 was not recorded as a loop: nothing to carry
+        dec.note_loop(754, 250, 9.0)
+        assert not dec.stop_carry(755, np.array([251, 252]), table)[0].any()  # a moving query: its own evidence
+        dec.note_loop(729, None)
+        assert not dec.stop_carry(730, refs, table)[0].any()
+        assert not dec.fresh().stop_carry(730, refs, table)[0].any()
+
 
 class TestScoreSpans:
     """The score path fuses consecutive windows on one line (``ScoreSpans``), each window's evidence read from the
