@@ -42,7 +42,7 @@ from typing import Any, Callable, Iterable
 
 import numpy as np
 
-from cae_lcd.core.conf import ConfigError
+from cae_lcd.core.conf import check_choice
 from verify.features import Features, create_extractor
 from verify.geometry import UNOBSERVED_INFORMATION, pose_information
 from verify.verifier import create_verifier
@@ -130,14 +130,8 @@ class LoopEdge:
 
 
 def check_edge_frame(frame: str) -> str:
-    """``frame`` when it is one of ``EDGE_FRAMES``.
-
-    Raises:
-        ConfigError: another value.
-    """
-    if not isinstance(frame, str) or frame not in EDGE_FRAMES:
-        raise ConfigError(f"--edge-frame must be one of {', '.join(EDGE_FRAMES)}; got {frame!r}")
-    return frame
+    """``frame`` when it is one of ``EDGE_FRAMES`` (else ``ConfigError``)."""
+    return check_choice(frame, EDGE_FRAMES, "--edge-frame")
 
 
 def adjoint(X: np.ndarray) -> np.ndarray:

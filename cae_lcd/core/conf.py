@@ -16,14 +16,14 @@ import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Generic, Mapping, TypeVar
+from typing import Any, Callable, Generic, Iterable, Mapping, TypeVar
 
 import yaml
 
 from .errors import ConfigError
 
 __all__ = ["ConfigError", "merge_conf", "load_conf_file", "dump_conf", "Registry", "Rule", "Int", "Float", "Floats",
-           "Bool", "Choice", "Text", "check_conf", "configure", "conf_diff", "conf_get", "presets", "PRESETS_DIR"]
+           "Bool", "Choice", "Text", "check_choice", "check_conf", "configure", "conf_diff", "conf_get", "presets", "PRESETS_DIR"]
 
 
 def merge_conf(defaults: Mapping[str, Any], override: Mapping[str, Any] | None, where: str = "",
@@ -264,6 +264,18 @@ def Bool() -> Rule:  # noqa: N802
 def Choice(*choices: Any, optional: bool = False) -> Rule:  # noqa: N802
     """One of ``choices`` (same type: the string "1" is not the integer 1)."""
     return Rule("choice", choices=tuple(choices), optional=optional)
+
+
+def check_choice(value: Any, choices: Iterable[Any], name: str) -> Any:
+    """``value`` when it is one of ``choices`` (``Choice``'s rule: the same type too).
+
+    Raises:
+        ConfigError: another value, named as ``name`` (an option or a conf key).
+    """
+    rule = Choice(*choices)
+    if not rule.accepts(value):
+        raise ConfigError(f"{name} must be {rule.describe()}; got {value!r}")
+    return value
 
 
 def Text(pattern: str | None = None, optional: bool = False) -> Rule:  # noqa: N802

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cae_lcd.core.conf import ConfigError
+from cae_lcd.core.conf import ConfigError, check_choice
 from retrieval.run_folder import MAX_FRAME_ID
 from retrieval.sequences import read_kitti_poses
 
@@ -38,14 +38,8 @@ _ALIGNED = 0.9  #: ... and its normal (or the cameras' mean image-down direction
 
 
 def check_world(world: str) -> str:
-    """``world`` when it is one of ``WORLDS``.
-
-    Raises:
-        ConfigError: another value.
-    """
-    if not isinstance(world, str) or world not in WORLDS:
-        raise ConfigError(f"--world must be one of {', '.join(WORLDS)}; got {world!r}")
-    return world
+    """``world`` when it is one of ``WORLDS`` (else ``ConfigError``)."""
+    return check_choice(world, WORLDS, "--world")
 
 
 def up_axis(poses: np.ndarray, world: str = "auto", what: str = "poses") -> int:
