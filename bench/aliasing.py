@@ -32,6 +32,9 @@ import numpy as np
 from cae_lcd.core.images import read_image
 from cae_lcd.evaluation.ground_truth import read_loop_pairs
 from cae_lcd.evaluation.metrics import precision_recall, recall_at_k
+from retrieval.calibrate import Calibration
+from retrieval.detect import calibrate_sequence
+from retrieval.detector import LoopDetector
 from retrieval.run_folder import RunFolder
 from retrieval.sequences import open_sequence
 
@@ -134,6 +137,58 @@ def evaluate(folder: Path, truth: np.ndarray | None, out: Path, conf: dict[str, 
     else:
         res.update(precision=1.0 if len(loops) == 0 else 0.0, recall=None)
     return res
+
+
+def stream_run(folder: Path, truth: np.ndarray | None, conf: dict[str, Any] | None = None,
+               prior: Calibration | None = None, frames: int | None = None) -> dict[str, Any]:
+    """The same set streamed through the Python API from frame 0 (``LoopDetector.process``, one frame at a time, no
+    store): the stream calibrates itself (``retrieval.online``), or checks the carried ``prior`` first. Loops are the
+    frames' own and the delayed ones (``FrameResult.confirmed``); ms/frame with the refits amortised (the mean) and
+    the worst frame (a refit's)."""
+    seq = open_sequence(folder)
+    loops: dict[int, int] = {}
+    ms = []
+    t0 = time.perf_counter()
+    with LoopDetector(conf, K=seq.K, calibration=prior) as det:
+        for i in range(len(seq) if frames is None else min(frames, len(seq))):
+            image, _ = seq.read_frame(i)
+            res = det.process(image, i)
+            ms.append(res.ms["total"])
+            if res.loop is not None:
+                loops[i] = res.loop.frame_id
+            for q, cand in res.confirmed:
+                loops.setdefault(q, cand.frame_id)
+    pairs = np.array(sorted(loops.items()), np.int64).reshape(-1, 2)
+    out: dict[str, Any] = {"frames": len(ms), "loops": len(pairs), "wall_s": time.perf_counter() - t0,
+                           "ms_mean": float(np.mean(ms)), "ms_median": float(np.median(ms)), "ms_worst": float(max(ms))}
+    if truth is not None:
+        pr = precision_recall(pairs, truth)
+        out.update(precision=pr.precision, recall=pr.recall)
+    else:
+        out.update(precision=1.0 if not len(pairs) else 0.0, recall=None)
+    return out
+
+
+def carried_row(data: Path, run_dir: Path) -> dict[str, Any]:
+    """Nordland calibrated on its summer half (frames 0-499, ``calibrate_sequence``), then all 1000 frames streamed
+    with that calibration carried (a prior: checked against the stream, ``retrieval.online``)."""
+    seq = open_sequence(data / "nordland")
+    half = _FirstFrames(seq, len(seq) // 2)
+    cal = calibrate_sequence(half, {}, progress=False)
+    return stream_run(data / "nordland", read_loop_pairs(data / "nordland" / "loops.txt"), prior=cal)
+
+
+class _FirstFrames:
+    """A sequence restricted to its first ``n`` frames (what ``calibrate_sequence`` reads of it)."""
+
+    def __init__(self, seq: Any, n: int) -> None:
+        self.seq, self.n, self.K = seq, n, seq.K
+
+    def __len__(self) -> int:
+        return self.n
+
+    def read_frame(self, i: int) -> Any:
+        return self.seq.read_frame(i)
 
 
 def aliasing_table(res: dict[str, dict[str, Any]]) -> str:
