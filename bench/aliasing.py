@@ -10,6 +10,11 @@ One run of the default config (nothing tuned per data set) on:
   frames mirrored left-right at 160x120 (the same textures, kerbs and cars on the other side: a different place
   that looks alike, frame after frame, in order).
 
+Beside each offline row, the online one: the same set streamed through the Python API from frame 0 with no
+calibration given (``stream_run``: the stream calibrates itself, ``retrieval.online``), its ms/frame with the refits
+amortised and its worst frame; and Nordland streamed with a calibration carried from its summer half
+(``carried_row``).
+
 Columns: frames, loops, precision / recall (ground truth where the set has revisits), retrieval Recall@10 (the run's
 own candidates, ranked as it ranks them) and recall / Recall@10 (a detector safe by being blind shows it: issue 27),
 median ms/frame, the share of
@@ -41,7 +46,8 @@ from retrieval.sequences import open_sequence
 from .augment import darken, dusk
 from .common import detect_run, md_table, study_parser
 
-__all__ = ["plain_folder", "dark_proxy_folder", "dusk_folder", "stress_folders", "stress_sets", "evaluate", "aliasing_table", "main"]
+__all__ = ["plain_folder", "dark_proxy_folder", "dusk_folder", "stress_folders", "stress_sets", "evaluate", "aliasing_table",
+           "stream_run", "carried_row", "online_table", "main"]
 
 log = logging.getLogger(__name__)
 
@@ -208,18 +214,45 @@ def aliasing_table(res: dict[str, dict[str, Any]]) -> str:
                      "calibration share: own / with the run's work", "deciding path"], rows)
 
 
+def online_table(res: dict[str, dict[str, Any]], online: dict[str, dict[str, Any]]) -> str:
+    """The online rows (``stream_run``) beside the offline ones (Markdown)."""
+    rows = []
+    for name, m in online.items():
+        off = res.get(name, {}).get("recall")
+        rec = "n/a (no revisit)" if m["recall"] is None else f"{m['recall']:.3f}"
+        ratio = "n/a" if m["recall"] is None or not off else f"{m['recall'] / off:.2f}"
+        rows.append([name, str(m["loops"]), f"{m['precision']:.3f}", rec, "n/a" if off is None else f"{off:.3f}",
+                     ratio, f"{m['ms_mean']:.1f}", f"{m['ms_median']:.1f}", f"{m['ms_worst']:.0f}"])
+    return md_table(["sequence (streamed through the API from frame 0)", "loops", "precision", "recall",
+                     "offline recall", "online / offline", "ms/frame, refits amortised (mean)", "median ms",
+                     "worst frame ms (a refit)"], rows)
+
+
+CARRIED = "Nordland, calibration carried from its summer half (frames 0-499)"  #: the carried-calibration row
+
+
 def main(data: Path, run_dir: Path, out: Path | None, only: str = "") -> dict[str, dict[str, Any]]:
-    """Runs every set (or those whose name contains ``only``); writes the table into ``out``."""
+    """Runs every set (or those whose name contains ``only``), offline (``detect``) and online (``stream_run``),
+    and the carried-calibration row; writes the tables into ``out``."""
     t0 = time.perf_counter()
-    res = {}
+    res, online = {}, {}
     for i, (name, (folder, truth)) in enumerate(stress_sets(data, run_dir).items()):
         if only and only not in name:
             continue
         log.info("%s", name)
         res[name] = evaluate(folder, truth, run_dir / f"run_{i}")
-        log.info("%s: %s", name, res[name])
+        online[name] = stream_run(folder, truth)
+        log.info("%s: %s; online %s", name, res[name], online[name])
+    if not only or only in CARRIED:
+        online[CARRIED] = carried_row(data, run_dir)
+        log.info("%s: %s", CARRIED, online[CARRIED])
     body = ("### Precision where places look alike (`python -m bench.aliasing`, issues 17 and 27)\n\n"
             + aliasing_table(res)
+            + "\n\nOnline: the same sets streamed through the Python API (`LoopDetector.process`, one frame at a "
+            "time, no store) from frame 0 with no calibration given: the stream calibrates itself "
+            "(`retrieval.online`: a warm-up accepting nothing, refits at doublings, checks between them); loops are "
+            "the frames' own and the delayed ones (`FrameResult.confirmed`). The last row carries a calibration "
+            "(a prior, checked against the stream).\n\n" + online_table(res, online)
             + f"\n\nDefault config, one run, nothing tuned per set. Total {time.perf_counter() - t0:.0f} s.")
     if out is not None and not only:
         from .run import write_section  # bench.run imports this module (its false-loop stress rows)

@@ -365,15 +365,18 @@ def _null_scores(ids: np.ndarray, table: CodeTable, filt: TemporalFilter, window
 
 
 def far_side_scores(ids: np.ndarray, table: CodeTable, filt: TemporalFilter, window: int,
-                    still_cos: float = STILL_COS) -> np.ndarray:
+                    still_cos: float = STILL_COS, newest: int = 0) -> np.ndarray:
     """``(n,)`` temporal scores of the far-side pairs of keyframes ``ids`` (``window // 2 <= query - ref <
-    window``, both in ``ids``; pairs through a stop, adjacent codes at least ``still_cos`` alike, left out): what the
-    nulls are drawn from, for a stream that checks a calibration against its newest frames (``retrieval.online``)."""
+    window``, both in ``ids``; pairs through a stop, adjacent codes at least ``still_cos`` alike, left out; with
+    ``newest``, only those whose query is among the ``newest`` last ids): what the nulls are drawn from, for a stream
+    that checks a calibration against its newest frames (``retrieval.online``)."""
     ids = np.asarray(ids, np.int64)
     if len(ids) < 2:
         return np.zeros(0)
     moved = np.r_[True, table.pairs(ids[1:], ids[:-1]) < still_cos]
     rows = _null_scores(ids, table, filt, window, moved)
+    if newest and len(rows):
+        rows = rows[rows[:, 0] >= ids[-min(newest, len(ids))]]
     return rows[:, 2] if len(rows) else np.zeros(0)
 
 
