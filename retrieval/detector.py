@@ -2,7 +2,7 @@
 at a time. How a frame is described and searched is the global descriptor's (``descriptor``: the CAE code by
 default, searched by cosine; MILD's ORB descriptors, searched by multi-index hashing: ``retrieval.places``).
 
-    >>> det = LoopDetector(K=K, database="run/keyframes.h5", calibration=cal)   # doctest: +SKIP
+    >>> det = LoopDetector(K=K)   # in memory: the stream calibrates itself (retrieval.online)   # doctest: +SKIP
     >>> res = det.process(image, frame_id=i, timestamp=t)            # doctest: +SKIP
     >>> res.loop                                                     # Candidate or None   # doctest: +SKIP
 
@@ -19,7 +19,8 @@ default, searched by cosine; MILD's ORB descriptors, searched by multi-index has
                                  its keyframe)`` for each that was not a loop yet (reported once, with the run's
                                  confidence; their candidates were in those frames' results)
     R, t        (3, 3), (3,)  relative pose of the loop (essential-matrix model only), else None
-    ms          dict[str, float]  milliseconds by stage: gate, encode, features, search, verify, insert, total
+    ms          dict[str, float]  milliseconds by stage: gate, encode, features, search, verify, insert, total;
+                                 online (``retrieval.online``) also calibrate: recording the frame, checks, refits
 """
 
 from __future__ import annotations

@@ -48,6 +48,7 @@ log = logging.getLogger(__name__)
 
 WARM_UP = 2  #: exclusion windows of keyframes before the first fit (nothing accepted until then)
 DRIFT_Z = 1.0  #: the newest far-side scores this many of the calibration's sigmas above its null: refit now
+CHECK_EVERY = 10  #: keyframes between two checks of the calibration against the newest frames
 
 
 @dataclass
@@ -111,7 +112,7 @@ class OnlineCalibration:
         if n >= self.next_fit:
             return "fit"
         if self.ready and n >= self.next_check:
-            self.next_check = n + max(self.window // 2, 1)
+            self.next_check = n + CHECK_EVERY
             return "check"
         return None
 
@@ -125,8 +126,9 @@ class OnlineCalibration:
         calibration measured (``table``: the codes as searched, under its whitening); ``inf`` without a level."""
         if self.level is None:
             return float("inf")
-        ids = np.array([s.frame_id for s in self.seen[-(self.window + self.window // 2):]], np.int64)
-        scores = far_side_scores(ids, table, filt, self.window)
+        hold = max(self.window // 2, 1)
+        ids = np.array([s.frame_id for s in self.seen[-(self.window + hold):]], np.int64)
+        scores = far_side_scores(ids, table, filt, self.window, newest=hold)
         if len(scores) < 20:
             return 0.0
         return float((np.median(scores) - self.level[0]) / max(self.level[1], 1e-6))
@@ -138,7 +140,7 @@ class OnlineCalibration:
         few frames, or a null thinner than the current one's: the rule in the module doc). Schedules the next fit."""
         n = len(self.seen)
         self.next_fit = 2 * n
-        self.next_check = n + max(self.window // 2, 1)
+        self.next_check = n + CHECK_EVERY
         c = self.conf
         picks = calibration_frames(n, self.window, c["temporal"].get("length", 1), c["calibration"]["max_frames"])
         ids = [self.seen[int(i)].frame_id for i in picks]
