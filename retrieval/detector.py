@@ -755,8 +755,8 @@ class LoopDetector:
         if step is None:
             return []
         if step == "check" or (not on.ready and on.calibration is not None):
-            z = on.drift(self.places.source, self.filter)
             carried = not on.ready
+            z = on.drift(self.places.source, self.filter, 0 if carried else None)  # a prior: the whole warm-up
             if z <= DRIFT_Z:
                 on.next_fit = on.next_fit if not carried else 2 * len(on.seen)
                 if carried:

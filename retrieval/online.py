@@ -121,13 +121,15 @@ class OnlineCalibration:
         ids = np.array(sorted(self.codes), np.int64)
         return ids, np.stack([self.codes[int(i)] for i in ids]).astype(np.float32)
 
-    def drift(self, table: CodeTable, filt: TemporalFilter) -> float:
-        """How far (in the calibration's sigmas) the newest keyframes' far-side scores lie above the level the
-        calibration measured (``table``: the codes as searched, under its whitening); ``inf`` without a level."""
+    def drift(self, table: CodeTable, filt: TemporalFilter, newest: int | None = None) -> float:
+        """How far (in the calibration's sigmas) the far-side scores of the ``newest`` keyframes (default: half a
+        window; 0: every keyframe seen, a carried calibration's check at the end of the warm-up) lie above the level
+        the calibration measured (``table``: the codes as searched, under its whitening); ``inf`` without a
+        level."""
         if self.level is None:
             return float("inf")
-        hold = max(self.window // 2, 1)
-        ids = np.array([s.frame_id for s in self.seen[-(self.window + hold):]], np.int64)
+        hold = max(self.window // 2, 1) if newest is None else newest
+        ids = np.array([s.frame_id for s in (self.seen[-(self.window + hold):] if hold else self.seen)], np.int64)
         scores = far_side_scores(ids, table, filt, self.window, newest=hold)
         if len(scores) < 20:
             return 0.0
