@@ -6,19 +6,22 @@ and local features the detector computed anyway (``OnlineCalibration.record``; a
 of them read, blocks spread as ``calibration_frames`` chooses), so a refit encodes nothing again. The schedule:
 
 - **Warm-up**: nothing is accepted (nothing verified) until the stream holds ``WARM_UP`` exclusion windows of
-  keyframes (``2 * search.exclude_recent``: the far side of the window, where the nulls come from, is then seen by
-  half of the frames).
+  keyframes (``2 * search.exclude_recent``, at least ``MIN_FIRST_FIT``: the far side of the window, where the nulls
+  come from, is then seen by half of the frames).
 - **Refits at doublings** of the keyframes seen (amortised: the frames a refit reads sum to at most twice the
   stream), each counting the tests of a run of ``max(2 n, calibration.max_frames)`` frames (the next refit's
   length, and never fewer than a long calibration counts: a young calibration, its whitening fitted on few frames,
   claims less; on Nordland this took the stream's false loops from 64 to 19 at the same recall);
-- **Checks in between**, every ``search.exclude_recent // 2`` keyframes: the far-side temporal scores of the
-  newest keyframes (``retrieval.calibrate.far_side_scores`` under the calibration's whitening) against the level
-  the calibration measured; more than ``DRIFT_Z`` of its sigmas above (a new condition: winter after summer, a
-  whitening fitted on too few frames) and the stream is refitted at once.
-- **A carried calibration** (``LoopDetector(calibration=...)``) is checked the same way at the end of the warm-up
-  (its null's median and sigma, ``Calibration.score_null``): where it agrees it decides, where it does not the
-  stream refits (one log line either way); where the stream is too short to refit, nothing is accepted (refused).
+- **Checks in between**, every ``CHECK_EVERY`` keyframes: the far-side temporal scores of the newest half window
+  of keyframes (``retrieval.calibrate.far_side_scores`` under the calibration's whitening) against the level the
+  calibration measured on the frames it was fitted on; more than ``DRIFT_Z`` of its sigmas above (a new condition:
+  winter after summer, a whitening fitted on too few frames) and the stream is refitted at once (on Nordland's
+  summer -> winter the check sees winter 60 frames after it starts: 7 sigma).
+- **A carried calibration** (``LoopDetector(calibration=...)``) is checked the same way at the end of the warm-up,
+  on every far-side pair of the warm-up (against its null's median and sigma, ``Calibration.score_null``): where it
+  agrees it decides (the warm-up's frames decided again, as after a refit), where it does not the stream refits
+  (one log line either way); where the stream is still too short to fit, nothing is accepted (refused). A carried
+  calibration kept is then checked and refitted like the stream's own.
 - **A refit never loosens without measured evidence**: it replaces the calibration only when its null holds at least
   as many measured samples (the verified hard-negative pairs on the inlier path, the far-side pairs on the score
   path) as the one it replaces; else the current calibration is kept (one log line). Its tests only grow.
@@ -42,12 +45,13 @@ from .calibrate import Calibration, TooFewFrames, calibrate, calibration_frames,
 from .descriptors import GlobalDescriptor
 from .temporal import CodeTable, TemporalFilter, create_filter
 
-__all__ = ["OnlineCalibration", "Seen", "WARM_UP", "DRIFT_Z"]
+__all__ = ["OnlineCalibration", "Seen", "WARM_UP", "DRIFT_Z", "CHECK_EVERY", "MIN_FIRST_FIT"]
 
 log = logging.getLogger(__name__)
 
 WARM_UP = 2  #: exclusion windows of keyframes before the first fit (nothing accepted until then)
 DRIFT_Z = 1.0  #: the newest far-side scores this many of the calibration's sigmas above its null: refit now
+MIN_FIRST_FIT = 40  #: the fewest keyframes a first fit reads (a short window's far side holds few pairs)
 CHECK_EVERY = 10  #: keyframes between two checks of the calibration against the newest frames
 
 
@@ -79,7 +83,7 @@ class OnlineCalibration:
         self.ratios: dict[int, float] = {}
         self.seen: list[Seen] = []
         self._index: dict[int, int] = {}  # frame id -> position in ``seen``
-        self.next_fit = max(WARM_UP * self.window, 40)
+        self.next_fit = max(WARM_UP * self.window, MIN_FIRST_FIT)
         self.next_check = self.next_fit
         self.level: tuple[float, float] | None = None  # (median, sigma) of the far-side scores it was fitted on
         if prior is not None and "sigma" in prior.score_null:
