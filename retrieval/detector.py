@@ -754,8 +754,8 @@ class LoopDetector:
         step = on.due()
         if step is None:
             return []
-        if step == "check" or (not on.ready and on.calibration is not None):
-            carried = not on.ready
+        if step == "check" or on.unchecked:
+            carried, on.unchecked = on.unchecked, False
             z = on.drift(self.places.source, self.filter, 0 if carried else None)  # a prior: the whole warm-up
             if z <= DRIFT_Z:
                 on.next_fit = on.next_fit if not carried else 2 * len(on.seen)
@@ -774,7 +774,7 @@ class LoopDetector:
         if cal is None:
             return []
         self._use(cal)
-        return self._redecide()
+        return self._redecide() if on.ready else []
 
     def _use(self, cal: Calibration) -> None:
         """Makes ``cal`` (fitted on the stream) the run's: the gate's reference, the index moved into its whitening,
@@ -785,8 +785,7 @@ class LoopDetector:
         if cal.whitening is not self.places.whitening:
             self.places.rewhiten(cal.whitening, *self._online.raw())
         self.whitening = cal.whitening
-        self._verify = bool(cal.inlier_null)
-        self._online.adopt(cal, self.places.source, self.filter)
+        self._verify = self._online.adopt(cal, self.places.source, self.filter) and bool(cal.inlier_null)
 
     def _redecide(self) -> list[tuple[int, Candidate]]:
         """Every recorded frame decided again under the current calibration, in order (scores in the current code
