@@ -124,3 +124,18 @@ class _First:
 
     def read_frame(self, i: int):
         return self.seq.read_frame(i)
+
+
+def test_the_score_path_decides_nothing_from_a_stream_fit(sample_image, encoder, caplog):
+    """At 64x32 local features are too few to verify (the score path): a calibration fitted on the stream accepts
+    nothing there (``SCORE_PATH_DECIDES``: on Nordland and the 64x32 stress set it accepted false loops), one log
+    line says so."""
+    import cv2
+
+    with caplog.at_level(logging.INFO, logger="retrieval.online"):
+        with LoopDetector(CONF, encoder=encoder) as det:
+            loops = stream(det, lambda i: cv2.resize(sample_image(i), (64, 32), interpolation=cv2.INTER_AREA),
+                           range(100))
+            assert det.calibration is not None and det.calibration.path == "score"
+    assert loops == {}
+    assert any("decides nothing" in r.getMessage() for r in caplog.records)
