@@ -10,6 +10,11 @@ One run of the default config (nothing tuned per data set) on:
   frames mirrored left-right at 160x120 (the same textures, kerbs and cars on the other side: a different place
   that looks alike, frame after frame, in order).
 
+Beside each offline row, the online one: the same set streamed through the Python API from frame 0 with no
+calibration given (``stream_run``: the stream calibrates itself, ``retrieval.online``), its ms/frame with the refits
+amortised and its worst frame; and Nordland streamed with a calibration carried from its summer half
+(``carried_row``).
+
 Columns: frames, loops, precision / recall (ground truth where the set has revisits), retrieval Recall@10 (the run's
 own candidates, ranked as it ranks them) and recall / Recall@10 (a detector safe by being blind shows it: issue 27),
 median ms/frame, the share of
@@ -32,13 +37,17 @@ import numpy as np
 from cae_lcd.core.images import read_image
 from cae_lcd.evaluation.ground_truth import read_loop_pairs
 from cae_lcd.evaluation.metrics import precision_recall, recall_at_k
+from retrieval.calibrate import Calibration
+from retrieval.detect import calibrate_sequence
+from retrieval.detector import LoopDetector
 from retrieval.run_folder import RunFolder
 from retrieval.sequences import open_sequence
 
 from .augment import darken, dusk
 from .common import detect_run, md_table, study_parser
 
-__all__ = ["plain_folder", "dark_proxy_folder", "dusk_folder", "stress_folders", "stress_sets", "evaluate", "aliasing_table", "main"]
+__all__ = ["plain_folder", "dark_proxy_folder", "dusk_folder", "stress_folders", "stress_sets", "evaluate", "aliasing_table",
+           "stream_run", "carried_row", "online_table", "main"]
 
 log = logging.getLogger(__name__)
 
@@ -136,6 +145,58 @@ def evaluate(folder: Path, truth: np.ndarray | None, out: Path, conf: dict[str, 
     return res
 
 
+def stream_run(folder: Path, truth: np.ndarray | None, conf: dict[str, Any] | None = None,
+               prior: Calibration | None = None, frames: int | None = None) -> dict[str, Any]:
+    """The same set streamed through the Python API from frame 0 (``LoopDetector.process``, one frame at a time, no
+    store): the stream calibrates itself (``retrieval.online``), or checks the carried ``prior`` first. Loops are the
+    frames' own and the delayed ones (``FrameResult.confirmed``); ms/frame with the refits amortised (the mean) and
+    the worst frame (a refit's)."""
+    seq = open_sequence(folder)
+    loops: dict[int, int] = {}
+    ms = []
+    t0 = time.perf_counter()
+    with LoopDetector(conf, K=seq.K, calibration=prior) as det:
+        for i in range(len(seq) if frames is None else min(frames, len(seq))):
+            image, _ = seq.read_frame(i)
+            res = det.process(image, i)
+            ms.append(res.ms["total"])
+            if res.loop is not None:
+                loops[i] = res.loop.frame_id
+            for q, cand in res.confirmed:
+                loops.setdefault(q, cand.frame_id)
+    pairs = np.array(sorted(loops.items()), np.int64).reshape(-1, 2)
+    out: dict[str, Any] = {"frames": len(ms), "loops": len(pairs), "wall_s": time.perf_counter() - t0,
+                           "ms_mean": float(np.mean(ms)), "ms_median": float(np.median(ms)), "ms_worst": float(max(ms))}
+    if truth is not None:
+        pr = precision_recall(pairs, truth)
+        out.update(precision=pr.precision, recall=pr.recall)
+    else:
+        out.update(precision=1.0 if not len(pairs) else 0.0, recall=None)
+    return out
+
+
+def carried_row(data: Path, run_dir: Path) -> dict[str, Any]:
+    """Nordland calibrated on its summer half (frames 0-499, ``calibrate_sequence``), then all 1000 frames streamed
+    with that calibration carried (a prior: checked against the stream, ``retrieval.online``)."""
+    seq = open_sequence(data / "nordland")
+    half = _FirstFrames(seq, len(seq) // 2)
+    cal = calibrate_sequence(half, {}, progress=False)
+    return stream_run(data / "nordland", read_loop_pairs(data / "nordland" / "loops.txt"), prior=cal)
+
+
+class _FirstFrames:
+    """A sequence restricted to its first ``n`` frames (what ``calibrate_sequence`` reads of it)."""
+
+    def __init__(self, seq: Any, n: int) -> None:
+        self.seq, self.n, self.K = seq, n, seq.K
+
+    def __len__(self) -> int:
+        return self.n
+
+    def read_frame(self, i: int) -> Any:
+        return self.seq.read_frame(i)
+
+
 def aliasing_table(res: dict[str, dict[str, Any]]) -> str:
     """The issue's table (Markdown)."""
     rows = []
@@ -153,18 +214,47 @@ def aliasing_table(res: dict[str, dict[str, Any]]) -> str:
                      "calibration share: own / with the run's work", "deciding path"], rows)
 
 
+def online_table(res: dict[str, dict[str, Any]], online: dict[str, dict[str, Any]]) -> str:
+    """The online rows (``stream_run``) beside the offline ones (Markdown)."""
+    rows = []
+    for name, m in online.items():
+        off = m.get("offline_recall", res.get(name, {}).get("recall"))
+        rec = "n/a (no revisit)" if m["recall"] is None else f"{m['recall']:.3f}"
+        ratio = "n/a" if m["recall"] is None or not off else f"{m['recall'] / off:.2f}"
+        rows.append([name, str(m["loops"]), f"{m['precision']:.3f}", rec, "n/a" if off is None else f"{off:.3f}",
+                     ratio, f"{m['ms_mean']:.1f}", f"{m['ms_median']:.1f}", f"{m['ms_worst']:.0f}"])
+    return md_table(["sequence (streamed through the API from frame 0)", "loops", "precision", "recall",
+                     "offline recall", "online / offline", "ms/frame, refits amortised (mean)", "median ms",
+                     "worst frame ms (a refit)"], rows)
+
+
+CARRIED = "Nordland, calibration carried from its summer half (frames 0-499)"  #: the carried-calibration row
+
+
 def main(data: Path, run_dir: Path, out: Path | None, only: str = "") -> dict[str, dict[str, Any]]:
-    """Runs every set (or those whose name contains ``only``); writes the table into ``out``."""
+    """Runs every set (or those whose name contains ``only``), offline (``detect``) and online (``stream_run``),
+    and the carried-calibration row; writes the tables into ``out``."""
     t0 = time.perf_counter()
-    res = {}
+    res, online = {}, {}
     for i, (name, (folder, truth)) in enumerate(stress_sets(data, run_dir).items()):
         if only and only not in name:
             continue
         log.info("%s", name)
         res[name] = evaluate(folder, truth, run_dir / f"run_{i}")
-        log.info("%s: %s", name, res[name])
+        online[name] = stream_run(folder, truth)
+        log.info("%s: %s; online %s", name, res[name], online[name])
+    if not only or only in CARRIED:
+        online[CARRIED] = carried_row(data, run_dir)
+        online[CARRIED]["offline_recall"] = next((m["recall"] for n, m in res.items() if n.startswith("Nordland")),
+                                                 None)
+        log.info("%s: %s", CARRIED, online[CARRIED])
     body = ("### Precision where places look alike (`python -m bench.aliasing`, issues 17 and 27)\n\n"
             + aliasing_table(res)
+            + "\n\nOnline: the same sets streamed through the Python API (`LoopDetector.process`, one frame at a "
+            "time, no store) from frame 0 with no calibration given: the stream calibrates itself "
+            "(`retrieval.online`: a warm-up accepting nothing, refits at doublings, checks between them); loops are "
+            "the frames' own and the delayed ones (`FrameResult.confirmed`). The last row carries a calibration "
+            "(a prior, checked against the stream).\n\n" + online_table(res, online)
             + f"\n\nDefault config, one run, nothing tuned per set. Total {time.perf_counter() - t0:.0f} s.")
     if out is not None and not only:
         from .run import write_section  # bench.run imports this module (its false-loop stress rows)

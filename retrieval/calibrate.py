@@ -83,7 +83,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Callable, Iterable
 
 import h5py
 import numpy as np
@@ -104,7 +104,7 @@ from .descriptors import GlobalDescriptor
 from .temporal import CodeTable, NoFilter, SequenceFilter, TemporalFilter
 
 __all__ = ["Calibration", "TooFewFrames", "CALIBRATION_FORMAT", "calibrate", "calibrated_features",
-           "calibration_frames"]
+           "calibration_frames", "far_side_scores"]
 
 log = logging.getLogger(__name__)
 
@@ -266,6 +266,9 @@ class Calibration:
                 out["score"] = hi  # else None: one window never decides alone (a measured null)
         if self.inlier_null:
             x, top = int(self.inlier_null["floor"]), int(self.inlier_null["floor"]) + 100_000
+            tail = self.pair_tail()
+            if isinstance(tail, EmpiricalTail):  # constant past its largest sample: no need to look further
+                top = min(top, max(x, int(tail.x[-1]) if len(tail.x) else x) + 2)
             while self.inlier_confidence(x) < a and x < top:
                 x += 1
             out["inliers"] = x if x < top else None  # None: one pair never decides alone (a measured null)
@@ -344,20 +347,22 @@ def calibration_frames(n_frames: int, window: int, length: int, max_frames: int)
     return np.unique(np.concatenate([np.arange(s, s + block) for s in starts]))
 
 
-def _encode_all(frames: Iterable[tuple[int, np.ndarray]], gate: EdgeGate, descriptor: GlobalDescriptor,
-                progress: bool, known: dict[int, np.ndarray] | None = None
-                ) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray], float, float]:
-    """Pass over the frames: edge ratios first (the reference), then codes of the frames that pass the gate (taken
-    from ``known`` where it has them: codes computed ahead from the same images); the last value is the seconds
-    spent on edge ratios (the calibration's own work: the run measures them again)."""
+def _encode_all(frames: Iterable[tuple[int, np.ndarray | None]], gate: EdgeGate, descriptor: GlobalDescriptor,
+                progress: bool, known: dict[int, np.ndarray] | None = None, ratios: dict[int, float] | None = None
+                ) -> tuple[dict[int, np.ndarray | None], dict[int, np.ndarray], float, float]:
+    """Pass over the frames: edge ratios first (the reference; taken from ``ratios`` where it has them, the frame's
+    image then may be None), then codes of the frames that pass the gate (taken from ``known`` where it has them:
+    codes computed ahead from the same images); the last value is the seconds spent on edge ratios (the
+    calibration's own work: the run measures them again)."""
     known = {} if known is None else known
-    images: dict[int, np.ndarray] = {}
+    given = {} if ratios is None else ratios
+    images: dict[int, np.ndarray | None] = {}
     ratios = {}
     gate_s = 0.0
     for fid, image in tqdm(frames, desc="calibrate: read", unit="frame", disable=not progress, leave=False):
         images[fid] = image
         t0 = time.perf_counter()
-        ratios[fid] = gate.edge_ratio(image)
+        ratios[fid] = given[fid] if fid in given else gate.edge_ratio(image)
         gate_s += time.perf_counter() - t0
     reference = float(np.median(list(ratios.values()))) if ratios else 0.0
     gate.reference = reference
@@ -396,6 +401,22 @@ def _null_scores(ids: np.ndarray, table: CodeTable, filt: TemporalFilter, window
     return np.concatenate(rows) if rows else np.zeros((0, 3))
 
 
+def far_side_scores(ids: np.ndarray, table: CodeTable, filt: TemporalFilter, window: int,
+                    still_cos: float = STILL_COS, newest: int = 0) -> np.ndarray:
+    """``(n,)`` temporal scores of the far-side pairs of keyframes ``ids`` (``window // 2 <= query - ref <
+    window``, both in ``ids``; pairs through a stop, adjacent codes at least ``still_cos`` alike, left out; with
+    ``newest``, only those whose query is among the ``newest`` last ids): what the nulls are drawn from, for a stream
+    that checks a calibration against its newest frames (``retrieval.online``)."""
+    ids = np.asarray(ids, np.int64)
+    if len(ids) < 2:
+        return np.zeros(0)
+    moved = np.r_[True, table.pairs(ids[1:], ids[:-1]) < still_cos]
+    rows = _null_scores(ids, table, filt, window, moved)
+    if newest and len(rows):
+        rows = rows[rows[:, 0] >= ids[-min(newest, len(ids))]]
+    return rows[:, 2] if len(rows) else np.zeros(0)
+
+
 def _tail_fit(values: np.ndarray) -> tuple[float, float, float]:
     """Robust ``(median, q90, q90 - median)`` of null samples (up to ~10% of them may be contaminated)."""
     q50, q90 = np.quantile(values, [0.5, 0.9])
@@ -414,7 +435,8 @@ def calibrated_features(conf: dict[str, Any]) -> dict[str, Any]:
 def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dict[str, Any],
               descriptor: GlobalDescriptor, filt: TemporalFilter, K: np.ndarray | None = None,
               progress: bool = True, codes: dict[int, np.ndarray] | None = None,
-              features: dict[int, Any] | None = None) -> Calibration:
+              features: dict[int, Any] | None = None, ratios: dict[int, float] | None = None,
+              local: Callable[[int], Any] | None = None) -> Calibration:
     """Calibrates on a sequence's frames (see the module doc).
 
     Args:
@@ -428,6 +450,11 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
             encoded, so it may fill while ``frames`` is consumed); the others are encoded here.
         features: a dict that receives the local features extracted for the inlier null (``{frame_id: Features}``),
             for the run to reuse.
+        ratios: edge ratios already measured (``{frame_id: ratio}``: a stream calibrating itself,
+            ``retrieval.online``); a frame with one may come with its image None when ``codes`` has its code and
+            ``local`` gives its local features.
+        local: ``local(frame_id) -> Features`` of a frame already seen (a stream's own keyframe features), used
+            instead of extracting them from the frames' images.
 
     Raises:
         ConfigError: too few usable frames, or an exclusion window too short to hold null pairs.
@@ -438,7 +465,7 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
                           f"not to be loops); got {window}. Set calibration.enabled: false to use fixed thresholds")
     t0 = time.perf_counter()
     gate = EdgeGate(conf["gate"])
-    images, raw, reference, gate_s = _encode_all(frames, gate, descriptor, progress, codes)
+    images, raw, reference, gate_s = _encode_all(frames, gate, descriptor, progress, codes, ratios)
     shared = time.perf_counter() - t0 - gate_s  # reading and encoding every frame: the run's work, reused
     if len(raw) < max(MIN_FIT_CODES, window):
         raise TooFewFrames(f"calibration needs at least {max(MIN_FIT_CODES, window)} frames that pass the gate; "
@@ -466,7 +493,7 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
                  "inliers": n_keyframes * conf["search"]["k"] * SPAN}  # every run length 1..span counted
     apart = _null_scores(ids, table, filt, window, moved, window // 2)  # far apart in moved frames too
     _score_path(cal, apart if len(apart) >= 20 else null, filt, table)
-    shared += _inlier_path(cal, conf, images, null, table, K, progress, features)
+    shared += _inlier_path(cal, conf, images, null, table, K, progress, features, local)
     _stretch(cal, ids, table, moved)
     for key, value in cal.thresholds().items():
         if value is not None:
@@ -631,8 +658,8 @@ class _Verify:
     run reuses them); thread-safe (one verifier per thread: OpenCV and torch release the GIL)."""
 
     def __init__(self, conf: dict[str, Any], images: dict[int, np.ndarray], K: np.ndarray | None,
-                 feats: dict[int, Any]) -> None:
-        self.conf, self.fconf = conf, calibrated_features(conf)
+                 feats: dict[int, Any], local: Callable[[int], Any] | None = None) -> None:
+        self.conf, self.fconf, self.local = conf, calibrated_features(conf), local
         self.min_matches = conf["policy"]["min_matches"]
         self.images, self.K, self.feats = images, K, feats
         self._local = threading.local()
@@ -645,7 +672,8 @@ class _Verify:
         """Extracts the features of ``fids`` (those in the calibration and not extracted yet) on every core."""
         t0 = time.perf_counter()
         todo = sorted({int(f) for f in fids if f in self.images and f not in self.feats})
-        self.feats.update(_extract_side_by_side(self.fconf, self.images, todo))
+        self.feats.update({f: self.local(f) for f in todo} if self.local is not None else
+                          _extract_side_by_side(self.fconf, self.images, todo))
         self.extract_s += time.perf_counter() - t0
 
     def __call__(self, q: int, r: int) -> int | None:
@@ -716,15 +744,17 @@ def _fused_samples(seqs: list[list[int]], decision: Decision) -> np.ndarray:
 
 
 def _inlier_path(cal: Calibration, conf: dict[str, Any], images: dict[int, np.ndarray], null: np.ndarray,
-                 table: CodeTable, K: np.ndarray | None, progress: bool, feats: dict[int, Any] | None = None) -> float:
+                 table: CodeTable, K: np.ndarray | None, progress: bool, feats: dict[int, Any] | None = None,
+                 local: Callable[[int], Any] | None = None) -> float:
     """Hard negatives, random pairs and positives verified; the pair tail, the fused tail, whether one pair may
     decide alone; or verification switched off where local features are too few. The local features extracted go
-    into ``feats`` (for the run to reuse); returns the seconds spent extracting them."""
+    into ``feats`` (for the run to reuse; ``local(frame_id)`` gives them where the frames' images are not given);
+    returns the seconds spent extracting them."""
     cc = conf["calibration"]
     if cc["verification"] == "off":
         cal.notes.append("verification: off (calibration.verification)")
         return 0.0
-    verify = _Verify(conf, images, K, {} if feats is None else feats)
+    verify = _Verify(conf, images, K, {} if feats is None else feats, local)
     queries = np.unique(null[:, 0]).astype(np.int64)
     n_q = min(len(queries), max(10, cc["null_pairs"] // (1 + 3 * SPAN)))
     picks = queries[np.unique(np.linspace(0, len(queries) - 1, n_q).astype(int))]

@@ -2,7 +2,7 @@
 at a time. How a frame is described and searched is the global descriptor's (``descriptor``: the CAE code by
 default, searched by cosine; MILD's ORB descriptors, searched by multi-index hashing: ``retrieval.places``).
 
-    >>> det = LoopDetector(K=K, database="run/keyframes.h5", calibration=cal)   # doctest: +SKIP
+    >>> det = LoopDetector(K=K)   # in memory: the stream calibrates itself (retrieval.online)   # doctest: +SKIP
     >>> res = det.process(image, frame_id=i, timestamp=t)            # doctest: +SKIP
     >>> res.loop                                                     # Candidate or None   # doctest: +SKIP
 
@@ -19,7 +19,8 @@ default, searched by cosine; MILD's ORB descriptors, searched by multi-index has
                                  its keyframe)`` for each that was not a loop yet (reported once, with the run's
                                  confidence; their candidates were in those frames' results)
     R, t        (3, 3), (3,)  relative pose of the loop (essential-matrix model only), else None
-    ms          dict[str, float]  milliseconds by stage: gate, encode, features, search, verify, insert, total
+    ms          dict[str, float]  milliseconds by stage: gate, encode, features, search, verify, insert, total;
+                                 online (``retrieval.online``) also calibrate: recording the frame, checks, refits
 """
 
 from __future__ import annotations
@@ -55,6 +56,7 @@ from .calibrate import Calibration, calibrated_features
 from .descriptors import DESCRIPTORS, GlobalDescriptor, create_descriptor
 from .feature_jobs import FeatureJobs, grey_copy, read_grey_copy
 from .index import INDEXES
+from .online import DRIFT_Z, OnlineCalibration
 from .places import create_places
 from .temporal import FILTERS, create_filter
 
@@ -96,8 +98,11 @@ default_conf: dict[str, Any] = {
     "matcher": {"name": "ratio"},  # descriptor matcher by registry name and its options
     "geometry": GeometricVerifier.default_conf,  # RANSAC model and thresholds
     "calibration": {
-        "enabled": True,  # calibrate thresholds on the sequence (detect) / use the calibration given (API);
-        #                   False: the fixed policy below (the API without a calibration uses it too)
+        "enabled": True,  # calibrate thresholds on the sequence (detect) / on the stream itself or use the
+        #                   calibration given (API, ``online``); False: the fixed policy below
+        "online": True,  # the API without a store: calibrate on the stream itself as it grows (``retrieval.online``:
+        #                  a warm-up of 2 exclusion windows accepting nothing, refits at doublings, a calibration
+        #                  given checked against the stream first); False: without a calibration, the fixed policy
         "expected_false_loops": 0.1,  # a-contrario target: expected false loops over the whole run
         "null_pairs": 1200,  # pairs verified with local features for the nulls (hard-negative sequences: the
         #                     pair null is their empirical p-value, so more pairs let one pair claim more)
@@ -163,7 +168,7 @@ conf_rules: dict[str, Any] = {
                "still_cos": Float(0, 1, lo_open=True, optional=True)},
     "whitening": {"enabled": Bool(), "source": Choice("auto", "sequence", "weights"), "dim": Int(1, 4096),
                   "shrink": Float(0, 100), "skip_still": Bool(), "stream_fit": Int(32, optional=True)},
-    "calibration": {"enabled": Bool(), "expected_false_loops": Float(0, 100, lo_open=True),
+    "calibration": {"enabled": Bool(), "online": Bool(), "expected_false_loops": Float(0, 100, lo_open=True),
                     "null_pairs": Int(10, 100_000), "min_features": Int(0), "min_inliers": Int(8),
                     "verification": Choice("auto", "on", "off"), "max_frames": Int(100),
                     "features_px": Int(16, optional=True)},
@@ -270,7 +275,10 @@ class LoopDetector:
         descriptor: an already built global descriptor (e.g. the one the calibration used), instead of building one
             from ``conf["descriptor"]``; its name must be the conf's.
         calibration: what ``retrieval.calibrate`` chose for this camera (gate reference, whitening, thresholds).
-            None: the fixed policy (``policy.min_inliers``), the weights' own whitening if they carry one.
+            None: with ``calibration.online`` and no ``database``, the stream calibrates itself
+            (``retrieval.online``); else the fixed policy (``policy.min_inliers``), the weights' own whitening if
+            they carry one. Given with ``calibration.online`` and no ``database``: a prior, checked against the
+            stream at the end of the warm-up (kept, or refitted on the stream).
         frame_source: ``frame_source(frame_id) -> image`` gives a processed frame again (offline: read from its file)
             when its local features are needed after it was processed (``runtime.lazy_features``); None: a lossless
             PNG copy of the grey frame at the extractor's resolution is kept in memory instead.
@@ -296,6 +304,9 @@ class LoopDetector:
             raise ConfigError("calibration must be a retrieval.calibrate.Calibration; got "
                               f"{type(calibration).__name__}")
         self.calibration = calibration if c["calibration"]["enabled"] else None
+        online = c["calibration"]["enabled"] and c["calibration"]["online"] and database is None \
+            and DESCRIPTORS.get(c["descriptor"]["name"]).searched_by == "cosine"
+        self._online = OnlineCalibration(c, self.calibration) if online else None  # the stream calibrates itself
         self.gate = EdgeGate(c["gate"], None if self.calibration is None else self.calibration.edge_reference)
         if descriptor is not None and not isinstance(descriptor, DESCRIPTORS.get(c["descriptor"]["name"])):
             raise ConfigError(f"descriptor must be a {c['descriptor']['name']!r} descriptor (the conf's); got "
@@ -307,7 +318,7 @@ class LoopDetector:
         if self.whitening is not None and self.whitening.input_dim != self.descriptor.dim:
             raise ConfigError(f"the whitening expects {self.whitening.input_dim}-d codes; the descriptor gives "
                               f"{self.descriptor.dim}-d ones")
-        fconf = c["features"] if self.calibration is None else calibrated_features(c)
+        fconf = c["features"] if self.calibration is None and self._online is None else calibrated_features(c)
         if self.calibration is not None and self.calibration.features and self.calibration.features != fconf:
             raise ConfigError(f"the calibration was made on local features {self.calibration.features}; this run "
                               f"extracts {fconf} (features, calibration.features_px): calibrate again")
@@ -319,6 +330,7 @@ class LoopDetector:
         self.places = create_places(self.descriptor, self.whitening, c, stream_fit)
         self.filter = create_filter(c["temporal"])
         self._verify = bool(self.calibration.inlier_null) if self.calibration is not None else c["policy"]["verify"]
+        self._verify = self._verify and self._online is None  # online: nothing verified until calibrated
         self._min_inliers = c["policy"]["min_inliers"]
         self.decision = None  # calibrated: the fused decision and the "too recent" rule (retrieval.decision)
         if self.calibration is not None:
@@ -340,9 +352,10 @@ class LoopDetector:
                                                    " calibration " + self.calibration.identity())
             self.db = KeyframeDatabase(database, persisted, identity, c["runtime"]["flush_every"])
         self._jobs = FeatureJobs(functools.partial(create_extractor, fconf), c["runtime"]["feature_cache"]) \
-            if c["runtime"]["feature_worker"] and self._verify and not self.descriptor.needs_features else None
+            if c["runtime"]["feature_worker"] and (self._verify or online) and not self.descriptor.needs_features \
+            else None
         self._pool = BesideExecutor(thread_name_prefix="verify") \
-            if c["runtime"]["verify_worker"] and self._verify else None
+            if c["runtime"]["verify_worker"] and (self._verify or online) else None
         self._wanted = False  # whether the previous frame's query needed its local features
         self.features = FeatureStore(self.db if c["runtime"]["features"] in ("database", "image") else None,
                                      c["runtime"]["feature_cache"])  # features kept (not ``_unextracted``)
@@ -547,6 +560,15 @@ class LoopDetector:
                 self._copies[fid] = grey_copy(small, scale)
         self._next_id = fid + 1
         ms["insert"] = (time.perf_counter() - t0) * 1e3
+        if self._online is not None:
+            t0 = time.perf_counter()
+            self._online.record(fid, edge_ratio, code, np.array([cd.frame_id for cd in candidates], np.int64),
+                                np.array([cd.matches for cd in candidates], np.int64),
+                                np.array([cd.inliers for cd in candidates], np.int64),
+                                loop is not None)
+            confirmed = confirmed + self._online_step()
+            self._online.mark([q for q, _ in confirmed])
+            ms["calibrate"] = (time.perf_counter() - t0) * 1e3
         return loop, best, confirmed
 
     def _describe_and_search(self, image: np.ndarray, gray: np.ndarray,
@@ -727,6 +749,94 @@ class LoopDetector:
             return self.extractor.extract(to_gray_u8(to_uint8(self._frame_source(fid))))
         return _copy_features(self._copy_of(fid), self.extractor)
 
+    def _online_step(self) -> list[tuple[int, Candidate]]:
+        """The stream's own calibration (``retrieval.online``), after a keyframe is stored: at the end of the warm-up
+        a carried calibration is checked, else fitted; at doublings refitted; between them checked against the
+        newest frames and refitted where they drifted. Returns the loops a new decision finds late."""
+        on = self._online
+        step = on.due()
+        if step is None:
+            return []
+        if step == "check" or on.unchecked:
+            carried, on.unchecked = on.unchecked, False
+            z = on.drift(self.places.source, self.filter, 0 if carried else None)  # a prior: the whole warm-up
+            if z <= DRIFT_Z:
+                on.next_fit = on.next_fit if not carried else 2 * len(on.seen)
+                if carried:
+                    on.ready = True
+                    self._verify = bool(on.calibration.inlier_null)
+                    log.info("carried calibration checked against the stream at %d keyframes: its far-side scores "
+                             "%.1f sigma from its null: kept", len(on.seen), z)
+                    return self._redecide()
+                return []
+            log.info("%s at %d keyframes: the stream's far-side scores lie %.1f sigma above its null: refit on the "
+                     "stream", "carried calibration" if carried else "online calibration", len(on.seen), z)
+            if carried:
+                on.calibration = None  # refused: only the stream's own may decide now
+        cal = on.fit(self.descriptor, self.K, self.keyframe_features)
+        if cal is None:
+            return []
+        self._use(cal)
+        return self._redecide() if on.ready else []
+
+    def _use(self, cal: Calibration) -> None:
+        """Makes ``cal`` (fitted on the stream) the run's: the gate's reference, the index moved into its whitening,
+        the decision, what is verified."""
+        self.calibration = cal
+        if cal.edge_reference is not None:
+            self.gate.reference = cal.edge_reference
+        if cal.whitening is not self.places.whitening:
+            self.places.rewhiten(cal.whitening, *self._online.raw())
+        self.whitening = cal.whitening
+        self._verify = self._online.adopt(cal, self.places.source, self.filter) and bool(cal.inlier_null)
+
+    def _redecide(self) -> list[tuple[int, Candidate]]:
+        """Every recorded frame decided again under the current calibration, in order (scores in the current code
+        space; candidates not verified that could pass now verified); the decision's state is the replay's. Returns
+        the loops not reported yet (``(frame_id, candidate)``)."""
+        cal, c = self.calibration, self.conf
+        self.decision = dec = cal.decision(c["search"]["exclude_recent"], self.filter)
+        self._min_inliers = int(dec.floor)
+        self._confirm = confirm = Confirmations(dec.span) if dec.pair_tail is not None else None
+        src, out = self.places.source, []
+        for seen in self._online.seen:
+            q = seen.frame_id
+            qs = np.full(len(seen.refs), q, np.int64)
+            cands = [Candidate(int(r), float(a), int(m), int(i), float(b)) for r, a, b, m, i in zip(
+                seen.refs.tolist(), src.pairs(qs, seen.refs).tolist(), self.filter.score(qs, seen.refs, src).tolist(),
+                seen.matches.tolist(), seen.inliers.tolist())]
+            self._verify_late(q, cands, seen)
+            for cand in cands:
+                cand.confidence = self._confidence(cand)
+            counted = np.array([self._counted(cd) for cd in cands], np.int64)
+            fused = dec.confidences(q, seen.refs, counted, src, np.array([cd.confidence for cd in cands]))
+            for cand, value in zip(cands, fused):
+                cand.confidence = float(max(value, -1e9))
+            loop = max((cd for cd in cands if cd.confidence >= cal.accept_at), key=lambda cd: cd.confidence,
+                       default=None)
+            found = [] if loop is None else [(q, loop)]
+            if confirm is not None:
+                found += [(f, dataclasses.replace(cd, confidence=loop.confidence)) for f, cd in
+                          (confirm.confirm(dec, q, loop.frame_id, self._counted(loop)) if loop is not None else [])]
+                confirm.add(q, {cd.frame_id: (cd.confidence, cd) for cd in cands}, loop is not None)
+            dec.commit(q, seen.refs, counted)
+            out += [(f, cd) for f, cd in found if not self._online.reported(f)]
+            self._online.mark([f for f, _ in found])
+        return sorted({f: cd for f, cd in out}.items())
+
+    def _verify_late(self, fid: int, cands: list[Candidate], seen: Any) -> None:
+        """Verifies, at a refit, the candidates of a recorded frame that were not verified and could pass now
+        (``_could_pass``); records their matches and inliers in ``seen``."""
+        todo = [i for i, cd in enumerate(cands) if cd.inliers < 0 and self._could_pass(cd)]
+        if not todo:
+            return
+        refs = [self._features_of(cands[i].frame_id) for i in todo]
+        done = self.verifier.verify(self._features_of(fid), refs, self.K, self.conf["policy"]["min_matches"],
+                                    self._min_inliers, True, self._pool)
+        for i, check in zip(todo, done):
+            cands[i].matches, cands[i].inliers = check.matches, check.inliers
+            seen.matches[i], seen.inliers[i] = check.matches, check.inliers
+
     def _confirmed(self, fid: int, candidates: list[Candidate],
                    loop: Candidate | None) -> list[tuple[int, Candidate]]:
         """The delayed loops the run accepting ``loop`` certifies (``retrieval.decision.Confirmations``), each a copy of
@@ -799,6 +909,8 @@ class LoopDetector:
         (``policy.still_cos``); most inliers, then most matches, then score (verifying), else the best temporal
         score (as ``evaluation``'s sweep on ``confidence`` picks it).
         """
+        if self._online is not None and not self._online.ready:
+            return None, None  # the warm-up, or a carried calibration not yet checked: nothing is accepted
         if self.calibration is not None:
             passing = [(cd, ch) for cd, ch in zip(candidates, checks) if cd.confidence >= self.calibration.accept_at]
             if not passing and self.decision is not None:  # a still frame after a loop: the same place (a stop)

@@ -337,14 +337,14 @@ class KeyframeIndex:
 
     def mapped(self, fn: Any, dim: int, codes_of: Any) -> "KeyframeIndex":
         """A copy in another code space: the same admitted and queued keyframes, each code ``fn(code)`` (``(n, D)``
-        -> ``(n, dim)``); ``codes_of(frame_ids) -> (n, D)`` gives the admitted ones' codes (a stream's whitening,
-        fitted once on its first keyframes: ``retrieval.places``)."""
+        -> ``(n, dim)``); ``codes_of(frame_ids) -> (n, D)`` gives their codes, the admitted and the queued ones' (a
+        stream's whitening, fitted on its keyframes: ``retrieval.places``)."""
         out = KeyframeIndex(dim, self.index.conf, self._queue.exclude_recent, self._queue.exclude_recent_s)
         out.frame_ids = list(self.frame_ids)
         if out.frame_ids:
             out.index.add(fn(codes_of(np.asarray(out.frame_ids, np.int64))))
-        for fid, ts, code in self._queue:
-            out._queue.push(fid, ts, fn(code[None])[0])
+        for fid, ts, _ in self._queue:
+            out._queue.push(fid, ts, fn(codes_of(np.array([fid], np.int64)))[0])
         return out
 
     def search(self, code: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:

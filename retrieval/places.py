@@ -164,14 +164,22 @@ class CodePlaces(Places):
         resumed run fits the same one) and moves the index and the table into the whitened space."""
         ids, codes = self.source.items()
         w = Whitening.fit(codes, self._fit_dim, self._shrink)
-        white = (lambda x: np.asarray(w.transform(x), np.float16).astype(np.float32))  # as ``entry`` rounds
-        self.index = self.index.mapped(white, w.dim, lambda fids: codes[np.searchsorted(ids, fids)])
-        table = self._table(w.dim)
-        for fid, code in zip(ids.tolist(), white(codes)):
+        self.rewhiten(w, ids, codes)
+        log.info("stream whitening fitted on %d keyframes: codes %d -> %d dimensions", len(ids), codes.shape[1], w.dim)
+
+    def rewhiten(self, whitening: Whitening | None, ids: np.ndarray, raw: np.ndarray) -> None:
+        """Moves the index and the table into ``whitening``'s space (None: the raw codes): ``raw`` ``(n, D)`` are
+        the raw codes of keyframes ``ids`` ``(n,)`` (sorted, every keyframe held), each searched entry as ``entry``
+        makes it (a stream's own whitening once fitted, or refitted: ``retrieval.online``)."""
+        def white(x: np.ndarray) -> np.ndarray:  # as ``entry`` rounds
+            return np.asarray(x if whitening is None else whitening.transform(x), np.float16).astype(np.float32)
+        dim = self.descriptor.dim if whitening is None else whitening.dim
+        self.index = self.index.mapped(white, dim, lambda fids: raw[np.searchsorted(ids, fids)])
+        table = self._table(dim)
+        for fid, code in zip(ids.tolist(), white(raw)):
             if fid not in table:  # an index-backed source holds the inserted ones already
                 table.add(fid, code)
-        self.source, self.whitening, self.dim = table, w, w.dim
-        log.info("stream whitening fitted on %d keyframes: codes %d -> %d dimensions", len(ids), codes.shape[1], w.dim)
+        self.source, self.whitening, self.dim = table, whitening, dim
 
     def undo(self, frame_id: int) -> None:
         self.source.remove_last(frame_id)

@@ -129,8 +129,11 @@ class TestCalibratedFeatures:
 
         cal = Calibration.load(kitti_runs["00"].calibration)
         assert cal.features["resize_max"] == 384
-        with LoopDetector(calibration=cal, encoder=encoder) as det, LoopDetector(encoder=encoder) as fixed:
+        with LoopDetector(calibration=cal, encoder=encoder) as det, \
+                LoopDetector({"calibration": {"online": False}}, encoder=encoder) as fixed, \
+                LoopDetector(encoder=encoder) as online:  # the stream calibrates itself: its features are those
             assert det.extractor.conf == cal.features and fixed.extractor.conf["resize_max"] == 512
+            assert online.extractor.conf == cal.features
         with pytest.raises(ConfigError, match="calibrate again"):
             LoopDetector({"calibration": {"features_px": None}}, calibration=cal, encoder=encoder)
         with LoopDetector({"calibration": {"enabled": False}}, calibration=cal, encoder=encoder) as det:

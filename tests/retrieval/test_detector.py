@@ -137,7 +137,8 @@ class TestLoopDetector:
         """Frames 0, 1, 2 then their revisits 50, 51, 52 (as ids 3, 4, 5), with a short exclusion window; features of
         every frame (not lazy), from the worker thread or the main thread."""
         frames = [0, 1, 2, 50, 51, 52]
-        conf = {"search": {"exclude_recent": 3}}
+        conf = {"search": {"exclude_recent": 3}, "calibration": {"online": False}}  # the fixed policy: 6 frames are
+        #                                                                            too few for a stream to calibrate
         out = {}
         for worker in (True, False):
             with LoopDetector({**conf, "runtime": {"feature_worker": worker, "lazy_features": False}}, K=sample_K,
@@ -203,8 +204,8 @@ class TestSavedIndex:
                                                                              sample_image, encoder, caplog):
         """A graph index (rebuilt in minutes at a million keyframes) is saved beside the store on close and taken
         back on resume; the resumed run finds what the uninterrupted one did."""
-        conf = {"index": {"name": "hnsw"}}
-        seq = sample_seq
+        conf = {"index": {"name": "hnsw"}, "calibration": {"online": False}}  # in memory as with a store: the fixed
+        seq = sample_seq                                                     # policy (a store does not self-calibrate)
 
         def run(det, frames):
             return [(r.frame_id, -1 if r.loop is None else r.loop.frame_id)
@@ -460,6 +461,7 @@ class TestLazyFeatures:
     FRAMES = range(0, 70)  # 50 frames without a candidate, then the start of the revisit
 
     def run(self, conf, encoder, sample_seq, sample_image, **kwargs):
+        conf = {**conf, "calibration": {"online": False}}  # 70 frames: within an online stream's warm-up
         with LoopDetector(conf, K=sample_seq.K, encoder=encoder, **kwargs) as det:
             return [det.process(sample_image(i), i) for i in self.FRAMES]
 
