@@ -88,14 +88,22 @@ def frames(kitti_sequences):
     return out, read_kitti_calib(kitti_sequences / "00" / "calib.txt")
 
 
-def stream(url, token, robot, frames, K, acked, stop_after=None):
-    """Submits ``frames`` in order; records what the server acknowledged; stops at the first connection error."""
+def stream(url, token, robot, frames, K, acked, stop_after=None, retries=0, errors=None):
+    """Submits ``frames`` in order; records what the server acknowledged; stops at the first error (the server was
+    killed), or tries a refused keyframe again up to ``retries`` times, 1 s apart, as a robot would (a server just
+    restarted, on a loaded machine), keeping each error in ``errors``."""
     client = FleetClient(url, token, timeout=60)
     for i, pose, png in frames:
-        try:
-            stored = client.submit_keyframe(robot, i, float(i), pose, png, K)
-        except Exception:  # noqa: BLE001 - the server was killed
-            return
+        for attempt in range(retries + 1):
+            try:
+                stored = client.submit_keyframe(robot, i, float(i), pose, png, K)
+                break
+            except Exception as err:  # noqa: BLE001 - the server was killed, or refused this once
+                if errors is not None:
+                    errors.append(f"{robot} {i}: {err}")
+                if attempt == retries:
+                    return
+                time.sleep(1.0)
         acked.append((robot, i, stored))
 
 
@@ -123,9 +131,10 @@ class TestKillAndRestart:
             before = {(r, i) for r, i, _ in acked}
             proc = start_server(state, port, store)
             again: list = []
+            errors: list = []
             for r in "AB":
-                stream(url, tokens[r], r, frames[r], K, again)
-            assert len(again) == 30
+                stream(url, tokens[r], r, frames[r], K, again, retries=3, errors=errors)
+            assert len(again) == 30, errors
             retried = {(r, i) for r, i, stored in again if not stored}
             assert before <= retried  # every acknowledged keyframe was still there: a retry, not stored again
             overlaps = admin.overlaps()
