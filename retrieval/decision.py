@@ -23,7 +23,8 @@ verified as in the run), and what a loop looks like: the **positives** (a frame 
   members: each of ``t - m + 1 .. t - 1`` with evidence on the run's offset, not yet a loop and whose pair was
   admissible then (not too recent, not a stop), is reported at ``t`` (once); a refused run certifies nothing. On the
   score path the run is ``m`` windows, ``m * length`` frames: each earlier frame of them with an admissible candidate
-  on the run's line (one frame off at most) is reported.
+  on the run's line (one frame off at most: where its keyframe on the line was refused, e.g. by the stop rule, an
+  admissible one beside it) is reported.
 - **Whether one pair may decide alone**: only where geometry separates on this sequence (the median positive pair
   would be accepted alone and no hard negative is); elsewhere a loop needs evidence from ``min_support`` frames.
 - **The score path fuses too** (``ScoreSpans``, where local features are too few to verify; issue 27: measured, not
@@ -600,10 +601,12 @@ class Confirmations:
         marked a loop (reported once); ``source``: the code store (the score path's windows). Call before
         ``decision.commit(query_id, ...)``."""
         members = dict(decision.run_members(query_id, ref, inliers, source))
+        near = (0, -1, 1) if decision.pair_tail is None else (0,)  # the score path's line: one frame off at most
         out = []
         for q, kept, looped in self._frames:
             r = members.get(q)
-            if r is not None and not looped[0] and r in kept:
+            pick = None if r is None else next((r + d for d in near if r + d in kept), None)
+            if pick is not None and not looped[0]:
                 looped[0] = True
-                out.append((q, kept[r]))
+                out.append((q, kept[pick]))
         return out

@@ -378,6 +378,28 @@ class TestConfirmations:
             dec.commit(q, np.array([r]), np.array([x]))
         assert conf.confirm(dec, 82, 31, inl[-1]) == []
 
+    def test_score_path_member_one_frame_off_its_line(self):
+        """Nordland's winter frames 806-817 wait in a station the summer train waited in too: the run accepted at
+        818 -> 318 has members 808 -> 308 and 809 -> 309 on its line, refused then by the stop rule; an admissible
+        keyframe one frame off the line (309 -> 310) is reported, two off (308 -> 310) is not; on the inlier path
+        (verified pairs) only the member itself counts."""
+        from retrieval.decision import Confirmations
+
+        class Line:  # the score path's accepted run (``Decision.run_members`` on its line)
+            pair_tail = None
+
+            def run_members(self, query_id, ref, inliers, source):
+                return [(808, 308), (809, 309)]
+
+        class Verified(Line):
+            pair_tail = object()
+
+        for decision, want in ((Line(), [(809, "c809")]), (Verified(), [])):
+            conf = Confirmations()
+            conf.add(808, {308: (Confirmations.VETO, "v808"), 310: (-3.0, "c808")}, False)
+            conf.add(809, {309: (Confirmations.VETO, "v809"), 310: (-3.6, "c809")}, False)
+            assert conf.confirm(decision, 818, 318, -1) == want
+
     def test_stream_reports_delayed_loops_and_detect_replays_them(self, small, tmp_path):
         """Through the API on real frames: the revisit's first frame, too weak alone, is reported once the run
         through it is accepted (on the later frame's result); the stored run replays to the same delayed loops."""
