@@ -85,18 +85,25 @@ def _video(fourcc: str, ext: str) -> Callable[[Path, list[np.ndarray]], Path]:
     return build
 
 
+def _three_frames(folder: Path, images: list[np.ndarray], line: Callable[[int], str], last: str) -> list[str]:
+    """Writes ``images[0..2]`` into ``folder`` as ``k.png``; their list lines ``line(k)``, the last one replaced by
+    ``last`` when given."""
+    folder.mkdir(parents=True)
+    lines = []
+    for k in range(3):
+        cv2.imwrite(str(folder / f"{k}.png"), images[k])
+        lines.append(line(k))
+    if last:
+        lines[-1] = last
+    return lines
+
+
 def _tum(rgb: str = "", gt: str = "") -> Callable[[Path, list[np.ndarray]], Path]:
     """A 3-frame TUM folder; ``rgb`` replaces the last ``rgb.txt`` line, ``gt`` is appended to ``groundtruth.txt``
     (its lines 2-4 hold good poses)."""
     def build(tmp: Path, images: list[np.ndarray]) -> Path:
         root = tmp / "tum"
-        (root / "rgb").mkdir(parents=True)
-        lines = []
-        for k in range(3):
-            cv2.imwrite(str(root / "rgb" / f"{k}.png"), images[k])
-            lines.append(f"{k}.0 rgb/{k}.png")
-        if rgb:
-            lines[-1] = rgb
+        lines = _three_frames(root / "rgb", images, lambda k: f"{k}.0 rgb/{k}.png", rgb)
         (root / "rgb.txt").write_text("# timestamp filename\n" + "\n".join(lines) + "\n")
         (root / "groundtruth.txt").write_text("# t tx ty tz qx qy qz qw\n" + "".join(
             f"{k}.0 {k} 0 0 0 0 0 1\n" for k in range(3)) + gt)
@@ -109,13 +116,7 @@ def _euroc(csv: str = "", gt: str | None = None) -> Callable[[Path, list[np.ndar
     (None: three good ones)."""
     def build(tmp: Path, images: list[np.ndarray]) -> Path:
         cam = tmp / "MH" / "mav0" / "cam0"
-        (cam / "data").mkdir(parents=True)
-        lines = []
-        for k in range(3):
-            cv2.imwrite(str(cam / "data" / f"{k}.png"), images[k])
-            lines.append(f"{k}000000000,{k}.png")
-        if csv:
-            lines[-1] = csv
+        lines = _three_frames(cam / "data", images, lambda k: f"{k}000000000,{k}.png", csv)
         (cam / "data.csv").write_text("#timestamp [ns],filename\n" + "\n".join(lines) + "\n")
         truth = cam.parent / "state_groundtruth_estimate0"
         truth.mkdir()
