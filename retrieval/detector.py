@@ -797,7 +797,7 @@ class LoopDetector:
         cal, c = self.calibration, self.conf
         self.decision = dec = cal.decision(c["search"]["exclude_recent"], self.filter)
         self._min_inliers = int(dec.floor)
-        self._confirm = confirm = Confirmations(dec.span) if dec.pair_tail is not None else None
+        self._confirm = confirm = Confirmations(dec.reach) if dec.confirms else None
         src, out = self.places.source, []
         for seen in self._online.seen:
             q = seen.frame_id
@@ -812,12 +812,13 @@ class LoopDetector:
             fused = dec.confidences(q, seen.refs, counted, src, np.array([cd.confidence for cd in cands]))
             for cand, value in zip(cands, fused):
                 cand.confidence = float(max(value, -1e9))
-            loop = max((cd for cd in cands if cd.confidence >= cal.accept_at), key=lambda cd: cd.confidence,
-                       default=None)
+            loop = self._decide(q, cands, [None] * len(cands))[0]  # the run's rule, stop carry included
+            dec.note_loop(q, None if loop is None else loop.frame_id, 0.0 if loop is None else loop.confidence)
             found = [] if loop is None else [(q, loop)]
             if confirm is not None:
                 found += [(f, dataclasses.replace(cd, confidence=loop.confidence)) for f, cd in
-                          (confirm.confirm(dec, q, loop.frame_id, self._counted(loop)) if loop is not None else [])]
+                          (confirm.confirm(dec, q, loop.frame_id, self._counted(loop), src) if loop is not None
+                           else [])]
                 confirm.add(q, {cd.frame_id: (cd.confidence, cd) for cd in cands}, loop is not None)
             dec.commit(q, seen.refs, counted)
             out += [(f, cd) for f, cd in found if not self._online.reported(f)]
