@@ -72,11 +72,10 @@ def not_revisits(picks: np.ndarray, revisits: np.ndarray) -> np.ndarray:
     revisits = np.asarray(revisits, np.int64).reshape(-1, 2)
     if len(revisits) == 0:
         return out
-    pairs = set(map(tuple, revisits.tolist())) | set(map(tuple, revisits[:, ::-1].tolist()))
-    for a, i in enumerate(picks.tolist()):
-        for b, j in enumerate(picks.tolist()):
-            if (i, j) in pairs:
-                out[a, b] = False
+    at = {int(f): k for k, f in enumerate(picks.tolist())}  # a frame's row in the batch
+    for i, j in revisits.tolist():
+        if i in at and j in at:
+            out[at[i], at[j]] = out[at[j], at[i]] = False
     return out
 
 
