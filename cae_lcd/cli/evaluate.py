@@ -19,8 +19,9 @@ def add_parser(sub: Any) -> None:
     p = sub.add_parser("evaluate", help="evaluate a detect run against ground truth (PR, AUC, Recall@k, plots)",
                        description=evaluate.__doc__.split("\n\n")[0])
     p.add_argument("run", help="run folder written by 'cae-lcd detect', or a loops.csv")
-    p.add_argument("--gt", default=_DEFAULTS["gt"], help="ground truth: 'i j' pairs file (0-based) or KITTI poses file (default: the one "
-                   "detect found: the sequence's loops.txt or, for TUM / EuRoC, loops derived from its poses)")
+    p.add_argument("--gt", default=_DEFAULTS["gt"], help="ground truth: 'i j' pairs file (0-based) or KITTI poses "
+                   "file (default: the one detect found: the sequence's loops.txt or, for TUM / EuRoC, loops derived "
+                   "from its poses)")
     p.add_argument("--out", help="folder for evaluation.json and the PNGs (default: the run folder)")
     p.add_argument("--radius", type=float, default=_DEFAULTS["radius"],
                    help="poses ground truth: loop radius on the x-z plane, metres (default %(default)s)")
@@ -43,6 +44,6 @@ def add_world_argument(p: Any, default: str) -> None:
 
 
 def run(args: Any) -> None:
-    evaluate.main(Path(args.run), None if args.gt is None else Path(args.gt), None if args.out is None else Path(args.out), args.radius,
-                  args.min_gap, args.min_gap_s, args.score, None if args.times is None else Path(args.times),
-                  args.world)
+    evaluate.main(Path(args.run), None if args.gt is None else Path(args.gt),
+                  None if args.out is None else Path(args.out), args.radius, args.min_gap, args.min_gap_s, args.score,
+                  None if args.times is None else Path(args.times), args.world)

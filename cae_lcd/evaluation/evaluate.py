@@ -229,7 +229,8 @@ def _plots(report: dict[str, Any], out: Path, title: str, truth: GroundTruth, de
 
 def _montages(report: dict[str, Any], out: Path, summary: dict[str, Any], det: np.ndarray, correct: np.ndarray,
               truth: GroundTruth, title: str) -> None:
-    """``loops_montage.png`` and ``missed_montage.png`` (``cae_lcd.evaluation.montage``) from the run's sequence frames."""
+    """``loops_montage.png`` and ``missed_montage.png`` (``cae_lcd.evaluation.montage``) from the run's sequence
+    frames."""
     from .montage import missed_pairs, write_montage
 
     sequence = summary.get("sequence")
@@ -277,11 +278,11 @@ def main(run: Path, gt: Path | None = None, out: Path | None = None, radius: flo
         min_gap: minimum frame gap, for pose-derived ground truth.
         min_gap_s: minimum time gap (seconds) instead of ``min_gap``; needs timestamps (``times`` or the run's
             sequence ``times.txt``).
-        score: the score the PR curve sweeps (``cae_lcd.evaluation.metrics.SCORES``): ``"confidence"`` (what the detector
-            thresholds), ``"inliers"``, ``"cosine"`` or ``"seq_score"``.
+        score: the score the PR curve sweeps (``cae_lcd.evaluation.metrics.SCORES``): ``"confidence"`` (what the
+            detector thresholds), ``"inliers"``, ``"cosine"`` or ``"seq_score"``.
         times: ``times.txt`` (one timestamp a frame) for ``min_gap_s``; None = the run's sequence's.
-        world: a poses ground truth's world convention (``cae_lcd.evaluation.ground_truth.WORLDS``): ``"auto"`` takes the
-            one the run was scored with, else finds the gravity axis from the trajectory.
+        world: a poses ground truth's world convention (``cae_lcd.evaluation.ground_truth.WORLDS``): ``"auto"``
+            takes the one the run was scored with, else finds the gravity axis from the trajectory.
 
     Returns:
         The report written to ``evaluation.json``.
