@@ -53,18 +53,24 @@ from .calibrate import Calibration, TooFewFrames, calibrate, calibration_frames,
 from .descriptors import GlobalDescriptor
 from .temporal import CodeTable, TemporalFilter, create_filter
 
-__all__ = ["OnlineCalibration", "Seen", "WARM_UP", "DRIFT_Z", "CHECK_EVERY", "MIN_FIRST_FIT"]
+__all__ = ["OnlineCalibration", "Seen", "WARM_UP", "DRIFT_Z", "CHECK_EVERY", "MIN_FIRST_FIT", "HELD_OUT",
+           "SCORE_PATH_DECIDES"]
 
 log = logging.getLogger(__name__)
 
 WARM_UP = 2  #: exclusion windows of keyframes before the first fit (nothing accepted until then)
 DRIFT_Z = 1.0  #: the newest far-side scores this many of the calibration's sigmas above its null: refit now
 MIN_FIRST_FIT = 40  #: the fewest keyframes a first fit reads (a short window's far side holds few pairs)
-SCORE_PATH_DECIDES = False  #: whether a stream-fitted calibration on the score path (too few local features to
-#   verify: no geometric veto) may decide. Off: measured, its Gaussian null fitted on a young stream (whitening of
-#   25-80 dimensions) accepted false loops (Nordland 22 of 490, the 64x32 stress set 89: BENCHMARKS.md, issue 27);
-#   the score path online decides only from a carried calibration that agrees with the stream. Re-measure with the
-#   measured score null (issue 27's other half) before turning it on.
+SCORE_PATH_DECIDES = True  #: whether a stream-fitted calibration on the score path (too few local features to
+#   verify: no geometric veto) may decide. Measured, with its nulls drawn in sample (the whitening fitted on the
+#   frames the null pairs come from): a Gaussian null accepted false loops (Nordland 22 of 490, the 64x32 stress set
+#   89), the measured null still 36 on the 64x32 stress set (07's frames 121-156 on 00's 96-130: frames after the
+#   fit). With the nulls out of sample (``HELD_OUT``): see the module doc. False: only a carried calibration that
+#   agrees with the stream decides there.
+HELD_OUT = 0.25  #: on the score path, the share of the frames a fit reads (where the camera moved), newest first,
+#   left out of its whitening, the score path's nulls drawn from their far-side pairs (``retrieval.calibrate``,
+#   ``held_out``): the frames a stream decides come after its fit, and a whitening makes the frames it was fitted on
+#   look less alike than those
 CHECK_EVERY = 10  #: keyframes between two checks of the calibration against the newest frames
 
 
@@ -168,7 +174,7 @@ class OnlineCalibration:
         try:
             cal = calibrate(((f, None) for f in ids), max(2 * n, c["calibration"]["max_frames"]), c, descriptor,
                             create_filter(c["temporal"]), K,
-                            False, codes, {}, {f: self.ratios[f] for f in ids}, local)
+                            False, codes, {}, {f: self.ratios[f] for f in ids}, local, HELD_OUT)
         except TooFewFrames as err:
             log.info("online calibration at %d keyframes: not yet (%s)", n, err)
             return None
