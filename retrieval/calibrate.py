@@ -18,9 +18,11 @@ Before a run, the calibration looks at the sequence itself (``cae-lcd calibrate 
    the line's terms include one stop matched to itself and the nulls' tails hold a place, not a non-loop).
    **The score path's null is measured, not extrapolated** (issue 27): every far-side pair whose line stays half
    the window apart in frames where the camera *moved* (a stop in between does not make two frames of one station
-   far apart), thousands of them (Nordland: about 11,000). One window's temporal score is read from that sample as
-   it is (``retrieval.decision.EmpiricalTail``: ``(#{null >= s} + 1) / (n + 1)``), so it claims at most
-   ``log10(n + 1)`` decades, never a tail past the sample; the run tests about ``n_keyframes^2 / 2`` pairs at each
+   far apart), thousands of them (Nordland: about 11,000); a stream calibrating itself (``held_out``,
+   ``retrieval.online``) draws them out of sample, from its newest frames under a whitening fitted on the frames
+   before them (``_out_of_sample``: the frames a stream decides come after its whitening's fit). One window's
+   temporal score is read from that sample as it is (``retrieval.decision.EmpiricalTail``: ``(#{null >= s} + 1) /
+   (n + 1)``), so it claims at most ``log10(n + 1)`` decades, never a tail past the sample; the run tests about ``n_keyframes^2 / 2`` pairs at each
    of ``SPAN`` spans (Nordland: 2e6), which no one window can certify, so **a loop is a run of consecutive windows on
    one line** (``retrieval.decision.ScoreSpans``): each window must agree (its own p-value at most 0.1, ``AGREE``),
    their evidence is summed and read from the heavier of the Gamma tail (windows of disjoint frames taken as
@@ -126,7 +128,8 @@ class Calibration:
         score_null: ``{"median", "sigma", "samples", "empirical"}`` of the null temporal scores: with ``empirical``
             (1.0, what ``calibrate`` makes) one window is read from the measured sample ``samples["score_null"]``
             (``EmpiricalTail``), else (made by hand) from a Gaussian through the median and sigma (the 90th
-            percentile's); empty = the score path is off.
+            percentile's); ``held_out``: the share of the frames its pairs were drawn from out of sample (a stream's
+            own, ``calibrate``'s ``held_out``; absent: drawn in sample); empty = the score path is off.
         inlier_null: ``{"u", "beta", "empirical", "floor", "samples"}``: the pair null; with ``empirical`` (1.0, what
             ``calibrate`` makes) the measured sample ``samples["hard_inliers"]`` itself
             (``retrieval.decision.EmpiricalTail``), else the exponential ``TailModel(u, beta)`` (made by hand);
@@ -504,6 +507,8 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
         null_table, apart = table, _null_scores(ids, table, filt, window, moved, window // 2)  # far apart in moved
         apart = apart if len(apart) >= 20 else null  # frames too
     _score_path(cal, apart, filt, null_table)
+    if null_table is not table:
+        cal.score_null["held_out"] = float(held_out)
     _stretch(cal, ids, table, moved)
     for key, value in cal.thresholds().items():
         if value is not None:

@@ -163,3 +163,32 @@ def test_the_score_path_online_finds_a_real_revisit(kitti_64x32, kitti_sequences
     pairs = np.array([(q, r) for q, (r, _) in sorted(loops.items())], np.int64).reshape(-1, 2)
     pr = precision_recall(pairs, read_loop_pairs(kitti_sequences / "90" / "loops.txt"))
     assert pr.precision == 1.0 and pr.recall >= 0.9
+
+
+class _Frames:
+    """A plain sequence of images in memory (what ``calibrate_sequence`` reads: no intrinsics)."""
+
+    def __init__(self, images: list[np.ndarray]) -> None:
+        self.images, self.K = images, None
+
+    def __len__(self) -> int:
+        return len(self.images)
+
+    def read_frame(self, i: int):
+        return self.images[i], None
+
+
+def test_a_carried_score_path_calibration_gives_way_to_the_streams_own(kitti_64x32, encoder, caplog):
+    """On the score path a carried calibration's null was drawn in sample (its whitening fitted on the frames its
+    null pairs come from), and every frame of the stream comes after that fit: once the stream has a null of its
+    own drawn out of sample, the stream's decides, however many samples the carried one holds (kept, on Nordland's
+    winter it let through 19 false loops)."""
+    carried = calibrate_sequence(_Frames(kitti_64x32("00")), {}, progress=False)
+    assert carried.path == "score" and carried.score_null["samples"] > 2000 and "held_out" not in carried.score_null
+    with caplog.at_level(logging.INFO, logger="retrieval.online"):
+        with LoopDetector(None, encoder=encoder, calibration=carried) as det:
+            stream(det, kitti_64x32("90").__getitem__, range(200))
+            own = det.calibration
+    assert own is not carried and own.score_null.get("held_out")
+    assert own.score_null["samples"] < carried.score_null["samples"]  # fewer samples, yet drawn where it decides
+    assert not any("never loosens" in r.getMessage() for r in caplog.records)
