@@ -18,14 +18,14 @@ Before a run, the calibration looks at the sequence itself (``cae-lcd calibrate 
    the line's terms include one stop matched to itself and the nulls' tails hold a place, not a non-loop).
    **The score path's null is measured, not extrapolated** (issue 27): every far-side pair whose line stays half
    the window apart in frames where the camera *moved* (a stop in between does not make two frames of one station
-   far apart), thousands of them (Nordland: about 11,000); a stream calibrating itself (``held_out``,
-   ``retrieval.online``) draws them out of sample, from its newest frames under a whitening fitted on the frames
-   before them (``_out_of_sample``: the frames a stream decides come after its whitening's fit). One window's
-   temporal score is read from that sample as it is (``retrieval.decision.EmpiricalTail``: ``(#{null >= s} + 1) /
-   (n + 1)``), so it claims at most ``log10(n + 1)`` decades, never a tail past the sample; the run tests about
-   ``n_keyframes^2 / 2`` pairs at each of ``SPAN`` spans (Nordland: 2e6), which no one window can certify, so **a
-   loop is a run of consecutive windows on one line** (``retrieval.decision.ScoreSpans``): each window must agree
-   (its own p-value at most 0.1, ``AGREE``), their evidence is summed and read from the heavier of the Gamma tail (windows of disjoint frames taken as
+   far apart), thousands of them (Nordland: about 11,000; a stream calibrating itself draws them out of sample:
+   ``held_out``, from its newest frames under a whitening fitted on the frames before them, ``_out_of_sample``). One
+   window's temporal score is read from that sample as
+   it is (``retrieval.decision.EmpiricalTail``: ``(#{null >= s} + 1) / (n + 1)``), so it claims at most
+   ``log10(n + 1)`` decades, never a tail past the sample; the run tests about ``n_keyframes^2 / 2`` pairs at each
+   of ``SPAN`` spans (Nordland: 2e6), which no one window can certify, so **a loop is a run of consecutive windows on
+   one line** (``retrieval.decision.ScoreSpans``): each window must agree (its own p-value at most 0.1, ``AGREE``),
+   their evidence is summed and read from the heavier of the Gamma tail (windows of disjoint frames taken as
    independent: the one assumption past the sample) and the fused evidence measured on the far-side lines of as many
    windows (``samples/score_fused``; where look-alike stretches make windows dependent, this raises the bar). The
    rule a reader can check: ``confidence = -log10(tests * max(Gamma_m(E), measured_m(E)))``, each window's term at
