@@ -135,9 +135,13 @@ def kitti_64x32(kitti_sequences):
 
     from cae_lcd.core.images import read_image
 
+    done: dict[str, list[np.ndarray]] = {}
+
     def frames(seq: str) -> list[np.ndarray]:
-        paths = sorted((kitti_sequences / seq / "image_0").glob("*.png"))
-        return [cv2.resize(read_image(p), (64, 32), interpolation=cv2.INTER_AREA) for p in paths]
+        if seq not in done:
+            paths = sorted((kitti_sequences / seq / "image_0").glob("*.png"))
+            done[seq] = [cv2.resize(read_image(p), (64, 32), interpolation=cv2.INTER_AREA) for p in paths]
+        return done[seq]
 
     return frames
 
