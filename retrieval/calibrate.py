@@ -18,7 +18,9 @@ Before a run, the calibration looks at the sequence itself (``cae-lcd calibrate 
    the line's terms include one stop matched to itself and the nulls' tails hold a place, not a non-loop).
    **The score path's null is measured, not extrapolated** (issue 27): every far-side pair whose line stays half
    the window apart in frames where the camera *moved* (a stop in between does not make two frames of one station
-   far apart), thousands of them (Nordland: about 11,000). One window's temporal score is read from that sample as
+   far apart), thousands of them (Nordland: about 11,000; a stream calibrating itself draws them out of sample:
+   ``held_out``, from its newest frames under a whitening fitted on the frames before them, ``_out_of_sample``). One
+   window's temporal score is read from that sample as
    it is (``retrieval.decision.EmpiricalTail``: ``(#{null >= s} + 1) / (n + 1)``), so it claims at most
    ``log10(n + 1)`` decades, never a tail past the sample; the run tests about ``n_keyframes^2 / 2`` pairs at each
    of ``SPAN`` spans (Nordland: 2e6), which no one window can certify, so **a loop is a run of consecutive windows on
@@ -126,7 +128,8 @@ class Calibration:
         score_null: ``{"median", "sigma", "samples", "empirical"}`` of the null temporal scores: with ``empirical``
             (1.0, what ``calibrate`` makes) one window is read from the measured sample ``samples["score_null"]``
             (``EmpiricalTail``), else (made by hand) from a Gaussian through the median and sigma (the 90th
-            percentile's); empty = the score path is off.
+            percentile's); ``held_out``: the share of the frames its pairs were drawn from out of sample (a stream's
+            own, ``calibrate``'s ``held_out``; absent: drawn in sample); empty = the score path is off.
         inlier_null: ``{"u", "beta", "empirical", "floor", "samples"}``: the pair null; with ``empirical`` (1.0, what
             ``calibrate`` makes) the measured sample ``samples["hard_inliers"]`` itself
             (``retrieval.decision.EmpiricalTail``), else the exponential ``TailModel(u, beta)`` (made by hand);
@@ -436,7 +439,7 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
               descriptor: GlobalDescriptor, filt: TemporalFilter, K: np.ndarray | None = None,
               progress: bool = True, codes: dict[int, np.ndarray] | None = None,
               features: dict[int, Any] | None = None, ratios: dict[int, float] | None = None,
-              local: Callable[[int], Any] | None = None) -> Calibration:
+              local: Callable[[int], Any] | None = None, held_out: float = 0.0) -> Calibration:
     """Calibrates on a sequence's frames (see the module doc).
 
     Args:
@@ -455,9 +458,14 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
             ``local`` gives its local features.
         local: ``local(frame_id) -> Features`` of a frame already seen (a stream's own keyframe features), used
             instead of extracting them from the frames' images.
+        held_out: on the score path, the share of the frames where the camera moved, newest first, that the
+            whitening is not fitted on, the score path's nulls drawn from their far-side pairs only
+            (``_out_of_sample``: a stream decides frames its whitening has not seen, ``retrieval.online``); 0: fitted
+            on every frame, the nulls from every frame (a sequence calibrated before its run).
 
     Raises:
-        ConfigError: too few usable frames, or an exclusion window too short to hold null pairs.
+        ConfigError: too few usable frames, or an exclusion window too short to hold null pairs (``TooFewFrames``
+            also where ``held_out`` frames hold too few far-side pairs).
     """
     cc, window = conf["calibration"], conf["search"]["exclude_recent"]
     if window < 4:
@@ -491,9 +499,16 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
     n_keyframes = max(len(ids) * n_frames / max(len(images), 1), 2.0)
     cal.tests = {"score": max(n_keyframes, (n_keyframes - window) ** 2 / 2),  # every query against every keyframe
                  "inliers": n_keyframes * conf["search"]["k"] * SPAN}  # every run length 1..span counted
-    apart = _null_scores(ids, table, filt, window, moved, window // 2)  # far apart in moved frames too
-    _score_path(cal, apart if len(apart) >= 20 else null, filt, table)
     shared += _inlier_path(cal, conf, images, null, table, K, progress, features, local)
+    if held_out and not cal.inlier_null:  # a stream on the score path: its nulls measured out of sample
+        null_table, apart = _out_of_sample(cal, conf["whitening"], descriptor, filt, ids, codes, moved, window,
+                                           held_out)
+    else:
+        null_table, apart = table, _null_scores(ids, table, filt, window, moved, window // 2)  # far apart in moved
+        apart = apart if len(apart) >= 20 else null  # frames too
+    _score_path(cal, apart, filt, null_table)
+    if null_table is not table:
+        cal.score_null["held_out"] = float(held_out)
     _stretch(cal, ids, table, moved)
     for key, value in cal.thresholds().items():
         if value is not None:
@@ -624,6 +639,47 @@ def _score_path(cal: Calibration, null: np.ndarray, filt: TemporalFilter, table:
         "from the heavier of the Gamma tail (windows of disjoint frames taken as independent) and the fused evidence "
         f"measured on the far-side lines (decades; {', '.join(top)}); {cal.tests['score']:.3g} tests, every span "
         "counted")
+
+
+def _out_of_sample(cal: Calibration, wconf: dict[str, Any], descriptor: GlobalDescriptor, filt: TemporalFilter,
+                   ids: np.ndarray, codes: np.ndarray, moved: np.ndarray, window: int, held_out: float
+                   ) -> tuple[CodeTable, np.ndarray]:
+    """The score path's nulls measured out of sample (issue 27), for a whitening fitted on every frame ``ids (n,)``
+    (raw ``codes (n, D)``, ``moved (n,)`` as ``_moved``) that decides the frames after them: a second whitening is
+    fitted on the frames before the newest ones that hold the share ``held_out`` of the frames where the camera moved
+    (a stop holds no null pair), and the nulls are the far-side pairs (far apart in moved frames; ``window``:
+    ``search.exclude_recent``) whose query is one of those newest frames, scored under it. A whitening fitted on few
+    frames (4 a dimension) makes the frames it was fitted on look less alike than the frames after it, and those are
+    the ones a stream decides: measured on the 00-then-07 stress set at 64x32, under a whitening fitted on its first
+    320 frames, the far-side pairs' 90th percentile is 0.027 on those frames and 0.061 on the 40 after them, and
+    their best window over the whole map has a median of 0.06 and 0.26 (07's frames 121-156 then pass for 00's
+    96-130). The second whitening is fitted on fewer frames, so on fewer dimensions (its cosines spread wider) and
+    with as many frames a dimension: its frames after the fit stand for the deciding whitening's. Frames in the fit
+    (decided again at a refit) face a null higher than their own: a bar only raised. Returns the code table under
+    the second whitening and the null rows (``_null_scores``).
+
+    Raises:
+        TooFewFrames: the held-out frames hold fewer than 20 far-side pairs.
+    """
+    pos = np.flatnonzero(moved)
+    keep = len(pos) - int(round(held_out * len(pos)))  # moved frames the second whitening is fitted on
+    cut = int(pos[keep]) if MIN_FIT_CODES <= keep < len(pos) else len(ids)
+    rows = np.zeros((0, 3))
+    if cut < len(ids):
+        white = _whitening(wconf, descriptor, codes[:cut], [], moved[:cut])
+        normed = white.transform(codes) if white is not None else codes
+        table = CodeTable(normed.shape[1])
+        for fid, code in zip(ids, normed):
+            table.add(int(fid), code)
+        rows = _null_scores(ids, table, filt, window, moved, window // 2)
+        rows = rows[rows[:, 0] >= ids[cut]] if len(rows) else rows
+    if len(rows) < 20:
+        raise TooFewFrames(f"the newest {len(ids) - cut} frames hold only {len(rows)} far-side pairs to measure the "
+                           "score path's nulls out of sample")
+    cal.notes.append(f"score path, out of sample: the score null drawn from the far-side pairs of the newest "
+                     f"{len(ids) - cut} frames under a whitening fitted on the {cut} before them (the frames a stream "
+                     "decides come after its whitening's fit)")
+    return table, rows
 
 
 def _windows_needed(cal: Calibration, filt: TemporalFilter) -> str:
