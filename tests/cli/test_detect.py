@@ -277,7 +277,7 @@ class TestCalibrateCommand:
         assert any("accept:" in r.getMessage() for r in caplog.records)  # what it chose, and why
         before = (out / "calibration.h5").read_bytes()
         caplog.clear()
-        assert main(["detect", str(sample_dir), "--out", str(out), "--no-progress"]) == 0
+        assert main(["detect", str(sample_dir), "--out", str(out), "--lookahead", "--no-progress"]) == 0
         assert any("using the calibration" in r.getMessage() for r in caplog.records)
         assert (out / "calibration.h5").read_bytes() == before
         summary = json.loads((out / "summary.json").read_text())
