@@ -39,8 +39,9 @@ Memory: per keyframe its raw code (float16: 8 kB for the 4096-d CAE code, so 0.8
 every keyframe into the new whitening from them) and edge ratio, its candidates' ids, matches and inliers; the local
 features come from the detector (kept, or extracted again from its grey copy).
 
-Persisted: a detector with a keyframe store (``database``: ``cae-lcd detect``, the fleet's per-robot detectors) stores
-each keyframe's raw code with it, and the state here after each fit (``to_state``: the calibration, the schedule, the
+Persisted: a detector with a keyframe store (``database``: ``cae-lcd detect``, or the API given one; the fleet's
+per-robot detectors keep one but run the fixed policy, ``calibration.enabled: false``) stores each keyframe's raw code
+there, and the state here after each fit (``to_state``: the calibration, the schedule, the
 candidates as refits verified them, which frames were reported; ``KeyframeDatabase.write_online``); a resumed run
 takes the newest state its stored frames reach (``from_state``) and replays the frames after it
 (``LoopDetector._load``), so it decides on as the uninterrupted run would have.
