@@ -298,6 +298,10 @@ def _with_confirmed(query: int, cands: np.ndarray, loop: int,
 def _log_seconds(seconds: dict[str, float]) -> None:
     """One line: the wall time of the calibration (its own work apart from the run's work it did ahead) and of the
     frames."""
+    if "calibration_online" in seconds:
+        log.info("seconds: frames %.1f, of which the stream's own calibration (records, checks, refits) %.1f",
+                 seconds["frames"], seconds["calibration_online"])
+        return
     if "calibration_own" not in seconds:
         log.info("seconds: calibration %.1f, frames %.1f", seconds["calibration"], seconds["frames"])
         return
@@ -381,6 +385,8 @@ def main(path: str | Path | Sequence | None = None, out: str | Path | None = Non
         t0 = time.perf_counter()
         timings = _run_frames(det, seq, start, progress, codes)
         seconds["frames"] = time.perf_counter() - t0
+        if any("calibrate" in t for t in timings):  # online: records, checks, refits, inside the frames' time
+            seconds["calibration_online"] = sum(t.get("calibrate", 0.0) for t in timings) / 1e3
         seconds.update({f"calibration_{k}": v for k, v in (cal.seconds if cal is not None else {}).items()})
         _log_seconds(seconds)
         cal = det.calibration  # the look-ahead one, or the stream's own at its end (online)

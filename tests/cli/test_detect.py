@@ -372,6 +372,7 @@ class TestDetectOnline:
         assert written == set(api.items()) and len(written) >= 45  # measured: 49, precision 1.000, recall 0.980
         summary = json.loads((run / "summary.json").read_text())
         assert summary["calibration"]["online"] and not (run / "calibration.h5").exists()
+        assert 0 < summary["seconds"]["calibration_online"] < summary["seconds"]["frames"]  # refits inside the frames
         assert summary["confirmed"] > 0  # the loops the refit at 80 keyframes found late, written as delayed loops
         before = read_csv(run / "loops.csv")
         with h5py.File(run / "keyframes.h5", "a") as f:  # killed after frame 59: later blocks never committed
