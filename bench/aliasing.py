@@ -173,7 +173,7 @@ def stream_run(folder: Path, truth: np.ndarray | None, conf: dict[str, Any] | No
             for q, cand in res.confirmed:
                 loops.setdefault(q, cand.frame_id)
     pairs = np.array(sorted(loops.items()), np.int64).reshape(-1, 2)
-    out: dict[str, Any] = {"frames": len(ms), "loops": len(pairs), "wall_s": time.perf_counter() - t0,
+    out: dict[str, Any] = {"frames": len(ms), "loops": len(pairs), "pairs": pairs, "wall_s": time.perf_counter() - t0,
                            "ms_mean": float(np.mean(ms)), "ms_median": float(np.median(ms)), "ms_worst": float(max(ms))}
     if truth is not None:
         pr = precision_recall(pairs, truth)
