@@ -77,6 +77,7 @@ frames is looked at first and nothing is verified.
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import logging
 import math
@@ -288,44 +289,60 @@ class Calibration:
 
     def save(self, path: str | Path) -> None:
         """Writes ``calibration.h5`` (temporary file, then rename)."""
+        with atomic_write(path, "wb") as f:
+            self._write(f)
+
+    def to_bytes(self) -> bytes:
+        """The bytes ``save`` writes (the keyframe store keeps a stream's own calibration so: ``retrieval.online``)."""
+        buf = io.BytesIO()
+        self._write(buf)
+        return buf.getvalue()
+
+    @classmethod
+    def from_bytes(cls, data: bytes, name: str = "calibration") -> "Calibration":
+        """The calibration ``to_bytes`` gave (``name`` says where it came from in errors); as ``load``."""
+        return cls.load(io.BytesIO(data), name)
+
+    def _write(self, f: Any) -> None:
+        """Writes the calibration as HDF5 into the open binary file ``f``."""
         meta = {"edge_reference": self.edge_reference, "score_null": self.score_null,
                 "inlier_null": self.inlier_null, "tests": self.tests,
                 "expected_false_loops": self.expected_false_loops, "notes": self.notes, "descriptor": self.descriptor,
                 "fused": self.fused, "spans": self.spans, "features": self.features}
-        with atomic_write(path, "wb") as f:
-            with h5py.File(f, "w") as h5:
-                h5.attrs["format_version"] = CALIBRATION_FORMAT
-                h5.attrs["calibration"] = json.dumps(meta)
-                if self.whitening is not None:
-                    grp = h5.create_group("whitening")
-                    for key, value in self.whitening.state().items():
-                        grp.create_dataset(key, data=value)
-                grp = h5.create_group("samples")
-                for key, value in self.samples.items():
-                    grp.create_dataset(key, data=np.asarray(value, np.float64))
+        with h5py.File(f, "w") as h5:
+            h5.attrs["format_version"] = CALIBRATION_FORMAT
+            h5.attrs["calibration"] = json.dumps(meta)
+            if self.whitening is not None:
+                grp = h5.create_group("whitening")
+                for key, value in self.whitening.state().items():
+                    grp.create_dataset(key, data=value)
+            grp = h5.create_group("samples")
+            for key, value in self.samples.items():
+                grp.create_dataset(key, data=np.asarray(value, np.float64))
 
     @classmethod
-    def load(cls, path: str | Path) -> "Calibration":
-        """Reads ``calibration.h5``.
+    def load(cls, path: str | Path | io.BytesIO, name: str | None = None) -> "Calibration":
+        """Reads ``calibration.h5`` (or the bytes of one: ``from_bytes``).
 
         Raises:
             DatabaseError: the file cannot be read or is damaged; ConfigError: another format version.
         """
+        name = str(path) if name is None else name
         try:
             with h5py.File(path, "r") as h5:
                 version = int(h5.attrs["format_version"])
                 if version != CALIBRATION_FORMAT:
-                    raise ConfigError(f"{path} has format_version {version}; this software reads "
+                    raise ConfigError(f"{name} has format_version {version}; this software reads "
                                       f"{CALIBRATION_FORMAT}: calibrate again")
                 meta = json.loads(h5.attrs["calibration"])
                 white = None
                 if "whitening" in h5:
-                    white = Whitening.from_state({k: h5["whitening"][k][()] for k in h5["whitening"]}, str(path))
+                    white = Whitening.from_state({k: h5["whitening"][k][()] for k in h5["whitening"]}, name)
                 samples = {k: h5["samples"][k][()] for k in h5["samples"]} if "samples" in h5 else {}
         except ConfigError:
             raise
         except (OSError, KeyError, ValueError, TypeError) as err:
-            raise DatabaseError(f"cannot read the calibration {path} ({type(err).__name__}); it is damaged: "
+            raise DatabaseError(f"cannot read the calibration {name} ({type(err).__name__}); it is damaged: "
                                 "move it away to calibrate again") from None
         return cls(meta["edge_reference"], white, meta["score_null"], meta["inlier_null"], meta["tests"],
                    meta["expected_false_loops"], list(meta["notes"]), str(meta.get("descriptor", "")),

@@ -1,7 +1,7 @@
 """The keyframe store, persisted in one HDF5 file: what a detector has seen, so a run can resume or be inspected.
 
 Built for millions of keyframes: append-only and columnar, every column one chunked, resizable dataset (no group
-per keyframe). Layout (``format_version`` 7)::
+per keyframe). Layout (``format_version`` 8)::
 
     /                 attrs: format_version, conf (JSON), descriptor (weights identity), software, created,
                       committed (frames visible: the commit point, written last)
@@ -19,13 +19,21 @@ per keyframe). Layout (``format_version`` 7)::
     /blocks/end, /blocks/checksum      per written block of rows (``flush_every`` frames): its end row and one
                                BLAKE2b-128 of its rows, codes and candidates (verified on the first read)
     /codes            (R, D)   the searched code, float16 (whitened and unit-norm: what the index holds), one row a
-                               keyframe; or (R, 32) uint8 binary descriptors, several rows a keyframe (MILD)
+                               keyframe; or (R, 32) uint8 binary descriptors, several rows a keyframe (MILD); where
+                               the detector calibrates itself on the stream (``retrieval.online``), the raw code
+                               (float16, what it searched is made from it: a refit moves every keyframe into a new
+                               whitening)
     /features/keypoints   (M, 2) uint16, x and y in 1/8 pixel (``verify.features.KEYPOINT_STEP``)
     /features/descriptors (M, F) uint8 when lossless (SIFT), else the extractor's dtype; gzip-compressed
     /features/scales      (M,)   float16
     /candidates       (C, 6)   float64 rows (CANDIDATE_ROW) of every hypothesis judged
     /images           (B,)     uint8: each keyframe's grey copy (``retrieval.feature_jobs.grey_copy``), where it
                                keeps one instead of its features (a stream: ``runtime.features: image``)
+    /online/<frame_id>/        the online calibration's state after that keyframe (``LoopDetector._save_online``),
+                               written at each refit, beside the blocks: attrs ``meta`` (JSON) and ``checksum``
+                               (BLAKE2b-128 of meta and arrays, written last: a state without it is half-written and
+                               never read), one dataset an array; a resumed run takes the newest one its stored
+                               keyframes reach (``online_state``)
 
 Beside the file: the write-ahead log (``keyframes.h5.log``) and, where the detector's place index is costly to
 rebuild, a copy of it saved on close (``keyframes.h5.index``, ``INDEX_SUFFIX``; ``retrieval.index.KeyframeIndex.save``).
@@ -67,8 +75,9 @@ __all__ = ["FORMAT_VERSION", "CANDIDATE_ROW", "SKIP_REASONS", "KINDS", "MIN_FREE
 
 log = logging.getLogger(__name__)
 
-FORMAT_VERSION = 7  #: 7: 6 + a grey copy per keyframe (``images``); 6: 5 (columnar, float16 searched codes, compact
-#: features) + write-ahead log, features only where a frame cannot be read again
+FORMAT_VERSION = 8  #: 8: 7 + the online calibration's state (``online/``; its stores keep raw codes); 7: 6 + a grey
+#: copy per keyframe (``images``); 6: 5 (columnar, float16 searched codes, compact features) + write-ahead log,
+#: features only where a frame cannot be read again
 CANDIDATE_ROW = ("frame_id", "score", "matches", "inliers", "seq_score", "confidence")  #: a stored candidate row
 SKIP_REASONS = ("gated", "unreadable")  #: why a frame is not a keyframe
 KINDS = ("keyframe",) + SKIP_REASONS  #: ``frames/kind`` values, by position
@@ -764,6 +773,65 @@ class KeyframeDatabase:
             c = block["cols"]
             for j in range(len(rows)):
                 yield int(c["frame_id"][j]), block["cands"][j], int(c["loop"][j])
+
+    def edge_ratios(self) -> np.ndarray:
+        """``(n,)`` float64: each keyframe's edge ratio (the gate's), in frame-id order, checksums verified."""
+        self.sync()
+        out = [block["cols"]["edge_ratio"] for _, block in self._blocks(texts=False)]
+        return np.concatenate(out).astype(np.float64) if out else np.zeros(0)
+
+    def write_online(self, frame_id: int, meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> None:
+        """Writes the online calibration's state after keyframe ``frame_id`` (``online/<frame_id>``, replacing one
+        of that id): the arrays, then the checksum (a state without it is never read), then the file flushed.
+
+        Raises:
+            DatabaseError: the disk refuses it (nothing more is written to this store).
+        """
+        if self._broken:
+            raise DatabaseError(f"{self.path}: an earlier write failed; nothing more is written")
+        self._ensure_space()
+        name = f"online/{int(frame_id)}"
+        try:
+            if name in self.file:
+                del self.file[name]
+            grp = self.file.require_group("online").create_group(str(int(frame_id)))
+            for key, value in arrays.items():
+                grp.create_dataset(key, data=np.asarray(value))
+            text = json.dumps(meta)
+            grp.attrs["meta"] = text
+            keys = sorted(arrays)
+            grp.attrs["checksum"] = _checksum(text.encode(), keys, [np.asarray(arrays[k]) for k in keys]).decode()
+            self.file.flush()
+        except (OSError, RuntimeError, ValueError, TypeError) as err:
+            self._broken = True
+            raise DatabaseError(f"cannot write {self.path}: {str(err)[:160]}") from None
+
+    def online_state(self, last: int) -> tuple[int, dict[str, Any], dict[str, np.ndarray]] | None:
+        """The newest complete online state (``write_online``) of a keyframe ``<= last``, as ``(frame_id, meta,
+        arrays)``, checksum verified; None when there is none.
+
+        Raises:
+            DatabaseError: it is damaged.
+        """
+        try:
+            ids = sorted((int(k) for k in self.file["online"]), reverse=True) if "online" in self.file else []
+            for fid in (f for f in ids if f <= last):
+                grp = self.file[f"online/{fid}"]
+                if "checksum" not in grp.attrs:
+                    continue  # half-written by a killed run
+                text = str(grp.attrs["meta"])
+                arrays = {k: grp[k][()] for k in grp}
+                keys = sorted(arrays)
+                if _checksum(text.encode(), keys, [np.asarray(arrays[k]) for k in keys]).decode() != \
+                        str(grp.attrs["checksum"]):
+                    raise DatabaseError(f"{self.path} is damaged: the online calibration state of keyframe {fid} "
+                                        "fails its checksum; move it away to start again")
+                return fid, json.loads(text), arrays
+        except DatabaseError:
+            raise
+        except _READ_ERRORS as err:
+            raise self._damaged(err, "online") from None
+        return None
 
     def poses(self) -> np.ndarray:
         """``(n, 3, 4)`` camera-to-world pose per keyframe in frame-id order, NaN where none was given."""

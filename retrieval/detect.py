@@ -2,8 +2,13 @@
 (``retrieval.run_folder``): ``conf.yaml``, ``calibration.h5``, ``keyframes.h5``, ``loops.csv``, ``candidates.csv``,
 ``summary.json`` and the loops' relative poses for a back end (``loop_edges.g2o/.csv/.json``, ``retrieval.edges``).
 
-First the calibration (``retrieval.calibrate``) looks at the sequence and chooses the gate's reference, the code
-normalisation and the acceptance thresholds for this camera; a resumed run reuses the calibration it saved.
+By default (``calibration.online``) the run calibrates itself as it streams, exactly as ``LoopDetector.process`` does
+through the API (``retrieval.online``: a warm-up that accepts nothing, then the whitening, the nulls and the thresholds
+fitted from the frames seen and refitted at doublings; loops found late by a refit are written as delayed loops): the
+offline result and the streaming result are the same algorithm, and a killed run resumes from the online state kept
+in its keyframe store. With ``calibration.online: false`` (``--lookahead``) a calibration pass first looks at the whole
+sequence (``retrieval.calibrate``: the gate's reference, the code normalisation and the acceptance thresholds for this
+camera, saved as ``calibration.h5``; a resumed run reuses it) and the run decides with it fixed.
 
 A bad frame (unreadable, too small, of a dtype we cannot use) is skipped with a one-line warning naming the file,
 keeps its frame id and is counted. A killed run resumes from its database; a database made from other images
@@ -162,9 +167,9 @@ def _batch_encoder(descriptor: GlobalDescriptor) -> GlobalDescriptor | None:
 
 def _calibration(run: RunFolder, seq: Sequence, conf: dict[str, Any], descriptor: GlobalDescriptor,
                  progress: bool, codes: dict[int, np.ndarray], features: dict[int, Any]) -> Calibration | None:
-    """The run's calibration: the one saved in the run folder, else a new one (saved; its codes and features go
-    into ``codes`` and ``features``); None when disabled."""
-    if not conf["calibration"]["enabled"]:
+    """The run's look-ahead calibration: the one saved in the run folder, else a new one (saved; its codes and
+    features go into ``codes`` and ``features``); None when disabled, or online (the stream calibrates itself)."""
+    if not conf["calibration"]["enabled"] or conf["calibration"]["online"]:
         return None
     if run.calibration.is_file():
         cal = Calibration.load(run.calibration)
@@ -293,6 +298,10 @@ def _with_confirmed(query: int, cands: np.ndarray, loop: int,
 def _log_seconds(seconds: dict[str, float]) -> None:
     """One line: the wall time of the calibration (its own work apart from the run's work it did ahead) and of the
     frames."""
+    if "calibration_online" in seconds:
+        log.info("seconds: frames %.1f, of which the stream's own calibration (records, checks, refits) %.1f",
+                 seconds["frames"], seconds["calibration_online"])
+        return
     if "calibration_own" not in seconds:
         log.info("seconds: calibration %.1f, frames %.1f", seconds["calibration"], seconds["frames"])
         return
@@ -376,8 +385,11 @@ def main(path: str | Path | Sequence | None = None, out: str | Path | None = Non
         t0 = time.perf_counter()
         timings = _run_frames(det, seq, start, progress, codes)
         seconds["frames"] = time.perf_counter() - t0
+        if any("calibrate" in t for t in timings):  # online: records, checks, refits, inside the frames' time
+            seconds["calibration_online"] = sum(t.get("calibrate", 0.0) for t in timings) / 1e3
         seconds.update({f"calibration_{k}": v for k, v in (cal.seconds if cal is not None else {}).items()})
         _log_seconds(seconds)
+        cal = det.calibration  # the look-ahead one, or the stream's own at its end (online)
         keys = frame_keys(seq)
         rows = list(det.db.results())
         confirmed = det.confirmed_loops(rows)  # delayed loops: a run accepted at t certifies its earlier frames
@@ -408,7 +420,8 @@ def main(path: str | Path | Sequence | None = None, out: str | Path | None = Non
                                                    else seq.camera.T_body_camera.tolist()},
         "calibration": None if cal is None else {"notes": cal.notes, "accept_at_confidence": cal.accept_at,
                                                  "thresholds": cal.thresholds(),
-                                                 "verification": bool(cal.inlier_null)},
+                                                 "verification": bool(cal.inlier_null),
+                                                 "online": bool(resolved["calibration"]["online"])},
     }
     run.write_summary(summary)
     return summary

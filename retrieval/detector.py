@@ -43,6 +43,7 @@ from cae.preprocess import to_network_u8
 from cae.whitening import DEFAULT_DIM, DEFAULT_SHRINK
 from cae_lcd.core.checks import check_frame_id, check_intrinsics, check_pose, check_timestamp
 from cae_lcd.core.conf import Bool, Choice, ConfigError, Float, Int, check_conf, merge_conf
+from cae_lcd.core.errors import DatabaseError
 from cae_lcd.core.images import check_image, to_gray_u8, to_uint8
 from cae_lcd.core.threads import BesideExecutor, apply_thread_policy
 from verify.features import FEATURES, FeatureExtractor, Features, create_extractor
@@ -100,9 +101,12 @@ default_conf: dict[str, Any] = {
     "calibration": {
         "enabled": True,  # calibrate thresholds on the sequence (detect) / on the stream itself or use the
         #                   calibration given (API, ``online``); False: the fixed policy below
-        "online": True,  # the API without a store: calibrate on the stream itself as it grows (``retrieval.online``:
-        #                  a warm-up of 2 exclusion windows accepting nothing, refits at doublings, a calibration
-        #                  given checked against the stream first); False: without a calibration, the fixed policy
+        "online": True,  # calibrate on the stream itself as it grows (``retrieval.online``: a warm-up of 2 exclusion
+        #                  windows accepting nothing, refits at doublings, a calibration given checked against the
+        #                  stream first; with a store, its state is kept there and a resumed run goes on with it):
+        #                  the API, ``detect`` (the same algorithm) and the fleet's robots; False: the decision is
+        #                  fixed for the run: ``detect`` calibrates on a look-ahead pass over the whole sequence first
+        #                  (``--lookahead``), the API uses the calibration given, or without one the fixed policy
         "expected_false_loops": 0.1,  # a-contrario target: expected false loops over the whole run
         "null_pairs": 1200,  # pairs verified with local features for the nulls (hard-negative sequences: the
         #                     pair null is their empirical p-value, so more pairs let one pair claim more)
@@ -275,10 +279,11 @@ class LoopDetector:
         descriptor: an already built global descriptor (e.g. the one the calibration used), instead of building one
             from ``conf["descriptor"]``; its name must be the conf's.
         calibration: what ``retrieval.calibrate`` chose for this camera (gate reference, whitening, thresholds).
-            None: with ``calibration.online`` and no ``database``, the stream calibrates itself
-            (``retrieval.online``); else the fixed policy (``policy.min_inliers``), the weights' own whitening if
-            they carry one. Given with ``calibration.online`` and no ``database``: a prior, checked against the
-            stream at the end of the warm-up (kept, or refitted on the stream).
+            None: with ``calibration.online``, the stream calibrates itself (``retrieval.online``; with a
+            ``database``, its state is kept there and a resumed run goes on with it); else the fixed policy
+            (``policy.min_inliers``), the weights' own whitening if they carry one. Given with
+            ``calibration.online``: a prior, checked against the stream at the end of the warm-up (kept, or refitted
+            on the stream); without: the run's fixed decision.
         frame_source: ``frame_source(frame_id) -> image`` gives a processed frame again (offline: read from its file)
             when its local features are needed after it was processed (``runtime.lazy_features``); None: a lossless
             PNG copy of the grey frame at the extractor's resolution is kept in memory instead.
@@ -304,7 +309,7 @@ class LoopDetector:
             raise ConfigError("calibration must be a retrieval.calibrate.Calibration; got "
                               f"{type(calibration).__name__}")
         self.calibration = calibration if c["calibration"]["enabled"] else None
-        online = c["calibration"]["enabled"] and c["calibration"]["online"] and database is None \
+        online = c["calibration"]["enabled"] and c["calibration"]["online"] \
             and DESCRIPTORS.get(c["descriptor"]["name"]).searched_by == "cosine"
         self._online = OnlineCalibration(c, self.calibration) if online else None  # the stream calibrates itself
         self.gate = EdgeGate(c["gate"], None if self.calibration is None else self.calibration.edge_reference)
@@ -357,6 +362,8 @@ class LoopDetector:
         self._pool = BesideExecutor(thread_name_prefix="verify") \
             if c["runtime"]["verify_worker"] and (self._verify or online) else None
         self._wanted = False  # whether the previous frame's query needed its local features
+        self._delayed: dict[int, tuple[int, float]] = {}  # online: delayed loops reported, {frame: (keyframe, conf)}
+        self._refitted: bool | None = None  # online: this keyframe's step adopted a decision (True: and rewhitened)
         self.features = FeatureStore(self.db if c["runtime"]["features"] in ("database", "image") else None,
                                      c["runtime"]["feature_cache"])  # features kept (not ``_unextracted``)
         if self.db is not None:
@@ -389,17 +396,20 @@ class LoopDetector:
     def _load(self, db: KeyframeDatabase) -> None:
         """Rebuilds the place memory and the filter's history from the database, as the uninterrupted run had them:
         each keyframe is registered again in frame order (searched again only for a filter whose state depends on
-        every search: it is updated with what it saw then), then committed with its stored hypotheses and inserted."""
+        every search: it is updated with what it saw then), then committed with its stored hypotheses and inserted;
+        online, the stream's calibration goes on from the state stored at its last refit (``_load_online``)."""
         n = 0
         results, loops = {}, {}
         for q, cands, loop in db.results():
             results[q], loops[q] = cands, loop
-        if not self.filter.replays_history:  # else every search is replayed against the index as it was then
+        resume = _OnlineResume(self, db, results, loops) if self._online is not None else None
+        if not self.filter.replays_history and resume is None:  # else every search is replayed as it was then
             restored = self.places.restore_index(db.index_path, db.keyframe_ids())
             if restored:
                 log.info("restored the place index of %d keyframes from %s", restored, db.index_path)
         read_features = self.features.db is None and not self._keep_image  # database / image mode: read when needed
         for fid, entry, timestamp, feats in db.search_entries(features=read_features):
+            entry = entry if resume is None else resume.entry(fid, entry)
             try:
                 self.places.check(entry)  # the store keeps the searched entry itself
             except ConfigError as err:
@@ -410,7 +420,9 @@ class LoopDetector:
             else:
                 self.places.register(fid, entry, timestamp)
             self.filter.commit(fid, results[fid][:, 0].astype(np.int64))
-            if self.decision is not None:  # stored rows: frame_id, score, matches, inliers, ... (CANDIDATE_ROW)
+            if resume is not None:
+                resume.decide(fid)  # the decision's state: as the stream's frame decided it
+            elif self.decision is not None:  # stored rows: frame_id, score, matches, inliers, ... (CANDIDATE_ROW)
                 self._replay(self.decision, self._confirm, fid, results[fid], loops[fid])
             self.places.insert(fid, entry, timestamp)
             # database mode (feats None): read back from the database when needed
@@ -418,6 +430,8 @@ class LoopDetector:
                 self._unextracted.add(fid)  # not extracted then (or none found): again when needed
             elif feats is not None:  # memory mode: everything back in memory
                 self.features[fid] = feats
+            if resume is not None:
+                resume.after(fid)
             n += 1
         self._next_id = db.last_frame_id() + 1
         if n:
@@ -541,9 +555,9 @@ class LoopDetector:
         if self.db is not None:  # first: if the disk refuses it, the in-memory state has not moved either
             rows = np.array([cd.as_row() for cd in candidates], np.float64).reshape(-1, len(CANDIDATE_ROW))
             stored = feats if feats is not None and self._store_features else self._no_features()
-            self.db.append(KeyframeRecord(fid, self.places.stored(entry), stored, ts, pose34, source, edge_ratio, rows,
-                                          -1 if loop is None else loop.frame_id, fingerprint,
-                                          prep()[2] if self._keep_image and feats is None else b""))
+            self.db.append(KeyframeRecord(fid, self.places.stored(entry) if self._online is None else code, stored,
+                                          ts, pose34, source, edge_ratio, rows, -1 if loop is None else loop.frame_id,
+                                          fingerprint, prep()[2] if self._keep_image and feats is None else b""))
         self.places.insert(fid, entry, ts)
         self.filter.commit(fid, np.array([cd.frame_id for cd in candidates], np.int64))
         if self.decision is not None:
@@ -567,7 +581,7 @@ class LoopDetector:
                                 np.array([cd.inliers for cd in candidates], np.int64),
                                 loop is not None)
             confirmed = confirmed + self._online_step()
-            self._online.mark([q for q, _ in confirmed])
+            self._reported(fid, confirmed)
             ms["calibrate"] = (time.perf_counter() - t0) * 1e3
         return loop, best, confirmed
 
@@ -589,6 +603,8 @@ class LoopDetector:
         t0 = time.perf_counter()
         if code is None:
             code = self.descriptor(image, feats, network_image=net)
+        if self._online is not None:  # the raw code as kept (float16: a refit, and a resumed run, whiten it again)
+            code = np.asarray(code, np.float16).astype(np.float32)
         entry = self.places.entry(code)
         ms["encode"] = (time.perf_counter() - t0) * 1e3
         t0 = time.perf_counter()
@@ -607,7 +623,7 @@ class LoopDetector:
             if self._verify and fid in self._given:
                 feats = self._given.pop(fid)
             else:
-                feats = self._own(fid, prep) if self._verify else self._no_features()
+                feats = self._own(fid, prep) if self._verify or self._online is not None else self._no_features()
             ms["features"] = ms["features_wait"] = (time.perf_counter() - t0) * 1e3  # what the frame waited
         return feats, code, entry, candidates
 
@@ -749,6 +765,23 @@ class LoopDetector:
             return self.extractor.extract(to_gray_u8(to_uint8(self._frame_source(fid))))
         return _copy_features(self._copy_of(fid), self.extractor)
 
+    def _reported(self, fid: int, confirmed: list[tuple[int, Candidate]]) -> None:
+        """Records the delayed loops reported after keyframe ``fid`` (``_delayed``, the first one of a frame kept;
+        marked in the online state), then, after a refit, the online state in the store (``_save_online``)."""
+        self._online.mark([q for q, _ in confirmed])
+        for q, cand in confirmed:
+            self._delayed.setdefault(int(q), (cand.frame_id, cand.confidence))
+        if self._refitted is not None and self.db is not None:
+            self._save_online(fid)
+        self._refitted = None
+
+    def _save_online(self, fid: int) -> None:
+        """Writes the online state after keyframe ``fid`` into the store (``KeyframeDatabase.write_online``): a
+        resumed run starts from it (``_load_online``)."""
+        meta, arrays = self._online.to_state()
+        delayed = np.array([(q, r, c) for q, (r, c) in sorted(self._delayed.items())], np.float64).reshape(-1, 3)
+        self.db.write_online(fid, {**meta, "rewhitened": self._refitted}, {**arrays, "delayed": delayed})
+
     def _online_step(self) -> list[tuple[int, Candidate]]:
         """The stream's own calibration (``retrieval.online``), after a keyframe is stored: at the end of the warm-up
         a carried calibration is checked, else fitted; at doublings refitted; between them checked against the
@@ -765,6 +798,7 @@ class LoopDetector:
                 if carried:
                     on.ready = True
                     self._verify = bool(on.calibration.inlier_null)
+                    self._refitted = False  # a decision from here: kept in the store (``_reported``)
                     log.info("carried calibration checked against the stream at %d keyframes: its far-side scores "
                              "%.1f sigma from its null: kept", len(on.seen), z)
                     return self._redecide()
@@ -777,6 +811,7 @@ class LoopDetector:
         if cal is None:
             return []
         self._use(cal)
+        self._refitted = True
         return self._redecide() if on.ready else []
 
     def _use(self, cal: Calibration) -> None:
@@ -855,6 +890,8 @@ class LoopDetector:
         run's confidence) of a whole run, replayed from its stored rows (``KeyframeDatabase.results``: ``(frame_id,
         candidates (k, 6), loop)``), as the stream reported them; a resumed run's too. Empty without a calibrated,
         fused decision (``Decision.confirms``)."""
+        if self._online is not None:  # as the stream reported them (refits included), kept in the store
+            return dict(self._delayed)
         if self._confirm is None:
             return {}
         decision, confirm = self.decision.fresh(), Confirmations(self.decision.reach)
@@ -949,7 +986,8 @@ class LoopDetector:
             self._pool.shutdown()
             self._pool = None
         if self.db is not None:
-            self._save_index(self.db)
+            if self._online is None:  # online, a resume rebuilds the index in the stream's whitening
+                self._save_index(self.db)
             self.db.close()
 
     def _save_index(self, db: KeyframeDatabase) -> None:
@@ -966,6 +1004,81 @@ class LoopDetector:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class _OnlineResume:
+    """A resumed online run (``LoopDetector._load``, keyframe by keyframe in frame order): the keyframes up to the
+    newest online state in the store (``last``, written at a refit: ``LoopDetector._save_online``) come back with it,
+    searched as the stream searched them at that refit (from their raw codes, moved into its whitening there), the
+    decision rebuilt as the refit rebuilt it; each keyframe after it is recorded and run through the schedule as the
+    stream ran it (``_online_step``: checks, and a refit the store does not hold yet). The same loops as an
+    uninterrupted run."""
+
+    def __init__(self, det: LoopDetector, db: KeyframeDatabase, results: dict[int, np.ndarray],
+                 loops: dict[int, int]) -> None:
+        self.det, self.results, self.loops = det, results, loops
+        ids = db.keyframe_ids()
+        self.ratios = dict(zip(ids.tolist(), db.edge_ratios().tolist()))
+        self.raw: dict[int, np.ndarray] = {}
+        state = db.online_state(int(ids[-1])) if len(ids) else None
+        self.last, self.meta, self.arrays = state if state is not None else (-1, {}, {})
+        self.confirmed: dict[int, tuple[int, float]] = {}
+
+    def entry(self, fid: int, raw: np.ndarray) -> np.ndarray:
+        """The entry keyframe ``fid`` is registered with, from its stored raw code: in the current space, as the
+        stream searched it (up to the stored state: moved with the others into its whitening there, ``_restore``)."""
+        if raw.shape != (self.det.descriptor.dim,):
+            raise ConfigError(f"keyframe {fid}: a stored raw code has shape {raw.shape} (expected "
+                              f"({self.det.descriptor.dim},)); the database is damaged")
+        self.raw[fid] = raw
+        return self.det.places.entry(raw)
+
+    def decide(self, fid: int) -> None:
+        """The decision's state after keyframe ``fid``, as the stream's frame left it (its loop noted, its candidates
+        committed); the delayed loops it confirmed kept for ``after``."""
+        det, rows, loop = self.det, self.results[fid], self.loops[fid]
+        self.confirmed = {}
+        if det.decision is None:
+            return
+        hit = np.flatnonzero(rows[:, 0] == loop)
+        det.decision.note_loop(fid, None if loop < 0 else loop, float(rows[hit[0], 5]) if loop >= 0 and len(hit)
+                               else 0.0)
+        self.confirmed = det._replay(det.decision, det._confirm, fid, rows, loop)
+
+    def after(self, fid: int) -> None:
+        """Keyframe ``fid`` inserted: at the stored state, the state taken back; after it, recorded and scheduled."""
+        det = self.det
+        if fid < self.last:
+            return
+        if fid == self.last:
+            self._restore()
+            return
+        rows = self.results[fid]
+        det._online.record(fid, self.ratios[fid], self.raw.pop(fid), rows[:, 0], rows[:, 2], rows[:, 3],
+                           self.loops[fid] >= 0)
+        found = [(q, Candidate(r, 0.0, confidence=c)) for q, (r, c) in self.confirmed.items()]
+        det._reported(fid, found + det._online_step())
+
+    def _restore(self) -> None:
+        """The stored state taken back at its keyframe: the calibration, the codes moved into its whitening where
+        its refit moved them, the decision rebuilt as the refit rebuilt it, the delayed loops reported."""
+        det, on, meta = self.det, self.det._online, self.meta
+        on.from_state(meta, self.arrays, self.raw, self.ratios)
+        self.raw = {}
+        det._delayed = {int(q): (int(r), float(c)) for q, r, c in np.asarray(self.arrays["delayed"]).tolist()}
+        cal = on.calibration
+        if cal is None:
+            return
+        det.calibration = cal
+        if cal.edge_reference is not None:
+            det.gate.reference = cal.edge_reference
+        if meta["rewhitened"]:
+            det.places.rewhiten(cal.whitening, *on.raw())
+            det.whitening = cal.whitening
+        det._verify = on.ready and bool(cal.inlier_null)
+        if on.ready:
+            det._redecide()
+        log.info("online calibration taken back from the store at keyframe %d (%s path)", self.last, cal.path)
 
 
 def _own_features(prep: Callable[[], tuple[np.ndarray, float, bytes]], extractor: FeatureExtractor) -> Features:

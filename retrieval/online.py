@@ -47,8 +47,14 @@ of them read, blocks spread as ``calibration_frames`` chooses), so a refit encod
 
 Memory: per keyframe its raw code (float16: 8 kB for the 4096-d CAE code, so 0.8 GB at 100k keyframes; a refit moves
 every keyframe into the new whitening from them) and edge ratio, its candidates' ids, matches and inliers; the local
-features come from the detector (kept, or extracted again from its grey copy). Not persisted: a detector with a
-store (``database``, the fleet's per-robot detectors) runs the fixed policy instead.
+features come from the detector (kept, or extracted again from its grey copy).
+
+Persisted: a detector with a keyframe store (``database``: ``cae-lcd detect``, or the API given one; the fleet's
+per-robot detectors keep one but run the fixed policy, ``calibration.enabled: false``) stores each keyframe's raw code
+there, and the state here after each fit (``to_state``: the calibration, the schedule, the
+candidates as refits verified them, which frames were reported; ``KeyframeDatabase.write_online``); a resumed run
+takes the newest state its stored frames reach (``from_state``) and replays the frames after it
+(``LoopDetector._load``), so it decides on as the uninterrupted run would have.
 """
 
 from __future__ import annotations
@@ -150,6 +156,42 @@ class OnlineCalibration:
         """``ids (n,)`` ascending and their raw codes ``(n, D)`` float32."""
         ids = np.array(sorted(self.codes), np.int64)
         return ids, np.stack([self.codes[int(i)] for i in ids]).astype(np.float32)
+
+    def to_state(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        """The state a resumed run needs besides each keyframe's raw code and edge ratio (which its store keeps):
+        ``(meta, arrays)`` for ``KeyframeDatabase.write_online``; ``from_state`` takes it back."""
+        meta = {"unchecked": self.unchecked, "ready": self.ready, "next_fit": self.next_fit,
+                "next_check": self.next_check, "level": None if self.level is None else list(self.level)}
+        seen = self.seen
+        cat = (lambda key: np.concatenate([getattr(s, key) for s in seen]).astype(np.int64) if seen
+               else np.zeros(0, np.int64))
+        arrays = {"frame_id": np.array([s.frame_id for s in seen], np.int64),
+                  "counts": np.array([len(s.refs) for s in seen], np.int64), "refs": cat("refs"),
+                  "matches": cat("matches"), "inliers": cat("inliers"),
+                  "reported": np.array([s.reported for s in seen], bool),
+                  "calibration": np.frombuffer(self.calibration.to_bytes() if self.calibration is not None else b"",
+                                               np.uint8)}
+        return meta, arrays
+
+    def from_state(self, meta: dict[str, Any], arrays: dict[str, np.ndarray], codes: dict[int, np.ndarray],
+                   ratios: dict[int, float]) -> None:
+        """Takes back ``to_state``'s state, with the raw ``codes`` ``{frame_id: (D,)}`` and edge ``ratios`` of its
+        keyframes (from the store).
+
+        Raises:
+            KeyError: a keyframe of the state has no raw code or edge ratio.
+        """
+        self.unchecked, self.ready = bool(meta["unchecked"]), bool(meta["ready"])
+        self.next_fit, self.next_check = int(meta["next_fit"]), int(meta["next_check"])
+        self.level = None if meta["level"] is None else (float(meta["level"][0]), float(meta["level"][1]))
+        blob = np.asarray(arrays["calibration"], np.uint8).tobytes()
+        self.calibration = Calibration.from_bytes(blob, "the stored online calibration") if blob else None
+        ends = np.cumsum(arrays["counts"])
+        self.codes, self.ratios, self.seen, self._index = {}, {}, [], {}
+        for fid, reported, lo, hi in zip(arrays["frame_id"].tolist(), arrays["reported"].tolist(),
+                                         (ends - arrays["counts"]).tolist(), ends.tolist()):
+            self.record(fid, ratios[fid], codes[fid], arrays["refs"][lo:hi], arrays["matches"][lo:hi],
+                        arrays["inliers"][lo:hi], bool(reported))
 
     def drift(self, table: CodeTable, filt: TemporalFilter, newest: int | None = None) -> float:
         """How far (in the calibration's sigmas) the far-side scores of the ``newest`` keyframes (default: half a

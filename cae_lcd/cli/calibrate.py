@@ -1,7 +1,7 @@
 """``cae-lcd calibrate [PATH]``: what the detector will choose for this camera and sequence, and why.
 
-Writes ``calibration.h5`` into ``--out``; a ``cae-lcd detect`` with the same ``--out`` uses it (``detect`` calibrates
-by itself when the run folder has none).
+Writes ``calibration.h5`` into ``--out``; a ``cae-lcd detect --lookahead`` with the same ``--out`` uses it (it makes
+one itself when the run folder has none; without ``--lookahead``, ``detect`` calibrates on the stream as it goes).
 """
 
 from __future__ import annotations

@@ -13,6 +13,7 @@ from cae_lcd.evaluation.scored import detect_and_score
 
 from .evaluate import add_world_argument
 from retrieval import detect
+from retrieval.detector import default_conf
 from retrieval.methods import METHODS, method_conf
 from retrieval.batch import run_batch
 from retrieval.edges import EDGE_FRAMES
@@ -40,11 +41,13 @@ def log_summary(s: dict[str, Any]) -> None:
                  g["precision"], g["true_positives"], g["detections"], recall, g["true_positives"], g["positives"])
     cal = s.get("calibration")
     if cal is not None:
-        log.info("calibrated: accept at confidence >= %.2f (%s); local verification %s", cal["accept_at_confidence"],
+        log.info("calibrated%s: accept at confidence >= %.2f (%s); local verification %s",
+                 " on the stream itself (at its end)" if cal.get("online") else " on a look-ahead pass",
+                 cal["accept_at_confidence"],
                  ", ".join(f"{k} >= {v:.4g}" for k, v in cal["thresholds"].items() if v is not None)
                  or "no pair alone: a run of frames on one offset",
                  "on" if cal["verification"] else "off (too few local features)")
-    written = "loops.csv,candidates.csv,keyframes.h5," + ("calibration.h5," if cal is not None else "") \
+    written = "loops.csv,candidates.csv,keyframes.h5," + ("calibration.h5," if cal and not cal.get("online") else "") \
         + "loop_edges.g2o,loop_edges.csv,loop_edges.json,"
     log.info("wrote %s/{%sconf.yaml,summary.json}", s["out"], written)
 
@@ -72,6 +75,10 @@ def add_parser(sub: Any) -> None:
                    help="the frame of the loop edges and their vertices: the camera's, or the body's it is mounted on "
                         "(through EuRoC's sensor.yaml T_BS, or --camera-info with T_BS or a Kalibr T_cam_imu; "
                         "default %(default)s)")
+    p.add_argument("--lookahead", action="store_true", default=not default_conf["calibration"]["online"],
+                   help="calibrate on a look-ahead pass over the whole sequence first and decide with that calibration "
+                        "fixed (calibration.online: false); default: the run calibrates itself as it streams, the same "
+                        "algorithm as the Python API (retrieval.online)")
     p.add_argument("--ray-address", default=_BATCH["address"],
                    help="many sequences: a Ray cluster to run on (default: a local Ray with --workers, else no Ray)")
     p.set_defaults(func=run)
@@ -120,6 +127,11 @@ def log_table(rows: list[dict[str, Any]], out: Path) -> None:
 
 def run(args: Any) -> None:
     conf = conf_from_args(args)
+    if args.lookahead:
+        section = conf.setdefault("calibration", {})
+        if not isinstance(section, dict):
+            raise ConfigError("config section 'calibration' must be a mapping")
+        section["online"] = False
     many = None if args.path is None else find_sequences(args.path)
     if many is None:
         log_summary(detect_and_score(args.path, args.out, conf, args.camera, not args.no_progress, args.topic,

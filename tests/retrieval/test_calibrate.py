@@ -14,6 +14,9 @@ from retrieval.calibrate import Calibration, calibrated_features, calibration_fr
 from retrieval.detect import main as detect
 from retrieval.run_folder import RunFolder
 
+LOOKAHEAD = {"calibration": {"online": False}}  # detect --lookahead: the calibration pass these tests are about (the
+#                                                default detect calibrates on the stream: tests/retrieval/test_online.py)
+
 
 @pytest.fixture(scope="module")
 def kitti_runs(kitti_sequences, tmp_path_factory):
@@ -21,7 +24,7 @@ def kitti_runs(kitti_sequences, tmp_path_factory):
     runs = {}
     for name in ("00", "07", "90"):
         out = tmp_path_factory.mktemp(f"run{name}")
-        detect(kitti_sequences / name, out, progress=False)
+        detect(kitti_sequences / name, out, LOOKAHEAD, progress=False)
         runs[name] = RunFolder(out)
     return runs
 
@@ -47,7 +50,7 @@ class TestCalibrateOnKitti:
     def test_resume_reuses_the_calibration(self, kitti_runs, kitti_sequences):
         run = kitti_runs["07"]
         before = run.calibration.read_bytes()
-        detect(kitti_sequences / "07", run.root, progress=False)  # everything already done: tables rewritten
+        detect(kitti_sequences / "07", run.root, LOOKAHEAD, progress=False)  # everything already done: tables rewritten
         assert run.calibration.read_bytes() == before and len(run.read_loops()) == 0
 
 
@@ -166,7 +169,7 @@ class TestShrunkSample:
         from bench.camera import shrunk_sample
         root = tmp_path_factory.mktemp(f"s{size[0]}")
         seq = shrunk_sample(root / "seq", size)
-        summary = detect(seq, root / "run", progress=False)
+        summary = detect(seq, root / "run", LOOKAHEAD, progress=False)
         truth = load_ground_truth(seq / "loops.txt")
         pr = precision_recall(RunFolder(root / "run").read_loops()[:, :2].astype(np.int64), truth.pairs)
         assert pr.precision == 1.0 and pr.recall >= min_recall
@@ -185,7 +188,7 @@ class TestCalibrationBelongsToItsWeights:
         (tmp_path / "run").mkdir()
         cal.save(tmp_path / "run" / "calibration.h5")
         with pytest.raises(ConfigError, match="other weights"):
-            detect(sample_dir, tmp_path / "run", progress=False)
+            detect(sample_dir, tmp_path / "run", LOOKAHEAD, progress=False)
         assert not (tmp_path / "run" / "keyframes.h5").exists()
 
 
@@ -204,7 +207,7 @@ def test_features_side_by_side_equal_one_after_another(sample_image):
 
 
 def test_own_seconds_apart_from_the_runs_work(sample_dir, tmp_path):
-    summary = detect(sample_dir, tmp_path / "run", progress=False)
+    summary = detect(sample_dir, tmp_path / "run", LOOKAHEAD, progress=False)
     sec = summary["seconds"]
     # the calibration's own work (edge ratios, whitening, nulls, verifications, fits) is timed apart from the
     # run's work it does ahead (reading, encoding, local features the run reuses)
@@ -293,8 +296,8 @@ class TestScorePathOnNordland:
             pytest.skip(f"shared Nordland data not found at {NORDLAND}")
         frames = [*range(0, 150), *range(500, 650)]
         folder = plain_folder(tmp_path / "seq", [NORDLAND / "images" / f"{i:06d}.png" for i in frames])
-        detect(folder, tmp_path / "run", {"descriptor": {"weights": str(REPO / "cae" / "weights" / "cae_places.pt")}},
-               progress=False)
+        detect(folder, tmp_path / "run", {"descriptor": {"weights": str(REPO / "cae" / "weights" / "cae_places.pt")},
+                                          **LOOKAHEAD}, progress=False)
         run = RunFolder(tmp_path / "run")
         truth = set(map(tuple, read_loop_pairs(NORDLAND / "loops.txt").tolist()))
         loops = [(frames[int(q)], frames[int(r)]) for q, r in run.read_loops()[:, :2]]

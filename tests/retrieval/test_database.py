@@ -86,7 +86,7 @@ class TestKeyframeDatabase:
 
     def test_storage_layout(self, db_path, records):
         with h5py.File(db_path, "r") as f:
-            assert int(f.attrs["format_version"]) == FORMAT_VERSION == 7
+            assert int(f.attrs["format_version"]) == FORMAT_VERSION == 8
             assert f.attrs["descriptor"] == ENCODER_ID and int(f.attrs["committed"]) == 5
             assert f["frames/frame_id"][:5].tolist() == [3, 7, 12, 13, 14]  # (room for growth past the commit)
             assert f["frames/kind"][:5].tolist() == [0, 0, 0, 1, 1]  # keyframes, then two gated frames
@@ -162,7 +162,7 @@ class TestKeyframeDatabase:
         with h5py.File(db_path, "a") as f:
             f.attrs["format_version"] = version
         before = db_path.read_bytes()
-        with pytest.raises(ConfigError, match=f"format_version {version}; this software reads 7") as err:
+        with pytest.raises(ConfigError, match=f"format_version {version}; this software reads 8") as err:
             KeyframeDatabase(db_path, CONF, ENCODER_ID)
         assert "\n" not in str(err.value) and db_path.read_bytes() == before  # one line, the file as it was
 
@@ -287,3 +287,33 @@ class TestWriteAheadLog:
             assert int(db.file.attrs["committed"]) == 0  # still in the log only
             np.testing.assert_array_equal(db.features(records[0].frame_id).descriptors,
                                           records[0].features.descriptors)
+
+
+class TestOnlineState:
+    """The online calibration's state kept beside the blocks (``write_online`` / ``online_state``)."""
+
+    ARRAYS = {"frame_id": np.array([3, 7], np.int64), "calibration": np.frombuffer(b"\x01\x02", np.uint8)}
+
+    def test_newest_complete_state_the_frames_reach(self, db_path):
+        with KeyframeDatabase(db_path, CONF, ENCODER_ID) as db:
+            assert db.online_state(12) is None
+            db.write_online(3, {"ready": False}, self.ARRAYS)
+            db.write_online(7, {"ready": True}, self.ARRAYS)
+            db.write_online(7, {"ready": True, "again": 1}, self.ARRAYS)  # a resumed run refitting there: replaced
+            db.write_online(20, {"ready": True}, self.ARRAYS)  # past the stored frames (a lost log): not taken
+            np.testing.assert_array_equal(db.edge_ratios(), [0.1, 1.1, 2.1])
+        with h5py.File(db_path, "a") as f:
+            del f["online/7"].attrs["checksum"]  # half-written by a killed run
+        with KeyframeDatabase(db_path, CONF, ENCODER_ID, mode="r") as db:
+            fid, meta, arrays = db.online_state(db.last_frame_id())
+        assert fid == 3 and meta == {"ready": False}
+        assert {k: v.tolist() for k, v in arrays.items()} == {k: v.tolist() for k, v in self.ARRAYS.items()}
+
+    def test_damaged_state_is_reported(self, db_path):
+        with KeyframeDatabase(db_path, CONF, ENCODER_ID) as db:
+            db.write_online(7, {"ready": True}, self.ARRAYS)
+        with h5py.File(db_path, "a") as f:
+            f["online/7/frame_id"][0] = 4  # a bit flip
+        with KeyframeDatabase(db_path, CONF, ENCODER_ID) as db:
+            with pytest.raises(DatabaseError, match="online calibration state of keyframe 7 fails its checksum"):
+                db.online_state(12)

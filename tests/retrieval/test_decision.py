@@ -410,7 +410,7 @@ class TestConfirmations:
         seq, cal = small
         truth = {tuple(p) for p in read_loop_pairs(seq / "loops.txt").tolist()}
         looped, confirmed = set(), {}
-        with LoopDetector(calibration=cal, database=tmp_path / "k.h5") as det:
+        with LoopDetector({"calibration": {"online": False}}, calibration=cal, database=tmp_path / "k.h5") as det:
             for i in range(100):
                 res = det.process(read_image(seq / "image_0" / f"{i:06d}.png"), i)
                 looped |= {i} if res.loop is not None else set()

@@ -204,8 +204,8 @@ class TestSavedIndex:
                                                                              sample_image, encoder, caplog):
         """A graph index (rebuilt in minutes at a million keyframes) is saved beside the store on close and taken
         back on resume; the resumed run finds what the uninterrupted one did."""
-        conf = {"index": {"name": "hnsw"}, "calibration": {"online": False}}  # in memory as with a store: the fixed
-        seq = sample_seq                                                     # policy (a store does not self-calibrate)
+        conf = {"index": {"name": "hnsw"}, "calibration": {"online": False}}  # the fixed policy (online, a resume
+        seq = sample_seq                                                     # rebuilds the index in its whitening)
 
         def run(det, frames):
             return [(r.frame_id, -1 if r.loop is None else r.loop.frame_id)
@@ -511,8 +511,8 @@ class TestLazyFeatures:
         old = tmp_path / "old"
         old.mkdir()
         shutil.copyfile(out / "calibration.h5", old / "calibration.h5")
-        detect.main(sample_seq.root, old, {"search": {"verify_min_z": None}, "runtime": {"lazy_features": False}},
-                    progress=False)
+        detect.main(sample_seq.root, old, {"search": {"verify_min_z": None}, "runtime": {"lazy_features": False},
+                                           "calibration": {"online": False}}, progress=False)
         assert (old / "loops.csv").read_text() == (out / "loops.csv").read_text()
         with open(out / "candidates.csv") as f:
             skipped = sum(int(r["inliers"]) == -1 and int(r["matches"]) == 0 for r in csv.DictReader(f))

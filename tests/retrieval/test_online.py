@@ -196,3 +196,61 @@ def test_a_carried_score_path_calibration_gives_way_to_the_streams_own(kitti_64x
     assert own is not carried and own.score_null.get("held_out")
     assert own.score_null["samples"] < carried.score_null["samples"]  # fewer samples, yet drawn where it decides
     assert not any("never loosens" in r.getMessage() for r in caplog.records)
+
+
+def _judged(det: LoopDetector, sample_image, frames, loops: dict) -> dict[int, list[tuple]]:
+    """Streams ``frames`` (their loops into ``loops``, as ``stream``); ``{frame: [(keyframe, score, temporal score,
+    inliers, confidence)]}``: how each frame's candidates were judged."""
+    out = {}
+    for i in frames:
+        res = det.process(sample_image(i), i)
+        out[i] = [(c.frame_id, c.score, c.seq_score, c.inliers, c.confidence) for c in res.candidates]
+        if res.loop is not None:
+            loops[i] = (res.loop.frame_id, i)
+        for q, cand in res.confirmed:
+            loops[q] = (cand.frame_id, i)
+    return out
+
+
+@pytest.fixture(scope="module")
+def judged_run(sample_seq, sample_image, encoder):
+    """The 100 sample frames streamed in memory: how each frame's candidates were judged, and the loops."""
+    loops: dict = {}
+    with LoopDetector(CONF, K=sample_seq.K, encoder=encoder) as det:
+        return _judged(det, sample_image, range(len(sample_seq)), loops), loops
+
+
+def _resumed(tmp_path, sample_image, encoder, K, stop: int, drop_newest_state: bool = False):
+    """The sample streamed into a keyframe store, stopped after ``stop`` frames (closed), optionally with the newest
+    online state lost (as a run killed between a refit's keyframe and its state), then resumed to the end by a new
+    detector; the loops reported over both parts and the resumed detector's log."""
+    import h5py
+
+    db = tmp_path / "keyframes.h5"
+    with LoopDetector(CONF, K=K, encoder=encoder, database=db) as det:
+        loops = stream(det, sample_image, range(stop))
+    if drop_newest_state:
+        with h5py.File(db, "a") as f:
+            del f[f"online/{max(int(k) for k in f['online'])}"]
+    with LoopDetector(CONF, K=K, encoder=encoder, database=db) as det:
+        assert det._online is not None  # a detector with a store calibrates itself on the stream
+        judged = _judged(det, sample_image, range(stop, 100), loops)
+        delayed = det.confirmed_loops([])
+        own = {r.frame_id: r.loop for r in det.db if r.loop >= 0}
+    return loops, delayed, own, judged
+
+
+@pytest.mark.parametrize("stop,drop", [(60, False), (85, True)])
+def test_a_stopped_run_resumes_to_the_same_loops(judged_run, tmp_path, sample_seq, sample_image, encoder, stop,
+                                                 drop):
+    """Stopped after ``stop`` frames (between the fits at 40 and 80 keyframes; after the second, its state lost as by
+    a kill before it was written: the resumed run refits there itself) and resumed from the
+    store: every later frame's candidates judged as in the uninterrupted stream (``judged_run``, no store: the same
+    scores in the same whitening, inliers and confidences), and the same loops, own and delayed."""
+    judged, whole = judged_run
+    loops, delayed, own, after = _resumed(tmp_path, sample_image, encoder, sample_seq.K, stop, drop)
+    assert after == {i: judged[i] for i in range(stop, 100)}
+    expected = {q: r for q, (r, _) in whole.items()}
+    assert {q: r for q, (r, _) in loops.items()} == expected and len(expected) >= 45
+    # what ``detect`` writes: the frames' own loops stored, and the delayed ones kept in the store's online state
+    assert {**own, **{q: r for q, (r, _) in delayed.items()}} == expected and not set(own) & set(delayed)

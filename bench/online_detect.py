@@ -1,0 +1,76 @@
+"""``cae-lcd detect`` by default against the API stream (issue 27): ``python -m bench.online_detect [--data
+../shared/datasets] [--run-dir runs/bench/online_detect]``.
+
+``detect`` calibrates itself on the stream by default (``calibration.online``, ``retrieval.online``), the algorithm
+``LoopDetector.process`` runs through the API. For KITTI 90 and Nordland: ``detect``'s loops (its own and the delayed
+ones, ``loops.csv``) and the API stream's (``bench.aliasing.stream_run``: one frame at a time, no store), their
+precision / recall, whether the two sets of loops are the same, and the milliseconds a frame of each (``detect``: its
+frames' wall time, the stream's own calibration inside it apart; the stream: the mean, refits amortised, and its worst
+frame). Logged, not written into BENCHMARKS.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cae_lcd.evaluation.ground_truth import read_loop_pairs
+from cae_lcd.evaluation.metrics import precision_recall
+from retrieval.run_folder import RunFolder
+
+from .aliasing import stream_run
+from .common import REPO, detect_run, md_table
+
+__all__ = ["SETS", "compare", "main"]
+
+log = logging.getLogger(__name__)
+
+SETS = {"KITTI 90": ("kitti", "sequences", "90"), "Nordland summer -> winter (64x32)": ("nordland",)}  #: set -> path
+
+
+def compare(folder: Path, run_dir: Path) -> dict[str, Any]:
+    """One set: ``detect`` (default conf) into ``run_dir`` and the API stream, scored against ``folder/loops.txt``."""
+    truth = read_loop_pairs(folder / "loops.txt")
+    summary = detect_run(folder, run_dir)
+    written = RunFolder(run_dir).read_loops()[:, :2].astype(np.int64)
+    stream = stream_run(folder, truth)
+    pr = precision_recall(written, truth)
+    sec = summary["seconds"]
+    return {"frames": summary["frames"], "detect_loops": len(written), "precision": pr.precision,
+            "recall": pr.recall, "stream_loops": stream["loops"], "stream_precision": stream["precision"],
+            "stream_recall": stream["recall"],
+            "same": set(map(tuple, written.tolist())) == set(map(tuple, stream["pairs"].tolist())),
+            "detect_ms": 1e3 * sec["frames"] / max(summary["frames"], 1),
+            "detect_calibration_ms": 1e3 * sec.get("calibration_online", 0.0) / max(summary["frames"], 1),
+            "stream_ms": stream["ms_mean"], "stream_worst_ms": stream["ms_worst"]}
+
+
+def main(data: Path, run_dir: Path) -> dict[str, dict[str, Any]]:
+    """Every set of ``SETS``; logs the table and returns the rows by set."""
+    rows = {name: compare(data.joinpath(*parts), run_dir / f"run_{i}") for i, (name, parts) in enumerate(SETS.items())}
+    table = md_table(["set", "frames", "detect loops", "precision / recall", "API stream loops",
+                      "precision / recall", "same loops", "detect ms/frame (own calibration)",
+                      "stream ms/frame (worst frame)"],
+                     [[name, str(m["frames"]), str(m["detect_loops"]), f"{m['precision']:.3f} / {m['recall']:.3f}",
+                       str(m["stream_loops"]), f"{m['stream_precision']:.3f} / {m['stream_recall']:.3f}",
+                       "yes" if m["same"] else "NO", f"{m['detect_ms']:.1f} ({m['detect_calibration_ms']:.1f})",
+                       f"{m['stream_ms']:.1f} ({m['stream_worst_ms']:.0f})"] for name, m in rows.items()])
+    log.info("\n%s", table)
+    return rows
+
+
+def _cli() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "datasets", help="the shared datasets")
+    ap.add_argument("--run-dir", type=Path, default=Path("runs/bench/online_detect"), help="its run folders")
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    main(args.data, args.run_dir)
+
+
+if __name__ == "__main__":
+    _cli()
