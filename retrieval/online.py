@@ -96,6 +96,8 @@ class OnlineCalibration:
         self.codes: dict[int, np.ndarray] = {}  # raw codes (float16) of every keyframe
         self.ratios: dict[int, float] = {}
         self.seen: list[Seen] = []
+        self.verified: dict[tuple[int, int], int] = {}  # (query, ref) -> inliers of every pair a fit verified: a
+        #                                                 refit verifies only the pairs no fit before it did
         self._index: dict[int, int] = {}  # frame id -> position in ``seen``
         self.next_fit = max(WARM_UP * self.window, MIN_FIRST_FIT)
         self.next_check = self.next_fit
@@ -168,7 +170,7 @@ class OnlineCalibration:
         try:
             cal = calibrate(((f, None) for f in ids), max(2 * n, c["calibration"]["max_frames"]), c, descriptor,
                             create_filter(c["temporal"]), K,
-                            False, codes, {}, {f: self.ratios[f] for f in ids}, local)
+                            False, codes, {}, {f: self.ratios[f] for f in ids}, local, self.verified)
         except TooFewFrames as err:
             log.info("online calibration at %d keyframes: not yet (%s)", n, err)
             return None
