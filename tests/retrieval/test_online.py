@@ -4,12 +4,14 @@ measured evidence) and a carried calibration is a prior checked against the stre
 from __future__ import annotations
 
 import copy
+import dataclasses
 import logging
 from collections import Counter
 
 import numpy as np
 import pytest
 
+from cae_lcd.core.threads import BesideExecutor
 from cae_lcd.evaluation.ground_truth import read_loop_pairs
 from cae_lcd.evaluation.metrics import precision_recall
 from retrieval.calibrate import _Verify
@@ -37,8 +39,7 @@ def stream(det: LoopDetector, sample_image, frames) -> dict[int, tuple[int, int]
 @pytest.fixture(scope="module")
 def online_run(sample_seq, sample_image, encoder):
     """The 100 sample frames streamed with no calibration given, the log lines of ``retrieval.online``, the online
-    state, how often each pair was verified by a fit (``{(query, ref): times}``) and the stream's keyframe features
-    (``LoopDetector.keyframe_features``)."""
+    state, how often each pair was verified by a fit (``{(query, ref): times}``) and the (closed) detector."""
     lines: list[str] = []
     handler = logging.Handler()
     handler.emit = lambda record: lines.append(record.getMessage())
@@ -59,7 +60,7 @@ def online_run(sample_seq, sample_image, encoder):
             state = det._online
     finally:
         logger.removeHandler(handler)
-    return loops, lines, state, checked, det.keyframe_features
+    return loops, lines, state, checked, det
 
 
 def test_online_stream_finds_the_sample_loops_with_precision_one(online_run, sample_seq):
@@ -101,10 +102,10 @@ def test_a_refit_verifies_no_pair_twice(online_run, sample_seq, encoder, monkeyp
     """Every pair the stream's fits verified was verified once (the refit at 80 keyframes plans pairs the fit at 40
     verified, and each fit's sequences share pairs); a refit on the counts kept verifies only new pairs and equals
     one that verifies every pair again (at 100 keyframes: the recorded stream refitted once more, same K)."""
-    _, _, state, checked, local = online_run
+    _, _, state, checked, det = online_run
+    local = det.keyframe_features
     assert checked and max(checked.values()) == 1
     assert set(checked) == set(state.verified)
-    det = LoopDetector(CONF, encoder=encoder)  # its descriptor for the refit
     fits = []
     for kept in (dict(state.verified), {}):
         again = copy.copy(state)  # the recorded stream; its decision not consulted (a refit not compared with it)
@@ -118,6 +119,32 @@ def test_a_refit_verifies_no_pair_twice(online_run, sample_seq, encoder, monkeyp
     assert set(new) < set(every) and set(every) & set(state.verified)  # planned again: verified again without them
     assert cached.samples.keys() == fresh.samples.keys()
     assert all(np.array_equal(cached.samples[k], fresh.samples[k], equal_nan=True) for k in cached.samples)
+
+
+def test_late_checks_equal_one_call_per_frame(online_run, sample_seq):
+    """A refit's late checks (every recorded frame's candidates that could pass now, pair by pair on two threads,
+    ``LoopDetector._verify_late``) give what one ``verify`` call per frame gives (the recorded frames taken as never
+    verified)."""
+    _, _, state, _, det = online_run
+    rows = []
+    for seen in state.seen:
+        blank = dataclasses.replace(seen, matches=np.zeros_like(seen.matches), inliers=np.full_like(seen.inliers, -1))
+        rows.append((blank, det._recorded(blank)))
+    det._pool = BesideExecutor(thread_name_prefix="verify")  # the stream's was shut down with it
+    try:
+        det._verify_late(rows)
+    finally:
+        det._pool.shutdown()
+        det._pool = None
+    todo = 0
+    for seen, cands in rows:
+        want = [i for i, cd in enumerate(det._recorded(seen)) if det._could_pass(cd)]
+        got = det.verifier.verify(det.keyframe_features(seen.frame_id), [det.keyframe_features(cands[i].frame_id)
+                                  for i in want], sample_seq.K, det.conf["policy"]["min_matches"], det._min_inliers)
+        assert [(cands[i].matches, cands[i].inliers) for i in want] == [(g.matches, g.inliers) for g in got]
+        assert all(seen.inliers[i] == -1 for i in range(len(cands)) if i not in want)
+        todo += len(want)
+    assert todo > 20
 
 
 def _features_from(state, det):
