@@ -138,14 +138,16 @@ default_conf: dict[str, Any] = {
         "feature_worker": True,  # a worker thread extracts local features beside the main thread: a frame's own
         #                          while it is encoded (every frame when not lazy; lazy, when the frame before
         #                          needed its own: a revisit under way), and the keyframes after a frame's verified
-        #                          candidates (the next frames' likely candidates) once it has verified; the main
-        #                          thread runs a job itself when the worker has not started it. The same features
+        #                          candidates (the next frames' likely candidates) once it has verified, and
+        #                          online every keyframe of the warm-up (the first fit verifies pairs across all
+        #                          of them: retrieval.online); the main thread runs a job itself when the worker
+        #                          has not started it. The same features
         #                          either way. On a quiet 2-core machine one frame at a time through the API takes
         #                          27 ms with it, 37 without; on 2 cores fully taken by other work it lost
         #                          (BENCHMARKS.md, issue 18): off there
         "verify_worker": True,  # a second thread verifies beside the main one: half of a frame's matching, and the
-        #                         geometric checks of its candidates taken in turn (OpenCV and torch release the GIL;
-        #                         the same results: ``Verifier.verify``)
+        #                         geometric checks of its candidates taken in turn, and a refit's late checks
+        #                         (OpenCV and torch release the GIL; the same results: ``Verifier.verify``)
         "flush_every": 256,  # frames moved from the database's write-ahead log into its columns at a time (each
         #                    frame is logged as it is stored: a killed run loses nothing whatever this is)
         "features": "memory",  # keyframe features for verification: "memory" (all), "database" (bounded memory);
