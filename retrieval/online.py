@@ -44,9 +44,10 @@ samples and loops. The keyframes of the warm-up have their local features extrac
 worker (the first fit verifies pairs across all of them: about 1 s of one core taken off that frame), and a refit's
 late checks of the recorded frames' candidates run pair by pair on the verify worker's thread and the caller's
 (``LoopDetector._verify_late``). The detector's own verified candidates are never among the fits' pairs (they lie
-beyond the exclusion window, the nulls inside it). Measured on KITTI 90 (2 cores shared with other work: ratios in
-one run): the stream's CPU time 16.1 -> 12.1 s, the main thread's at the first fit 1.08 -> 0.13 s and at the
-second 0.95 s (unchanged: its verification runs on the pool); ms/frame in BENCHMARKS.md. What is left is the
+beyond the exclusion window, the nulls inside it). Measured (2 cores shared with other work, the code before and
+after alternately in one run): KITTI 90's stream 15.5 -> 11.7 s of CPU, its main thread's at the first fit 1.05 ->
+0.13 s (at the second about 0.9 s either way: the pairs are verified on the pool), 117 -> 87 ms a frame with the
+fits amortised (loaded: quiet figures in BENCHMARKS.md); KITTI 00's 25.3 -> 11.2 s of CPU. What is left is the
 verification of about 650 new pairs a fit on both cores. Not tried: the fit off the frame path (a background fit
 adopted later, the current decision deciding meanwhile; by estimate its ~5 s of CPU beside a stream that keeps one
 core busy would land the new decision tens of frames late, and KITTI 90's refit at 200 keyframes, on its last
