@@ -35,7 +35,9 @@ Before a run, the calibration looks at the sequence itself (``cae-lcd calibrate 
    ``retrieval.decision.Confirmations``). ``score_null``'s median and 90th percentile only describe the null (the
    detector's "above chance" gate for verification). For the inlier path the null is what the detector really tests:
    the **hard negatives**, the two far-side keyframes retrieval would return for a sampled query (keeping
-   ``exclude_recent // 10`` frames off the boundary), verified as in the run, each followed back ``SPAN - 1``
+   ``exclude_recent // 10`` frames off the boundary), verified as in the run (a count under the floor,
+   ``calibration.min_inliers``, is the geometric pre-check's, as for the run's candidates: no evidence either way;
+   each distinct pair verified once), each followed back ``SPAN - 1``
    frames (look-alike streets look alike for several frames). A random far-side pair per query is verified too (and
    joins the null), to show the difference; the **positives** are a frame and its neighbour ``exclude_recent // 25``
    frames back, followed back
@@ -667,6 +669,7 @@ class _Verify:
                  verified: dict[tuple[int, int], int] | None = None) -> None:
         self.conf, self.fconf, self.local = conf, calibrated_features(conf), local
         self.min_matches = conf["policy"]["min_matches"]
+        self.floor = conf["calibration"]["min_inliers"]  # the checks stop early under it, as the run's do
         self.images, self.K, self.feats = images, K, feats
         self.verified = {} if verified is None else verified  # (query, ref) -> inliers (0 with too few matches)
         self._local = threading.local()
@@ -698,10 +701,15 @@ class _Verify:
         return count
 
     def _check(self, q: int, r: int) -> int:
-        """Verifies ``(q, r)`` (their features extracted) as the run does."""
+        """Verifies ``(q, r)`` (their features extracted) as the run does: a pair whose cheap pre-check (the
+        fundamental matrix's inliers, ``verify.geometry``) is under the floor (``calibration.min_inliers``) stops
+        there with that count, as the run's candidates do. The decision reads no count under the floor (no
+        evidence, ``Decision.evidence``; a p-value only for counts at or above it, which are the full check's), so
+        only the notes' medians of the null see it; the hard negatives, mostly under it, cost a third as much."""
         if not hasattr(self._local, "verifier"):
             self._local.verifier = create_verifier(self.conf["matcher"], self.conf["geometry"])
-        check = self._local.verifier.verify(self.feats[q], [self.feats[r]], self.K, self.min_matches, 0, True)[0]
+        check = self._local.verifier.verify(self.feats[q], [self.feats[r]], self.K, self.min_matches, self.floor,
+                                            True)[0]
         return max(check.inliers, 0) if check.matches >= self.min_matches else 0
 
 
