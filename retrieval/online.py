@@ -36,27 +36,32 @@ of them read, blocks spread as ``calibration_frames`` chooses), so a refit encod
   verified), and the loops not reported yet are reported as delayed loops (``FrameResult.confirmed``).
 
 Cost: the fits, almost all of it verifying the null's sampled pairs (a SIFT match and a RANSAC check each, about 4 ms
-of one core; ``calibration.null_pairs`` planned a fit), on the frame that triggers the fit. **A pair is verified once
-in a stream** (``OnlineCalibration.verified``: its inliers kept; a fit's sequences share pairs, the hard negatives of
-neighbouring queries often one line and their positives too, and a refit plans again pairs an earlier fit verified):
-KITTI 90 verified 2400 pairs in its two fits, 1304 since (638 at 100 keyframes, 666 new at 200), the same counts,
-samples and loops. The keyframes of the warm-up have their local features extracted ahead by the detector's feature
-worker (the first fit verifies pairs across all of them: about 1 s of one core taken off that frame), and a refit's
-late checks of the recorded frames' candidates run pair by pair on the verify worker's thread and the caller's
-(``LoopDetector._verify_late``). The detector's own verified candidates are never among the fits' pairs (they lie
-beyond the exclusion window, the nulls inside it). Measured (2 cores shared with other work, the code before and
-after alternately in one run): KITTI 90's stream 15.5 -> 11.7 s of CPU, its main thread's at the first fit 1.05 ->
-0.13 s (at the second about 0.9 s either way: the pairs are verified on the pool), 117 -> 87 ms a frame with the
-fits amortised (loaded: quiet figures in BENCHMARKS.md); KITTI 00's 25.3 -> 11.2 s of CPU. What is left is the
-verification of about 650 new pairs a fit on both cores. Not tried: the fit off the frame path (a background fit
-adopted later, the current decision deciding meanwhile; by estimate its ~5 s of CPU beside a stream that keeps one
-core busy would land the new decision tens of frames late, and KITTI 90's refit at 200 keyframes, on its last
-frame, would never be adopted in the stream), and fewer pairs (the null's size bounds what one pair may claim).
+of one core for a full check; ``calibration.null_pairs`` planned a fit), on the frame that triggers the fit. What
+keeps it down (the loops, the counts at or above the floor and so the decisions unchanged; ``retrieval.calibrate``):
+
+- **a pair is verified once in a stream** (``OnlineCalibration.verified``: its inliers kept; a fit's sequences share
+  pairs, the hard negatives of neighbouring queries often one line and their positives too, and a refit plans again
+  pairs an earlier fit verified): KITTI 90 verified 2400 pairs in its two fits, 1304 since (638 at 100 keyframes,
+  666 new at 200);
+- null pairs are checked as the run checks its candidates: under the floor (``calibration.min_inliers``) the
+  geometric pre-check's count stands (no mirror test, no essential matrix), and the hard negatives are mostly there;
+- the keyframes of the warm-up have their local features extracted ahead by the detector's feature worker (the first
+  fit verifies pairs across all of them), and a refit's late checks of the recorded frames' candidates run pair by
+  pair on the verify worker's thread and the caller's (``LoopDetector._verify_late``).
+
+The detector's own verified candidates are never among the fits' pairs (beyond the exclusion window; the nulls lie
+inside it). Measured (2 cores shared with other work, the code before and after alternately in one run, at the
+lightest load): KITTI 90 45 -> 24 ms a frame with the fits amortised (median 14 ms either way; worst frame, the
+refit at 200 keyframes, 3.3 -> 1.5 s), 14.7 -> 8.3 s of CPU; KITTI 00 25.9 -> 8.5 s of CPU. What is left at the
+refit: about 1 s verifying its new pairs on both cores and 1 s of late checks. Not tried: the fit off the frame path
+(a background fit adopted later, the current decision deciding meanwhile; its seconds of CPU beside a stream that
+keeps one core busy would land the new decision tens of frames late, and KITTI 90's refit at 200 keyframes, on its
+last frame, would never be adopted in the stream), and fewer pairs (the null's size bounds what one pair may claim).
 
 Memory: per keyframe its raw code (float16: 8 kB for the 4096-d CAE code, so 0.8 GB at 100k keyframes; a refit moves
 every keyframe into the new whitening from them) and edge ratio, its candidates' ids, matches and inliers, and the
-inliers of every pair a fit verified (about 650 new ones a fit); the local
-features come from the detector (kept, or extracted again from its grey copy). Not persisted: a detector with a
+inliers of every pair a fit verified (about 650 new ones a fit); the local features come from the detector (kept, or
+extracted again from its grey copy). Not persisted: a detector with a
 store (``database``, the fleet's per-robot detectors) runs the fixed policy instead.
 """
 
