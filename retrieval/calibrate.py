@@ -37,7 +37,9 @@ Before a run, the calibration looks at the sequence itself (``cae-lcd calibrate 
    ``retrieval.decision.Confirmations``). ``score_null``'s median and 90th percentile only describe the null (the
    detector's "above chance" gate for verification). For the inlier path the null is what the detector really tests:
    the **hard negatives**, the two far-side keyframes retrieval would return for a sampled query (keeping
-   ``exclude_recent // 10`` frames off the boundary), verified as in the run, each followed back ``SPAN - 1``
+   ``exclude_recent // 10`` frames off the boundary), verified as in the run (a count under the floor,
+   ``calibration.min_inliers``, is the geometric pre-check's, as for the run's candidates: no evidence either way;
+   each distinct pair verified once), each followed back ``SPAN - 1``
    frames (look-alike streets look alike for several frames). A random far-side pair per query is verified too (and
    joins the null), to show the difference; the **positives** are a frame and its neighbour ``exclude_recent // 25``
    frames back, followed back
@@ -456,7 +458,8 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
               descriptor: GlobalDescriptor, filt: TemporalFilter, K: np.ndarray | None = None,
               progress: bool = True, codes: dict[int, np.ndarray] | None = None,
               features: dict[int, Any] | None = None, ratios: dict[int, float] | None = None,
-              local: Callable[[int], Any] | None = None, held_out: float = 0.0) -> Calibration:
+              local: Callable[[int], Any] | None = None, held_out: float = 0.0,
+              verified: dict[tuple[int, int], int] | None = None) -> Calibration:
     """Calibrates on a sequence's frames (see the module doc).
 
     Args:
@@ -475,6 +478,8 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
             ``local`` gives its local features.
         local: ``local(frame_id) -> Features`` of a frame already seen (a stream's own keyframe features), used
             instead of extracting them from the frames' images.
+        verified: ``{(query, ref): inliers}`` of pairs verified before with these frames' features (a stream's
+            earlier fits, ``retrieval.online``): not verified again; the pairs verified here are added to it.
         held_out: on the score path, the share of the frames where the camera moved, newest first, that the
             whitening is not fitted on, the score path's nulls drawn from their far-side pairs only
             (``_out_of_sample``: a stream decides frames its whitening has not seen, ``retrieval.online``); 0: fitted
@@ -516,7 +521,7 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
     n_keyframes = max(len(ids) * n_frames / max(len(images), 1), 2.0)
     cal.tests = {"score": max(n_keyframes, (n_keyframes - window) ** 2 / 2),  # every query against every keyframe
                  "inliers": n_keyframes * conf["search"]["k"] * SPAN}  # every run length 1..span counted
-    shared += _inlier_path(cal, conf, images, null, table, K, progress, features, local)
+    shared += _inlier_path(cal, conf, images, null, table, K, progress, features, local, verified)
     if held_out and not cal.inlier_null:  # a stream on the score path: its nulls measured out of sample
         null_table, apart = _out_of_sample(cal, conf["whitening"], descriptor, filt, ids, codes, moved, window,
                                            held_out)
@@ -728,13 +733,18 @@ def _extract_side_by_side(fconf: dict[str, Any], images: dict[int, np.ndarray], 
 
 class _Verify:
     """Verifies pairs of calibration frames as the run does (features extracted once per frame, into ``feats``: the
-    run reuses them); thread-safe (one verifier per thread: OpenCV and torch release the GIL)."""
+    run reuses them; each pair verified once, its count kept in ``verified``: a stream's refits share it, so a refit
+    verifies only the pairs no fit before it verified); thread-safe (one verifier per thread: OpenCV and torch release
+    the GIL)."""
 
     def __init__(self, conf: dict[str, Any], images: dict[int, np.ndarray], K: np.ndarray | None,
-                 feats: dict[int, Any], local: Callable[[int], Any] | None = None) -> None:
+                 feats: dict[int, Any], local: Callable[[int], Any] | None = None,
+                 verified: dict[tuple[int, int], int] | None = None) -> None:
         self.conf, self.fconf, self.local = conf, calibrated_features(conf), local
         self.min_matches = conf["policy"]["min_matches"]
+        self.floor = conf["calibration"]["min_inliers"]  # the checks stop early under it, as the run's do
         self.images, self.K, self.feats = images, K, feats
+        self.verified = {} if verified is None else verified  # (query, ref) -> inliers (0 with too few matches)
         self._local = threading.local()
         self.extract_s = 0.0  # wall seconds spent extracting features (work the run reuses)
 
@@ -750,13 +760,29 @@ class _Verify:
         self.extract_s += time.perf_counter() - t0
 
     def __call__(self, q: int, r: int) -> int | None:
-        """Inliers of ``(q, r)`` (0 with too few matches), None where a frame is not in the calibration or its
-        features were not extracted (``prefetch`` first)."""
+        """Inliers of ``(q, r)`` (0 with too few matches): kept from an earlier call, else verified now (a pair's
+        count never changes: the same features, the same deterministic check); None where a frame is not in the
+        calibration or its features were not extracted (``prefetch`` first)."""
+        if q not in self.images or r not in self.images:
+            return None
+        known = self.verified.get((q, r))
+        if known is not None:
+            return known
         if q not in self.feats or r not in self.feats:
             return None
+        count = self.verified[(q, r)] = self._check(q, r)
+        return count
+
+    def _check(self, q: int, r: int) -> int:
+        """Verifies ``(q, r)`` (their features extracted) as the run does: a pair whose cheap pre-check (the
+        fundamental matrix's inliers, ``verify.geometry``) is under the floor (``calibration.min_inliers``) stops
+        there with that count, as the run's candidates do. The decision reads no count under the floor (no
+        evidence, ``Decision.evidence``; a p-value only for counts at or above it, which are the full check's), so
+        only the notes' medians of the null see it; the hard negatives, mostly under it, cost a third as much."""
         if not hasattr(self._local, "verifier"):
             self._local.verifier = create_verifier(self.conf["matcher"], self.conf["geometry"])
-        check = self._local.verifier.verify(self.feats[q], [self.feats[r]], self.K, self.min_matches, 0, True)[0]
+        check = self._local.verifier.verify(self.feats[q], [self.feats[r]], self.K, self.min_matches, self.floor,
+                                            True)[0]
         return max(check.inliers, 0) if check.matches >= self.min_matches else 0
 
 
@@ -786,17 +812,22 @@ def _plan(null: np.ndarray, table: CodeTable, picks: np.ndarray, gap: int,
 
 def _samples(plan: list[tuple[str, list[tuple[int, int]]]], verify: _Verify,
              progress: bool) -> dict[str, list[list[int]]]:
-    """Inlier counts of the planned sequences (``_plan``) by kind; features of every frame extracted first, then the
-    sequences verified side by side on every core (the same counts as one after another). A sequence whose first
-    pair is not in the calibration is left out."""
-    verify.prefetch(f for _, pairs in plan for pair in pairs for f in pair)
+    """Inlier counts of the planned sequences (``_plan``) by kind; features of the frames to verify extracted first,
+    then each distinct pair verified once (sequences share pairs: the hard negatives of neighbouring queries are
+    often one line, and so are their positives; a stream's refits share them too, ``_Verify.verified``), side by
+    side on every core (the same counts as one after another). A sequence whose first pair is not in the
+    calibration is left out."""
+    todo = [p for p in dict.fromkeys(p for _, pairs in plan for p in pairs) if p not in verify.verified]
+    verify.prefetch(f for pair in todo for f in pair)
+    with ThreadPoolExecutor(min(cpu_count(), max(1, len(todo))), thread_name_prefix="calibrate-verify") as pool:
+        for _ in tqdm(pool.map(lambda pair: verify(*pair), todo), desc="calibrate: verify", unit="pair",
+                      total=len(todo), disable=not progress, leave=False):
+            pass
     out: dict[str, list[list[int]]] = {"random": [], "hard": [], "hard2": [], "positive": []}
-    with ThreadPoolExecutor(min(cpu_count(), max(1, len(plan))), thread_name_prefix="calibrate-verify") as pool:
-        seqs = pool.map(lambda item: [verify(q, r) for q, r in item[1]], plan)
-        for (name, _), seq in zip(plan, tqdm(seqs, desc="calibrate: verify", unit="sequence", total=len(plan),
-                                              disable=not progress, leave=False)):
-            if seq[0] is not None:
-                out[name].append([x for x in seq if x is not None])
+    for name, pairs in plan:
+        seq = [verify(q, r) for q, r in pairs]
+        if seq[0] is not None:
+            out[name].append([x for x in seq if x is not None])
     return out
 
 
@@ -818,16 +849,17 @@ def _fused_samples(seqs: list[list[int]], decision: Decision) -> np.ndarray:
 
 def _inlier_path(cal: Calibration, conf: dict[str, Any], images: dict[int, np.ndarray], null: np.ndarray,
                  table: CodeTable, K: np.ndarray | None, progress: bool, feats: dict[int, Any] | None = None,
-                 local: Callable[[int], Any] | None = None) -> float:
-    """Hard negatives, random pairs and positives verified; the pair tail, the fused tail, whether one pair may
-    decide alone; or verification switched off where local features are too few. The local features extracted go
-    into ``feats`` (for the run to reuse; ``local(frame_id)`` gives them where the frames' images are not given);
-    returns the seconds spent extracting them."""
+                 local: Callable[[int], Any] | None = None,
+                 verified: dict[tuple[int, int], int] | None = None) -> float:
+    """Hard negatives, random pairs and positives verified (those in ``verified`` not again); the pair tail, the
+    fused tail, whether one pair may decide alone; or verification switched off where local features are too few.
+    The local features extracted go into ``feats`` (for the run to reuse; ``local(frame_id)`` gives them where the
+    frames' images are not given); returns the seconds spent extracting them."""
     cc = conf["calibration"]
     if cc["verification"] == "off":
         cal.notes.append("verification: off (calibration.verification)")
         return 0.0
-    verify = _Verify(conf, images, K, {} if feats is None else feats, local)
+    verify = _Verify(conf, images, K, {} if feats is None else feats, local, verified)
     queries = np.unique(null[:, 0]).astype(np.int64)
     n_q = min(len(queries), max(10, cc["null_pairs"] // (1 + 3 * SPAN)))
     picks = queries[np.unique(np.linspace(0, len(queries) - 1, n_q).astype(int))]

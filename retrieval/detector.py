@@ -57,7 +57,7 @@ from .calibrate import Calibration, calibrated_features
 from .descriptors import DESCRIPTORS, GlobalDescriptor, create_descriptor
 from .feature_jobs import FeatureJobs, grey_copy, read_grey_copy
 from .index import INDEXES
-from .online import DRIFT_Z, OnlineCalibration
+from .online import DRIFT_Z, OnlineCalibration, Seen
 from .places import create_places
 from .temporal import FILTERS, create_filter
 
@@ -66,6 +66,7 @@ __all__ = ["Candidate", "FrameResult", "LoopDetector", "weights_whitening", "STA
 
 log = logging.getLogger(__name__)
 
+LATE_BATCH = 256  #: pairs verified late at a refit at a time (``LoopDetector._verify_late``: their features held)
 STAGES = ("gate", "encode", "features", "search", "filter", "verify", "insert", "total")  #: keys of ``FrameResult.ms``
 
 default_conf: dict[str, Any] = {
@@ -141,14 +142,16 @@ default_conf: dict[str, Any] = {
         "feature_worker": True,  # a worker thread extracts local features beside the main thread: a frame's own
         #                          while it is encoded (every frame when not lazy; lazy, when the frame before
         #                          needed its own: a revisit under way), and the keyframes after a frame's verified
-        #                          candidates (the next frames' likely candidates) once it has verified; the main
-        #                          thread runs a job itself when the worker has not started it. The same features
+        #                          candidates (the next frames' likely candidates) once it has verified, and
+        #                          online every keyframe of the warm-up (the first fit verifies pairs across all
+        #                          of them: retrieval.online); the main thread runs a job itself when the worker
+        #                          has not started it. The same features
         #                          either way. On a quiet 2-core machine one frame at a time through the API takes
         #                          27 ms with it, 37 without; on 2 cores fully taken by other work it lost
         #                          (BENCHMARKS.md, issue 18): off there
         "verify_worker": True,  # a second thread verifies beside the main one: half of a frame's matching, and the
-        #                         geometric checks of its candidates taken in turn (OpenCV and torch release the GIL;
-        #                         the same results: ``Verifier.verify``)
+        #                         geometric checks of its candidates taken in turn, and a refit's late checks
+        #                         (OpenCV and torch release the GIL; the same results: ``Verifier.verify``)
         "flush_every": 256,  # frames moved from the database's write-ahead log into its columns at a time (each
         #                    frame is logged as it is stored: a killed run loses nothing whatever this is)
         "features": "memory",  # keyframe features for verification: "memory" (all), "database" (bounded memory);
@@ -576,6 +579,9 @@ class LoopDetector:
         ms["insert"] = (time.perf_counter() - t0) * 1e3
         if self._online is not None:
             t0 = time.perf_counter()
+            if not self._online.ready and self._online.next_fit <= self._late_size:
+                self._queue_copies([fid])  # the first fit verifies pairs across the whole warm-up: the worker
+                #                            extracts each keyframe's features ahead, beside the frames that follow
             self._online.record(fid, edge_ratio, code, np.array([cd.frame_id for cd in candidates], np.int64),
                                 np.array([cd.matches for cd in candidates], np.int64),
                                 np.array([cd.inliers for cd in candidates], np.int64),
@@ -827,20 +833,17 @@ class LoopDetector:
 
     def _redecide(self) -> list[tuple[int, Candidate]]:
         """Every recorded frame decided again under the current calibration, in order (scores in the current code
-        space; candidates not verified that could pass now verified); the decision's state is the replay's. Returns
-        the loops not reported yet (``(frame_id, candidate)``)."""
+        space; candidates not verified that could pass now verified first, ``_verify_late``); the decision's state
+        is the replay's. Returns the loops not reported yet (``(frame_id, candidate)``)."""
         cal, c = self.calibration, self.conf
         self.decision = dec = cal.decision(c["search"]["exclude_recent"], self.filter)
         self._min_inliers = int(dec.floor)
         self._confirm = confirm = Confirmations(dec.reach) if dec.confirms else None
         src, out = self.places.source, []
-        for seen in self._online.seen:
+        rows = [(seen, self._recorded(seen)) for seen in self._online.seen]
+        self._verify_late(rows)
+        for seen, cands in rows:
             q = seen.frame_id
-            qs = np.full(len(seen.refs), q, np.int64)
-            cands = [Candidate(int(r), float(a), int(m), int(i), float(b)) for r, a, b, m, i in zip(
-                seen.refs.tolist(), src.pairs(qs, seen.refs).tolist(), self.filter.score(qs, seen.refs, src).tolist(),
-                seen.matches.tolist(), seen.inliers.tolist())]
-            self._verify_late(q, cands, seen)
             for cand in cands:
                 cand.confidence = self._confidence(cand)
             counted = np.array([self._counted(cd) for cd in cands], np.int64)
@@ -860,18 +863,37 @@ class LoopDetector:
             self._online.mark([f for f, _ in found])
         return sorted({f: cd for f, cd in out}.items())
 
-    def _verify_late(self, fid: int, cands: list[Candidate], seen: Any) -> None:
-        """Verifies, at a refit, the candidates of a recorded frame that were not verified and could pass now
-        (``_could_pass``); records their matches and inliers in ``seen``."""
-        todo = [i for i, cd in enumerate(cands) if cd.inliers < 0 and self._could_pass(cd)]
-        if not todo:
-            return
-        refs = [self._features_of(cands[i].frame_id) for i in todo]
-        done = self.verifier.verify(self._features_of(fid), refs, self.K, self.conf["policy"]["min_matches"],
-                                    self._min_inliers, True, self._pool)
-        for i, check in zip(todo, done):
-            cands[i].matches, cands[i].inliers = check.matches, check.inliers
-            seen.matches[i], seen.inliers[i] = check.matches, check.inliers
+    def _recorded(self, seen: Seen) -> list[Candidate]:
+        """A recorded frame's candidates (``retrieval.online.Seen``) with their scores in the current code space."""
+        src, qs = self.places.source, np.full(len(seen.refs), seen.frame_id, np.int64)
+        return [Candidate(int(r), float(a), int(m), int(i), float(b)) for r, a, b, m, i in zip(
+            seen.refs.tolist(), src.pairs(qs, seen.refs).tolist(), self.filter.score(qs, seen.refs, src).tolist(),
+            seen.matches.tolist(), seen.inliers.tolist())]
+
+    def _verify_late(self, rows: list[tuple[Seen, list[Candidate]]]) -> None:
+        """Verifies, at a refit, the recorded frames' candidates that were not verified and could pass now
+        (``_could_pass``; ``rows``: each frame's ``Seen`` and candidates), every pair on its own (matching and the
+        geometric check are per candidate with ``check_all``: the counts of one call per frame), side by side on
+        the verify worker's thread and this one, ``LATE_BATCH`` pairs at a time (their features fetched here
+        first); records their matches and inliers in both."""
+        todo = [(seen, i, cd) for seen, cands in rows for i, cd in enumerate(cands)
+                if cd.inliers < 0 and self._could_pass(cd)]
+        min_matches, verifiers = self.conf["policy"]["min_matches"], threading.local()
+
+        def check(item: tuple[Seen, int, Candidate], feats: dict[int, Features]) -> Verification:
+            if not hasattr(verifiers, "verifier"):  # one per thread (OpenCV and torch release the GIL)
+                verifiers.verifier = create_verifier(self.conf["matcher"], self.conf["geometry"])
+            seen, _, cd = item
+            return verifiers.verifier.verify(feats[seen.frame_id], [feats[cd.frame_id]], self.K, min_matches,
+                                             self._min_inliers, True)[0]
+
+        for start in range(0, len(todo), LATE_BATCH):
+            batch = todo[start:start + LATE_BATCH]
+            feats = {f: self._features_of(f) for seen, _, cd in batch for f in (seen.frame_id, cd.frame_id)}
+            done = _side_by_side(functools.partial(check, feats=feats), batch, self._pool)
+            for (seen, i, cd), got in zip(batch, done):
+                cd.matches, cd.inliers = got.matches, got.inliers
+                seen.matches[i], seen.inliers[i] = got.matches, got.inliers
 
     def _confirmed(self, fid: int, candidates: list[Candidate],
                    loop: Candidate | None) -> list[tuple[int, Candidate]]:
@@ -1079,6 +1101,29 @@ class _OnlineResume:
         if on.ready:
             det._redecide()
         log.info("online calibration taken back from the store at keyframe %d (%s path)", self.last, cal.path)
+
+
+def _side_by_side(work: Callable[[Any], Any], items: list[Any], pool: BesideExecutor | None) -> list[Any]:
+    """``[work(item) for item in items]``, the items taken in turn by this thread and ``pool``'s (when given)."""
+    out: list[Any] = [None] * len(items)
+    state, lock = {"next": 0}, threading.Lock()
+
+    def lane() -> None:
+        while True:
+            with lock:
+                k = state["next"]
+                state["next"] = k + 1
+            if k >= len(items):
+                return
+            out[k] = work(items[k])
+
+    helper = pool.submit(lane) if pool is not None and len(items) > 1 else None
+    try:
+        lane()
+    finally:
+        if helper is not None:
+            helper.result()
+    return out
 
 
 def _own_features(prep: Callable[[], tuple[np.ndarray, float, bytes]], extractor: FeatureExtractor) -> Features:

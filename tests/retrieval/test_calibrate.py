@@ -233,6 +233,34 @@ def test_verifications_side_by_side_equal_one_after_another(sample_image):
     assert got["positive"][0][0] > 20  # real neighbours verify
 
 
+def test_null_counts_under_the_floor_stop_early_and_decide_nothing(sample_image):
+    """Null pairs are checked as the run checks its candidates: under the floor (``calibration.min_inliers``) the
+    pre-check's count stands (cheaper: no mirror test, no essential matrix); at or above it the full check's. The
+    pair null then gives every count at or above the floor the same p-value as a null of full checks."""
+    from retrieval.calibrate import _Verify
+    from retrieval.decision import EmpiricalTail
+    from retrieval.detector import resolve_conf
+    from verify.verifier import create_verifier
+
+    conf = resolve_conf({})
+    floor = conf["calibration"]["min_inliers"]
+    pairs = [(q, q - d) for q in range(30, 100, 3) for d in (2, 12, 20, 26)]
+    images = {f: sample_image(f) for pair in pairs for f in pair}
+    early = _Verify(conf, images, None, {})
+    early.prefetch(images)
+    full = create_verifier(conf["matcher"], conf["geometry"])
+    got, want = [], []
+    for q, r in pairs:
+        check = full.verify(early.feats[q], [early.feats[r]], None, conf["policy"]["min_matches"], 0, True)[0]
+        want.append(max(check.inliers, 0) if check.matches >= conf["policy"]["min_matches"] else 0)
+        got.append(early(q, r))
+    got, want = np.array(got), np.array(want)
+    assert ((got >= floor) == (want >= floor)).all() and (got[want >= floor] == want[want >= floor]).all()
+    assert (got != want).any() and (want >= floor).any() and (want < floor).any()  # both sides, and it mattered
+    x = np.arange(floor, want.max() + 2)
+    assert np.array_equal(EmpiricalTail(got).log10_sfs(x), EmpiricalTail(want).log10_sfs(x))
+
+
 class TestStops:
     """Where the camera stood still (Nordland summer: the train waits at frames 206-241), one place weighed once."""
 

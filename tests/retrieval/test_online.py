@@ -4,13 +4,18 @@ shared KITTI shrunk to 64x32 for the score path (its nulls out of sample)."""
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import logging
+from collections import Counter
 
 import numpy as np
 import pytest
 
+from cae_lcd.core.threads import BesideExecutor
 from cae_lcd.evaluation.ground_truth import read_loop_pairs
 from cae_lcd.evaluation.metrics import precision_recall
+from retrieval.calibrate import _Verify
 from retrieval.detect import calibrate_sequence
 from retrieval.detector import LoopDetector
 from retrieval.online import WARM_UP
@@ -34,24 +39,33 @@ def stream(det: LoopDetector, sample_image, frames) -> dict[int, tuple[int, int]
 
 @pytest.fixture(scope="module")
 def online_run(sample_seq, sample_image, encoder):
-    """The 100 sample frames streamed with no calibration given, and the log lines of ``retrieval.online``."""
+    """The 100 sample frames streamed with no calibration given, the log lines of ``retrieval.online``, the online
+    state, how often each pair was verified by a fit (``{(query, ref): times}``) and the (closed) detector."""
     lines: list[str] = []
     handler = logging.Handler()
     handler.emit = lambda record: lines.append(record.getMessage())
     logger = logging.getLogger("retrieval.online")
     logger.addHandler(handler)
     logger.setLevel(logging.INFO)
+    checked: Counter = Counter()
+    check = _Verify._check
+
+    def counted(self, q, r):
+        checked[(q, r)] += 1
+        return check(self, q, r)
+
     try:
-        with LoopDetector(CONF, K=sample_seq.K, encoder=encoder) as det:
+        with pytest.MonkeyPatch.context() as mp, LoopDetector(CONF, K=sample_seq.K, encoder=encoder) as det:
+            mp.setattr(_Verify, "_check", counted)
             loops = stream(det, sample_image, range(len(sample_seq)))
             state = det._online
     finally:
         logger.removeHandler(handler)
-    return loops, lines, state
+    return loops, lines, state, checked, det
 
 
 def test_online_stream_finds_the_sample_loops_with_precision_one(online_run, sample_seq):
-    loops, lines, _ = online_run
+    loops, lines, _, _, _ = online_run
     pairs = np.array([(q, r) for q, (r, _) in sorted(loops.items())], np.int64).reshape(-1, 2)
     pr = precision_recall(pairs, read_loop_pairs(sample_seq.ground_truth))
     assert pr.precision == 1.0 and pr.recall >= 0.9  # measured: 49 loops, recall 0.980
@@ -74,7 +88,8 @@ def test_warm_up_accepts_nothing(sample_seq, sample_image, encoder):
 
 def test_a_refit_never_loosens_without_measured_evidence(online_run, encoder, caplog):
     """A refit whose null holds fewer measured samples than the deciding one's is not adopted (one log line)."""
-    _, _, state = online_run
+    state = copy.copy(online_run[2])  # the recorded stream; the pairs this refit verifies (features from the files,
+    state.verified = {}  # no K) kept apart from the stream's own
     current = state.calibration
     state.calibration.inlier_null = {**current.inlier_null, "samples": 1e9}  # the deciding null: far larger
     det = LoopDetector(CONF, encoder=encoder)  # its descriptor and features for the refit
@@ -82,6 +97,55 @@ def test_a_refit_never_loosens_without_measured_evidence(online_run, encoder, ca
         refit = state.fit(det.descriptor, None, _features_from(state, det))
     assert refit is None and state.calibration is current
     assert any("never loosens" in r.getMessage() for r in caplog.records)
+
+
+def test_a_refit_verifies_no_pair_twice(online_run, sample_seq, encoder, monkeypatch):
+    """Every pair the stream's fits verified was verified once (the refit at 80 keyframes plans pairs the fit at 40
+    verified, and each fit's sequences share pairs); a refit on the counts kept verifies only new pairs and equals
+    one that verifies every pair again (at 100 keyframes: the recorded stream refitted once more, same K)."""
+    _, _, state, checked, det = online_run
+    local = det.keyframe_features
+    assert checked and max(checked.values()) == 1
+    assert set(checked) == set(state.verified)
+    fits = []
+    for kept in (dict(state.verified), {}):
+        again = copy.copy(state)  # the recorded stream; its decision not consulted (a refit not compared with it)
+        again.ready, again.verified, now = False, kept, Counter()
+        monkeypatch.setattr(_Verify, "_check", lambda self, q, r, check=_Verify._check: now.update([(q, r)]) or
+                            check(self, q, r))
+        fits.append((again.fit(det.descriptor, sample_seq.K, local), now))
+        monkeypatch.undo()
+    (cached, new), (fresh, every) = fits
+    assert max(new.values()) == 1 and not set(new) & set(state.verified)  # only pairs no fit verified before
+    assert set(new) < set(every) and set(every) & set(state.verified)  # planned again: verified again without them
+    assert cached.samples.keys() == fresh.samples.keys()
+    assert all(np.array_equal(cached.samples[k], fresh.samples[k], equal_nan=True) for k in cached.samples)
+
+
+def test_late_checks_equal_one_call_per_frame(online_run, sample_seq):
+    """A refit's late checks (every recorded frame's candidates that could pass now, pair by pair on two threads,
+    ``LoopDetector._verify_late``) give what one ``verify`` call per frame gives (the recorded frames taken as never
+    verified)."""
+    _, _, state, _, det = online_run
+    rows = []
+    for seen in state.seen:
+        blank = dataclasses.replace(seen, matches=np.zeros_like(seen.matches), inliers=np.full_like(seen.inliers, -1))
+        rows.append((blank, det._recorded(blank)))
+    det._pool = BesideExecutor(thread_name_prefix="verify")  # the stream's was shut down with it
+    try:
+        det._verify_late(rows)
+    finally:
+        det._pool.shutdown()
+        det._pool = None
+    todo = 0
+    for seen, cands in rows:
+        want = [i for i, cd in enumerate(det._recorded(seen)) if det._could_pass(cd)]
+        got = det.verifier.verify(det.keyframe_features(seen.frame_id), [det.keyframe_features(cands[i].frame_id)
+                                  for i in want], sample_seq.K, det.conf["policy"]["min_matches"], det._min_inliers)
+        assert [(cands[i].matches, cands[i].inliers) for i in want] == [(g.matches, g.inliers) for g in got]
+        assert all(seen.inliers[i] == -1 for i in range(len(cands)) if i not in want)
+        todo += len(want)
+    assert todo > 20
 
 
 def _features_from(state, det):
