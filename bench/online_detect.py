@@ -1,17 +1,16 @@
-"""``cae-lcd detect`` by default against the API stream (issue 27): ``python -m bench.online_detect [--data
-../shared/datasets] [--run-dir runs/bench/online_detect]``.
+"""``cae-lcd detect`` by default against the API stream (issue 27): ``python -m bench.online_detect [--out
+runs/bench/online_detect] [--no-write]`` (the shared datasets beside the repository).
 
 ``detect`` calibrates itself on the stream by default (``calibration.online``, ``retrieval.online``), the algorithm
 ``LoopDetector.process`` runs through the API. For KITTI 90 and Nordland: ``detect``'s loops (its own and the delayed
 ones, ``loops.csv``) and the API stream's (``bench.aliasing.stream_run``: one frame at a time, no store), their
 precision / recall, whether the two sets of loops are the same, and the milliseconds a frame of each (``detect``: its
 frames' wall time, the stream's own calibration inside it apart; the stream: the mean, refits amortised, and its worst
-frame). Logged, not written into BENCHMARKS.md.
+frame). Rewrites the ``bench:online-detect`` section of BENCHMARKS.md.
 """
 
 from __future__ import annotations
 
-import argparse
 import logging
 from pathlib import Path
 from typing import Any
@@ -23,7 +22,8 @@ from cae_lcd.evaluation.metrics import precision_recall
 from retrieval.run_folder import RunFolder
 
 from .aliasing import stream_run
-from .common import REPO, detect_run, md_table
+from .common import REPO, detect_run, md_table, work_study_cli
+from .run import write_section
 
 __all__ = ["SETS", "compare", "main"]
 
@@ -49,8 +49,10 @@ def compare(folder: Path, run_dir: Path) -> dict[str, Any]:
             "stream_ms": stream["ms_mean"], "stream_worst_ms": stream["ms_worst"]}
 
 
-def main(data: Path, run_dir: Path) -> dict[str, dict[str, Any]]:
-    """Every set of ``SETS``; logs the table and returns the rows by set."""
+def main(out: str | Path = "runs/bench/online_detect", write: bool = True) -> dict[str, dict[str, Any]]:
+    """Every set of ``SETS`` (run folders under ``out``); logs the table, writes it into BENCHMARKS.md (``write``),
+    returns the rows by set."""
+    data, run_dir = REPO.parent / "shared" / "datasets", Path(out)
     rows = {name: compare(data.joinpath(*parts), run_dir / f"run_{i}") for i, (name, parts) in enumerate(SETS.items())}
     table = md_table(["set", "frames", "detect loops", "precision / recall", "API stream loops",
                       "precision / recall", "same loops", "detect ms/frame (own calibration)",
@@ -60,17 +62,15 @@ def main(data: Path, run_dir: Path) -> dict[str, dict[str, Any]]:
                        "yes" if m["same"] else "NO", f"{m['detect_ms']:.1f} ({m['detect_calibration_ms']:.1f})",
                        f"{m['stream_ms']:.1f} ({m['stream_worst_ms']:.0f})"] for name, m in rows.items()])
     log.info("\n%s", table)
+    if write:
+        write_section(REPO / "BENCHMARKS.md", "`python -m bench.online_detect`: `cae-lcd detect` with the default conf "
+                      "(the online path: the stream calibrates itself) against the same frames streamed through the API "
+                      "(`LoopDetector.process`, no store). Same loops: the two sets of (query, reference) pairs are "
+                      "equal. ms/frame: `detect`'s frames' wall time a frame (its own calibration's share in brackets); "
+                      "the stream's mean a frame, refits amortised (its worst frame in brackets).\n\n" + table,
+                      "online-detect")
     return rows
 
 
-def _cli() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "datasets", help="the shared datasets")
-    ap.add_argument("--run-dir", type=Path, default=Path("runs/bench/online_detect"), help="its run folders")
-    args = ap.parse_args()
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    main(args.data, args.run_dir)
-
-
 if __name__ == "__main__":
-    _cli()
+    work_study_cli(main, __doc__, "runs/bench/online_detect")
