@@ -25,9 +25,19 @@ def _int_list(text: str) -> tuple[int, ...]:
         raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
 
 
+def _import_bench() -> Any:
+    """``bench.run``: importable from the checkout's root (the working directory: ``bench/`` is not installed)."""
+    root = Path.cwd()
+    if (root / "bench" / "run.py").is_file() and str(root) not in sys.path:
+        sys.path.insert(0, str(root))
+    import bench.run as bench_run
+
+    return bench_run
+
+
 def add_parser(sub: Any) -> None:
     try:
-        import bench.run as bench_run
+        bench_run = _import_bench()
     except ModuleNotFoundError as err:
         if (err.name or "").split(".")[0] != "bench":
             raise
