@@ -580,8 +580,8 @@ class LoopDetector:
         if self._online is not None:
             t0 = time.perf_counter()
             if not self._online.ready and self._online.next_fit <= self._late_size:
-                self._queue_copies([fid])  # the first fit verifies pairs across the whole warm-up: the worker
-                #                            extracts each keyframe's features ahead, beside the frames that follow
+                self._queue_warm_up(fid, prep)  # the first fit verifies pairs across the whole warm-up: the worker
+                #                                 extracts each keyframe's features ahead, beside the frames that follow
             self._online.record(fid, edge_ratio, code, np.array([cd.frame_id for cd in candidates], np.int64),
                                 np.array([cd.matches for cd in candidates], np.int64),
                                 np.array([cd.inliers for cd in candidates], np.int64),
@@ -725,6 +725,16 @@ class LoopDetector:
                 copy = self._copy_of(nxt)
                 if copy:
                     self._jobs.submit(nxt, functools.partial(_copy_features, copy))
+
+    def _queue_warm_up(self, fid: int, prep: Callable[[], tuple[np.ndarray, float, bytes]]) -> None:
+        """Queues in the worker the features of warm-up keyframe ``fid`` (not kept): from its grey copy, or, where
+        frames come again from a ``frame_source`` (``detect``), from the frame in hand (read once, not again at the
+        first fit)."""
+        if self._frame_source is None:
+            self._queue_copies([fid])
+        elif self._jobs is not None and fid in self._unextracted and fid not in self._late and fid not in self._jobs:
+            small, scale, _ = prep()
+            self._jobs.submit(fid, functools.partial(_prepared_features, small, scale))
 
     def _copy_of(self, fid: int) -> bytes:
         """A keyframe's grey copy (``grey_copy``): kept here, or read from the store; b"" when there is none."""
@@ -1129,6 +1139,11 @@ def _side_by_side(work: Callable[[Any], Any], items: list[Any], pool: BesideExec
 def _own_features(prep: Callable[[], tuple[np.ndarray, float, bytes]], extractor: FeatureExtractor) -> Features:
     """A frame's local features from its prepared image (``LoopDetector._prepare_once``), with ``extractor``."""
     small, scale, _ = prep()
+    return extractor.extract_prepared(small, scale)
+
+
+def _prepared_features(small: np.ndarray, scale: float, extractor: FeatureExtractor) -> Features:
+    """A frame's local features from its image prepared at the extractor's resolution, with ``extractor``."""
     return extractor.extract_prepared(small, scale)
 
 

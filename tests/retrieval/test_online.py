@@ -318,3 +318,19 @@ def test_a_stopped_run_resumes_to_the_same_loops(judged_run, tmp_path, sample_se
     assert {q: r for q, (r, _) in loops.items()} == expected and len(expected) >= 45
     # what ``detect`` writes: the frames' own loops stored, and the delayed ones kept in the store's online state
     assert {**own, **{q: r for q, (r, _) in delayed.items()}} == expected and not set(own) & set(delayed)
+
+
+def test_the_warm_up_reads_no_frame_again_with_a_frame_source(online_run, sample_seq, sample_image, encoder):
+    """Offline (``detect``: a ``frame_source`` gives a frame again), the worker extracts each warm-up keyframe's
+    features from the frame in hand, so the first fit reads none of them again; the loops are the stream's without
+    a ``frame_source``."""
+    read_again: list[int] = []
+
+    def again(i: int):
+        read_again.append(i)
+        return sample_image(i)
+
+    with LoopDetector(CONF, K=sample_seq.K, encoder=encoder, frame_source=again) as det:
+        loops = stream(det, sample_image, range(len(sample_seq)))
+    assert not [i for i in read_again if i < WARM_UP * WINDOW]
+    assert {q: r for q, (r, _) in loops.items()} == {q: r for q, (r, _) in online_run[0].items()}
