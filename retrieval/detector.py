@@ -45,7 +45,7 @@ from cae_lcd.core.checks import check_frame_id, check_intrinsics, check_pose, ch
 from cae_lcd.core.conf import Bool, Choice, ConfigError, Float, Int, check_conf, merge_conf
 from cae_lcd.core.errors import DatabaseError
 from cae_lcd.core.images import check_image, to_gray_u8, to_uint8
-from cae_lcd.core.threads import BesideExecutor, apply_thread_policy
+from cae_lcd.core.threads import BesideExecutor, apply_thread_policy, in_turn
 from verify.features import FEATURES, FeatureExtractor, Features, create_extractor
 from verify.gate import EdgeGate
 from verify.geometry import GeometricVerifier
@@ -1127,12 +1127,7 @@ def _side_by_side(work: Callable[[Any], Any], items: list[Any], pool: BesideExec
                 return
             out[k] = work(items[k])
 
-    helper = pool.submit(lane) if pool is not None and len(items) > 1 else None
-    try:
-        lane()
-    finally:
-        if helper is not None:
-            helper.result()
+    in_turn(lane, pool, len(items))
     return out
 
 

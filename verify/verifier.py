@@ -16,6 +16,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from cae_lcd.core.conf import Bool, ConfigError, Float, Registry, configure
+from cae_lcd.core.threads import in_turn
 
 from .features import Features
 from .geometry import GeometricVerifier, GeometryResult
@@ -132,12 +133,7 @@ def _checked_in_turn(todo: list[int], matches: list[int], check: Callable[[int],
                 done[todo[k]] = geo
                 state["best"] = max(state["best"], geo.inliers)
 
-    helper = pool.submit(lane) if pool is not None and len(todo) > 1 else None
-    try:
-        lane()
-    finally:
-        if helper is not None:
-            helper.result()
+    in_turn(lane, pool, len(todo))
     return done
 
 

@@ -25,7 +25,7 @@ import os
 import platform
 import sys
 import threading
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Executor, Future, ThreadPoolExecutor
 from typing import Any, Callable
 
 import cv2
@@ -33,7 +33,7 @@ import torch
 from threadpoolctl import threadpool_limits
 
 __all__ = ["apply_thread_policy", "cpu_count", "reexec_with_server_malloc", "release_free_memory", "BesideCaller",
-           "BesideExecutor", "MALLOC_ARENAS", "MMAP_THRESHOLD"]
+           "BesideExecutor", "in_turn", "MALLOC_ARENAS", "MMAP_THRESHOLD"]
 
 log = logging.getLogger(__name__)
 
@@ -184,3 +184,15 @@ class BesideExecutor(ThreadPoolExecutor):
     def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Future:  # type: ignore[override]
         self.steering.steer()
         return super().submit(fn, *args, **kwargs)
+
+
+def in_turn(lane: Callable[[], None], pool: Executor | None, n: int) -> None:
+    """Runs ``lane`` (a loop that takes the next of ``n`` items until none is left) on this thread and, when ``pool``
+    is given and there is more than one item, on ``pool``'s thread too; returns when both are done (an error of
+    either is raised here)."""
+    helper = pool.submit(lane) if pool is not None and n > 1 else None
+    try:
+        lane()
+    finally:
+        if helper is not None:
+            helper.result()
