@@ -733,8 +733,7 @@ class LoopDetector:
         if self._frame_source is None:
             self._queue_copies([fid])
         elif self._jobs is not None and fid in self._unextracted and fid not in self._late and fid not in self._jobs:
-            small, scale, _ = prep()
-            self._jobs.submit(fid, functools.partial(_prepared_features, small, scale))
+            self._jobs.submit(fid, functools.partial(_own_features, prep))
 
     def _copy_of(self, fid: int) -> bytes:
         """A keyframe's grey copy (``grey_copy``): kept here, or read from the store; b"" when there is none."""
@@ -1134,11 +1133,6 @@ def _side_by_side(work: Callable[[Any], Any], items: list[Any], pool: BesideExec
 def _own_features(prep: Callable[[], tuple[np.ndarray, float, bytes]], extractor: FeatureExtractor) -> Features:
     """A frame's local features from its prepared image (``LoopDetector._prepare_once``), with ``extractor``."""
     small, scale, _ = prep()
-    return extractor.extract_prepared(small, scale)
-
-
-def _prepared_features(small: np.ndarray, scale: float, extractor: FeatureExtractor) -> Features:
-    """A frame's local features from its image prepared at the extractor's resolution, with ``extractor``."""
     return extractor.extract_prepared(small, scale)
 
 
