@@ -1,0 +1,11 @@
+"""``bench.online_detect``: ``cae-lcd detect`` with the default conf and the API stream, on the bundled sample, write
+the same loops (the comparison the BENCHMARKS.md table reports)."""
+
+from bench.online_detect import compare
+
+
+def test_detect_and_the_api_stream_write_the_same_loops(sample_dir, tmp_path):
+    row = compare(sample_dir, tmp_path / "run")
+    assert row["same"] and row["detect_loops"] == row["stream_loops"] >= 45
+    assert row["precision"] == row["stream_precision"] == 1.0
+    assert row["detect_ms"] >= row["detect_calibration_ms"] > 0
