@@ -832,13 +832,18 @@ class LoopDetector:
     def _use(self, cal: Calibration) -> None:
         """Makes ``cal`` (fitted on the stream) the run's: the gate's reference, the index moved into its whitening,
         the decision, what is verified."""
+        self._install(cal, cal.whitening is not self.places.whitening)
+        self._verify = self._online.adopt(cal, self.places.source, self.filter) and bool(cal.inlier_null)
+
+    def _install(self, cal: Calibration, rewhiten: bool) -> None:
+        """``cal`` the run's calibration and the gate's reference; with ``rewhiten`` every keyframe moved into its
+        whitening (from the raw codes the stream kept)."""
         self.calibration = cal
         if cal.edge_reference is not None:
             self.gate.reference = cal.edge_reference
-        if cal.whitening is not self.places.whitening:
+        if rewhiten:
             self.places.rewhiten(cal.whitening, *self._online.raw())
-        self.whitening = cal.whitening
-        self._verify = self._online.adopt(cal, self.places.source, self.filter) and bool(cal.inlier_null)
+            self.whitening = cal.whitening
 
     def _redecide(self) -> list[tuple[int, Candidate]]:
         """Every recorded frame decided again under the current calibration, in order (scores in the current code
@@ -1100,12 +1105,7 @@ class _OnlineResume:
         cal = on.calibration
         if cal is None:
             return
-        det.calibration = cal
-        if cal.edge_reference is not None:
-            det.gate.reference = cal.edge_reference
-        if meta["rewhitened"]:
-            det.places.rewhiten(cal.whitening, *on.raw())
-            det.whitening = cal.whitening
+        det._install(cal, bool(meta["rewhitened"]))
         det._verify = on.ready and bool(cal.inlier_null)
         if on.ready:
             det._redecide()
