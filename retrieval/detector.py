@@ -45,7 +45,7 @@ from cae_lcd.core.checks import check_frame_id, check_intrinsics, check_pose, ch
 from cae_lcd.core.conf import Bool, Choice, ConfigError, Float, Int, check_conf, merge_conf
 from cae_lcd.core.errors import DatabaseError
 from cae_lcd.core.images import check_image, to_gray_u8, to_uint8
-from cae_lcd.core.threads import BesideExecutor, apply_thread_policy, in_turn
+from cae_lcd.core.threads import BesideExecutor, apply_thread_policy, side_by_side
 from verify.features import FEATURES, FeatureExtractor, Features, create_extractor
 from verify.gate import EdgeGate
 from verify.geometry import GeometricVerifier
@@ -904,7 +904,7 @@ class LoopDetector:
         for start in range(0, len(todo), LATE_BATCH):
             batch = todo[start:start + LATE_BATCH]
             feats = {f: self._features_of(f) for seen, _, cd in batch for f in (seen.frame_id, cd.frame_id)}
-            done = _side_by_side(functools.partial(check, feats=feats), batch, self._pool)
+            done = side_by_side(functools.partial(check, feats=feats), batch, self._pool)
             for (seen, i, cd), got in zip(batch, done):
                 cd.matches, cd.inliers = got.matches, got.inliers
                 seen.matches[i], seen.inliers[i] = got.matches, got.inliers
@@ -1110,24 +1110,6 @@ class _OnlineResume:
         if on.ready:
             det._redecide()
         log.info("online calibration taken back from the store at keyframe %d (%s path)", self.last, cal.path)
-
-
-def _side_by_side(work: Callable[[Any], Any], items: list[Any], pool: BesideExecutor | None) -> list[Any]:
-    """``[work(item) for item in items]``, the items taken in turn by this thread and ``pool``'s (when given)."""
-    out: list[Any] = [None] * len(items)
-    state, lock = {"next": 0}, threading.Lock()
-
-    def lane() -> None:
-        while True:
-            with lock:
-                k = state["next"]
-                state["next"] = k + 1
-            if k >= len(items):
-                return
-            out[k] = work(items[k])
-
-    in_turn(lane, pool, len(items))
-    return out
 
 
 def _own_features(prep: Callable[[], tuple[np.ndarray, float, bytes]], extractor: FeatureExtractor) -> Features:

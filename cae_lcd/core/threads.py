@@ -33,7 +33,7 @@ import torch
 from threadpoolctl import threadpool_limits
 
 __all__ = ["apply_thread_policy", "cpu_count", "reexec_with_server_malloc", "release_free_memory", "BesideCaller",
-           "BesideExecutor", "in_turn", "MALLOC_ARENAS", "MMAP_THRESHOLD"]
+           "BesideExecutor", "in_turn", "side_by_side", "MALLOC_ARENAS", "MMAP_THRESHOLD"]
 
 log = logging.getLogger(__name__)
 
@@ -196,3 +196,21 @@ def in_turn(lane: Callable[[], None], pool: Executor | None, n: int) -> None:
     finally:
         if helper is not None:
             helper.result()
+
+
+def side_by_side(work: Callable[[Any], Any], items: list[Any], pool: Executor | None) -> list[Any]:
+    """``[work(item) for item in items]``, the items taken in turn by this thread and ``pool``'s (when given)."""
+    out: list[Any] = [None] * len(items)
+    state, lock = {"next": 0}, threading.Lock()
+
+    def lane() -> None:
+        while True:
+            with lock:
+                k = state["next"]
+                state["next"] = k + 1
+            if k >= len(items):
+                return
+            out[k] = work(items[k])
+
+    in_turn(lane, pool, len(items))
+    return out

@@ -16,7 +16,7 @@ import pytest
 import torch
 from threadpoolctl import threadpool_info, threadpool_limits
 
-from cae_lcd.core.threads import BesideExecutor, apply_thread_policy, cpu_count, in_turn
+from cae_lcd.core.threads import BesideExecutor, apply_thread_policy, cpu_count, side_by_side
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -194,29 +194,17 @@ def test_beside_executor_runs_jobs_where_it_cannot_steer(monkeypatch):
         assert ex.submit(sum, [1, 2]).result() == 3 and ex.steering._tid is None
 
 
-def test_in_turn_runs_every_item_once_on_both_threads_and_raises_their_errors():
-    """``in_turn``: the caller and the pool's thread each take the next item until none is left (every item once,
-    both threads used when there are several), and a lane's error reaches the caller."""
-    items, taken, lock = list(range(40)), [], threading.Lock()
-    state = {"next": 0}
 
-    def lane() -> None:
-        while True:
-            with lock:
-                k = state["next"]
-                state["next"] = k + 1
-            if k >= len(items):
-                return
-            time.sleep(0.002)
-            with lock:
-                taken.append((k, threading.get_ident()))
+def test_side_by_side_runs_every_item_once_on_both_threads_and_raises_their_errors():
+    """``side_by_side`` (over ``in_turn``): every item's result in order, the caller and the pool's thread both
+    taking items when there are several; an item's error reaches the caller."""
+    def slow(k: int) -> tuple[int, int]:
+        time.sleep(0.002)
+        return k * k, threading.get_ident()
 
     with BesideExecutor("test") as pool:
-        in_turn(lane, pool, len(items))
-        assert sorted(k for k, _ in taken) == items and len({t for _, t in taken}) == 2
-
-        def broken() -> None:
-            raise ValueError("lane failed")
-
-        with pytest.raises(ValueError, match="lane failed"):
-            in_turn(broken, pool, 2)
+        out = side_by_side(slow, list(range(40)), pool)
+        assert [v for v, _ in out] == [k * k for k in range(40)] and len({t for _, t in out}) == 2
+        assert side_by_side(slow, [], pool) == [] and [v for v, _ in side_by_side(slow, [3], None)] == [9]
+        with pytest.raises(ZeroDivisionError):
+            side_by_side(lambda k: 1 // k, [1, 0, 2], pool)
