@@ -72,12 +72,16 @@ from typing import Any
 import numpy as np
 
 __all__ = ["TailModel", "EmpiricalTail", "MeasuredTail", "gamma_log10_sf", "gaussian_log10_sf", "fused_log10_sf",
-           "Horizon", "Stops", "Confirmations", "ScoreSpans", "Decision", "SPAN", "TOL", "GAP", "AGREE", "LOCALISE"]
+           "Horizon", "Stops", "Confirmations", "ScoreSpans", "Decision", "SPAN", "TOL", "GAP", "UNSUPPORTED", "AGREE",
+           "LOCALISE"]
 
 LN10 = math.log(10.0)
 SPAN = 5  #: frames (inlier path) or windows (score path) one decision fuses at most, the query's and those before it
 #           (issue 27: a measured pair null caps what one frame claims; a run of frames on one offset decides)
 TOL = 2  #: frames the offset ``q - r`` may drift between fused frames
+UNSUPPORTED = -1e8  #: the confidence of an admissible pair with evidence of its own that no run supports yet (the
+#                      first frame of a revisit): below any ``accept_at``, above ``Confirmations.VETO``, so that the run
+#                      its next frames complete certifies it (``Confirmations``)
 GAP = 3  #: dissimilar frames in a row that end the stretch the query is still in
 MAX_BACK = 2000  #: frames the horizon looks back at most
 LOCALISE = 1.0  #: decades by which a nearby line (reference within ``window // 2`` frames) may beat the query's own
@@ -506,7 +510,8 @@ class Decision:
                     fallback: np.ndarray | None = None) -> np.ndarray:
         """``-log10 NFA`` of each candidate ``(query_id, refs[i])`` with ``inliers[i]`` (-1: not verified);
         ``-inf`` where it has no evidence of its own, is too recent, or is a still query's keyframe where the
-        reference did not stand still as long (``stops``). Score path (no ``pair_tail``): the fused
+        reference did not stand still as long (``stops``); ``UNSUPPORTED`` where it has evidence of its own but no
+        run of frames reaches ``min_support`` yet. Score path (no ``pair_tail``): the fused
         windows' confidence (``spans``), else ``fallback`` (the calibrated temporal-score confidences, ``(m,)``),
         where the keyframe is not too recent."""
         out = np.full(len(refs), -math.inf)
@@ -532,7 +537,7 @@ class Decision:
             best = self.fused(e0, self.support(query_id, ref))
             if self.single:
                 best = max(best, base - self.pair_tail.log10_sf(inl))
-            out[i] = best
+            out[i] = max(best, UNSUPPORTED)  # evidence of its own: a later run may certify it (``Confirmations``)
         return out
 
     def fresh(self) -> "Decision":

@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from retrieval.decision import SPAN, Decision, Horizon, Stops, TailModel, gamma_log10_sf
+from retrieval.decision import SPAN, UNSUPPORTED, Decision, Horizon, Stops, TailModel, gamma_log10_sf
 
 
 @pytest.fixture(scope="module")
@@ -96,7 +96,7 @@ class TestSeparation:
         dec = _decision(cal)
         dec.pair_tail = TailModel(0.0, 5.0)  # a modelled tail (a calibration made by hand): one pair could claim much
         huge = np.array([10_000])
-        assert dec.confidences(100, np.array([10]), huge, _NoSource())[0] == -math.inf
+        assert dec.confidences(100, np.array([10]), huge, _NoSource())[0] == UNSUPPORTED < dec.accept_at
         dec.single = True  # where it separates, the same pair decides alone
         assert dec.confidences(100, np.array([10]), huge, _NoSource())[0] >= dec.accept_at
 
@@ -364,6 +364,26 @@ class TestConfirmations:
         q, r = pairs[-1]
         assert dec.confidences(q, np.array([r]), np.array([inl[-1]]), _NoSource())[0] < dec.accept_at
         assert conf.confirm(dec, q, r, inl[-1]) == []
+
+    def test_a_revisits_first_frame_is_kept_for_its_run(self, small):
+        """The first frame of a revisit has evidence of its own but no run yet (KITTI 90's frame 100 on frame 0): its
+        confidence is ``UNSUPPORTED``, not a veto, so the run its next frames complete reports it; decided as the
+        detector decides (each frame's confidences stored, ``max(value, VETO)``)."""
+        from retrieval.decision import Confirmations
+
+        seq, cal = small
+        pairs = [(80 + j, 29 + j) for j in range(3)]
+        inl = TestFusedEvidence()._inliers(seq, pairs)
+        dec, conf = _decision(cal, single=False), Confirmations()
+        first = dec.confidences(80, np.array([29]), np.array([inl[0]]), _NoSource())[0]
+        assert first == UNSUPPORTED < cal.accept_at  # not a loop alone, not vetoed
+        for (q, r), x in zip(pairs[:-1], inl[:-1]):
+            value = dec.confidences(q, np.array([r]), np.array([x]), _NoSource())[0]
+            conf.add(q, {r: (max(value, Confirmations.VETO), f"c{q}")}, False)
+            dec.commit(q, np.array([r]), np.array([x]))
+        q, r = pairs[-1]
+        assert dec.confidences(q, np.array([r]), np.array([inl[-1]]), _NoSource())[0] >= cal.accept_at
+        assert [f for f, _ in conf.confirm(dec, q, r, inl[-1])] == [80, 81]
 
     def test_vetoed_or_already_looped_member_not_reported(self, small):
         from retrieval.decision import Confirmations
