@@ -886,11 +886,12 @@ class LoopDetector:
 
     def _verify_late(self, rows: list[tuple[Seen, list[Candidate]]]) -> None:
         """Verifies, at a refit, the recorded frames' candidates that were not verified and could pass now
-        (``_could_pass``; ``rows``: each frame's ``Seen`` and candidates), every pair on its own (matching and the
+        (``_could_pass``; ``rows``: each frame's ``Seen`` and candidates), of the frames not yet a loop (a loop is
+        reported once: more evidence there finds nothing new), every pair on its own (matching and the
         geometric check are per candidate with ``check_all``: the counts of one call per frame), side by side on
         the verify worker's thread and this one, ``LATE_BATCH`` pairs at a time (their features fetched here
         first); records their matches and inliers in both."""
-        todo = [(seen, i, cd) for seen, cands in rows for i, cd in enumerate(cands)
+        todo = [(seen, i, cd) for seen, cands in rows if not seen.reported for i, cd in enumerate(cands)
                 if cd.inliers < 0 and self._could_pass(cd)]
         min_matches, verifiers = self.conf["policy"]["min_matches"], threading.local()
 

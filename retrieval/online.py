@@ -43,7 +43,8 @@ of them read, blocks spread as ``calibration_frames`` chooses), so a refit encod
   replaces; else the current calibration is kept (one log line). Its tests only grow.
 - **Loops found late**: after a refit the frames recorded since the start are decided again under the new decision
   (their candidates' scores recomputed in the new code space; the candidates not verified yet that could pass now
-  verified), and the loops not reported yet are reported as delayed loops (``FrameResult.confirmed``).
+  verified, of the frames not yet a loop: a loop is reported once, so more evidence there finds nothing new), and
+  the loops not reported yet are reported as delayed loops (``FrameResult.confirmed``).
 
 Cost: the fits, almost all of it verifying the null's sampled pairs (a SIFT match and a RANSAC check each, about 4 ms
 of one core for a full check; ``calibration.null_pairs`` planned a fit), on the frame that triggers the fit. What
@@ -57,13 +58,17 @@ keeps it down (the loops, the counts at or above the floor and so the decisions 
   geometric pre-check's count stands (no mirror test, no essential matrix), and the hard negatives are mostly there;
 - the keyframes of the warm-up have their local features extracted ahead by the detector's feature worker (the first
   fit verifies pairs across all of them), and a refit's late checks of the recorded frames' candidates run pair by
-  pair on the verify worker's thread and the caller's (``LoopDetector._verify_late``).
+  pair on the verify worker's thread and the caller's (``LoopDetector._verify_late``);
+- no late check of a frame already a loop: on KITTI 90 the refit at 200 keyframes checked 340 such pairs (the other
+  candidates along the revisit: 1 s of its 1.5 s) and found no loop with them.
 
 The detector's own verified candidates are never among the fits' pairs (beyond the exclusion window; the nulls lie
 inside it). Measured (2 cores shared with other work, the code before and after alternately in one run, at the
 lightest load): KITTI 90 45 -> 24 ms a frame with the fits amortised (median 14 ms either way; worst frame, the
-refit at 200 keyframes, 3.3 -> 1.5 s), 14.7 -> 8.3 s of CPU; KITTI 00 25.9 -> 8.5 s of CPU. What is left at the
-refit: about 1 s verifying its new pairs on both cores and 1 s of late checks. Not tried: the fit off the frame path
+refit at 200 keyframes, 3.3 -> 1.5 s), 14.7 -> 8.3 s of CPU; KITTI 00 25.9 -> 8.5 s of CPU; then no late check of
+a loop's frame, with the code table's rows found by bisection (``retrieval.temporal.CodeTable``): 24.4 -> 20.4 ms a
+frame, worst frame 1.4 -> 0.8 s (alternated, 2 runs each). What is left at a refit: about 0.6 s verifying its new
+pairs on both cores. Not tried: the fit off the frame path
 (a background fit adopted later, the current decision deciding meanwhile; its seconds of CPU beside a stream that
 keeps one core busy would land the new decision tens of frames late, and KITTI 90's refit at 200 keyframes, on its
 last frame, would never be adopted in the stream), and fewer pairs (the null's size bounds what one pair may claim).

@@ -65,17 +65,33 @@ class CodeTable:
         self.dim = dim
         self._rows: dict[int, int] = {}
         self._codes = np.zeros((0, dim), dtype)
+        self._ids = np.zeros(0, np.int64)  # row -> frame id
         self._n = 0
+        self._ascending = True  # ids added in increasing order (a stream's): rows found by bisection (``_find``)
         self._searchable = searchable
 
     def add(self, frame_id: int, code: np.ndarray) -> None:
         if self._n == len(self._codes):
-            grown = np.zeros((max(64, 2 * len(self._codes)), self.dim), self._codes.dtype)
+            size = max(64, 2 * len(self._codes))
+            grown = np.zeros((size, self.dim), self._codes.dtype)
             grown[: self._n] = self._codes[: self._n]
-            self._codes = grown
+            self._codes, self._ids = grown, np.resize(self._ids, size)
         self._codes[self._n] = code
+        self._ascending = self._ascending and (self._n == 0 or int(frame_id) > int(self._ids[self._n - 1]))
+        self._ids[self._n] = int(frame_id)
         self._rows[int(frame_id)] = self._n
         self._n += 1
+
+    def _find(self, frame_ids: np.ndarray) -> np.ndarray:
+        """``(n,)`` int64: the row of each of ``frame_ids`` ``(n,)``, -1 where not stored: by bisection over the ids
+        where they were added in increasing order, else one lookup each (the same rows)."""
+        frame_ids = np.asarray(frame_ids, np.int64).reshape(-1)
+        if not self._ascending:
+            return np.array([self._rows.get(int(i), -1) for i in frame_ids.tolist()], np.int64)
+        ids = self._ids[: self._n]
+        pos = np.minimum(np.searchsorted(ids, frame_ids), max(self._n - 1, 0))
+        hit = (ids[pos] == frame_ids) if self._n else np.zeros(len(frame_ids), bool)
+        return np.where(hit, pos, -1).astype(np.int64)
 
     def inserted(self, frame_id: int) -> None:
         """The frame became a keyframe: nothing to do, the table keeps its own copy of every code."""
@@ -98,8 +114,7 @@ class CodeTable:
         return ids, self._codes[[self._rows[int(i)] for i in ids]].astype(np.float32)
 
     def pairs(self, queries: np.ndarray, refs: np.ndarray) -> np.ndarray:
-        rq = np.array([self._rows.get(int(i), -1) for i in queries], np.int64)
-        rr = np.array([self._rows.get(int(i), -1) for i in refs], np.int64)
+        rq, rr = self._find(queries), self._find(refs)
         out = np.full(len(rq), np.nan, np.float32)
         ok = (rq >= 0) & (rr >= 0)
         if ok.any():

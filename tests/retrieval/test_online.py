@@ -125,18 +125,23 @@ def test_a_refit_verifies_no_pair_twice(online_run, sample_seq, encoder, monkeyp
 def test_late_checks_equal_one_call_per_frame(online_run, sample_seq):
     """A refit's late checks (every recorded frame's candidates that could pass now, pair by pair on two threads,
     ``LoopDetector._verify_late``) give what one ``verify`` call per frame gives (the recorded frames taken as never
-    verified)."""
+    verified, not loops); a frame already a loop has nothing checked late (a loop is reported once)."""
     _, _, state, _, det = online_run
-    rows = []
+    rows, looped = [], []
     for seen in state.seen:
-        blank = dataclasses.replace(seen, matches=np.zeros_like(seen.matches), inliers=np.full_like(seen.inliers, -1))
+        blank = dataclasses.replace(seen, matches=np.zeros_like(seen.matches), inliers=np.full_like(seen.inliers, -1),
+                                    reported=False)
         rows.append((blank, det._recorded(blank)))
+        loop = dataclasses.replace(blank, inliers=blank.inliers.copy(), reported=True)
+        looped.append((loop, det._recorded(loop)))
     det._pool = BesideExecutor(thread_name_prefix="verify")  # the stream's was shut down with it
     try:
         det._verify_late(rows)
+        det._verify_late(looped)
     finally:
         det._pool.shutdown()
         det._pool = None
+    assert all((seen.inliers == -1).all() and all(cd.inliers == -1 for cd in cands) for seen, cands in looped)
     todo = 0
     for seen, cands in rows:
         want = [i for i, cd in enumerate(det._recorded(seen)) if det._could_pass(cd)]

@@ -153,6 +153,30 @@ class TestCodeTable:
         table.remove_last(5)
         assert 5 not in table and 3 in table
 
+    def test_bisection_finds_the_rows_one_lookup_each_finds(self, sample_frames):
+        """The fast path (ids added in increasing order, rows found by bisection) against brute force (each pair's
+        two codes looked up and multiplied): the same similarities, NaN where a frame is not stored, after a removal
+        and with ids added out of order (the lookup path); empty in, empty out."""
+        from cae_lcd.core.images import read_image
+        from retrieval.descriptors import create_descriptor
+
+        descriptor = create_descriptor({"name": "cae"})
+        codes = {3 * i + 1: descriptor(read_image(p)) for i, p in enumerate(sample_frames[:8])}
+        codes = {f: c / np.linalg.norm(c) for f, c in codes.items()}
+        rng = np.random.default_rng(0)
+        for order in (sorted(codes), sorted(codes, reverse=True)):
+            table = CodeTable(len(codes[1]))
+            for f in order:
+                table.add(f, codes[f])
+            table.remove_last(order[-1])
+            kept = set(order[:-1])
+            q, r = rng.integers(-2, 26, 200), rng.integers(-2, 26, 200)
+            want = np.array([np.dot(codes[a], codes[b]) if a in kept and b in kept else np.nan
+                             for a, b in zip(q.tolist(), r.tolist())], np.float32)
+            np.testing.assert_allclose(table.pairs(q, r), want, rtol=1e-5, atol=1e-6)
+            assert table._ascending == (order[0] < order[1])
+            assert table.pairs(np.zeros(0, np.int64), np.zeros(0, np.int64)).shape == (0,)
+
     def test_float16_rows_give_the_same_similarities_at_half_the_memory(self, sample_frames):
         """Codes rounded to float16 (what ``CodePlaces.entry`` searches and stores) kept as float16: the same
         similarities as float32 rows, bit for bit, in half the bytes."""
