@@ -30,7 +30,7 @@ from cae_lcd.core.conf import ConfigError, dump_conf
 from cae_lcd.core.errors import ImageError
 from cae_lcd.core.files import prepare_out_dir
 from cae_lcd.core.progress import Counted, progress_bar
-from cae_lcd.core.threads import apply_thread_policy
+from cae_lcd.core.threads import apply_thread_policy, cpu_count
 
 from verify.camera import CameraModel, camera_from_options
 
@@ -253,14 +253,16 @@ def with_camera(seq: Sequence, conf: dict[str, Any] | None, given: CameraModel |
     return conf
 
 
-def _edge_features(seq: Sequence, resolved: dict[str, Any], cal: Calibration | None,
-                   det: LoopDetector) -> Any:
-    """The loop edges' local features (only where the loops were verified): the run's own, or, for a calibrated
-    run whose features are cheaper than the extractor's (``calibration.features_px``), the extractor's own resolution
-    read again from the frames (``retrieval.edges.edge_features``: a more precise pose for 2 extractions a loop)."""
+def _edges(seq: Sequence, resolved: dict[str, Any], cal: Calibration | None, det: LoopDetector,
+           loops: np.ndarray) -> list[Any]:
+    """The loops' edges (``retrieval.edges.loop_edges``; only where the loops were verified), from the run's own
+    local features, or, for a calibrated run whose features are cheaper than the extractor's
+    (``calibration.features_px``), the extractor's own resolution read again from the frames
+    (``retrieval.edges.edge_features``: a more precise pose for 2 extractions a loop, on every core)."""
     if cal is None or calibrated_features(resolved) == resolved["features"]:
-        return det.keyframe_features
-    return edge_features(lambda i: seq.read_frame(i)[0], resolved["features"], det.keyframe_features)
+        return loop_edges(det.keyframe_features, loops, seq.K, resolved)
+    features = edge_features(lambda i: seq.read_frame(i)[0], resolved["features"], det.keyframe_features)
+    return loop_edges(features, loops, seq.K, resolved, workers=cpu_count())
 
 
 def _body_pose(seq: Sequence, edge_frame: str) -> np.ndarray | None:
@@ -395,7 +397,7 @@ def main(path: str | Path | Sequence | None = None, out: str | Path | None = Non
         confirmed = det.confirmed_loops(rows)  # delayed loops: a run accepted at t certifies its earlier frames
         loops = run.write_tables((_with_confirmed(q, cands, loop, confirmed.get(q)) for q, cands, loop in rows), keys)
         verified = bool(cal.inlier_null) if cal is not None else bool(resolved["policy"]["verify"])
-        edges = loop_edges(_edge_features(seq, resolved, cal, det), loops, seq.K, resolved) if verified else []
+        edges = _edges(seq, resolved, cal, det, loops) if verified else []
         if metric_from_poses:
             edges = metric_edges(edges, seq.poses)
         run.write_edges(edges, seq.poses, keys, T_body_camera)

@@ -37,6 +37,8 @@ by the length squared and the length given its own standard deviation.
 from __future__ import annotations
 
 import functools
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from typing import Any, Callable, Iterable
 
@@ -183,7 +185,7 @@ def rotation_to_quaternion(R: np.ndarray) -> np.ndarray:
 
 
 def loop_edges(features: Callable[[int], Features], loops: Iterable[tuple[int, int]], K: np.ndarray | None,
-               conf: dict[str, Any]) -> list[LoopEdge]:
+               conf: dict[str, Any], workers: int = 1) -> list[LoopEdge]:
     """The relative pose of each loop, from the keyframes' local features.
 
     Args:
@@ -191,6 +193,9 @@ def loop_edges(features: Callable[[int], Features], loops: Iterable[tuple[int, i
         loops: ``(query, match)`` frame id pairs (``(L, 2)``), as ``RunFolder.write_tables`` returns them.
         K: ``(3, 3)`` intrinsics; None: no edges (without intrinsics the geometry is a fundamental matrix, no pose).
         conf: the run's resolved conf (its ``matcher`` and ``geometry`` sections are used).
+        workers: threads computing edges side by side (OpenCV and the matcher release the GIL; the same edges in
+            the same order), where ``features`` may be called from several threads at once (``edge_features``'s
+            may; a ``LoopDetector``'s own may not: 1).
 
     Returns:
         One ``LoopEdge`` per loop whose essential matrix gave a pose (and its inliers an information: at least 6),
@@ -198,21 +203,27 @@ def loop_edges(features: Callable[[int], Features], loops: Iterable[tuple[int, i
     """
     if K is None:
         return []
-    verifier = create_verifier(conf.get("matcher"), conf.get("geometry"))
-    out = []
-    for q, m in loops:
-        check = verifier.verify(features(int(q)), [features(int(m))], K)[0]
-        geo = check.geometry
+    verifiers = threading.local()
+
+    def edge(pair: tuple[int, int]) -> LoopEdge | None:
+        if not hasattr(verifiers, "verifier"):  # one per thread
+            verifiers.verifier = create_verifier(conf.get("matcher"), conf.get("geometry"))
+        q, m = (int(f) for f in pair)
+        geo = verifiers.verifier.verify(features(q), [features(m)], K)[0].geometry
         if geo.refined is None or geo.essential is None:
-            continue
+            return None
         R, t = (np.asarray(v, np.float64) for v in geo.refined)
         _, a, b, K_used = geo.essential
         info, sigma_px = pose_information(a.reshape(-1, 2), b.reshape(-1, 2), K_used, R, t, MODEL_VARIANCE)
         if not np.isfinite(sigma_px):
-            continue
-        out.append(LoopEdge(int(q), int(m), int(geo.inliers), R, t, g2o_order(info),
-                            sigma_px=sigma_px))
-    return out
+            return None
+        return LoopEdge(q, m, int(geo.inliers), R, t, g2o_order(info), sigma_px=sigma_px)
+
+    loops = list(loops)
+    if workers <= 1 or len(loops) < 2:
+        return [e for e in map(edge, loops) if e is not None]
+    with ThreadPoolExecutor(min(workers, len(loops)), thread_name_prefix="loop-edges") as pool:
+        return [e for e in pool.map(edge, loops) if e is not None]
 
 
 def edge_features(read: Callable[[int], Any], features_conf: dict[str, Any],
@@ -220,20 +231,23 @@ def edge_features(read: Callable[[int], Any], features_conf: dict[str, Any],
     """Local features for the loop edges at the extractor's own resolution (``features_conf``), where a calibrated
     run detected with cheaper ones (``calibration.features_px``): each loop frame read again (``read(i)``: an image,
     or the reason it cannot be read) and extracted once, kept in the store's form (``Features.compact``); a frame
-    that cannot be read again gets ``fallback``'s (the run's own).
+    that cannot be read again gets ``fallback``'s (the run's own). Safe to call from several threads at once.
 
     KITTI 90 through a fisheye (``python -m bench.fisheye``): at the run's 384 px one pair's rotation was 2.7
     degrees off (138 inliers, ambiguous between the forward motion's two minima), at the extractor's 512 px 0.08
     (231 inliers).
     """
-    extractor = create_extractor(features_conf)
+    extractors, reading = threading.local(), threading.Lock()
 
     @functools.lru_cache(maxsize=1024)
     def get(frame_id: int) -> Features:
-        image = read(frame_id)
-        if not isinstance(image, np.ndarray):
-            return fallback(frame_id)
-        return extractor.extract(image).compact()
+        with reading:  # a sequence's reader (a video, a bag) and ``fallback`` serve one thread at a time
+            image = read(frame_id)
+            if not isinstance(image, np.ndarray):
+                return fallback(frame_id)
+        if not hasattr(extractors, "extractor"):  # one per thread: extractions side by side (``loop_edges``)
+            extractors.extractor = create_extractor(features_conf)
+        return extractors.extractor.extract(image).compact()
 
     return get
 

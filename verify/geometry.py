@@ -101,12 +101,17 @@ def _residual_jacobian(xq: np.ndarray, xc: np.ndarray, focal: float, R: np.ndarr
                        t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The inliers' Sampson residuals in pixels ``(n,)`` at the pose ``R, t`` and their Jacobian ``(n, 6)`` in the
     right-perturbed tangent ``(omega, delta)`` (``R exp(omega)``, ``t + R delta``), by central differences."""
-    def residuals(xi: np.ndarray) -> np.ndarray:
-        Rx = R @ cv2.Rodrigues(xi[:3].reshape(3, 1))[0]
-        return focal * sampson_residuals(xq, xc, Rx, t + R @ xi[3:])
-
-    J = np.stack([(residuals(h) - residuals(-h)) / (2 * _STEP) for h in np.eye(6) * _STEP], axis=1)
-    return residuals(np.zeros(6)), J
+    steps = np.vstack([np.eye(6) * _STEP, -np.eye(6) * _STEP, np.zeros((1, 6))])  # +h, -h, the pose itself
+    Rs = np.stack([R @ cv2.Rodrigues(h[:3].reshape(3, 1))[0] for h in steps])
+    ts = t + steps[:, 3:] @ R.T
+    skew = np.zeros((len(steps), 3, 3))
+    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -ts[:, 2], ts[:, 1], -ts[:, 0]
+    skew -= skew.transpose(0, 2, 1)
+    E = skew @ Rs  # (13, 3, 3): every perturbed pose's essential matrix, their residuals in one product
+    Ex, Etx = xq @ E.transpose(0, 2, 1), xc @ E
+    den = np.sqrt(Ex[..., 0] ** 2 + Ex[..., 1] ** 2 + Etx[..., 0] ** 2 + Etx[..., 1] ** 2)
+    r = focal * np.sum(xc * Ex, axis=2) / np.maximum(den, 1e-15)  # (13, n): sampson_residuals of each
+    return r[12], ((r[:6] - r[6:12]) / (2 * _STEP)).T
 
 
 def _along(R: np.ndarray, t: np.ndarray) -> np.ndarray:

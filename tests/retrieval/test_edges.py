@@ -44,6 +44,32 @@ def test_real_revisits_give_the_ground_truth_rotation(sift_features, sample_K, s
         assert abs(v[:3, 0] @ (e.R.T @ e.t)) > 0.999
 
 
+def test_edges_side_by_side_are_the_edges_one_after_another(sample_seq, sample_K):
+    """``loop_edges`` on two threads with ``edge_features`` (frames read again and extracted side by side) gives the
+    edges one thread gives, in the same order; a frame that cannot be read takes the fallback's features."""
+    from retrieval.edges import edge_features
+
+    conf = {"name": "sift", "resize_max": 512}
+    fallback = []
+
+    def read(i):
+        return "unreadable" if i == 99 else sample_seq.read_frame(i)[0]
+
+    def features():
+        from verify.features import create_extractor
+
+        extractor = create_extractor(conf)
+        return edge_features(read, conf, lambda i: fallback.append(i) or extractor.extract(sample_seq.read_frame(i)[0]))
+
+    one = loop_edges(features(), PAIRS, sample_K, {})
+    two = loop_edges(features(), PAIRS, sample_K, {}, workers=2)
+    assert [(e.query, e.match, e.inliers) for e in two] == [(e.query, e.match, e.inliers) for e in one]
+    assert len(one) == len(PAIRS) and fallback == [99, 99]
+    for a, b in zip(one, two):
+        np.testing.assert_allclose(b.R, a.R, atol=1e-12)
+        np.testing.assert_allclose(b.information(), a.information(), rtol=1e-9)
+
+
 def test_the_information_comes_from_the_residuals(sift_features, sample_K):
     from verify.verifier import create_verifier
 

@@ -169,3 +169,26 @@ def test_the_pose_is_refined_on_all_inliers(sift_features, sample_K, sample_seq)
         refined.append(rotation_angle_deg(R_gt.T @ R))
         assert np.linalg.norm(t) == pytest.approx(1.0) and np.allclose(R @ R.T, np.eye(3), atol=1e-9)
     assert np.median(refined) < 0.6 * np.median(raw) and max(refined) < max(raw)
+
+
+def test_the_batched_jacobian_is_the_one_residual_set_at_a_time(pairs, sample_K):
+    """``_residual_jacobian`` (every perturbed pose's Sampson residuals in one product) against brute force: each
+    of the 12 perturbations through ``sampson_residuals`` on its own, on the true revisit's inliers."""
+    import cv2
+
+    from verify.geometry import _STEP, _normalised, _residual_jacobian, sampson_residuals
+
+    res = GeometricVerifier()(*pairs["true"], K=sample_K)
+    E, a, b, K = res.essential
+    xq, focal = _normalised(a.reshape(-1, 2), K)
+    xc, _ = _normalised(b.reshape(-1, 2), K)
+    R, t = res.R, res.t.ravel() / np.linalg.norm(res.t)
+
+    def one(xi):
+        return focal * sampson_residuals(xq, xc, R @ cv2.Rodrigues(xi[:3].reshape(3, 1))[0], t + R @ xi[3:])
+
+    want_J = np.stack([(one(h) - one(-h)) / (2 * _STEP) for h in np.eye(6) * _STEP], axis=1)
+    r, J = _residual_jacobian(xq, xc, focal, R, t)
+    assert J.shape == (len(xq), 6) and len(xq) > 100
+    np.testing.assert_allclose(r, one(np.zeros(6)), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(J, want_J, rtol=1e-6, atol=1e-6 * np.abs(want_J).max())
