@@ -9,3 +9,4 @@ def test_detect_and_the_api_stream_write_the_same_loops(sample_dir, tmp_path):
     assert row["same"] and row["detect_loops"] == row["stream_loops"] >= 45
     assert row["precision"] == row["stream_precision"] == 1.0
     assert row["detect_ms"] >= row["detect_calibration_ms"] > 0
+    assert row["detect_whole_ms"] > row["detect_ms"] and row["sift_ms"] > 0  # the whole run: frames, edges too
