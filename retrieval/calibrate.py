@@ -511,9 +511,7 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
     moved = _moved(codes)  # False where the camera stood still (the code did not change)
     cal.whitening = _whitening(conf["whitening"], descriptor, codes, cal.notes, moved)
     normed = cal.whitening.transform(codes) if cal.whitening is not None else codes
-    table = CodeTable(normed.shape[1])
-    for fid, code in zip(ids, normed):
-        table.add(int(fid), code)
+    table = CodeTable.fixed(ids, normed)
     null = _null_scores(ids, table, filt, window, moved)
     if len(null) < 20:
         raise TooFewFrames(f"calibration found only {len(null)} far-side pairs; give a longer sequence or a larger "
@@ -690,9 +688,7 @@ def _out_of_sample(cal: Calibration, wconf: dict[str, Any], descriptor: GlobalDe
     if cut < len(ids):
         white = _whitening(wconf, descriptor, codes[:cut], [], moved[:cut])
         normed = white.transform(codes) if white is not None else codes
-        table = CodeTable(normed.shape[1])
-        for fid, code in zip(ids, normed):
-            table.add(int(fid), code)
+        table = CodeTable.fixed(ids, normed)
         rows = _null_scores(ids, table, filt, window, moved, window // 2)
         rows = rows[rows[:, 0] >= ids[cut]] if len(rows) else rows
     if len(rows) < 20:

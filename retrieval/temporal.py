@@ -39,7 +39,9 @@ import numpy as np
 from cae_lcd.core.conf import Float, Floats, Int, Registry, configure
 
 __all__ = ["SimilaritySource", "CodeTable", "TemporalFilter", "SequenceFilter", "NoFilter", "BayesFilter",
-           "FILTERS", "create_filter"]
+           "FILTERS", "create_filter", "GRAM_MAX"]
+
+GRAM_MAX = 4096  #: frames up to which ``CodeTable.fixed`` keeps every pair's similarity (64 MB at most)
 
 
 class SimilaritySource(Protocol):
@@ -68,9 +70,25 @@ class CodeTable:
         self._ids = np.zeros(0, np.int64)  # row -> frame id
         self._n = 0
         self._ascending = True  # ids added in increasing order (a stream's): rows found by bisection (``_find``)
+        self._gram: np.ndarray | None = None  # ``fixed``: every pair's similarity, ``(n, n)`` float32
         self._searchable = searchable
 
+    @classmethod
+    def fixed(cls, ids: np.ndarray, codes: np.ndarray) -> "CodeTable":
+        """A table of ``codes (n, dim)`` keyed by ``ids (n,)`` that does not grow (a calibration's, which scores every
+        far-side line of the frames it reads): every pair's similarity read from their Gram matrix ``(n, n)``,
+        computed once where ``n <= GRAM_MAX`` (``calibration.max_frames``, 2000 frames: 16 MB); the same
+        similarities as a growing table's up to float32 rounding. Adding to it drops the matrix."""
+        table = cls(codes.shape[1])
+        for fid, code in zip(np.asarray(ids, np.int64).tolist(), codes):
+            table.add(fid, code)
+        if table._n <= GRAM_MAX:
+            rows = table._codes[: table._n].astype(np.float32)
+            table._gram = rows @ rows.T
+        return table
+
     def add(self, frame_id: int, code: np.ndarray) -> None:
+        self._gram = None
         if self._n == len(self._codes):
             size = max(64, 2 * len(self._codes))
             grown = np.zeros((size, self.dim), self._codes.dtype)
@@ -99,6 +117,7 @@ class CodeTable:
     def remove_last(self, frame_id: int) -> None:
         """Undoes the last ``add`` (of ``frame_id``), e.g. when the database refused the frame."""
         if self._rows.get(int(frame_id)) == self._n - 1:
+            self._gram = None
             del self._rows[int(frame_id)]
             self._n -= 1
 
@@ -117,7 +136,9 @@ class CodeTable:
         rq, rr = self._find(queries), self._find(refs)
         out = np.full(len(rq), np.nan, np.float32)
         ok = (rq >= 0) & (rr >= 0)
-        if ok.any():
+        if ok.any() and self._gram is not None:
+            out[ok] = self._gram[rq[ok], rr[ok]]
+        elif ok.any():
             a, b = (self._codes[r[ok]].astype(np.float32, copy=False) for r in (rq, rr))
             out[ok] = np.einsum("ij,ij->i", a, b)
         return out

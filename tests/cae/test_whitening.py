@@ -42,6 +42,21 @@ class TestWhiteningFit:
         with pytest.raises(ConfigError, match="NaN"):
             Whitening.fit(bad)
 
+    def test_principal_directions_from_the_gram_matrix_are_the_svds(self, sample_codes):
+        """Fewer codes than dimensions (a stream's fit): the leading singular values and directions from the codes'
+        Gram matrix (the fast path) against the SVD of the codes themselves (brute force), up to each direction's
+        sign; and the SVD itself where codes outnumber dimensions."""
+        from cae.whitening import _principal
+
+        x = sample_codes.astype(np.float64) - sample_codes.mean(0)
+        _, s, vt = np.linalg.svd(x, full_matrices=False)
+        got_s, got_vt = _principal(x, 10)
+        np.testing.assert_allclose(got_s, s[:10], rtol=1e-9)
+        signs = np.sign(np.sum(got_vt * vt[:10], axis=1))
+        np.testing.assert_allclose(got_vt, vt[:10] * signs[:, None], atol=1e-9)
+        tall = x[:, :20]
+        np.testing.assert_allclose(_principal(tall, 5)[0], np.linalg.svd(tall, compute_uv=False)[:5], rtol=1e-12)
+
     def test_empty_transform(self, sample_codes):
         assert Whitening.fit(sample_codes).transform(np.zeros((0, 4096))).shape[0] == 0
 

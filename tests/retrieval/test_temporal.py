@@ -177,6 +177,27 @@ class TestCodeTable:
             assert table._ascending == (order[0] < order[1])
             assert table.pairs(np.zeros(0, np.int64), np.zeros(0, np.int64)).shape == (0,)
 
+    def test_a_fixed_table_reads_the_similarities_a_growing_one_computes(self, sample_frames):
+        """``CodeTable.fixed`` (a calibration's: every pair from the Gram matrix) against a table filled frame by
+        frame (each pair's two codes multiplied): the same similarities up to float32 rounding, NaN where a frame is
+        not stored; adding to it drops the matrix and computes again."""
+        from cae_lcd.core.images import read_image
+        from retrieval.descriptors import create_descriptor
+
+        descriptor = create_descriptor({"name": "cae"})
+        ids = np.arange(0, 24, 3)
+        codes = np.stack([descriptor(read_image(p)) for p in sample_frames[:len(ids)]])
+        codes /= np.linalg.norm(codes, axis=1, keepdims=True)
+        fixed, grown = CodeTable.fixed(ids, codes), CodeTable(codes.shape[1])
+        for f, c in zip(ids.tolist(), codes):
+            grown.add(f, c)
+        rng = np.random.default_rng(1)
+        q, r = rng.integers(-1, 25, 300), rng.integers(-1, 25, 300)
+        assert fixed._gram is not None and np.isnan(fixed.pairs(q, r)).sum() > 100
+        np.testing.assert_allclose(fixed.pairs(q, r), grown.pairs(q, r), rtol=1e-5, atol=1e-6)
+        fixed.add(30, codes[0])
+        assert fixed._gram is None and fixed.pairs(np.array([30]), np.array([0]))[0] == pytest.approx(1.0, abs=1e-5)
+
     def test_float16_rows_give_the_same_similarities_at_half_the_memory(self, sample_frames):
         """Codes rounded to float16 (what ``CodePlaces.entry`` searches and stores) kept as float16: the same
         similarities as float32 rows, bit for bit, in half the bytes."""
