@@ -12,6 +12,12 @@ CAMERA_OFFSETS = np.array([[-6.0, -3.0, 12.0], [6.0, -3.0, 12.0], [-4.0, 1.6, 8.
                            [0.0, -8.0, 30.0], [0.0, 0.0, 0.0]])
 
 
+#: the recognition conf of the tests about something other than calibration: their robots stream 2-60 keyframes,
+#: within a detector's online warm-up (2 x search.exclude_recent keyframes, in which nothing is accepted), so they
+#: run the fixed policy (policy.min_inliers, cross.min_inliers) as the fleet did before it calibrated online
+FIXED = {"detector": {"calibration": {"enabled": False}}}
+
+
 @pytest.fixture(scope="session")
 def known_sim3():
     """The similarity robot B's frame differs by in these tests: s = 2.5, a 75 deg rotation, a translation."""
