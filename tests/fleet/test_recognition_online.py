@@ -157,3 +157,19 @@ def test_robots_that_never_meet_have_no_overlap_once_calibrated(tmp_path, kitti_
     assert rule is not None and all(deciding is not None for _, i, _, deciding in run if i >= WARM_UP)
     assert not [e for *_, found, _ in run for e in found.edges if e.kind == "overlap"]
     assert not [o for *_, found, _ in run for o in found.overlaps]
+
+
+def test_delayed_loops_become_loop_edges_once(tmp_path, kitti_frame, cae_descriptor, truth):
+    """One robot on KITTI 90 frames 0-79 then 100-119 (its second pass from the start): the run that accepts the
+    revisit certifies its earlier frames (``FrameResult.confirmed``); each becomes one loop edge, a true pair."""
+    rec = FleetRecognizer(tmp_path, ONLINE, descriptor=cae_descriptor)
+    feed(rec, kitti_frame, [("A", "90", i) for i in range(80)])
+    det, confirmed = rec.robots["A"].detector, []
+    real = det.process
+    det.process = lambda *a, **kw: (lambda res: confirmed.extend(res.confirmed) or res)(real(*a, **kw))
+    run = feed(rec, kitti_frame, [("A", "90", i) for i in range(100, 120)])
+    rec.close()
+    loops = [(e.keyframe_a, e.keyframe_b) for _, i, found, _ in run for e in found.edges if e.kind == "loop"]
+    delayed = [(e.keyframe_a, e.keyframe_b) for _, i, found, _ in run for e in found.edges if e.keyframe_b != i]
+    assert confirmed and delayed and set(delayed) <= {(c.frame_id, q) for q, c in confirmed}
+    assert len(loops) == len(set(loops)) and all(frozenset(pair) in truth for pair in loops)
