@@ -149,12 +149,13 @@ def test_a_restart_resumes_the_calibrations_and_the_memory(split90, truth):
 
 def test_robots_that_never_meet_have_no_overlap_once_calibrated(tmp_path, kitti_frame, cae_descriptor):
     """KITTI 00 (A) and 07 (B), interleaved, 100 keyframes each: both calibrated for their last 60, the calibrated
-    cross-robot rule in force, and no overlap edge or overlap."""
+    cross-robot rule in force, and no overlap accepted by it (no run of certified matches), no overlap edge."""
     rec = FleetRecognizer(tmp_path, ONLINE, descriptor=cae_descriptor)
     run = feed(rec, kitti_frame, [(r, s, i) for i in range(100) for r, s in (("A", "00"), ("B", "07"))])
-    rule = rec._cross_rule(rec.robots["A"], rec.robots["B"])
+    rule, accepted = rec._cross_rule(rec.robots["A"], rec.robots["B"]), rec.tracker.accepted("A", "B")
     rec.close()
     assert rule is not None and all(deciding is not None for _, i, _, deciding in run if i >= WARM_UP)
+    assert not accepted  # no run of certified matches (an edge would also need a similarity from 3D points)
     assert not [e for *_, found, _ in run for e in found.edges if e.kind == "overlap"]
     assert not [o for *_, found, _ in run for o in found.overlaps]
 
