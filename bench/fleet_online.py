@@ -1,6 +1,6 @@
 """The fleet's robots calibrating online (issue 27): real KITTI frames streamed as robots through one
-``FleetRecognizer`` (what the server runs behind HTTP), robot after robot or interleaved; the intra-robot loop edges (delayed ones among them)
-and the cross-robot overlaps the calibrated test accepted, each scored against the ground truth, the ms per
+``FleetRecognizer`` (what the server runs behind HTTP), robot after robot or interleaved; the intra-robot loop
+edges (delayed ones among them) and the cross-robot overlaps the calibrated test accepted, each scored against the ground truth, the ms per
 keyframe and the worst request (a refit runs on the request that triggers it).
 
 ``python -m bench.fleet_online [--set 90split|90one|00-07] [--exclude-recent 50] [--fixed] [--interleave]``
@@ -53,7 +53,8 @@ def _truth(kitti_root: Path) -> set[frozenset[int]]:
 def stream_robots(state: Path, robots: dict[str, tuple[str, range]], conf: dict[str, Any] | None,
                   descriptor: Any, kitti_root: Path = KITTI, interleave: bool = False) -> dict[str, Any]:
     """Streams each robot's frames (robot after robot, or ``interleave``d one keyframe each in turn) through one
-    recognizer; returns its edges, accepted overlaps, per-request ms and each robot's certified inliers at the end."""
+    recognizer; returns its edges, overlaps recorded (an accepted pair's first edge records it), the pairs the rule
+    accepted (with or without an edge), per-request ms and each robot's ``certified_match`` at the end."""
     streams = {name: kitti_stream(name, kitti_root, seq, list(frames)) for name, (seq, frames) in robots.items()}
     order = [(n, i) for i in range(max(len(s.frames) for s in streams.values())) for n in streams
              if i < len(streams[n].frames)] if interleave else \
@@ -69,18 +70,20 @@ def stream_robots(state: Path, robots: dict[str, tuple[str, range]], conf: dict[
         edges += found.edges
         delayed += sum(e.kind == "loop" and e.keyframe_b != s.frames[i] for e in found.edges)  # an earlier query's
         overlaps += found.overlaps
+    accepted = sorted({tuple(sorted(pair)) for pair, rule in rec.tracker.rules.items() if rule.accepted is not None})
     window = rec.detector_conf["search"]["exclude_recent"]
     certified = {n: certified_match(rec.robots[n].detector.deciding_calibration, window) for n in streams}
     rec.close()
     return {"edges": edges, "overlaps": overlaps, "ms": np.array(ms), "order": order, "certified": certified,
-            "delayed": delayed}
+            "delayed": delayed, "accepted": accepted}
 
 
 def _score(run: dict[str, Any], truth: set[frozenset[int]] | None, robots: dict[str, tuple[str, range]]
            ) -> dict[str, Any]:
     """Counts (and, with ``truth``, the precision of) the loop and overlap edges; the request times."""
     out: dict[str, Any] = {"certified_inliers_run": run["certified"], "delayed_loop_edges": run["delayed"],
-                           "overlaps_accepted": [(o.robot_a, o.robot_b) for o in run["overlaps"]]}
+                           "overlaps_accepted": [(o.robot_a, o.robot_b) for o in run["overlaps"]],
+                           "pairs_the_rule_accepted": run["accepted"]}
     for kind in ("loop", "overlap"):
         got = [e for e in run["edges"] if e.kind == kind]
         out[f"{kind}_edges"] = len(got)

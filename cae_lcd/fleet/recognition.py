@@ -3,18 +3,48 @@ inter-robot overlaps, each turned into a pose-graph edge (a similarity from 3D-3
 
 - One ``retrieval.LoopDetector`` per robot, its keyframes in ``STATE/robots/NAME/keyframes.h5`` (resumed on start),
   all sharing one global descriptor (the CAE encoder is loaded once per server). It reports the robot's own loops,
-  with its usual recent-frame exclusion and its fixed acceptance policy (``policy.min_inliers``).
-- Inter-robot: the query's searched entry (``FrameResult.entry``) is searched in the fleet's one place memory
-  (``cae_lcd.fleet.places``: every robot's entries keyed by robot and keyframe, ``local`` in this process or one ``milvus``
-  collection shared by every worker; no recency exclusion: another robot's frame is never "recent"): the
-  top-``cross.search_k`` of the other robots (of the keyframes this recognizer has: a shared memory may hold another
-  worker's newest one before the service stored it), of each other robot at most ``cross.k``, at most
-  ``cross.budget`` in all (the most similar: ``cae_lcd.fleet.budget``), verified by the robot's
-  detector's verifier (SIFT + geometry, fixed inlier threshold ``cross.min_inliers``). Each robot pair's matches feed ``OverlapTracker``: an overlap is accepted
-  after ``overlap.required`` consecutive matching keyframes; from then on every verified match becomes an edge (at
-  most ``max_edges_per_pair``).
+  with its usual recent-frame exclusion, and **calibrates itself on the robot's own stream** (``retrieval.online``,
+  the detector's default): a warm-up of ``2 x search.exclude_recent`` keyframes (at least 40) in which it accepts
+  nothing, then the whitening, the nulls and the decision fitted on the robot's keyframes and refitted at
+  doublings and on drift, its state kept in the robot's store (a restart resumes it, no second warm-up).
+  ``detector.calibration.enabled: false`` runs the fixed policy instead (``policy.min_inliers``).
+- Inter-robot: the query's entry in the fleet's one place memory (``cae_lcd.fleet.places``: every robot's entries
+  keyed by robot and keyframe, ``local`` in this process or one ``milvus`` collection shared by every worker; no
+  recency exclusion: another robot's frame is never "recent"). **One code space**: every entry is made by the
+  memory from the keyframe's raw code (``FrameResult.code``; after a restart, the raw codes an online robot's store
+  keeps) in the memory's own fixed whitening (the weights', none for the shipped CAE weights: the raw code), never
+  from ``FrameResult.entry``, which a robot's refit moves into its stream's whitening. The top-``cross.search_k``
+  of the other robots (of the keyframes this recognizer has: a shared memory may hold another worker's newest one
+  before the service stored it), of each other robot at most ``cross.k``, at most ``cross.budget`` in all (the most
+  similar: ``cae_lcd.fleet.budget``), are verified by the robot's detector's verifier (SIFT + geometry); the best
+  verified candidate of each other robot is a **match** when it passes the pair's rule, and each robot pair's
+  matches feed ``OverlapTracker``: an overlap is accepted after a run of consecutive matching keyframes (matches
+  within ``overlap.max_match_gap`` keyframes of each other); from then on every match becomes an edge (at most
+  ``max_edges_per_pair``).
+- **The pair's rule, calibrated** (robots calibrating online): a match needs more inliers than every hard negative
+  that *either* robot's calibration measured on its own stream (its pair null ``samples["hard_inliers"]``, about
+  750-1200 verified far-side pairs: above its largest, the empirical p-value ``1 / (n + 1)`` is the smallest it can
+  show; and at least its floor, ``calibration.min_inliers``), and the run must be as long as *either* robot's own
+  fused decision needs of such frames to accept a loop (``retrieval.calibrate.run_needed``: 5 on KITTI), at least
+  ``overlap.required``: ``certified_match`` of each robot, the stricter of the two (``_cross_rule``). Nothing counts
+  (nothing is verified) until both robots are out of their warm-up, nor with a robot on the score path (too few
+  local features to verify). The promise, and what it rests on: each match of the run is as strong as the
+  strongest non-loop pair both robots measured, and the run is the one each robot's own calibration needs to keep
+  its expected false loops under ``calibration.expected_false_loops / 2``; cross-robot pairs are taken to be no
+  likelier to look alike than a robot's own far-side pairs (the same camera model; a fleet of unlike cameras
+  breaks this), and the frames of one run are not independent, so the rule is checked on real look-alikes: KITTI
+  00 vs 07 as two robots accepts no overlap (with the floor alone, 12 inliers x 3, it does:
+  ``tests/fleet/test_recognition_online.py``). With the fixed policy the rule is ``cross.min_inliers`` inliers and
+  ``overlap.required`` matches.
 - A loop edge takes the detector's own verification of the pair (``FrameResult.verification``: its matches and
-  transform); nothing is verified twice.
+  transform); nothing is verified twice. A delayed loop (``FrameResult.confirmed``: a run, or a refit, certified an
+  earlier keyframe's loop; the detector reports each once) is verified by the detector's verifier on the two
+  keyframes' features (``LoopDetector.keyframe_features``) and becomes a loop edge like the others.
+- **Cost**: a robot's fit or refit runs on the keyframe that triggers it, inside that keyframe's request (a robot's
+  requests are serialised, other robots' go on: ``parallel_robots``); the server bounds the body's size and read
+  time (``cae_lcd.fleet.limits``), not the processing. Measured (2 loaded cores, ``python -m bench.fleet_online``):
+  KITTI 90 as one robot of 200 keyframes, median 42 ms a keyframe, the worst request (the refit at its last
+  keyframe, delayed loops verified) 4.0 s.
 - An edge's similarity: 3D points of the matched features on both sides (the depth map when the keyframe came with
   one, else triangulated from the robot's own neighbouring keyframe with its local poses), then ``estimate_overlap``.
 
