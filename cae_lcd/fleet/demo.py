@@ -45,6 +45,7 @@ from .client import FleetClient
 from .export import FORMATS, trajectory_rows, write_trajectory
 from .graph import PoseGraph
 from .plots import plot_merge
+from .recognition import FIXED_POLICY
 from .runner import ServerThread
 from .server import create_app
 from .sim3 import Sim3
@@ -54,8 +55,7 @@ __all__ = ["RobotStream", "kitti_stream", "run_demo", "DEMO_TRUTH", "DEMO_FORMAT
 log = logging.getLogger(__name__)
 
 DEMO_FORMAT_VERSION = 1  #: format of ``fleet_demo.json``
-#: the demo server's recognition conf: the fixed policy (its streams are one online warm-up long: the module doc)
-DEMO_RECOGNITION: dict[str, Any] = {"detector": {"calibration": {"enabled": False}}}
+DEMO_RECOGNITION = FIXED_POLICY  #: the demo server's recognition conf (its streams are one warm-up long: module doc)
 #: where robot B's map lies: B's map = DEMO_TRUTH(world); scale 2 (B's units are half metres), 40 deg about a
 #: tilted axis, an offset of tens of metres
 DEMO_TRUTH = Sim3(2.0, cv2.Rodrigues(np.array([0.1, 0.65, -0.15]))[0], np.array([40.0, -5.0, 25.0]))
