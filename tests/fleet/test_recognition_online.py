@@ -68,7 +68,8 @@ def split90(tmp_path_factory, kitti_frame, cae_descriptor):
     before = {"search": searched(rec, "B", set(range(100, 190))),
               "rule": rec._cross_rule(rec.robots["B"], rec.robots["A"]),
               "identity": {n: rec.robots[n].detector.deciding_calibration.identity() for n in ("A", "B")},
-              "certified": {n: certified_match(rec.robots[n].detector.deciding_calibration, 20) for n in ("A", "B")}}
+              "certified": {n: certified_match(rec.robots[n].detector.deciding_calibration, 20) for n in ("A", "B")},
+              "exported": {n: rec.export(n) for n in ("A", "B")}}  # what another Ray worker adopts
     rec.close()
     rec = FleetRecognizer(state, ONLINE, descriptor=cae_descriptor)
     rec.resume([o for *_, f, _ in run for o in f.overlaps], [e for *_, f, _ in run for e in f.edges])
@@ -145,6 +146,21 @@ def test_a_restart_resumes_the_calibrations_and_the_memory(split90, truth):
     edges = [e for _, _, found, _ in resumed for e in found.edges]
     assert edges and all(e.kind == "overlap" and frozenset((e.keyframe_a, e.keyframe_b)) in truth for e in edges)
     assert not [o for _, _, found, _ in resumed for o in found.overlaps]
+
+
+def test_an_adopting_recognizer_holds_the_robots_rule_and_entries(split90, tmp_path, cae_descriptor):
+    """As another Ray worker: a recognizer owning neither robot adopts their exported keyframes; it holds the pair's
+    calibrated rule as their owner had it, and their entries in the memory's one space (the same search results)."""
+    _, before, _ = split90
+    rec = FleetRecognizer(tmp_path, ONLINE, descriptor=cae_descriptor, owns=lambda name: False)
+    for name, shared in before["exported"].items():
+        rec.adopt(name, shared)
+    rule = rec._cross_rule(rec.robots["B"], rec.robots["A"])
+    found = {k: rec.places.search("B", kf.entry, 3) for k, kf in before["exported"]["B"]}
+    rec.close()
+    assert rule == before["rule"]
+    for fid, hits in before["search"].items():
+        np.testing.assert_array_equal(found[fid]["A"][0], hits["A"][0])
 
 
 def test_robots_that_never_meet_have_no_overlap_once_calibrated(tmp_path, kitti_frame, cae_descriptor):
