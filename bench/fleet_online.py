@@ -11,7 +11,9 @@ prints one JSON summary (and writes it to ``--out``):
   indexing; keyframe ids are the frame indices);
 - ``90one``: KITTI 90 as one robot (its loops scored the same way; the worst request is its refit);
 - ``00-07``: KITTI 00 as robot A (200 frames), 07 as robot B (160): they never meet, every accepted overlap is
-  false.
+  false;
+- ``00laps``: KITTI 00 as one robot driving its 200 frames lap after lap, ``--keyframes`` in all (keyframe ids
+  0, 1, ...; from the second lap on every keyframe revisits a place): what a refit at a large map costs.
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ import cv2
 import numpy as np
 
 from cae_lcd.core.files import write_text_atomic
-from cae_lcd.fleet.demo import kitti_stream
+from cae_lcd.fleet.demo import RobotStream, kitti_stream
 from cae_lcd.fleet.recognition import FleetRecognizer, certified_match
 from retrieval.descriptors import create_descriptor
 
@@ -41,6 +43,7 @@ SETS = {  #: robot name -> (sequence, frames), per set
     "90split": {"A": ("90", range(0, 100)), "B": ("90", range(100, 200))},
     "90one": {"A": ("90", range(0, 200))},
     "00-07": {"A": ("00", range(0, 200)), "B": ("07", range(0, 160))},
+    "00laps": {"A": ("00", range(0, 200))},  # lap after lap (``--keyframes``)
 }
 
 
@@ -50,12 +53,22 @@ def _truth(kitti_root: Path) -> set[frozenset[int]]:
     return {frozenset(map(int, r)) for r in rows}
 
 
+def _laps(stream: RobotStream, n: int) -> RobotStream:
+    """``stream`` driven again and again: ``n`` keyframes, ids ``0..n-1``, 0.1 s apart, the same poses each lap."""
+    lap = np.arange(n) % len(stream.frames)
+    return RobotStream(stream.name, list(range(n)), [stream.images[i] for i in lap], stream.poses[lap],
+                       np.arange(n) * 0.1, stream.K)
+
+
 def stream_robots(state: Path, robots: dict[str, tuple[str, range]], conf: dict[str, Any] | None,
-                  descriptor: Any, kitti_root: Path = KITTI, interleave: bool = False) -> dict[str, Any]:
+                  descriptor: Any, kitti_root: Path = KITTI, interleave: bool = False,
+                  keyframes: int | None = None) -> dict[str, Any]:
     """Streams each robot's frames (robot after robot, or ``interleave``d one keyframe each in turn) through one
-    recognizer; returns its edges, overlaps recorded (an accepted pair's first edge records it), the pairs the rule
+    recognizer (``keyframes``: each robot's frames lap after lap, this many: ``_laps``); returns its edges, overlaps recorded (an accepted pair's first edge records it), the pairs the rule
     accepted (with or without an edge), per-request ms and each robot's ``certified_match`` at the end."""
     streams = {name: kitti_stream(name, kitti_root, seq, list(frames)) for name, (seq, frames) in robots.items()}
+    if keyframes is not None:
+        streams = {name: _laps(s, keyframes) for name, s in streams.items()}
     order = [(n, i) for i in range(max(len(s.frames) for s in streams.values())) for n in streams
              if i < len(streams[n].frames)] if interleave else \
         [(n, i) for n, s in streams.items() for i in range(len(s.frames))]
@@ -109,6 +122,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                     help="detector.search.exclude_recent (default: the detector's; the warm-up is twice it)")
     ap.add_argument("--fixed", action="store_true", help="the fixed policy (detector.calibration.enabled: false)")
     ap.add_argument("--interleave", action="store_true", help="robots send one keyframe each in turn")
+    ap.add_argument("--keyframes", type=int, default=2000, help="00laps: keyframes in all")
     ap.add_argument("--out", default=None, help="also write the summary (JSON) here")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
@@ -120,8 +134,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     robots = SETS[args.set]
     with tempfile.TemporaryDirectory() as state:
         run = stream_robots(Path(state), robots, {"detector": detector}, create_descriptor({"name": "cae"}),
-                            interleave=args.interleave)
-    summary = {"set": args.set, "detector": detector, "interleave": args.interleave,
+                            interleave=args.interleave, keyframes=args.keyframes if args.set == "00laps" else None)
+    summary = {"set": args.set, "detector": detector, "interleave": args.interleave, "slowest_requests": [
+                   (list(run["order"][i]), float(run["ms"][i])) for i in np.argsort(run["ms"])[::-1][:8]],
                **_score(run, _truth(KITTI) if args.set.startswith("90") else None, robots)}
     text = json.dumps(summary, indent=2, default=str)
     print(text)  # noqa: T201 -- a bench's report

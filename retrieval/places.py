@@ -25,6 +25,9 @@ interface, shapes included::
     places.restore_index(path, keyframe_ids)  # on resume, before registering: how many keyframes it already holds
     places.source                             # temporal.SimilaritySource over the stored frames
     len(places)                               # keyframes inserted (searchable or still too recent)
+
+``code_entry(code, whitening)`` makes a code's searched entry (``CodePlaces.entry`` and ``rewhiten`` use it; the
+fleet's place memory makes its own entries with it, in its one fixed whitening).
 """
 
 from __future__ import annotations
