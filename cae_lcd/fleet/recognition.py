@@ -30,12 +30,13 @@ inter-robot overlaps, each turned into a pose-graph edge (a similarity from 3D-3
   (nothing is verified) until both robots are out of their warm-up, nor with a robot on the score path (too few
   local features to verify). The promise, and what it rests on: each match of the run is as strong as the
   strongest non-loop pair both robots measured, and the run is the one each robot's own calibration needs to keep
-  its expected false loops under ``calibration.expected_false_loops / 2``; cross-robot pairs are taken to be no
-  likelier to look alike than a robot's own far-side pairs (the same camera model; a fleet of unlike cameras
-  breaks this), and the frames of one run are not independent, so the rule is checked on real look-alikes: KITTI
-  00 vs 07 as two robots accepts no overlap (with the floor alone, 12 inliers x 3, it does:
-  ``tests/fleet/test_recognition_online.py``). With the fixed policy the rule is ``cross.min_inliers`` inliers and
-  ``overlap.required`` matches.
+  its expected false loops under ``calibration.expected_false_loops / 2`` (counted with the tests of its own stream,
+  not the fleet's: a query tests every other robot, so with many robots the cross-robot tests grow with the robot
+  pairs, which this does not count); cross-robot pairs are taken to be no likelier to look alike than a robot's
+  own far-side pairs (the same camera model; a fleet of unlike cameras breaks this), and the frames of one run are
+  not independent, so the rule is checked on real look-alikes: KITTI 00 vs 07 as two robots accepts no overlap
+  (with the floor alone, 12 inliers x 3, it does: ``tests/fleet/test_recognition_online.py``). With the fixed
+  policy the rule is ``cross.min_inliers`` inliers and ``overlap.required`` matches.
 - A loop edge takes the detector's own verification of the pair (``FrameResult.verification``: its matches and
   transform); nothing is verified twice. A delayed loop (``FrameResult.confirmed``: a run, or a refit, certified an
   earlier keyframe's loop; the detector reports each once) is verified by the detector's verifier on the two
