@@ -30,6 +30,7 @@ import numpy as np
 from cae_lcd.core.files import prepare_out_dir, write_text_atomic
 from cae_lcd.fleet.client import FleetClient
 from cae_lcd.fleet.demo import kitti_stream
+from cae_lcd.fleet.recognition import FIXED_POLICY
 
 from .common import REPO, md_table
 
@@ -40,6 +41,9 @@ log = logging.getLogger(__name__)
 LOAD_FORMAT_VERSION = 1  #: format of ``fleet_load.json``
 _LOOPBACK_RAY = {"RAY_AUTH_MODE": "disabled"}  #: the bench's Ray cluster lives on loopback for one run
 _MILVUS = {"places": {"name": "milvus"}}  #: the scale-out run's place memory: one milvus-lite all workers share
+#: the robots' detectors run the fixed policy: a robot's 20 keyframes here are within an online warm-up (2 x 50), in
+#: which nothing is verified across robots; a long-running fleet, calibrated, verifies as this does
+_FIXED = FIXED_POLICY
 
 
 def _serve(state: str, port: int) -> None:
@@ -53,7 +57,7 @@ def _serve(state: str, port: int) -> None:
     app = create_app(state, os.environ["FLEET_BENCH_TOKEN"], store=os.environ.get("FLEET_BENCH_STORE") or None,
                      workers=int(os.environ.get("FLEET_BENCH_WORKERS", "1")),
                      ray_address=os.environ.get("FLEET_BENCH_RAY") or None,
-                     recognition=json.loads(os.environ.get("FLEET_BENCH_RECOGNITION") or "null"))
+                     recognition={**_FIXED, **json.loads(os.environ.get("FLEET_BENCH_RECOGNITION") or "{}")})
     uvicorn.run(app, host="127.0.0.1", port=port, log_level="warning")
 
 

@@ -108,7 +108,7 @@ from .decision import (AGREE, SPAN, TOL, Decision, EmpiricalTail, Horizon, Measu
 from .descriptors import GlobalDescriptor
 from .temporal import CodeTable, NoFilter, SequenceFilter, TemporalFilter
 
-__all__ = ["Calibration", "TooFewFrames", "CALIBRATION_FORMAT", "calibrate", "calibrated_features",
+__all__ = ["Calibration", "TooFewFrames", "CALIBRATION_FORMAT", "calibrate", "calibrated_features", "run_needed",
            "calibration_frames", "far_side_scores"]
 
 log = logging.getLogger(__name__)
@@ -546,16 +546,30 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
     return cal
 
 
-def _run_needed(cal: Calibration, window: int) -> str:
-    """The shortest run of frames on one offset, each above every null pair, that the decision accepts (a text)."""
+def run_needed(cal: Calibration, window: int) -> int | None:
+    """The shortest run of frames on one offset, each above every null pair (``samples["hard_inliers"]``), that the
+    calibration's fused decision accepts (``window``: ``search.exclude_recent``); None where no run of up to its
+    ``span`` frames is accepted, or the calibration has no measured pair null (the score path, one made by hand)."""
+    hard = cal.samples.get("hard_inliers")
+    if not cal.inlier_null or hard is None or not len(hard):
+        return None
     dec = cal.decision(window)
-    top = dec.evidence(float(cal.samples["hard_inliers"].max()) + 1)
+    top = dec.evidence(float(hard.max()) + 1)
     choice = math.log10(2 * dec.tol + 1)
     for m in range(max(dec.min_support, 1), dec.span + 1):
         if dec.fused(top, [(d, top - choice) for d in range(1, m)]) >= dec.accept_at:
-            return (f"no pair alone; a run of {m} frames on one offset, each above every null pair "
-                    f"(> {cal.samples['hard_inliers'].max():.0f})")
-    return f"no pair alone and no run of up to {dec.span} frames: verify more pairs (calibration.null_pairs)"
+            return m
+    return None
+
+
+def _run_needed(cal: Calibration, window: int) -> str:
+    """``run_needed`` as the notes say it."""
+    m = run_needed(cal, window)
+    if m is None:
+        return f"no pair alone and no run of up to {cal.decision(window).span} frames: verify more pairs " \
+               "(calibration.null_pairs)"
+    return f"no pair alone; a run of {m} frames on one offset, each above every null pair " \
+           f"(> {cal.samples['hard_inliers'].max():.0f})"
 
 
 def _timed(cal: Calibration, n_images: int, total: float, shared: float) -> None:

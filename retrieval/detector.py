@@ -21,6 +21,9 @@ default, searched by cosine; MILD's ORB descriptors, searched by multi-index has
     R, t        (3, 3), (3,)  relative pose of the loop (essential-matrix model only), else None
     ms          dict[str, float]  milliseconds by stage: gate, encode, features, search, verify, insert, total;
                                  online (``retrieval.online``) also calibrate: recording the frame, checks, refits
+    entry       (d,) | None   the searched entry (in the run's current code space: online, a refit moves it)
+    code        (D,) | None   the frame's raw global code (online: float16-rounded, as its store keeps it); a
+                                 memory of its own in a fixed whitening (the fleet's) makes its entries from it
 """
 
 from __future__ import annotations
@@ -258,6 +261,7 @@ class FrameResult:
     entry: np.ndarray | None = field(default=None, repr=False)  #: the searched entry (``places.entry``), None gated
     verification: Verification | None = field(default=None, repr=False)  #: the loop's check: matches, transform
     confirmed: list[tuple[int, Candidate]] = field(default_factory=list)  #: delayed loops of earlier frames (above)
+    code: np.ndarray | None = field(default=None, repr=False)  #: the raw global code (above), None gated
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready view (the fleet server and logs use it)."""
@@ -441,6 +445,18 @@ class LoopDetector:
             log.info("resumed %s: %d keyframes, next frame %d", db.path, n, self._next_id)
 
     @property
+    def calibrates_online(self) -> bool:
+        """Whether the stream calibrates itself (``retrieval.online``): its keyframe store then keeps each keyframe's
+        raw code (``FrameResult.code``), not its searched entry, and a refit moves the searched entries."""
+        return self._online is not None
+
+    @property
+    def deciding_calibration(self) -> Calibration | None:
+        """The calibration that decides now: None in an online warm-up (or while a carried one is unchecked) and
+        under the fixed policy; online, the stream's latest fit (replaced at each refit)."""
+        return None if self._online is not None and not self._online.ready else self.calibration
+
+    @property
     def next_frame_id(self) -> int:
         """The frame id ``process`` assigns when none is given (one past the last frame seen)."""
         return self._next_id
@@ -522,7 +538,7 @@ class LoopDetector:
         ms["total"] = (time.perf_counter() - t_start) * 1e3
         geo = best.geometry if best is not None else None
         return FrameResult(fid, False, gate.edge_ratio, candidates, loop, getattr(geo, "R", None),
-                           getattr(geo, "t", None), ms, entry, best, confirmed)
+                           getattr(geo, "t", None), ms, entry, best, confirmed, code)
 
     def _verify_and_insert(self, fid: int, edge_ratio: float, feats: Features | None, code: np.ndarray,
                            entry: np.ndarray, prep: Callable[[], tuple[np.ndarray, float, bytes]],

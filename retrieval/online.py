@@ -78,12 +78,13 @@ every keyframe into the new whitening from them) and edge ratio, its candidates'
 inliers of every pair a fit verified (about 650 new ones a fit; not persisted: a resumed run verifies them again, the
 same counts); the local features come from the detector (kept, or extracted again from its grey copy).
 
-Persisted: a detector with a keyframe store (``database``: ``cae-lcd detect``, or the API given one; the fleet's
-per-robot detectors keep one but run the fixed policy, ``calibration.enabled: false``) stores each keyframe's raw code
-there, and the state here after each fit (``to_state``: the calibration, the schedule, the
-candidates as refits verified them, which frames were reported; ``KeyframeDatabase.write_online``); a resumed run
-takes the newest state its stored frames reach (``from_state``) and replays the frames after it
-(``LoopDetector._load``), so it decides on as the uninterrupted run would have.
+Persisted: a detector with a keyframe store (``database``: ``cae-lcd detect``, the API given one, and each of the
+fleet's per-robot detectors, which calibrate online too: ``cae_lcd.fleet.recognition``) stores each keyframe's raw
+code there (``LoopDetector.calibrates_online``; ``FrameResult.code`` gives it to a memory of its own, the fleet's,
+that keeps one fixed code space while the stream's moves), and the state here after each fit (``to_state``: the
+calibration, the schedule, the candidates as refits verified them, which frames were reported;
+``KeyframeDatabase.write_online``); a resumed run takes the newest state its stored frames reach (``from_state``)
+and replays the frames after it (``LoopDetector._load``), so it decides on as the uninterrupted run would have.
 """
 
 from __future__ import annotations

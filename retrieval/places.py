@@ -25,10 +25,14 @@ interface, shapes included::
     places.restore_index(path, keyframe_ids)  # on resume, before registering: how many keyframes it already holds
     places.source                             # temporal.SimilaritySource over the stored frames
     len(places)                               # keyframes inserted (searchable or still too recent)
+
+``code_entry(code, whitening)`` makes a code's searched entry (``CodePlaces.entry`` and ``rewhiten`` use it; the
+fleet's place memory makes its own entries with it, in its one fixed whitening).
 """
 
 from __future__ import annotations
 
+import functools
 import logging
 from collections import OrderedDict
 from pathlib import Path
@@ -43,9 +47,16 @@ from .descriptors import GlobalDescriptor
 from .index import AdmissionQueue, KeyframeIndex
 from .temporal import CodeTable
 
-__all__ = ["Places", "CodePlaces", "HashPlaces", "RowTable", "PLACES", "create_places"]
+__all__ = ["Places", "CodePlaces", "HashPlaces", "RowTable", "PLACES", "create_places", "code_entry"]
 
 log = logging.getLogger(__name__)
+
+
+def code_entry(code: np.ndarray, whitening: Whitening | None) -> np.ndarray:
+    """The searched entry of raw codes ``(D,)`` or ``(n, D)``: whitened (when a whitening is given: unit norm),
+    rounded to float16 precision (what a keyframe store keeps) -> ``(d,)`` / ``(n, d)`` float32."""
+    x = code if whitening is None else whitening.transform(code)
+    return np.asarray(x, np.float16).astype(np.float32)
 
 
 class Places:
@@ -129,8 +140,7 @@ class CodePlaces(Places):
     def entry(self, code: np.ndarray) -> np.ndarray:
         """The searched code: whitened (when a whitening is given), unit norm, rounded to float16 precision, as the
         keyframe store keeps it (a resumed run searches exactly what the uninterrupted one did)."""
-        x = code if self.whitening is None else self.whitening.transform(code)
-        return np.asarray(x, np.float16).astype(np.float32)
+        return code_entry(code, self.whitening)
 
     def stored(self, entry: np.ndarray) -> np.ndarray:
         """One row; before a stream's fit, the raw code as rows of the fitted length (the store's one width)."""
@@ -171,8 +181,7 @@ class CodePlaces(Places):
         """Moves the index and the table into ``whitening``'s space (None: the raw codes): ``raw`` ``(n, D)`` are
         the raw codes of keyframes ``ids`` ``(n,)`` (sorted, every keyframe held), each searched entry as ``entry``
         makes it (a stream's own whitening once fitted, or refitted: ``retrieval.online``)."""
-        def white(x: np.ndarray) -> np.ndarray:  # as ``entry`` rounds
-            return np.asarray(x if whitening is None else whitening.transform(x), np.float16).astype(np.float32)
+        white = functools.partial(code_entry, whitening=whitening)  # as ``entry`` makes them
         dim = self.descriptor.dim if whitening is None else whitening.dim
         self.index = self.index.mapped(white, dim, lambda fids: raw[np.searchsorted(ids, fids)])
         table = self._table(dim)

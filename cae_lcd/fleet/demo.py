@@ -12,6 +12,10 @@ client; the server must find where they overlap and recover the transform betwee
   with and without H's keyframes and edges; the bar is 0.1 m), and, for scale, how far they differ from the run
   without H (``hostile.run_to_run_m``: arrival order alone changes which overlap edges form).
 
+The demo's robots send 2-100 keyframes each, within a detector's online warm-up (``2 x search.exclude_recent`` = 100
+keyframes, in which a robot accepts nothing: ``cae_lcd.fleet.recognition``): the demo's server runs the fixed policy
+(``DEMO_RECOGNITION``), as the fleet did before its robots calibrated online.
+
 ``run_demo`` returns the summary it writes to ``OUT/fleet_demo.json``; ``OUT/trajectories.png`` shows both
 trajectories before and after the merge; ``OUT/trajectories/NAME.tum`` and ``NAME.kitti`` are each robot's corrected
 trajectory in the global frame (``cae_lcd.fleet.export``; e.g. ``evo_ape tum GT OUT/trajectories/B.tum``).
@@ -41,6 +45,7 @@ from .client import FleetClient
 from .export import FORMATS, trajectory_rows, write_trajectory
 from .graph import PoseGraph
 from .plots import plot_merge
+from .recognition import FIXED_POLICY
 from .runner import ServerThread
 from .server import create_app
 from .sim3 import Sim3
@@ -50,6 +55,7 @@ __all__ = ["RobotStream", "kitti_stream", "run_demo", "DEMO_TRUTH", "DEMO_FORMAT
 log = logging.getLogger(__name__)
 
 DEMO_FORMAT_VERSION = 1  #: format of ``fleet_demo.json``
+DEMO_RECOGNITION = FIXED_POLICY  #: the demo server's recognition conf (its streams are one warm-up long: module doc)
 #: where robot B's map lies: B's map = DEMO_TRUTH(world); scale 2 (B's units are half metres), 40 deg about a
 #: tilted axis, an offset of tens of metres
 DEMO_TRUTH = Sim3(2.0, cv2.Rodrigues(np.array([0.1, 0.65, -0.15]))[0], np.array([40.0, -5.0, 25.0]))
@@ -203,7 +209,7 @@ def _session(state: Path, token: str, robots: list[RobotStream], truth: Sim3 | N
     """A server over ``state``, the robots streaming at once (A and B must be accepted; a third robot's refusals
     are counted in ``summary["refused"]``; ``while_serving(url, token)`` is called once they have streamed, while
     the server still runs); returns ``(summary, merged poses per robot, wall s)``."""
-    with ServerThread(create_app(state, token)) as server:
+    with ServerThread(create_app(state, token, recognition=DEMO_RECOGNITION)) as server:
         admin = FleetClient(server.url, token, timeout=120.0)
         wall, refused = _stream_all(server.url, admin, robots)
         if while_serving is not None:

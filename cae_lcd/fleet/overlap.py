@@ -54,20 +54,22 @@ class OverlapRule:
     run: list[tuple[int, int]] = field(default_factory=list)
     accepted: list[tuple[int, int]] | None = None
 
-    def update(self, keyframe: int, match: int | None) -> bool:
-        """Records the querying robot's next keyframe and its verified match (None: no match).
+    def update(self, keyframe: int, match: int | None, required: int | None = None) -> bool:
+        """Records the querying robot's next keyframe and its verified match (None: no match); ``required``: the
+        consecutive matches that accept now, if not ``self.required`` (the robots' calibrations may ask more).
 
         Returns:
             True when this keyframe completes the first accepted run.
         """
+        required = self.required if required is None else int(required)
         if match is None:
             self.run = []
             return False
         if self.run and self.max_match_gap is not None and abs(match - self.run[-1][1]) > self.max_match_gap:
             self.run = []  # a match elsewhere: a new run starts with it
         self.run.append((int(keyframe), int(match)))
-        if self.accepted is None and len(self.run) >= self.required:
-            self.accepted = list(self.run[-self.required:])
+        if self.accepted is None and len(self.run) >= required:
+            self.accepted = list(self.run[-required:])
             return True
         return False
 
@@ -85,8 +87,10 @@ class OverlapTracker:
         self.conf = configure(self, conf, "overlap")
         self.rules: dict[tuple[str, str], OverlapRule] = {}
 
-    def update(self, robot: str, keyframe: int, matches: Mapping[str, int]) -> list[str]:
-        """Records ``robot``'s keyframe and its best verified match in each other robot (absent: no match).
+    def update(self, robot: str, keyframe: int, matches: Mapping[str, int],
+               required: Mapping[str, int] | None = None) -> list[str]:
+        """Records ``robot``'s keyframe and its best verified match in each other robot (absent: no match);
+        ``required``: per other robot, the consecutive matches that accept (absent: ``required`` of the conf).
 
         Returns:
             The other robots whose overlap with ``robot`` this keyframe accepted.
@@ -95,7 +99,7 @@ class OverlapTracker:
         for other in set(matches) - {robot}:
             self.rules.setdefault((robot, other), OverlapRule(self.conf["required"], self.conf["max_match_gap"]))
         for (query, other), rule in self.rules.items():
-            if query == robot and rule.update(keyframe, matches.get(other)):
+            if query == robot and rule.update(keyframe, matches.get(other), (required or {}).get(other)):
                 accepted.append(other)
         return sorted(accepted)
 

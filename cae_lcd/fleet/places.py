@@ -2,6 +2,9 @@
 keyframe)``, searched for the most similar entries of the *other* robots. Two kinds behind one interface, picked by
 ``recognition.places.name`` (``FLEET_PLACES``)::
 
+    entry = places.entry(code)           # a keyframe's raw code (``FrameResult.code``) -> its entry here, in the
+                                         # memory's one fixed whitening (the weights'), whatever its robot's
+                                         # detector searches with (a detector calibrating online refits its own)
     places.add(robot, keyframes (n,), entries (n, d))   # a key already held is not held twice
     places.search(robot, entry (d,), k)  # {other robot: (keyframes (m,) int64, scores (m,) float32)}, best first:
                                          # the k entries most similar to ``entry`` of robots other than ``robot``
@@ -37,7 +40,7 @@ from cae_lcd.core.conf import ConfigError, Int, Registry, Text, configure, merge
 from retrieval.descriptors import GlobalDescriptor
 from retrieval.detector import resolve_conf
 from retrieval.milvus_index import COLLECTION_NAME, LITE_BUFFER_KB, MilvusIndex, is_server_uri, milvus_client
-from retrieval.places import Places, create_places
+from retrieval.places import Places, code_entry, create_places
 
 from .store import check_robot_name
 
@@ -81,6 +84,11 @@ class FleetPlaces:
     def lite_path(cls, conf: dict[str, Any], state_dir: str | Path) -> Path | None:
         """The milvus-lite folder that one process must serve to every worker (``cae_lcd.fleet.workers``); None: none."""
         return None
+
+    def entry(self, code: np.ndarray) -> np.ndarray:
+        """A keyframe's entry in this memory from its raw code (``(D,)``; MILD: its descriptors): in the memory's
+        own fixed whitening (``retrieval.places.code_entry``), so that every robot's entries share one code space."""
+        raise NotImplementedError
 
     def add(self, robot: str, keyframes: Any, entries: Any) -> None:
         """Holds the robot's ``keyframes (n,)`` with their searched ``entries`` (``(n, d)``, one per keyframe); a key
@@ -188,6 +196,9 @@ class LocalPlaces(FleetPlaces):
     def __len__(self) -> int:
         return len(self.keys)
 
+    def entry(self, code: np.ndarray) -> np.ndarray:
+        return self.places.entry(code)
+
     def __contains__(self, key: object) -> bool:
         return key in self._known
 
@@ -256,6 +267,7 @@ class MilvusPlaces(FleetPlaces):
                               "place memory holds codes (set recognition.places.name: local)")
         self.conf = self.resolve(conf)
         self.dim = int(descriptor.dim if whitening is None else whitening.dim)
+        self.whitening = whitening
         self.collection = self.conf["collection"]
         uri = self.conf["uri"] or str(Path(state_dir or ".") / LITE_FOLDER)
         self.client = milvus_client(uri, self.conf["lite_buffer_kb"])
@@ -293,6 +305,9 @@ class MilvusPlaces(FleetPlaces):
             raise ConfigError(f"Milvus collection {name!r} holds {fields['vector']['params']['dim']}-d entries; this "
                               f"fleet's are {self.dim}-d")
         c.load_collection(name)
+
+    def entry(self, code: np.ndarray) -> np.ndarray:
+        return code_entry(code, self.whitening)
 
     def add(self, robot: str, keyframes: Any, entries: np.ndarray) -> None:
         """Upserts keyframes' ``(n, d)`` entries: searchable by every process when this returns."""

@@ -3,18 +3,56 @@ inter-robot overlaps, each turned into a pose-graph edge (a similarity from 3D-3
 
 - One ``retrieval.LoopDetector`` per robot, its keyframes in ``STATE/robots/NAME/keyframes.h5`` (resumed on start),
   all sharing one global descriptor (the CAE encoder is loaded once per server). It reports the robot's own loops,
-  with its usual recent-frame exclusion and its fixed acceptance policy (``policy.min_inliers``).
-- Inter-robot: the query's searched entry (``FrameResult.entry``) is searched in the fleet's one place memory
-  (``cae_lcd.fleet.places``: every robot's entries keyed by robot and keyframe, ``local`` in this process or one ``milvus``
-  collection shared by every worker; no recency exclusion: another robot's frame is never "recent"): the
-  top-``cross.search_k`` of the other robots (of the keyframes this recognizer has: a shared memory may hold another
-  worker's newest one before the service stored it), of each other robot at most ``cross.k``, at most
-  ``cross.budget`` in all (the most similar: ``cae_lcd.fleet.budget``), verified by the robot's
-  detector's verifier (SIFT + geometry, fixed inlier threshold ``cross.min_inliers``). Each robot pair's matches feed ``OverlapTracker``: an overlap is accepted
-  after ``overlap.required`` consecutive matching keyframes; from then on every verified match becomes an edge (at
-  most ``max_edges_per_pair``).
+  with its usual recent-frame exclusion, and **calibrates itself on the robot's own stream** (``retrieval.online``,
+  the detector's default): a warm-up of ``2 x search.exclude_recent`` keyframes (at least 40) in which it accepts
+  nothing, then the whitening, the nulls and the decision fitted on the robot's keyframes and refitted at
+  doublings and on drift, its state kept in the robot's store (a restart resumes it, no second warm-up).
+  ``detector.calibration.enabled: false`` runs the fixed policy instead (``policy.min_inliers``).
+- Inter-robot: the query's entry in the fleet's one place memory (``cae_lcd.fleet.places``: every robot's entries
+  keyed by robot and keyframe, ``local`` in this process or one ``milvus`` collection shared by every worker; no
+  recency exclusion: another robot's frame is never "recent"). **One code space**: every entry is made by the
+  memory from the keyframe's raw code (``FrameResult.code``; after a restart, the raw codes an online robot's store
+  keeps) in the memory's own fixed whitening (the weights', none for the shipped CAE weights: the raw code), never
+  from ``FrameResult.entry``, which a robot's refit moves into its stream's whitening. The top-``cross.search_k``
+  of the other robots (of the keyframes this recognizer has: a shared memory may hold another worker's newest one
+  before the service stored it), of each other robot at most ``cross.k``, at most ``cross.budget`` in all (the most
+  similar: ``cae_lcd.fleet.budget``), are verified by the robot's detector's verifier (SIFT + geometry); the best
+  verified candidate of each other robot is a **match** when it passes the pair's rule, and each robot pair's
+  matches feed ``OverlapTracker``: an overlap is accepted after a run of consecutive matching keyframes (matches
+  within ``overlap.max_match_gap`` keyframes of each other); from then on every match becomes an edge (at most
+  ``max_edges_per_pair``).
+- **The pair's rule, calibrated** (robots calibrating online): a match needs more inliers than every hard negative
+  that *either* robot's calibration measured on its own stream (its pair null ``samples["hard_inliers"]``, about
+  750-1200 verified far-side pairs: above its largest, the empirical p-value ``1 / (n + 1)`` is the smallest it can
+  show; and at least its floor, ``calibration.min_inliers``), and the run must be as long as *either* robot's own
+  fused decision needs of such frames to accept a loop (``retrieval.calibrate.run_needed``: 5 on KITTI), at least
+  ``overlap.required``: ``certified_match`` of each robot, the stricter of the two (``_cross_rule``). Nothing counts
+  (nothing is verified) until both robots are out of their warm-up, nor with a robot on the score path (too few
+  local features to verify). The promise, and what it rests on: each match of the run is as strong as the
+  strongest non-loop pair both robots measured, and the run is the one each robot's own calibration needs to keep
+  its expected false loops under ``calibration.expected_false_loops / 2`` (counted with the tests of its own stream,
+  not the fleet's: a query tests every other robot, so with many robots the cross-robot tests grow with the robot
+  pairs, which this does not count); cross-robot pairs are taken to be no likelier to look alike than a robot's
+  own far-side pairs (the same camera model; a fleet of unlike cameras breaks this), and the frames of one run are
+  not independent, so the rule is checked on real look-alikes: KITTI 00 vs 07 as two robots accepts no overlap
+  (with the floor alone, 12 inliers x 3, it does: ``tests/fleet/test_recognition_online.py``). With the fixed
+  policy the rule is ``cross.min_inliers`` inliers and ``overlap.required`` matches.
 - A loop edge takes the detector's own verification of the pair (``FrameResult.verification``: its matches and
-  transform); nothing is verified twice.
+  transform); nothing is verified twice. A delayed loop (``FrameResult.confirmed``: a run, or a refit, certified an
+  earlier keyframe's loop; the detector reports each once) is verified by the detector's verifier on the two
+  keyframes' features (``LoopDetector.keyframe_features``) and becomes a loop edge like the others.
+- **Cost**: a robot's fit or refit runs on the keyframe that triggers it, inside that keyframe's request (a robot's
+  requests are serialised, other robots' go on: ``parallel_robots``); the server bounds the body's size and read
+  time (``cae_lcd.fleet.limits``), not the processing. Measured (2 cores shared with other work, ``python -m
+  bench.fleet_online --set 90one``): KITTI 90 as one robot of 200 keyframes, 31 ms a keyframe (median; mean 46),
+  the worst request the refit at its 200th keyframe, 2.3 s (the fixed policy: 31 / 35 ms, worst 0.17 s); 61 loop
+  edges, all true (fixed: 58). A refit at ``n`` keyframes decides all ``n`` recorded ones again in its request
+  (amortised by the doublings, 74 ms a keyframe over 1700, but one request's cost grows with ``n``): KITTI 00 lap
+  after lap as one robot (``--set 00laps --keyframes 1700``), the refits at 190, 380, 760 and 1520 keyframes took
+  1.8, 4.8, 12.9 and 26.4 s (at 380: the fit 3.1 s, verifying its new null pairs 1.7 s of it; deciding the
+  recorded frames again 2.1 s, the late checks of their candidates 1.75 s of it). Past about 2000 keyframes a
+  refit's request outlasts ``FleetClient``'s 30 s default timeout; the keyframe is stored all the same, and the
+  robot's retry is answered from the store.
 - An edge's similarity: 3D points of the matched features on both sides (the depth map when the keyframe came with
   one, else triangulated from the robot's own neighbouring keyframe with its local poses), then ``estimate_overlap``.
 
@@ -46,6 +84,7 @@ from cae_lcd.core.conf import ConfigError, Float, Int, check_conf, merge_conf
 from cae_lcd.core.errors import ConflictError
 from cae_lcd.core.files import write_text_atomic
 from cae_lcd.core.images import check_image, fingerprint
+from retrieval.calibrate import Calibration, run_needed
 from retrieval.descriptors import GlobalDescriptor, create_descriptor
 from retrieval.detector import LoopDetector, resolve_conf, weights_whitening
 from verify.verifier import Verification
@@ -56,11 +95,16 @@ from .overlap import OverlapTracker, PointTriangulator, estimate_overlap, points
 from .sim3 import Sim3, Sim3Ransac
 from .store import EdgeRecord, OverlapRecord
 
-__all__ = ["FleetRecognizer", "Recognition", "SharedKeyframe", "CAMERA_FORMAT_VERSION"]
+__all__ = ["FleetRecognizer", "Recognition", "SharedKeyframe", "CAMERA_FORMAT_VERSION", "certified_match",
+           "FIXED_POLICY"]
 
 log = logging.getLogger(__name__)
 
 CAMERA_FORMAT_VERSION = 1  #: format of ``camera.json``
+#: the recognition conf of the fixed policy (``policy.min_inliers``, ``cross.min_inliers``) for robots whose streams
+#: are shorter than an online warm-up (``2 x search.exclude_recent`` keyframes: nothing accepted there): the demo's,
+#: short tests and benches; merged into a conf (``{**FIXED_POLICY, ...}``), never modified
+FIXED_POLICY: dict[str, Any] = {"detector": {"calibration": {"enabled": False}}}
 
 
 @dataclass
@@ -80,6 +124,8 @@ class SharedKeyframe:
     features: Any  #: ``verify.features.Features`` of the keyframe (None: fetched from its owner when needed)
     pose: np.ndarray  #: ``(4, 4)`` local pose
     K: np.ndarray | None  #: ``(3, 3)`` the robot's intrinsics
+    certified: tuple[int, int] | None = None  #: ``certified_match`` of its robot's calibration when exported
+    #                                            (None: not calibrated yet, or the fixed policy)
 
 
 class _Adopted:
@@ -89,6 +135,7 @@ class _Adopted:
     def __init__(self, cache: int, fetch: Callable[[int], Any] | None = None) -> None:
         self.cache, self.fetch = max(1, int(cache)), fetch
         self.features: OrderedDict[int, Any] = OrderedDict()
+        self.certified: tuple[int, int] | None = None  # its owner's latest ``certified_match`` (``SharedKeyframe``)
 
     def remember(self, frame_id: int, features: Any) -> None:
         """Keeps a keyframe's features, dropping the least recently used past ``cache``."""
@@ -115,6 +162,19 @@ class _Adopted:
 
     def close(self) -> None:
         """Nothing to release."""
+
+
+def certified_match(cal: Calibration | None, window: int) -> tuple[int, int] | None:
+    """What a robot with calibration ``cal`` certifies a cross-robot overlap with: ``(inliers, run)``, each match
+    above every hard negative its stream measured (``samples["hard_inliers"]``, the pair null, where its empirical
+    p-value is its smallest, ``1 / (n + 1)``; at least its floor), and ``run`` consecutive such matches, the run its
+    own fused decision needs of such frames to accept a loop (``retrieval.calibrate.run_needed``; ``window``: its
+    ``search.exclude_recent``). None: nothing is certified (no calibration decides yet: the warm-up; the score path,
+    where nothing is verified; a null with no sample, or one under which no run of its span suffices)."""
+    run = None if cal is None else run_needed(cal, window)
+    if run is None:
+        return None
+    return max(int(cal.inlier_null["floor"]), int(np.max(cal.samples["hard_inliers"])) + 1), run
 
 
 def _image_fingerprint(image: np.ndarray) -> str:
@@ -169,7 +229,11 @@ class FleetRecognizer:
     """
 
     default_conf: dict[str, Any] = {
-        "detector": {"calibration": {"enabled": False},  # LoopDetector conf of every robot (fixed policy)
+        # the LoopDetector conf of every robot, merged onto the detector's defaults: each robot's detector calibrates
+        # itself on its own stream (retrieval.online; calibration: {enabled: false} runs the fixed policy)
+        "detector": {"calibration": {"features_px": None},  # local features at features.resize_max (512 px), as
+                     #   the fixed policy's: an edge's similarity needs 3D points triangulated from them, and at the
+                     #   calibrated default (384 px) KITTI 90 as two robots gave 6 overlap edges, 19 at 512 px
                      "runtime": {"features": "database",  # features read back from its database when needed,
                                  "feature_cache": 64,  # at most this many kept per robot (~64 kB each)
                                  "flush_every": 16}},  # keyframes a robot's store holds in memory (features
@@ -181,7 +245,9 @@ class FleetRecognizer:
             "budget": 8,  # candidates verified per query over all other robots, the most similar (0: no bound)
             "min_score": 0.0,  # candidates under this cosine similarity are not verified
             "min_matches": 5,  # putative matches a candidate needs
-            "min_inliers": 50,  # geometric inliers a cross-robot match needs (the detector's fixed policy)
+            "min_inliers": 50,  # fixed policy only (detector.calibration.enabled: false): the geometric inliers a
+            #                     cross-robot match needs (chosen on KITTI at 512 px); calibrated, the robots' own
+            #                     measured nulls say it (above every hard negative of both: the module doc)
         },
         "places": {"name": "local",  # the place memory across robots (cae_lcd.fleet.places): local (in each process)
                    "index": {"name": "fp16"}},  # or milvus (one collection every worker shares: uri, collection, ...)
@@ -207,6 +273,8 @@ class FleetRecognizer:
         self.conf = self.resolve(conf)
         self.fetch = fetch
         self.detector_conf = self.conf["detector"]
+        cal = self.detector_conf["calibration"]
+        self._calibrated = cal["enabled"] and cal["online"]  # every robot's detector calibrates on its stream
         self.root = Path(state_dir) / "robots"
         self.descriptor = descriptor or create_descriptor(self.detector_conf["descriptor"])
         self.places = create_fleet_places(self.descriptor, weights_whitening(self.detector_conf, self.descriptor),
@@ -278,7 +346,7 @@ class FleetRecognizer:
         robot = self.robots[name] = _Robot(det, K, self.conf["points_cache"])
         if det.db is None:
             return robot
-        stored = [(fid, entry) for fid, entry, _, _ in det.db.search_entries(features=False)]  # searched entries
+        stored = self._stored_entries(det)
         robot.ids = [fid for fid, _ in stored]
         if stored:  # a shared memory may hold them already (another replica, a previous run): an upsert
             self.places.add(name, robot.ids, [entry for _, entry in stored])
@@ -312,18 +380,27 @@ class FleetRecognizer:
         ids = sorted(k for k in (r.ids if keyframes is None else set(keyframes) & set(r.ids)) if k in r.poses)
         entries = {} if self.places.shared else self._entries(r, ids)
         with_features = set(ids[-self.conf["adopted_features"]:])
+        certified = self._certified(r)
         return [(k, SharedKeyframe(entries.get(k), r.detector.keyframe_features(k) if k in with_features else None,
-                                   r.poses[k], r.K)) for k in ids]
+                                   r.poses[k], r.K, certified)) for k in ids]
 
-    @staticmethod
-    def _entries(r: _Robot, ids: list[int]) -> dict[int, np.ndarray]:
-        """The searched entries of the robot's keyframes ``ids``: the one just processed kept, the others read back
-        from its database."""
+    def _entries(self, r: _Robot, ids: list[int]) -> dict[int, np.ndarray]:
+        """The place-memory entries of the robot's keyframes ``ids``: the one just processed kept, the others read
+        back from its database."""
         if r.last is not None and ids == [r.last[0]]:
             return dict([r.last])
-        wanted = set(ids)
-        return {} if r.detector.db is None else {fid: e for fid, e, _, _ in r.detector.db.search_entries(
-            features=False) if fid in wanted}
+        return dict(self._stored_entries(r.detector, set(ids)))
+
+    def _stored_entries(self, det: LoopDetector, wanted: set[int] | None = None) -> list[tuple[int, np.ndarray]]:
+        """``[(keyframe, entry)]`` of a detector's stored keyframes (those in ``wanted``, or all), in frame order,
+        each in the place memory's own space as ``process`` made it: where the detector calibrates online its store
+        keeps raw codes (``LoopDetector.calibrates_online``), made into the memory's entries here; else the searched
+        entries (the weights' whitening: the memory's own)."""
+        if det.db is None:
+            return []
+        raw = det.calibrates_online
+        return [(fid, self.places.entry(code) if raw else code) for fid, code, _, _ in
+                det.db.search_entries(features=False) if wanted is None or fid in wanted]
 
     def features(self, robot: str, keyframes: list[int]) -> list[Any]:
         """The local features of keyframes of a robot this recognizer owns (another one's ``fetch``)."""
@@ -343,6 +420,8 @@ class FleetRecognizer:
                                             shared[0][1].K if shared else None)
         if not isinstance(r.detector, _Adopted):
             return
+        if shared:
+            r.detector.certified = shared[-1][1].certified  # its owner's calibration as of its newest keyframe
         for keyframe, kf in shared:
             if keyframe not in r.poses:
                 if kf.features is not None:
@@ -395,23 +474,30 @@ class FleetRecognizer:
         with self._lock:
             self._save_camera(robot)
             r.poses[keyframe] = np.asarray(pose, np.float64)
-            if res.gated or res.entry is None:
+            if res.gated or res.code is None:
                 return Recognition(gated=True)
+            entry = self.places.entry(res.code)  # in the memory's one space (a detector's refit moves its own)
             r.ids.append(keyframe)
-            r.last = (keyframe, res.entry)
+            r.last = (keyframe, entry)
             if depth is not None and r.K is not None:
                 r.remember_points(keyframe, points_from_depth(self._features(robot, [keyframe])[0].keypoints,
                                                               depth, r.K))
             c = self.conf["cross"]
-            found = self._known(self.places.search(robot, res.entry, c["search_k"]))  # {other: (keyframes, scores)}
+            found = self._known(self.places.search(robot, entry, c["search_k"]))  # {other: (keyframes, scores)}
             chosen = shortlist({o: s for o, (_, s) in found.items()}, c["k"], c["min_score"], c["budget"])
-        matches = {o: m for o, top in chosen.items() if (m := self._best_match(robot, keyframe, o, found[o][0][top]))}
+            rules = {o: self._cross_rule(r, self.robots[o]) for o in chosen}  # (inliers, run) or None: no match
+        matches = {o: m for o, top in chosen.items()
+                   if (m := self._best_match(robot, keyframe, o, found[o][0][top], rules[o]))}
+        # delayed loops of earlier keyframes (a run, or a refit, certified them; the detector reports each once)
+        delayed = [(cd.frame_id, q, self._verify_pair(robot, q, cd.frame_id)) for q, cd in res.confirmed]
         out = Recognition()
         with self._lock:
             if res.loop is not None:  # the detector's verification of the pair: not checked again
                 self._add_edge(out, "loop", (robot, res.loop.frame_id), (robot, keyframe), res.verification)
-            self._cross(out, robot, keyframe, matches)
-            self.places.add(robot, [keyframe], [res.entry])
+            for ref, q, check in delayed:
+                self._add_edge(out, "loop", (robot, ref), (robot, q), check)
+            self._cross(out, robot, keyframe, matches, {o: rules[o][1] for o in matches})
+            self.places.add(robot, [keyframe], [entry])
         return out
 
     def _known(self, found: dict[str, tuple[np.ndarray, np.ndarray]]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -425,11 +511,12 @@ class FleetRecognizer:
                 out[other] = (keyframes[keep], scores[keep])
         return out
 
-    def _cross(self, out: Recognition, robot: str, keyframe: int,
-               matches: dict[str, tuple[int, Verification]]) -> None:
-        """Updates the overlap rules with the keyframe's verified matches of other robots, adds edges."""
-        accepted = self.tracker.update(robot, keyframe, {o: m[0] for o, m in matches.items()})
-        keep = self.conf["overlap"]["required"]
+    def _cross(self, out: Recognition, robot: str, keyframe: int, matches: dict[str, tuple[int, Verification]],
+               runs: dict[str, int]) -> None:
+        """Updates the overlap rules with the keyframe's verified matches of other robots (``runs``: the consecutive
+        matches each pair needs, ``_cross_rule``), adds edges."""
+        accepted = self.tracker.update(robot, keyframe, {o: m[0] for o, m in matches.items()}, runs)
+        keep = max([self.conf["overlap"]["required"], *runs.values()])
         for other, (match, check) in matches.items():
             recent = self._checks.setdefault((robot, other), {})
             recent[keyframe] = check
@@ -457,18 +544,38 @@ class FleetRecognizer:
             if e.kind == "overlap":
                 self._edges[(e.robot_a, e.robot_b)] = self._edges.get((e.robot_a, e.robot_b), 0) + 1
 
-    def _best_match(self, robot: str, keyframe: int, other: str,
-                    top: np.ndarray) -> tuple[int, Verification] | None:
+    def _best_match(self, robot: str, keyframe: int, other: str, top: np.ndarray,
+                    rule: tuple[int, int] | None) -> tuple[int, Verification] | None:
         """Of the other robot's keyframes ``top`` (its shortlisted candidates), the one that verifies best against
-        the query (None: none passes)."""
-        q, o, c = self.robots[robot], self.robots[other], self.conf["cross"]
+        the query, if it has the inliers of the pair's ``rule`` (``_cross_rule``; None: no match counts, none is
+        verified)."""
+        if rule is None:
+            return None
+        q, o, c, need = self.robots[robot], self.robots[other], self.conf["cross"], rule[0]
         K = q.K if q.K is not None and o.K is not None and np.allclose(q.K, o.K) else None
         checks = q.detector.verifier.verify(self._features(robot, [keyframe])[0], self._features(other, top), K,
-                                            c["min_matches"], c["min_inliers"], False)
+                                            c["min_matches"], need, False)
         best = max(range(len(top)), key=lambda j: (checks[j].inliers, checks[j].matches))
-        if checks[best].inliers < max(c["min_inliers"], 1):
+        if checks[best].inliers < max(need, 1):
             return None
         return int(top[best]), checks[best]
+
+    def _cross_rule(self, q: _Robot, o: _Robot) -> tuple[int, int] | None:
+        """``(inliers, run)``: what a match between two robots' keyframes needs, and the consecutive matches that
+        accept their overlap (the module doc's rule). Calibrated, the stricter of the two robots'
+        ``certified_match`` (the run at least ``overlap.required``; None while either has none: nothing counts);
+        under the fixed policy ``(cross.min_inliers, overlap.required)``."""
+        required = self.conf["overlap"]["required"]
+        if not self._calibrated:
+            return self.conf["cross"]["min_inliers"], required
+        a, b = self._certified(q), self._certified(o)
+        return None if a is None or b is None else (max(a[0], b[0]), max(a[1], b[1], required))
+
+    def _certified(self, r: _Robot) -> tuple[int, int] | None:
+        """The robot's ``certified_match`` now (an adopted robot's: as its owner last exported it)."""
+        if isinstance(r.detector, _Adopted):
+            return r.detector.certified
+        return certified_match(r.detector.deciding_calibration, self.detector_conf["search"]["exclude_recent"])
 
     def _add_edge(self, out: Recognition, kind: str, a: tuple[str, int], b: tuple[str, int],
                   check: Verification | None) -> None:
@@ -477,8 +584,7 @@ class FleetRecognizer:
         if kind == "overlap" and self._edges.get(pair, 0) >= self.conf["max_edges_per_pair"]:
             return
         if check is None:  # a loop the detector accepted without verifying it (``policy.verify: false``)
-            rb = self.robots[b[0]]
-            check = rb.detector.verifier.verify(self._features(b[0], [b[1]])[0], self._features(a[0], [a[1]]), rb.K)[0]
+            check = self._verify_pair(b[0], b[1], a[1])
         pts_a, pts_b = self._points(a[0], a[1]), self._points(b[0], b[1])
         if pts_a is None or pts_b is None or check.inliers <= 0:
             return
@@ -489,6 +595,12 @@ class FleetRecognizer:
             return
         self._edges[pair] = self._edges.get(pair, 0) + 1
         out.edges.append(EdgeRecord(kind, a[0], a[1], b[0], b[1], found[0], float(found[1].sum())))
+
+    def _verify_pair(self, robot: str, query: int, ref: int) -> Verification:
+        """The robot's detector's verification of its keyframe ``query`` against its keyframe ``ref`` (matches,
+        geometry): a loop it reported without its check (a delayed one, or ``policy.verify: false``)."""
+        fq, fr = self._features(robot, [query, ref])
+        return self.robots[robot].detector.verifier.verify(fq, [fr], self.robots[robot].K)[0]
 
     def _points(self, robot: str, keyframe: int) -> np.ndarray | None:
         """``(N, 3)`` 3D points of the keyframe's features in its camera frame (cached), None without intrinsics."""

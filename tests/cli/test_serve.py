@@ -4,6 +4,7 @@ robots' overlap is still found."""
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import socket
@@ -20,6 +21,7 @@ from cae_lcd.cli.main import main
 from cae_lcd.cli.serve import TOKEN_ENV, admin_token
 from cae_lcd.fleet.client import FleetClient, FleetError
 from cae_lcd.fleet.demo import DEMO_TRUTH
+from cae_lcd.fleet.recognition import FIXED_POLICY
 from cae_lcd.fleet.sim3 import Sim3
 
 REPO = Path(__file__).resolve().parents[2]
@@ -52,11 +54,13 @@ def free_port() -> int:
 
 
 def start_server(state: Path, port: int, store: str | None = None) -> subprocess.Popen:
-    """``cae-lcd serve`` in its own process (admin token from the environment, ``--store`` when given); returns once
-    it answers."""
+    """``cae-lcd serve`` in its own process (admin token from the environment, ``--store`` when given; the fixed
+    policy, ``--config``: 15 keyframes a robot are within an online warm-up); returns once it answers."""
     env = {**os.environ, TOKEN_ENV: ADMIN}
-    proc = subprocess.Popen([sys.executable, "-m", "cae_lcd.cli.main", "serve", "--state", str(state), "--port", str(port)]
-                            + (["--store", store] if store else []),
+    config = state.parent / "fixed_policy.yaml"
+    config.write_text(json.dumps({"recognition": FIXED_POLICY}))  # JSON is YAML
+    proc = subprocess.Popen([sys.executable, "-m", "cae_lcd.cli.main", "serve", "--state", str(state), "--port", str(port),
+                             "--config", str(config)] + (["--store", store] if store else []),
                             cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     admin = FleetClient(f"http://127.0.0.1:{port}", ADMIN, timeout=5)
     deadline = time.monotonic() + 60

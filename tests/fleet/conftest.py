@@ -6,10 +6,18 @@ import cv2
 import numpy as np
 import pytest
 
+from cae_lcd.fleet.recognition import FIXED_POLICY
+
 #: 3D points in the camera frame (KITTI: x right, y down, z forward), metres: road edges, facades, a far point and
 #: the camera centre. Placed at every real pose they make a real-shaped scene along the real trajectory.
 CAMERA_OFFSETS = np.array([[-6.0, -3.0, 12.0], [6.0, -3.0, 12.0], [-4.0, 1.6, 8.0], [4.0, 1.6, 8.0],
                            [0.0, -8.0, 30.0], [0.0, 0.0, 0.0]])
+
+
+#: the recognition conf of the tests about something other than calibration: their robots stream 2-60 keyframes,
+#: within a detector's online warm-up (2 x search.exclude_recent keyframes, in which nothing is accepted), so they
+#: run the fixed policy (policy.min_inliers, cross.min_inliers) as the fleet did before it calibrated online
+FIXED = FIXED_POLICY
 
 
 @pytest.fixture(scope="session")

@@ -17,6 +17,7 @@ from cae_lcd.fleet.client import FleetClient
 from cae_lcd.fleet.export import format_trajectory
 from cae_lcd.fleet.map_page import MAP_ROUTES
 from cae_lcd.fleet.runner import ServerThread
+from cae_lcd.fleet.demo import DEMO_RECOGNITION
 from cae_lcd.fleet.server import create_app
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")
@@ -26,7 +27,8 @@ CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser") or shuti
 def served(fleet_demo_run, cae_descriptor):
     """The demo's state served again: ``(url, admin token, robot tokens {name: token})``."""
     out, _, token = fleet_demo_run
-    with ServerThread(create_app(out / "state", token, descriptor=cae_descriptor)) as server:
+    app = create_app(out / "state", token, recognition=DEMO_RECOGNITION, descriptor=cae_descriptor)  # the demo's conf
+    with ServerThread(app) as server:
         admin = FleetClient(server.url, token)
         admin.transforms(wait=True)
         yield server.url, token, {"C": admin.register("C")}

@@ -75,6 +75,13 @@ class TestOverlapTracker:
         assert t.accepted("A", "B") and t.accepted("B", "A") and not t.accepted("A", "C")
         assert t.update("B", 7, {"A": 3}) == []  # already accepted: no second acceptance
 
+    def test_a_pair_may_need_a_longer_run(self):
+        """The calibrated rule asks per pair for the run its robots' calibrations need (``required``, per other
+        robot): B-A needs 5 here, B-C the conf's 3."""
+        tracker = OverlapTracker()
+        accepted = [tracker.update("B", k, {"A": 10 + k, "C": 20 + k}, {"A": 5}) for k in range(5)]
+        assert accepted == [[], [], ["C"], [], ["A"]]
+
     def test_own_robot_is_ignored(self):
         tracker = OverlapTracker({"required": 1})
         assert tracker.update("A", 0, {"A": 0}) == []

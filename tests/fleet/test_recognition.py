@@ -15,6 +15,8 @@ from cae_lcd.core.conf import ConfigError
 from cae_lcd.fleet.recognition import FleetRecognizer
 from cae_lcd.fleet.sim3 import Sim3
 
+from .conftest import FIXED
+
 
 @pytest.fixture(scope="module")
 def kitti(kitti_sequences, kitti_poses):
@@ -51,7 +53,7 @@ def stream(rec, kitti, frames, known_sim3=None):
 def overlapping(tmp_path_factory, kitti, cae_descriptor, known_sim3):
     """A recognizer after A = 00 frames 100, 102, ..., 118 and B = 101, ..., 119 (B in ``known_sim3``'s map)."""
     state = tmp_path_factory.mktemp("fleet_state")
-    rec = FleetRecognizer(state, descriptor=cae_descriptor)
+    rec = FleetRecognizer(state, FIXED, descriptor=cae_descriptor)
     found = stream(rec, kitti, [("A" if i % 2 == 0 else "B", "00", i) for i in range(100, 120)], known_sim3)
     rec.close()
     return state, found
@@ -113,7 +115,7 @@ class TestFleetRecognizer:
         recs = {}
         for name in ("A", "B"):
             other = "B" if name == "A" else "A"
-            recs[name] = FleetRecognizer(tmp_path, {"adopted_features": 1}, cae_descriptor,
+            recs[name] = FleetRecognizer(tmp_path, {**FIXED, "adopted_features": 1}, cae_descriptor,
                                          owns=lambda n, m=name: n == m, fetch=fetch_from(lambda o=other: recs[o]))
         found = []
         for robot, seq, i in [("A" if i % 2 == 0 else "B", "00", i) for i in range(100, 120)]:
@@ -129,7 +131,7 @@ class TestFleetRecognizer:
 
     def test_the_budget_bounds_the_candidates_verified(self, tmp_path, kitti, cae_descriptor):
         """Four robots on KITTI 00 and 07: a keyframe verifies at most ``cross.budget`` other robots' candidates."""
-        rec = FleetRecognizer(tmp_path, {"cross": {"budget": 2, "k": 3}}, descriptor=cae_descriptor)
+        rec = FleetRecognizer(tmp_path, {**FIXED, "cross": {"budget": 2, "k": 3}}, descriptor=cae_descriptor)
         verified = []
         frames = [(r, s, i) for i in (0, 2) for r, s in (("A", "00"), ("B", "07"), ("C", "00"), ("D", "07"))]
         stream(rec, kitti, frames[:4])
@@ -142,14 +144,14 @@ class TestFleetRecognizer:
         assert sum(verified) == 2  # 3 other robots x 1 keyframe each would be 3 without the budget
 
     def test_robots_that_never_meet_have_no_overlap(self, tmp_path, kitti, cae_descriptor):
-        rec = FleetRecognizer(tmp_path, descriptor=cae_descriptor)
+        rec = FleetRecognizer(tmp_path, FIXED, descriptor=cae_descriptor)
         found = stream(rec, kitti, [(r, s, i) for i in range(0, 40, 2) for r, s in (("A", "00"), ("B", "07"))])
         rec.close()
         assert not [e for r in found for e in r.edges] and not [o for r in found for o in r.overlaps]
 
     def test_a_robot_revisiting_a_place_reports_a_loop(self, tmp_path, kitti, cae_descriptor):
         """KITTI 90: frames 134-145 drive again past frames 34-45 (about 0.7 m beside them)."""
-        rec = FleetRecognizer(tmp_path, descriptor=cae_descriptor)
+        rec = FleetRecognizer(tmp_path, FIXED, descriptor=cae_descriptor)
         found = stream(rec, kitti, [("A", "90", i) for i in range(34, 46)])
         calls = []  # one robot: only the detector verifies, and its verification makes the edge (not checked twice)
         real = rec.robots["A"].detector.verifier.verify
@@ -168,7 +170,7 @@ class TestFleetRecognizer:
 
     def test_a_restarted_recognizer_continues(self, overlapping, cae_descriptor, kitti):
         state, _ = overlapping
-        rec = FleetRecognizer(state, descriptor=cae_descriptor)
+        rec = FleetRecognizer(state, FIXED, descriptor=cae_descriptor)
         try:
             assert sorted(rec.robots) == ["A", "B"]
             assert rec.robots["A"].ids == list(range(100, 120, 2))
@@ -181,7 +183,7 @@ class TestFleetRecognizer:
 
     def test_a_resumed_overlap_stays_accepted(self, overlapping, cae_descriptor, kitti, known_sim3):
         state, found = overlapping
-        rec = FleetRecognizer(state, descriptor=cae_descriptor)
+        rec = FleetRecognizer(state, FIXED, descriptor=cae_descriptor)
         try:
             rec.resume([o for r in found for o in r.overlaps], [e for r in found for e in r.edges])
             after = stream(rec, kitti, [("A", "00", 120), ("B", "00", 121)], known_sim3)
@@ -191,7 +193,7 @@ class TestFleetRecognizer:
         assert [e.kind for r in after for e in r.edges][:1] == ["overlap"]  # no new run of 3 needed
 
     def test_other_intrinsics_are_refused(self, overlapping, cae_descriptor, kitti):
-        rec = FleetRecognizer(overlapping[0], descriptor=cae_descriptor)
+        rec = FleetRecognizer(overlapping[0], FIXED, descriptor=cae_descriptor)
         try:
             image, pose, K = kitti("00", 130)
             with pytest.raises(ConfigError, match="intrinsics differ"):

@@ -9,6 +9,8 @@ import pytest
 from cae_lcd.core.cluster import start_ray
 from cae_lcd.fleet.workers import NAMESPACE, RayRecognizer, create_recognizer, host_name, shard_of
 
+from .conftest import FIXED
+
 ray = pytest.importorskip("ray")
 
 # A (KITTI 00 even frames) and B (odd frames) on different shards of 2 (checked below)
@@ -72,7 +74,7 @@ def test_overlap_across_workers_and_a_killed_worker(local_ray, tmp_path, kitti_s
     robot's entries only, and nothing searched is copied between them; ``local``: each worker's own memory, every
     entry copied."""
     # one adopted keyframe's features kept per robot: the others' are fetched from their worker (cae_lcd.fleet.workers FETCH)
-    rec = create_recognizer(tmp_path, {"adopted_features": 1, "places": {"name": places}}, workers=2)
+    rec = create_recognizer(tmp_path, {**FIXED, "adopted_features": 1, "places": {"name": places}}, workers=2)
     assert isinstance(rec, RayRecognizer) and rec.parallel_robots
     spy = Spy(rec)
     found = [process(rec, robot, i, pose, image, K)
@@ -117,7 +119,7 @@ def test_two_replicas_over_http_on_postgresql_milvus_and_ray(local_ray, local_po
     from cae_lcd.fleet.server import create_app
 
     url = local_postgres.create_database("replicas")
-    apps = [create_app(tmp_path, "admin", store=url, workers=2, recognition={"places": {"name": "milvus"}})
+    apps = [create_app(tmp_path, "admin", store=url, workers=2, recognition={**FIXED, "places": {"name": "milvus"}})
             for _ in range(2)]
     with ServerThread(apps[0]) as one, ServerThread(apps[1]) as two:
         tokens = {r: FleetClient(one.url, "admin").register(r) for r in (A, B)}
