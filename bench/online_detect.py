@@ -49,7 +49,7 @@ def compare(folder: Path, run_dir: Path) -> dict[str, Any]:
     sec = summary["seconds"]
     return {"frames": summary["frames"], "detect_loops": len(written), "precision": pr.precision,
             "recall": pr.recall, "stream_loops": stream["loops"], "stream_precision": stream["precision"],
-            "stream_recall": stream["recall"],
+            "stream_recall": stream["recall"], "stream_r10": stream["r10"],
             "same": set(map(tuple, written.tolist())) == set(map(tuple, stream["pairs"].tolist())),
             "detect_ms": 1e3 * sec["frames"] / max(summary["frames"], 1),
             "detect_calibration_ms": 1e3 * sec.get("calibration_online", 0.0) / max(summary["frames"], 1),

@@ -45,15 +45,16 @@ def test_dark_proxy_darkens_the_second_pass_only(tmp_path):
 
 
 def test_online_rows_beside_the_offline_ones():
-    """The online table (issue 27): the stream's loops, precision and recall beside the offline recall, their ratio,
+    """The online table (issue 27): the stream's loops, precision and recall, its retrieval Recall@10 and the recall
+    over it (a stream safe by being blind shows it), beside the offline recall, their ratio,
     the ms/frame with the refits amortised and the worst frame."""
     from bench.aliasing import online_table
 
     offline = {"KITTI 90": {"recall": 0.99}, "KITTI 00": {"recall": None}}
-    online = {"KITTI 90": {"loops": 99, "precision": 1.0, "recall": 0.891, "ms_mean": 61.7, "ms_median": 20.2,
-                           "ms_worst": 4360.6},
+    online = {"KITTI 90": {"loops": 99, "precision": 1.0, "recall": 0.891, "r10": 0.99, "ms_mean": 61.7,
+                           "ms_median": 20.2, "ms_worst": 4360.6},
               "KITTI 00": {"loops": 0, "precision": 1.0, "recall": None, "ms_mean": 40.0, "ms_median": 20.0,
                            "ms_worst": 900.0}}
     table = online_table(offline, online)
-    assert "| KITTI 90 | 99 | 1.000 | 0.891 | 0.990 | 0.90 | 61.7 | 20.2 | 4361 |" in table
-    assert "| KITTI 00 | 0 | 1.000 | n/a (no revisit) | n/a | n/a | 40.0 | 20.0 | 900 |" in table
+    assert "| KITTI 90 | 99 | 1.000 | 0.891 | 0.990 / 0.900 | 0.990 | 0.90 | 61.7 | 20.2 | 4361 |" in table
+    assert "| KITTI 00 | 0 | 1.000 | n/a (no revisit) | n/a | n/a | n/a | 40.0 | 20.0 | 900 |" in table
