@@ -862,15 +862,17 @@ class LoopDetector:
             self.whitening = cal.whitening
 
     def _redecide(self) -> list[tuple[int, Candidate]]:
-        """Every recorded frame decided again under the current calibration, in order (scores in the current code
-        space; candidates not verified that could pass now verified first, ``_verify_late``); the decision's state
-        is the replay's. Returns the loops not reported yet (``(frame_id, candidate)``)."""
+        """The newest ``calibration.max_frames`` recorded frames (every one in a shorter stream) decided again under
+        the current calibration, in order (scores in the current code space; candidates not verified that could
+        pass now verified first, ``_verify_late``); the decision's state is the replay's; older frames keep their
+        decisions (a refit's request stays bounded however long the map: 0.8 ms a frame replayed). Returns the
+        loops not reported yet (``(frame_id, candidate)``)."""
         cal, c = self.calibration, self.conf
         self.decision = dec = cal.decision(c["search"]["exclude_recent"], self.filter)
         self._min_inliers = int(dec.floor)
         self._confirm = confirm = Confirmations(dec.reach) if dec.confirms else None
         src, out = self.places.source, []
-        rows = [(seen, self._recorded(seen)) for seen in self._online.seen]
+        rows = [(seen, self._recorded(seen)) for seen in self._online.seen[-c["calibration"]["max_frames"]:]]
         self._verify_late(rows)
         for seen, cands in rows:
             q = seen.frame_id

@@ -41,10 +41,11 @@ of them read, blocks spread as ``calibration_frames`` chooses), so a refit encod
   as many measured samples (the verified hard-negative pairs on the inlier path, the far-side pairs drawn out of
   sample on the score path: a carried calibration's null, drawn in sample, counts none there) as the one it
   replaces; else the current calibration is kept (one log line). Its tests only grow.
-- **Loops found late**: after a refit the frames recorded since the start are decided again under the new decision
-  (their candidates' scores recomputed in the new code space; the candidates not verified yet that could pass now
-  verified, of the frames not yet a loop: a loop is reported once, so more evidence there finds nothing new), and
-  the loops not reported yet are reported as delayed loops (``FrameResult.confirmed``).
+- **Loops found late**: after a refit the frames recorded since the start (the newest ``calibration.max_frames`` of
+  them in a longer stream: the refit's cost stays bounded, older frames keep their decisions) are decided again
+  under the new decision (their candidates' scores recomputed in the new code space; the candidates not verified
+  yet that could pass now verified, of the frames not yet a loop: a loop is reported once, so more evidence there
+  finds nothing new), and the loops not reported yet are reported as delayed loops (``FrameResult.confirmed``).
 
 Cost: the fits, almost all of it verifying the null's sampled pairs (a SIFT match and a RANSAC check each, about 4 ms
 of one core for a full check; ``calibration.null_pairs`` planned a fit), on the frame that triggers the fit. What

@@ -72,6 +72,22 @@ def test_online_stream_finds_the_sample_loops_with_precision_one(online_run, sam
     assert sum("online calibration at" in line for line in lines) == 2  # fitted at 40 keyframes, refitted at 80
 
 
+def test_a_refit_decides_again_only_the_newest_max_frames(sample_seq, sample_image, encoder, monkeypatch):
+    """A refit decides again the newest ``calibration.max_frames`` recorded frames, not the whole map (its request
+    stays bounded): the sample streamed, then its first 30 frames again (130 recorded), ``max_frames`` 100."""
+    conf = {**CONF, "calibration": {"max_frames": 100}}
+    with LoopDetector(conf, K=sample_seq.K, encoder=encoder) as det:
+        stream(det, sample_image, range(len(sample_seq)))
+        for i in range(30):
+            det.process(sample_image(i), len(sample_seq) + i)
+        replayed: list[int] = []
+        recorded = LoopDetector._recorded
+        monkeypatch.setattr(LoopDetector, "_recorded",
+                            lambda self, seen: replayed.append(seen.frame_id) or recorded(self, seen))
+        det._redecide()
+    assert replayed == list(range(30, len(sample_seq) + 30))
+
+
 def test_warm_up_accepts_nothing(sample_seq, sample_image, encoder):
     """A calibration carried from the same camera would accept the revisit's first frames; during the warm-up
     (``WARM_UP`` windows) nothing is accepted, however sure the carried calibration is."""
