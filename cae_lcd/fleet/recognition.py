@@ -43,16 +43,14 @@ inter-robot overlaps, each turned into a pose-graph edge (a similarity from 3D-3
   keyframes' features (``LoopDetector.keyframe_features``) and becomes a loop edge like the others.
 - **Cost**: a robot's fit or refit runs on the keyframe that triggers it, inside that keyframe's request (a robot's
   requests are serialised, other robots' go on: ``parallel_robots``); the server bounds the body's size and read
-  time (``cae_lcd.fleet.limits``), not the processing. Measured (2 cores shared with other work, ``python -m
-  bench.fleet_online --set 90one``): KITTI 90 as one robot of 200 keyframes, 31 ms a keyframe (median; mean 46),
-  the worst request the refit at its 200th keyframe, 2.3 s (the fixed policy: 31 / 35 ms, worst 0.17 s); 61 loop
-  edges, all true (fixed: 58). A refit at ``n`` keyframes decides all ``n`` recorded ones again in its request
-  (amortised by the doublings, 74 ms a keyframe over 1700, but one request's cost grows with ``n``): KITTI 00 lap
-  after lap as one robot (``--set 00laps --keyframes 1700``), the refits at 190, 380, 760 and 1520 keyframes took
-  1.8, 4.8, 12.9 and 26.4 s (at 380: the fit 3.1 s, verifying its new null pairs 1.7 s of it; deciding the
-  recorded frames again 2.1 s, the late checks of their candidates 1.75 s of it). Past about 2000 keyframes a
-  refit's request outlasts ``FleetClient``'s 30 s default timeout; the keyframe is stored all the same, and the
-  robot's retry is answered from the store.
+  time (``cae_lcd.fleet.limits``), not the processing. Measured (quiet 2-core machine, ``python -m
+  bench.fleet_online --set 90one``): KITTI 90 as one robot of 200 keyframes, 33 ms a keyframe (median; mean 42),
+  the worst request the refit at its 200th keyframe, 1.4 s (the fixed policy: 32 / 32 ms, worst 0.20 s); 61 loop
+  edges, all true (fixed: 58). A refit's request grows with the map up to ``calibration.max_frames`` (2000: a fit
+  reads at most that many frames and decides again at most the newest that many): KITTI 00 lap after lap as one
+  robot (``--set 00laps --keyframes 1700``), the refits at 380, 760 and 1520 keyframes took 2.2, 3.4 and 5.6 s. A
+  request that outlasts ``FleetClient``'s 30 s default timeout is stored all the same, and the robot's retry is
+  answered from the store.
 - An edge's similarity: 3D points of the matched features on both sides (the depth map when the keyframe came with
   one, else triangulated from the robot's own neighbouring keyframe with its local poses), then ``estimate_overlap``.
 
