@@ -226,7 +226,7 @@ def _run_frames(det: LoopDetector, seq: Sequence, start: int, progress: bool,
                 image = err
             else:
                 timings.append(res.ms)
-                n_loops += res.loop is not None
+                n_loops += (res.loop is not None) + len(res.confirmed)  # delayed loops too (each reported once)
                 bar.set_postfix(loops=n_loops, ms=f"{res.ms['total']:.0f}")
                 continue
         log.warning("skipping frame %d: %s", i, image)

@@ -2,6 +2,7 @@
 
 import csv
 import json
+import logging
 import shutil
 import subprocess
 import sys
@@ -382,6 +383,16 @@ class TestDetectOnline:
         assert code == 0, err
         assert json.loads((run / "summary.json").read_text())["resumed_at"] == 60
         assert read_csv(run / "loops.csv") == before
+
+    def test_the_progress_counts_the_delayed_loops(self, tmp_path, caplog):
+        """With the default window the sample's 100 frames are all warm-up: every loop is found by the fit at its
+        last frame and reported as a delayed loop; the progress line counts them (it said ``loops=0`` before)."""
+        from retrieval.detect import main as detect
+
+        caplog.set_level(logging.INFO, "cae_lcd.progress")
+        summary = detect(None, tmp_path / "run", {}, progress=True)
+        lines = [r.getMessage() for r in caplog.records if r.name == "cae_lcd.progress"]
+        assert summary["loops"] >= 45 and lines and f"loops={summary['loops']}," in lines[-1], lines[-1:]
 
     def test_lookahead_option(self, tmp_path, capsys):
         cfg = tmp_path / "w20.yaml"
