@@ -71,17 +71,22 @@ class GeometryResult:
 
 
 def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    """``(..., 3)`` vectors -> ``(..., 3, 3)`` their cross-product matrices."""
+    v = np.asarray(v, np.float64)
+    out = np.zeros(v.shape + (3,))
+    out[..., 0, 1], out[..., 0, 2], out[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
+    return out - np.swapaxes(out, -1, -2)
 
 
 def sampson_residuals(xq: np.ndarray, xc: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """``(n,)`` signed Sampson distances of normalised homogeneous points ``xq``, ``xc`` ``(n, 3)`` to the epipolar
     geometry ``x_c^T [t]x R x_q = 0`` (``x_c = R x_q + t``), in normalised image units (times a focal length:
-    pixels). Invariant to the length of ``t``."""
+    pixels). Invariant to the length of ``t``. Poses may come stacked: ``R (..., 3, 3)``, ``t (..., 3)`` give
+    ``(..., n)``, every pose's residuals in one product."""
     E = _skew(t) @ R
-    Ex, Etx = xq @ E.T, xc @ E
-    den = np.sqrt(Ex[:, 0] ** 2 + Ex[:, 1] ** 2 + Etx[:, 0] ** 2 + Etx[:, 1] ** 2)
-    return np.sum(xc * Ex, axis=1) / np.maximum(den, 1e-15)
+    Ex, Etx = xq @ np.swapaxes(E, -1, -2), xc @ E
+    den = np.sqrt(Ex[..., 0] ** 2 + Ex[..., 1] ** 2 + Etx[..., 0] ** 2 + Etx[..., 1] ** 2)
+    return np.sum(xc * Ex, axis=-1) / np.maximum(den, 1e-15)
 
 
 #: the information along the translation's length (unobservable from two images): near zero, so that a back end
@@ -103,14 +108,7 @@ def _residual_jacobian(xq: np.ndarray, xc: np.ndarray, focal: float, R: np.ndarr
     right-perturbed tangent ``(omega, delta)`` (``R exp(omega)``, ``t + R delta``), by central differences."""
     steps = np.vstack([np.eye(6) * _STEP, -np.eye(6) * _STEP, np.zeros((1, 6))])  # +h, -h, the pose itself
     Rs = np.stack([R @ cv2.Rodrigues(h[:3].reshape(3, 1))[0] for h in steps])
-    ts = t + steps[:, 3:] @ R.T
-    skew = np.zeros((len(steps), 3, 3))
-    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -ts[:, 2], ts[:, 1], -ts[:, 0]
-    skew -= skew.transpose(0, 2, 1)
-    E = skew @ Rs  # (13, 3, 3): every perturbed pose's essential matrix, their residuals in one product
-    Ex, Etx = xq @ E.transpose(0, 2, 1), xc @ E
-    den = np.sqrt(Ex[..., 0] ** 2 + Ex[..., 1] ** 2 + Etx[..., 0] ** 2 + Etx[..., 1] ** 2)
-    r = focal * np.sum(xc * Ex, axis=2) / np.maximum(den, 1e-15)  # (13, n): sampson_residuals of each
+    r = focal * sampson_residuals(xq, xc, Rs, t + steps[:, 3:] @ R.T)  # (13, n): every perturbed pose at once
     return r[12], ((r[:6] - r[6:12]) / (2 * _STEP)).T
 
 
