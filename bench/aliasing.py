@@ -168,8 +168,7 @@ def stream_run(folder: Path, truth: np.ndarray | None, conf: dict[str, Any] | No
             image, _ = seq.read_frame(i)
             res = det.process(image, i)
             ms.append(res.ms["total"])
-            rows += [(i, c.frame_id, c.score, c.matches, c.inliers, c.seq_score, c.confidence, 0)
-                     for c in res.candidates]  # CANDIDATE_COLUMNS: the stream's own ranking, as it searched then
+            rows += [(i, *c.as_row(), 0) for c in res.candidates]  # CANDIDATE_COLUMNS: its own ranking, then
             if res.loop is not None:
                 loops[i] = res.loop.frame_id
             for q, cand in res.confirmed:
