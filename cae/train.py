@@ -391,7 +391,7 @@ def _revisits(model: ConvAutoencoder, train_set: _Frames, conf: dict[str, Any], 
     if not (conf["contrastive"] and conf["revisit_z"]) or len(train_set) < 2:
         return np.zeros((0, 2), np.int64)
     model.eval()
-    codes = encode_images(model.encoder, list(train_set.images), batch_size=conf["batch_size"], prepared=True)
+    codes = encode_images(model.encoder, list(train_set.images), prepared=True)
     found = mine_revisits(codes, train_set.folder, train_set.position, conf["far"], conf["revisit_span"],
                           conf["revisit_z"])
     log.info("revisits: %d of %d frames have one (cae.revisits, z >= %g)", len(np.unique(found[:, 0])),
@@ -453,7 +453,7 @@ def _save_whitening(best: Path, data: np.ndarray, conf: dict[str, Any], device: 
     model = ConvAutoencoder()
     model.load_state_dict(ckpt["state_dict"], strict=True)
     encoder = model.encoder.to(device).eval()
-    codes = encode_images(encoder, list(data), batch_size=conf["batch_size"], prepared=True)
+    codes = encode_images(encoder, list(data), prepared=True)
     white = Whitening.fit(codes, conf["whitening_dim"], conf["whitening_shrink"])
     extra = {k: v for k, v in ckpt.items() if k not in ("format_version", "conf", "state_dict", "whitening")}
     save_checkpoint(best, model, ckpt["conf"], whitening=white, **extra)

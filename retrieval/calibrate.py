@@ -106,7 +106,7 @@ from verify.verifier import create_verifier
 from .decision import (AGREE, SPAN, TOL, Decision, EmpiricalTail, Horizon, MeasuredTail, ScoreSpans, Stops,
                        TailModel, fused_log10_sf, gaussian_log10_sf)
 from .descriptors import GlobalDescriptor
-from .temporal import CodeTable, NoFilter, SequenceFilter, TemporalFilter
+from .temporal import PAIR_CHUNK, CodeTable, NoFilter, SequenceFilter, TemporalFilter
 
 __all__ = ["Calibration", "TooFewFrames", "CALIBRATION_FORMAT", "calibrate", "calibrated_features", "run_needed",
            "calibration_frames", "far_side_scores"]
@@ -409,18 +409,22 @@ def _null_scores(ids: np.ndarray, table: CodeTable, filt: TemporalFilter, window
     moves = np.full(int(ids.max()) + 1, -1, np.int64)  # moved frames up to each frame id (-1: not present)
     moves[ids] = np.cumsum(np.ones(len(ids), bool) if moved is None else moved)
     back = np.arange(SPAN * int(filt.conf.get("length", 1)), dtype=np.int64)
-    rows = []
-    for q in ids.tolist():
-        refs = np.arange(max(0, q - window + 1), max(0, q - window // 2 + 1), dtype=np.int64)
-        refs = refs[moves[refs] >= 0]
-        qs, rs = q - back[None, :], refs[:, None] - back[None, :]
+    behind = np.arange(window - 1, window // 2 - 1, -1, dtype=np.int64)  # query - ref, the refs ascending
+    q, r = np.repeat(ids, len(behind)), (ids[:, None] - behind[None, :]).ravel()
+    keep = r >= 0
+    q, r = q[keep], r[keep]
+    keep = moves[r] >= 0
+    q, r = q[keep], r[keep]
+    out = [np.zeros((0, 3))]
+    for lo in range(0, len(q), PAIR_CHUNK):  # one score call a chunk: the similarities read in bulk, memory bounded
+        qc, rc = q[lo:lo + PAIR_CHUNK], r[lo:lo + PAIR_CHUNK]
+        qs, rs = qc[:, None] - back[None, :], rc[:, None] - back[None, :]
         mq, mr = moves[np.maximum(qs, 0)], moves[np.maximum(rs, 0)]
-        apart = (rs < 0) | (mq < 0) | (mr < 0) | (mq - mr >= min_apart)
-        refs = refs[apart.all(1)]
-        if len(refs):
-            scores = filt.score(np.full(len(refs), q, np.int64), refs, table)
-            rows.append(np.column_stack([np.full(len(refs), q), refs, scores]))
-    return np.concatenate(rows) if rows else np.zeros((0, 3))
+        apart = ((rs < 0) | (mq < 0) | (mr < 0) | (mq - mr >= min_apart)).all(1)
+        if apart.any():
+            qc, rc = qc[apart], rc[apart]
+            out.append(np.column_stack([qc, rc, filt.score(qc, rc, table)]))
+    return np.concatenate(out)
 
 
 def far_side_scores(ids: np.ndarray, table: CodeTable, filt: TemporalFilter, window: int,

@@ -54,8 +54,9 @@ verified as in the run), and what a loop looks like: the **positives** (a frame 
   waits longer than the reference ever did there, the line (both traversals moving alike) no longer holds and the
   query's frame within the reference's passage is undetermined: no loop (the query's arrival, a moving frame, was
   decided on its own evidence). A moving query is not affected. But where the arrival *was* a loop, the stop is that
-  place: each still frame after it carries the arrival's loop (``Decision.stop_carry``: to its candidate in the
-  reference's own stop after the loop's keyframe, with the arrival's confidence; nothing new is claimed).
+  place: each still frame after it carries the arrival's loop (``Decision.stop_carry``: to its candidate nearest
+  after the loop's keyframe in the reference's own stop, which may begin ``STOP_EDGE`` frame later, with the
+  arrival's confidence; nothing new is claimed).
 
 Shapes: ``Decision.confidences(query_id, refs (m,) int64, inliers (m,) int64, source) -> (m,) float64``;
 ``Decision.commit(query_id, refs (m,), inliers (m,))``.
@@ -76,6 +77,9 @@ __all__ = ["TailModel", "EmpiricalTail", "MeasuredTail", "gamma_log10_sf", "gaus
            "LOCALISE"]
 
 LN10 = math.log(10.0)
+STOP_EDGE = 1  #: frames by which the reference's stop may begin after the loop's keyframe and still carry the query's
+#   (``Decision.stop_carry``): where a camera slows to a stop, the first still frame is one frame uncertain either way
+#   (Nordland: the winter train still from 706, after its loop 705 -> 205; the summer one from 207)
 SPAN = 5  #: frames (inlier path) or windows (score path) one decision fuses at most, the query's and those before it
 #           (issue 27: a measured pair null caps what one frame claims; a run of frames on one offset decides)
 TOL = 2  #: frames the offset ``q - r`` may drift between fused frames
@@ -549,10 +553,11 @@ class Decision:
 
     def stop_carry(self, query_id: int, refs: np.ndarray, source: Any) -> tuple[np.ndarray, float]:
         """A stop is one place: where the frame before was a loop and the camera has stood still since (``Stops``),
-        this frame is that place again, matched to a stop: which of ``refs`` ``(m,)`` lie in the reference's own stop
-        after the loop's keyframe (every frame from it to the candidate one where the reference camera stood still),
-        and the confidence the arrival's loop had: the same loop, carried, claiming nothing new. A query still where
-        the reference moved on carries nothing.
+        this frame is that place again, matched to a stop: which of ``refs`` ``(m,)`` is the candidate nearest after
+        the loop's keyframe in the reference's own stop (every frame from it to the candidate one where the reference
+        camera stood still, but for the first ``STOP_EDGE``: the query has not moved, so the nearest), and the
+        confidence the arrival's loop had: the same loop, carried, claiming nothing new. A query still where the
+        reference moved on carries nothing.
 
         Returns:
             ``(m,)`` bool and the carried confidence (all False where nothing is carried).
@@ -563,7 +568,9 @@ class Decision:
                 self.stops.lengths(np.array([query_id], np.int64), source)[0] == 0:
             return np.zeros(len(refs), bool), 0.0
         after = refs - last[1]
-        inside = (after >= 1) & (self.stops.lengths(refs, source) >= after)
+        inside = (after >= 1) & (self.stops.lengths(refs, source) >= after - STOP_EDGE)
+        if inside.any():  # the query has not moved: the reference position nearest the loop's keyframe
+            inside &= after == after[inside].min()
         return inside, last[2]
 
     def note_loop(self, query_id: int, ref: int | None, confidence: float = 0.0) -> None:

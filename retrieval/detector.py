@@ -62,7 +62,7 @@ from .feature_jobs import FeatureJobs, grey_copy, read_grey_copy
 from .index import INDEXES
 from .online import DRIFT_Z, OnlineCalibration, Seen
 from .places import create_places
-from .temporal import FILTERS, create_filter
+from .temporal import FILTERS, PAIR_CHUNK, create_filter
 
 __all__ = ["Candidate", "FrameResult", "LoopDetector", "weights_whitening", "STAGES", "default_conf", "conf_rules",
            "resolve_conf"]
@@ -872,7 +872,8 @@ class LoopDetector:
         self._min_inliers = int(dec.floor)
         self._confirm = confirm = Confirmations(dec.reach) if dec.confirms else None
         src, out = self.places.source, []
-        rows = [(seen, self._recorded(seen)) for seen in self._online.seen[-c["calibration"]["max_frames"]:]]
+        seens = self._online.seen[-c["calibration"]["max_frames"]:]
+        rows = list(zip(seens, self._recorded(seens)))
         self._verify_late(rows)
         for seen, cands in rows:
             q = seen.frame_id
@@ -895,12 +896,25 @@ class LoopDetector:
             self._online.mark([f for f, _ in found])
         return sorted({f: cd for f, cd in out}.items())
 
-    def _recorded(self, seen: Seen) -> list[Candidate]:
-        """A recorded frame's candidates (``retrieval.online.Seen``) with their scores in the current code space."""
-        src, qs = self.places.source, np.full(len(seen.refs), seen.frame_id, np.int64)
-        return [Candidate(int(r), float(a), int(m), int(i), float(b)) for r, a, b, m, i in zip(
-            seen.refs.tolist(), src.pairs(qs, seen.refs).tolist(), self.filter.score(qs, seen.refs, src).tolist(),
-            seen.matches.tolist(), seen.inliers.tolist())]
+    def _recorded(self, seens: list[Seen]) -> list[list[Candidate]]:
+        """Recorded frames' candidates (``retrieval.online.Seen``) with their scores in the current code space, every
+        frame's pairs scored together (``PAIR_CHUNK`` a call: the same scores as one frame at a time)."""
+        src = self.places.source
+        queries = np.repeat(np.array([s.frame_id for s in seens], np.int64), [len(s.refs) for s in seens])
+        refs = np.concatenate([s.refs for s in seens]).astype(np.int64) if seens else np.zeros(0, np.int64)
+        sims, scores = np.zeros(len(refs)), np.zeros(len(refs))
+        for lo in range(0, len(refs), PAIR_CHUNK):
+            part = slice(lo, lo + PAIR_CHUNK)
+            sims[part] = src.pairs(queries[part], refs[part])
+            scores[part] = self.filter.score(queries[part], refs[part], src)
+        out, lo = [], 0
+        for seen in seens:
+            hi = lo + len(seen.refs)
+            out.append([Candidate(int(r), float(a), int(m), int(i), float(b)) for r, a, b, m, i in zip(
+                seen.refs.tolist(), sims[lo:hi].tolist(), scores[lo:hi].tolist(), seen.matches.tolist(),
+                seen.inliers.tolist())])
+            lo = hi
+        return out
 
     def _verify_late(self, rows: list[tuple[Seen, list[Candidate]]]) -> None:
         """Verifies, at a refit, the recorded frames' candidates that were not verified and could pass now

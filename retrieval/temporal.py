@@ -39,8 +39,11 @@ import numpy as np
 from cae_lcd.core.conf import Float, Floats, Int, Registry, configure
 
 __all__ = ["SimilaritySource", "CodeTable", "TemporalFilter", "SequenceFilter", "NoFilter", "BayesFilter",
-           "FILTERS", "create_filter", "GRAM_MAX"]
+           "FILTERS", "create_filter", "GRAM_MAX", "PAIR_CHUNK"]
 
+PAIR_CHUNK = 2048  #: pairs a filter scores in one call where many are scored at once (a calibration's far-side
+#   lines, a refit's recorded frames): their similarities read in bulk, the memory bounded (a table without a Gram
+#   matrix gathers ``PAIR_CHUNK x length`` code pairs at once, about 40 MB at 256 dimensions)
 GRAM_MAX = 4096  #: frames up to which ``CodeTable.fixed`` keeps every pair's similarity (64 MB at most)
 
 

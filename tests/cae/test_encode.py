@@ -2,7 +2,7 @@ import cv2
 import numpy as np
 import pytest
 
-from cae.encode import encode_images, normalize_codes
+from cae.encode import CPU_BATCH, encode_images, normalize_codes
 from cae_lcd.core.errors import ImageError
 
 
@@ -31,6 +31,20 @@ class TestEncodeImages:
         np.testing.assert_allclose(one[0], codes[0], atol=1e-5)
         small_batches = encode_images(encoder, [sample_image(i) for i in (10, 11, 40)], batch_size=2)
         np.testing.assert_allclose(small_batches, codes, atol=1e-5)
+
+    def test_the_cpu_runs_cache_sized_batches_with_the_same_codes(self, encoder, sample_image, monkeypatch):
+        """On the CPU the forward passes take at most ``CPU_BATCH`` images (larger batches spill the cache: 3x slower
+        an image), and the codes are those of one pass over all of them, bit for bit."""
+        images = [sample_image(i) for i in range(5)]
+        whole = encode_images(encoder, images, batch_size=32)
+        sizes: list[int] = []
+        hook = encoder.register_forward_pre_hook(lambda _, args: sizes.append(args[0].shape[0]))
+        try:
+            default = encode_images(encoder, images)
+        finally:
+            hook.remove()
+        assert 1 <= CPU_BATCH <= 3 and max(sizes) == CPU_BATCH and sum(sizes) == 5  # 8 MB of activations an image
+        assert np.array_equal(default, whole)
 
     def test_formats_give_same_code(self, encoder, sample_image, codes):
         g = sample_image(10)

@@ -288,6 +288,33 @@ class TestStops:
         assert (250, 220) not in pairs  # the camera moved between them, but their line runs through the stop
         assert not any({q - t, r - t} <= stop for q, r in pairs for t in range(back))
 
+    def test_null_lines_scored_in_bulk_as_pair_by_pair(self, nordland_codes, monkeypatch):
+        """The far-side lines, scored ``PAIR_CHUNK`` at a time (a chunk of 97 cuts through queries), are the rows the
+        definition gives pair by pair: every ``window // 2 <= q - r < window`` of the ids, its line moved apart at
+        every step of the frames its fused score reads, its score the filter's on that one pair."""
+        from retrieval.calibrate import _null_scores
+        from retrieval.decision import SPAN
+        from retrieval.temporal import CodeTable, create_filter
+
+        ids, codes, moved = self._summer(nordland_codes)
+        ids, codes, moved = ids[::2][:150], codes[::2][:150], moved[::2][:150]  # gaps in the ids: frames not stored
+        table = CodeTable(codes.shape[1])
+        for fid, code in zip(ids, codes):
+            table.add(int(fid), code / np.linalg.norm(code))
+        filt, window = create_filter({"name": "sequence"}), 40
+        pos = {int(f): int(c) for f, c in zip(ids, np.cumsum(moved))}
+        want = []
+        for q in ids.tolist():
+            for r in range(max(0, q - window + 1), q - window // 2 + 1):
+                if r not in pos:
+                    continue
+                steps = [(q - t, r - t) for t in range(SPAN * filt.conf["length"])]
+                if all(b < 0 or a not in pos or b not in pos or pos[a] - pos[b] >= 1 for a, b in steps):
+                    want.append((q, r, float(filt.score(np.array([q]), np.array([r]), table)[0])))
+        monkeypatch.setattr("retrieval.calibrate.PAIR_CHUNK", 97)
+        got = [(int(q), int(r), float(v)) for q, r, v in _null_scores(ids, table, filt, window, moved)]
+        assert len(want) > 200 and got == want
+
     def test_whitening_and_still_cosine(self, nordland_codes):
         from retrieval.calibrate import STILL_COS, _stretch, _whitening
         from retrieval.detector import resolve_conf

@@ -214,13 +214,14 @@ class TestStops:
 
     def test_a_stop_carries_the_loop_of_its_arrival(self, table):
         """Winter 730 stands still in the station after 729 closed a loop to summer 230: the loop is carried to its
-        candidates in the summer stop after 230, with 729's confidence; to nothing else, and only from the frame
-        before."""
+        candidate in the summer stop nearest after 230 (the query has not moved), with 729's confidence; to nothing
+        else, and only from the frame before."""
         dec = Decision(None, TailModel(0.0, 1.0), 1.0, 1.0, False, stops=self._stops())
         refs = np.array([231, 235, 250, 229])
         dec.note_loop(729, 230, 9.0)
         inside, confidence = dec.stop_carry(730, refs, table)
-        assert inside.tolist() == [True, True, False, False] and confidence == 9.0
+        assert inside.tolist() == [True, False, False, False] and confidence == 9.0
+        assert dec.stop_carry(730, refs[1:], table)[0].tolist() == [True, False, False]  # 231 not a candidate
         assert not dec.stop_carry(731, refs, table)[0].any()  # 730 was not recorded as a loop: nothing to carry
         dec.note_loop(754, 250, 9.0)
         assert not dec.stop_carry(755, np.array([251, 252]), table)[0].any()  # a moving query: its own evidence
@@ -228,6 +229,15 @@ class TestStops:
         assert not dec.stop_carry(730, refs, table)[0].any()
         assert not dec.fresh().stop_carry(730, refs, table)[0].any()
 
+
+    def test_a_stop_that_begins_a_frame_later_carries_too(self, table):
+        """Winter 705 arrives (a loop to summer 205) and is still from 706; the summer train was still only from 207
+        (``STOP_EDGE``: the first still frame of a slowing camera is one frame uncertain): 706 carries the loop, to
+        206 where the summer train was coming to its stop, or to 209, three frames into it; not to 250, past it."""
+        dec = Decision(None, TailModel(0.0, 1.0), 1.0, 1.0, False, stops=self._stops())
+        dec.note_loop(705, 205, 9.0)
+        assert dec.stop_carry(706, np.array([206, 250]), table)[0].tolist() == [True, False]
+        assert dec.stop_carry(706, np.array([209, 250]), table)[0].tolist() == [True, False]
 
 class TestScoreSpans:
     """The score path fuses consecutive windows on one line (``ScoreSpans``), each window's evidence read from the
