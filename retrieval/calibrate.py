@@ -187,6 +187,17 @@ class Calibration:
             self._tails[name] = kept
         return kept[1]
 
+    def far_side_level(self) -> tuple[float, float] | None:
+        """``(median, sigma)`` (sigma from the 90th percentile) of the far-side scores of the newest frames a
+        stream's fit read, under a whitening fitted on the frames before them (``samples["held_out_far_side"]``,
+        ``_out_of_sample``; measured by a stream's fit on the inlier path, ``calibrate``'s ``held_out``): the level
+        its drift checks compare the frames after the fit with (``retrieval.online``). None where not measured."""
+        scores = self.samples.get("held_out_far_side")
+        if scores is None or len(scores) < 20:
+            return None
+        q50, _, spread = _tail_fit(np.asarray(scores, np.float64))
+        return q50, max(spread / 1.2816, 1e-4)
+
     @property
     def path(self) -> str:
         """``"inliers"`` where local verification decides, ``"score"`` where the global code and temporal
@@ -528,6 +539,12 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
         null_table, apart = _out_of_sample(cal, conf["whitening"], descriptor, filt, ids, codes, moved, window,
                                            held_out)
     else:
+        if held_out:  # a stream on the inlier path: the level its drift checks read, measured out of sample too
+            try:
+                cal.samples["held_out_far_side"] = _out_of_sample(cal, conf["whitening"], descriptor, filt, ids,
+                                                                  codes, moved, window, held_out)[1][:, 2]
+            except TooFewFrames:
+                pass
         null_table, apart = table, _null_scores(ids, table, filt, window, moved, window // 2)  # far apart in moved
         apart = apart if len(apart) >= 20 else null  # frames too
     _score_path(cal, apart, filt, null_table)
