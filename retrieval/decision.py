@@ -411,7 +411,9 @@ class Decision:
         self.accept_at, self.single, self.horizon, self.spans = accept_at, single, horizon, spans
         self.span, self.tol, self.min_support = span, tol, min_support
         self._recent: deque[tuple[int, np.ndarray, np.ndarray]] = deque(maxlen=max(self.reach - 1, 1))
-        self._last_loop: tuple[int, int, float] | None = None  # (frame, its loop's keyframe, confidence): stop_carry
+        # (frame, its loop's keyframe, confidence, the keyframe of the arrival whose loop it carries): stop_carry
+        self._last_loop: tuple[int, int, float, int] | None = None
+        self._offered: tuple[int, np.ndarray] | None = None  # (frame, the keyframes stop_carry offered it)
 
     @property
     def reach(self) -> int:
@@ -548,16 +550,16 @@ class Decision:
         """The same decision with no frame recorded yet (a replay of a run from its start)."""
         out = copy.copy(self)
         out._recent = deque(maxlen=self._recent.maxlen)
-        out._last_loop = None
+        out._last_loop = out._offered = None
         return out
 
     def stop_carry(self, query_id: int, refs: np.ndarray, source: Any) -> tuple[np.ndarray, float]:
         """A stop is one place: where the frame before was a loop and the camera has stood still since (``Stops``),
         this frame is that place again, matched to a stop: which of ``refs`` ``(m,)`` is the candidate nearest after
-        the loop's keyframe in the reference's own stop (every frame from it to the candidate one where the reference
-        camera stood still, but for the first ``STOP_EDGE``: the query has not moved, so the nearest), and the
-        confidence the arrival's loop had: the same loop, carried, claiming nothing new. A query still where the
-        reference moved on carries nothing.
+        the frame before's keyframe (the query has not moved) in the reference's own stop (every frame from the
+        arrival's keyframe to the candidate one where the reference camera stood still, but for the first
+        ``STOP_EDGE``, once per stop), and the confidence the arrival's loop had: the same loop, carried, claiming
+        nothing new. A query still where the reference moved on carries nothing.
 
         Returns:
             ``(m,)`` bool and the carried confidence (all False where nothing is carried).
@@ -568,14 +570,20 @@ class Decision:
                 self.stops.lengths(np.array([query_id], np.int64), source)[0] == 0:
             return np.zeros(len(refs), bool), 0.0
         after = refs - last[1]
-        inside = (after >= 1) & (self.stops.lengths(refs, source) >= after - STOP_EDGE)
-        if inside.any():  # the query has not moved: the reference position nearest the loop's keyframe
+        inside = (after >= 1) & (self.stops.lengths(refs, source) >= refs - last[3] - STOP_EDGE)
+        if inside.any():  # the query has not moved: the reference position nearest the frame before's
             inside &= after == after[inside].min()
+        self._offered = (int(query_id), refs[inside])
         return inside, last[2]
 
     def note_loop(self, query_id: int, ref: int | None, confidence: float = 0.0) -> None:
-        """Records the decision of frame ``query_id`` (its loop's keyframe, or None) for ``stop_carry``."""
-        self._last_loop = None if ref is None else (int(query_id), int(ref), float(confidence))
+        """Records the decision of frame ``query_id`` (its loop's keyframe, or None) for ``stop_carry``: a loop to
+        the keyframe ``stop_carry`` offered it carries the same arrival, any other is an arrival of its own."""
+        offered, last = self._offered, self._last_loop
+        carried = offered is not None and last is not None and offered[0] == query_id and ref in offered[1].tolist()
+        self._last_loop = None if ref is None else (int(query_id), int(ref), float(confidence),
+                                                    last[3] if carried else int(ref))
+        self._offered = None
 
     def commit(self, query_id: int, refs: np.ndarray, inliers: np.ndarray) -> None:
         """Records a processed frame's verified candidates (a resumed run replays its stored ones here)."""

@@ -239,6 +239,19 @@ class TestStops:
         assert dec.stop_carry(706, np.array([206, 250]), table)[0].tolist() == [True, False]
         assert dec.stop_carry(706, np.array([209, 250]), table)[0].tolist() == [True, False]
 
+    def test_a_carried_stop_ends_where_the_reference_moved_on(self, table):
+        """Carried frame by frame from the arrival 705 -> 205, the winter stop reaches 741 -> 241 (the summer stop's
+        last frame) and ends there: at 742 the summer train has moved on, and ``STOP_EDGE``'s one frame was the
+        arrival's, not each step's (else the chain would walk into the summer passage a frame at a time)."""
+        dec = Decision(None, TailModel(0.0, 1.0), 1.0, 1.0, False, stops=self._stops())
+        dec.note_loop(705, 205, 9.0)
+        for q in range(706, 742):
+            refs = np.array([q - 500, q - 499])
+            inside, _ = dec.stop_carry(q, refs, table)
+            assert inside.tolist() == [True, False]
+            dec.note_loop(q, q - 500, 9.0)
+        assert not dec.stop_carry(742, np.array([242, 243]), table)[0].any()
+
 class TestScoreSpans:
     """The score path fuses consecutive windows on one line (``ScoreSpans``), each window's evidence read from the
     measured null (issue 27: no p-value below ``1 / (n + 1)`` of its sample)."""
