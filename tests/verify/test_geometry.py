@@ -1,5 +1,6 @@
 """Geometric check on a TRUE revisit (sample 55 -> 5) and a FAR pair (55 -> 30), with the sample's intrinsics."""
 
+import cv2
 import numpy as np
 import pytest
 
@@ -7,6 +8,26 @@ from cae_lcd.core.conf import ConfigError
 from retrieval.sequences import read_kitti_poses
 from verify.geometry import GeometricVerifier, GeometryResult
 from verify.matching import match_ratio
+
+#: 58 ratio-test matches of two frames of KITTI 90 at 160x120 (a pair its calibration verified in ``bench.aliasing``), as
+#: ``(x_q, y_q, x_c, y_c)``, rounded to 0.1 px: OpenCV's MAGSAC asserts on them (``!model.empty()``)
+MAGSAC_ASSERTS = np.array([
+    [7.3, 101.9, 24.7, 89.9], [19.7, 10, 26.3, 14.3], [21, 93.4, 32.9, 84.8], [33.2, 87.9, 41.5, 80.9],
+    [35, 41.6, 58.5, 28.6], [35, 41.6, 58.5, 28.6], [44.5, 81.6, 50, 76.9], [48.8, 72.9, 52.3, 69.9],
+    [55.1, 34.4, 58.1, 36.5], [57.9, 33.3, 60.4, 35.6], [58.1, 59.2, 60.1, 58.3], [59.1, 74.4, 61.3, 71.3],
+    [60.9, 53.1, 62.8, 53], [62.2, 65.6, 63.8, 64], [62.5, 41.1, 64.7, 42.1], [64.5, 22.2, 66.2, 26],
+    [65.7, 75.4, 66.9, 72.1], [66.9, 69.8, 67.8, 67.7], [70.4, 57.3, 70.8, 56.9], [70.8, 45.2, 71.6, 45.5],
+    [71.3, 12.2, 72.2, 15.8], [73.1, 51.2, 73.6, 51.2], [73.3, 37.9, 73.7, 39.2], [73.5, 21.4, 73.6, 23.2],
+    [74.3, 60.2, 74.5, 59.2], [74.3, 60.2, 74.5, 59.2], [74.7, 71.9, 75.1, 69.5], [79.4, 64, 79.2, 62.7],
+    [80.3, 45.8, 80, 45.9], [81.1, 34.1, 81, 34.4], [81.1, 34.1, 81, 34.4], [83.6, 42.4, 83.2, 42.5],
+    [83.9, 36.9, 83.5, 37.5], [83.9, 36.9, 83.5, 37.5], [84.6, 65.1, 83.8, 64], [84.6, 65.1, 83.8, 64],
+    [85.2, 21.7, 87, 21], [87.2, 40.4, 86.6, 40.5], [87.4, 30.5, 86.8, 31.2], [87.4, 30.5, 86.8, 31.2],
+    [87.5, 45.4, 87, 45.8], [87.8, 19.5, 87, 21], [88, 69.5, 87.1, 67.7], [88.2, 52.2, 87.7, 52.1],
+    [88.9, 80.4, 86.9, 76], [90.6, 90.7, 86.2, 83.2], [90.6, 44.3, 89.9, 44.4], [90.9, 59.1, 90.5, 58.8],
+    [91.1, 31.7, 90.4, 32.3], [93.6, 80.1, 92.9, 81.5], [94, 21.7, 93.3, 22.5], [94.2, 44.6, 93.4, 44.5],
+    [95.5, 33.6, 94.5, 33.9], [95.6, 54.1, 94.8, 53.7], [97.4, 49.9, 96.4, 49.9], [97.4, 49.9, 96.4, 49.9],
+    [100.4, 41.5, 99.3, 41.9], [108.8, 31.5, 105.7, 25.3]
+])
 
 
 @pytest.fixture(scope="module")
@@ -79,6 +100,32 @@ class TestGeometricVerifier:
         assert res.inliers < 30
         assert res.model == "fundamental"  # stopped after the cheap fundamental-matrix prefilter
         assert GeometricVerifier()(*pairs["true"], K=sample_K, min_inliers=30).model == "essential"
+
+    def test_min_inliers_stops_early_without_K(self, pairs, monkeypatch):
+        """Without intrinsics a pair that cannot reach ``min_inliers`` stops at the MAGSAC pre-check (a RANSAC on
+        a bad pair runs to ``max_iters``: 2.5x the verification time on a plain folder's full-size frames); one that
+        can is decided by the configured estimator, as without the pre-check."""
+        methods: list[int] = []
+        fundamental = GeometricVerifier._fundamental
+        monkeypatch.setattr(GeometricVerifier, "_fundamental",
+                            lambda self, a, b, method: methods.append(method) or fundamental(self, a, b, method))
+        far = GeometricVerifier()(*pairs["far"], min_inliers=30)
+        assert far.inliers < 30 and methods == [cv2.USAC_MAGSAC]
+        true = GeometricVerifier()(*pairs["true"], min_inliers=30)
+        assert methods[1:] == [cv2.USAC_MAGSAC, cv2.RANSAC]
+        assert true.inliers == GeometricVerifier({"prefilter": False})(*pairs["true"], min_inliers=30).inliers
+
+    @pytest.mark.parametrize("K_known", [True, False])
+    def test_a_point_set_magsac_asserts_on_goes_to_the_full_check(self, sample_K, K_known):
+        """OpenCV's MAGSAC asserts on some real point sets (``MAGSAC_ASSERTS``); the pre-check is then skipped and
+        the configured estimator decides: the result without the pre-check, not an exception."""
+        a, b = MAGSAC_ASSERTS[:, :2], MAGSAC_ASSERTS[:, 2:]
+        with pytest.raises(cv2.error):
+            cv2.findFundamentalMat(a.reshape(-1, 1, 2), b.reshape(-1, 1, 2), cv2.USAC_MAGSAC, 2.0, 0.999, 2000)
+        K = sample_K if K_known else None
+        got = GeometricVerifier()(a, b, K=K, min_inliers=12)
+        want = GeometricVerifier({"prefilter": False})(a, b, K=K, min_inliers=12)
+        assert got.model == want.model and got.inliers == want.inliers > 0
 
     def test_essential_without_K_raises(self, pairs):
         gv = GeometricVerifier({"model": "essential"})
