@@ -809,7 +809,9 @@ class _Verify:
         fundamental matrix's inliers, ``verify.geometry``) is under the floor (``calibration.min_inliers``) stops
         there with that count, as the run's candidates do. The decision reads no count under the floor (no
         evidence, ``Decision.evidence``; a p-value only for counts at or above it, which are the full check's), so
-        only the notes' medians of the null see it; the hard negatives, mostly under it, cost a third as much."""
+        only the notes' medians of the null see it; the hard negatives, mostly under it, cost a third as much.
+        Without intrinsics the pre-check is MAGSAC's fundamental matrix and the full check the configured
+        estimator's: a count at the floor by one and under it by the other is counted alike here and in the run."""
         if not hasattr(self._local, "verifier"):
             self._local.verifier = create_verifier(self.conf["matcher"], self.conf["geometry"])
         check = self._local.verifier.verify(self.feats[q], [self.feats[r]], self.K, self.min_matches, self.floor,
