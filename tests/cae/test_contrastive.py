@@ -48,14 +48,13 @@ def train_steps(frames, contrastive, steps=6):
     before = view_margin(model, frames, seed=0)
     for _ in range(steps):
         rng = np.random.default_rng(0)  # the same two views every step (as view_margin(seed=0) draws them)
-        if contrastive:
-            loss = _place_step(model, frames, np.arange(len(frames)), rng, conf, torch.device("cpu"),
-                               np.zeros((0, 2), np.int64))
+        optim.zero_grad()
+        if contrastive:  # its gradient accumulated by the step itself
+            _place_step(model, frames, np.arange(len(frames)), rng, conf, torch.device("cpu"),
+                        np.zeros((0, 2), np.int64))
         else:  # the same step without the place term: reconstruction of the same views only
             target, view = _view(training._to_batch(frames.images, torch.device("cpu")), rng, conf)
-            loss = torch.nn.functional.binary_cross_entropy_with_logits(model(view[:2]), target[:2])
-        optim.zero_grad()
-        loss.backward()
+            torch.nn.functional.binary_cross_entropy_with_logits(model(view[:2]), target[:2]).backward()
         optim.step()
     return before, view_margin(model, frames, seed=0)
 

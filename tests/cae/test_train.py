@@ -463,3 +463,41 @@ class TestPlaceObjective:
         best = load_checkpoint(out / "best.pt")
         assert not same_weights(best["state_dict"], shipped)
         assert best["conf"]["init"] == "shipped" and "whitening" in best  # the whitening saved with the weights
+
+
+def test_the_place_step_in_cache_sized_chunks_is_the_whole_batch_gradient(sample_image):
+    """The place step on the CPU runs the network on ``CPU_BATCH`` images at a time (gradient caching: codes first,
+    the place term's gradient with respect to them, then each chunk with its graph): the loss and every weight's
+    gradient of the whole batch in one pass (the step written out here), up to float rounding; 8 real frames, a
+    chunk of 2."""
+    import torch.nn.functional as F
+
+    from cae.contrastive import far_mask, info_nce, neighbour_partners, not_revisits, with_revisits
+    from cae.encode import CPU_BATCH
+    from cae.preprocess import to_network_u8
+
+    assert CPU_BATCH < 8
+    frames = training._Frames(np.stack([to_network_u8(sample_image(i)) for i in range(0, 96, 8)]),
+                              np.zeros(12, np.int64), np.arange(12))
+    conf, picks, revisits, cpu = merge_conf(default_conf, {}), np.arange(0, 12, 3), np.zeros((0, 2), np.int64), \
+        torch.device("cpu")
+    picks = np.sort(np.r_[picks, picks + 1])
+    model = ConvAutoencoder()
+    got = training._place_step(model, frames, picks, np.random.default_rng(0), conf, cpu, revisits)
+    chunked = {k: p.grad.clone() for k, p in model.named_parameters()}
+    model.zero_grad(set_to_none=True)
+    rng = np.random.default_rng(0)  # the whole batch at once, the draws in the same order
+    partners = with_revisits(neighbour_partners(frames.folder, frames.position, picks, conf["neighbours"], rng),
+                             picks, revisits, conf["revisit_share"], rng)
+    target, view_a = training._view(training._to_batch(frames.images[picks], cpu), rng, conf)
+    _, view_b = training._view(training._to_batch(frames.images[partners], cpu), rng, conf)
+    code_a, code_b = model.encoder.forward_map(view_a), model.encoder.forward_map(view_b).flatten(1)
+    n_rec = max(1, int(round(conf["recon_share"] * len(picks))))
+    neg = torch.as_tensor(far_mask(frames.folder[picks], frames.position[picks], conf["far"])
+                          & not_revisits(picks, revisits))
+    loss = F.binary_cross_entropy_with_logits(model.decoder(code_a[:n_rec]), target[:n_rec]) + \
+        conf["contrastive"] * info_nce(code_a.flatten(1), code_b, neg, conf["temperature"])
+    loss.backward()
+    assert got == pytest.approx(loss.item(), rel=1e-5)
+    for name, p in model.named_parameters():
+        torch.testing.assert_close(chunked[name], p.grad, rtol=1e-3, atol=1e-6, msg=name)
