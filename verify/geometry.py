@@ -330,7 +330,8 @@ class GeometricVerifier:
             pre = self._prefilter(a, b) if min_inliers and method != cv2.USAC_MAGSAC else None
             if pre is not None and pre.inliers < min_inliers:  # a pair that cannot reach it stops here
                 return pre
-            return self._unmirrored(self._fundamental(a, b, method), a, b)
+            full = self._fundamental(a, b, method)
+            return self._unmirrored(full, a, b) if full is not None else GeometryResult(0, np.zeros(m, bool), model)
         subset = np.arange(m)
         pre = self._prefilter(a, b)
         if pre is not None:  # E's inliers are (up to the threshold's definition) a subset of the best F's
@@ -340,8 +341,11 @@ class GeometricVerifier:
             if not pre.inliers:
                 return pre
             subset = np.flatnonzero(pre.mask)
-        E, mask = cv2.findEssentialMat(a[subset], b[subset], K, method=method, prob=c["confidence"],
-                                       threshold=c["threshold"], maxIters=c["max_iters"])
+        try:
+            E, mask = cv2.findEssentialMat(a[subset], b[subset], K, method=method, prob=c["confidence"],
+                                           threshold=c["threshold"], maxIters=c["max_iters"])
+        except cv2.error:  # as ``_fundamental``: no model
+            E = mask = None
         if E is None or mask is None:
             return GeometryResult(0, np.zeros(m, bool), model)
         E = E[:3]  # several solutions come stacked as (3k, 3): the mask belongs to the first
@@ -376,16 +380,16 @@ class GeometricVerifier:
         on a bad pair (the 5-point solver costs ~0.5 ms an iteration; F by RANSAC on a plain folder's full-size
         frames made verification 2.5x dearer); None where it is off, the points are fewer than 8, or OpenCV's
         MAGSAC finds no model to start from (it asserts on some degenerate point sets: the full check decides)."""
-        if not self.conf["prefilter"] or len(a) < 8:
-            return None
+        return self._fundamental(a, b, cv2.USAC_MAGSAC) if self.conf["prefilter"] and len(a) >= 8 else None
+
+    def _fundamental(self, a: np.ndarray, b: np.ndarray, method: int) -> GeometryResult | None:
+        """F by ``method`` on ``(M, 1, 2)`` points; None where OpenCV's estimator fails on the point set (its USAC
+        estimators assert on some real ones, ``tests/verify/test_geometry.py``'s ``MAGSAC_ASSERTS``)."""
+        c = self.conf
         try:
-            return self._fundamental(a, b, cv2.USAC_MAGSAC)
+            F, mask = cv2.findFundamentalMat(a, b, method, c["threshold"], c["confidence"], c["max_iters"])
         except cv2.error:
             return None
-
-    def _fundamental(self, a: np.ndarray, b: np.ndarray, method: int) -> GeometryResult:
-        c = self.conf
-        F, mask = cv2.findFundamentalMat(a, b, method, c["threshold"], c["confidence"], c["max_iters"])
         if F is None or mask is None:
             return GeometryResult(0, np.zeros(len(a), bool), "fundamental")
         inl = mask.ravel().astype(bool)

@@ -127,6 +127,14 @@ class TestGeometricVerifier:
         want = GeometricVerifier({"prefilter": False})(a, b, K=K, min_inliers=12)
         assert got.model == want.model and got.inliers == want.inliers > 0
 
+    @pytest.mark.parametrize("method", ["magsac", "usac"])
+    def test_an_estimator_that_asserts_finds_no_model_and_raises_nothing(self, method):
+        """The configured estimator itself failing on a real point set (``MAGSAC_ASSERTS``, OpenCV's USAC): no model
+        (0 inliers), not an exception that would stop a run or a fleet request."""
+        a, b = MAGSAC_ASSERTS[:, :2], MAGSAC_ASSERTS[:, 2:]
+        res = GeometricVerifier({"method": method})(a, b)
+        assert res.model == "fundamental" and res.inliers >= 0 and res.mask.shape == (len(a),)
+
     def test_essential_without_K_raises(self, pairs):
         gv = GeometricVerifier({"model": "essential"})
         with pytest.raises(ConfigError, match="intrinsics"):
