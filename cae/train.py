@@ -354,7 +354,7 @@ def _place_step(model: ConvAutoencoder, train_set: _Frames, picks: np.ndarray, r
     On the CPU the network runs on ``CPU_BATCH`` images at a time, where its activations stay in the cache (1.75x
     faster a step than the whole batch at once): the codes first without a graph, the place term's gradient with
     respect to them, then each chunk again with its graph, back-propagating that gradient and its share of the
-    reconstruction (gradient caching: the gradient of the whole batch, up to float rounding)."""
+    reconstruction (gradient caching: the gradient of the whole batch, up to float rounding). On a GPU, one pass."""
     partners = neighbour_partners(train_set.folder, train_set.position, picks, conf["neighbours"], rng)
     partners = with_revisits(partners, picks, revisits, conf["revisit_share"], rng)
     target, view_a = _view(_to_batch(train_set.images[picks], device), rng, conf)
@@ -363,25 +363,34 @@ def _place_step(model: ConvAutoencoder, train_set: _Frames, picks: np.ndarray, r
     neg = torch.as_tensor(far_mask(train_set.folder[picks], train_set.position[picks], conf["far"])
                           & not_revisits(picks, revisits))
     chunk = CPU_BATCH if device.type == "cpu" else len(picks)
-    with torch.no_grad():
-        codes = [torch.cat([model.encoder.forward_map(v) for v in view.split(chunk)]).flatten(1)
-                 for view in (view_a, view_b)]
-    codes = [c.requires_grad_() for c in codes]
+    cached = chunk < len(picks)  # gradient caching only where the batch is cut into chunks (a GPU: one pass)
+    with torch.set_grad_enabled(not cached):
+        maps = [torch.cat([model.encoder.forward_map(v) for v in view.split(chunk)]) for view in (view_a, view_b)]
+    codes = [m.flatten(1).requires_grad_() if cached else m.flatten(1) for m in maps]
     place = conf["contrastive"] * info_nce(codes[0], codes[1], neg, conf["temperature"])
+    if not cached:
+        recon = _reconstruction(model, maps[0][:n_rec], target[:n_rec], target[:n_rec].numel())
+        (place + recon).backward()
+        return place.item() + recon.item()
     place.backward()
-    recon = 0.0
+    total = place.item()
     for view, code in zip((view_a, view_b), codes):
         for start in range(0, len(view), chunk):
             part = model.encoder.forward_map(view[start:start + chunk])
             loss = (part.flatten(1) * code.grad[start:start + chunk]).sum()
             rec = range(start, min(start + chunk, n_rec)) if view is view_a else range(0)
             if len(rec):  # the reconstruction's share: its mean over the decoded first views, in parts
-                err = F.binary_cross_entropy_with_logits(model.decoder(part[:len(rec)]), target[rec.start:rec.stop],
-                                                         reduction="sum") / target[:n_rec].numel()
-                recon += err.item()
+                err = _reconstruction(model, part[:len(rec)], target[rec.start:rec.stop], target[:n_rec].numel())
+                total += err.item()
                 loss = loss + err
             loss.backward()
-    return recon + place.item()
+    return total
+
+
+def _reconstruction(model: ConvAutoencoder, code_maps: torch.Tensor, targets: torch.Tensor, count: int) -> torch.Tensor:
+    """The reconstruction term's share of ``code_maps`` ``(b, 16, 16, 16)`` against their ``targets``
+    ``(b, 3, 256, 256)``: the summed binary cross-entropy over ``count`` (the elements of every decoded view)."""
+    return F.binary_cross_entropy_with_logits(model.decoder(code_maps), targets, reduction="sum") / count
 
 
 def _train_epoch(model: ConvAutoencoder, optim: torch.optim.Optimizer, train_set: _Frames, epoch: int,

@@ -543,7 +543,7 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
             try:
                 cal.samples["held_out_far_side"] = _out_of_sample(cal, conf["whitening"], descriptor, filt, ids,
                                                                   codes, moved, window, held_out)[1][:, 2]
-            except TooFewFrames:
+            except TooFewFrames:  # too few newest frames: the checks read the in-sample level (``adopt``)
                 pass
         null_table, apart = table, _null_scores(ids, table, filt, window, moved, window // 2)  # far apart in moved
         apart = apart if len(apart) >= 20 else null  # frames too

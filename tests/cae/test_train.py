@@ -465,11 +465,12 @@ class TestPlaceObjective:
         assert best["conf"]["init"] == "shipped" and "whitening" in best  # the whitening saved with the weights
 
 
-def test_the_place_step_in_cache_sized_chunks_is_the_whole_batch_gradient(sample_image):
+@pytest.mark.parametrize("chunk", [2, 64])
+def test_the_place_step_in_cache_sized_chunks_is_the_whole_batch_gradient(sample_image, monkeypatch, chunk):
     """The place step on the CPU runs the network on ``CPU_BATCH`` images at a time (gradient caching: codes first,
     the place term's gradient with respect to them, then each chunk with its graph): the loss and every weight's
     gradient of the whole batch in one pass (the step written out here), up to float rounding; 8 real frames, a
-    chunk of 2."""
+    chunk of 2, and of 64 (one pass, as on a GPU)."""
     import torch.nn.functional as F
 
     from cae.contrastive import far_mask, info_nce, neighbour_partners, not_revisits, with_revisits
@@ -477,6 +478,7 @@ def test_the_place_step_in_cache_sized_chunks_is_the_whole_batch_gradient(sample
     from cae.preprocess import to_network_u8
 
     assert CPU_BATCH < 8
+    monkeypatch.setattr(training, "CPU_BATCH", chunk)
     frames = training._Frames(np.stack([to_network_u8(sample_image(i)) for i in range(0, 96, 8)]),
                               np.zeros(12, np.int64), np.arange(12))
     conf, picks, revisits, cpu = merge_conf(default_conf, {}), np.arange(0, 12, 3), np.zeros((0, 2), np.int64), \
