@@ -397,7 +397,10 @@ def main(path: str | Path | Sequence | None = None, out: str | Path | None = Non
         confirmed = det.confirmed_loops(rows)  # delayed loops: a run accepted at t certifies its earlier frames
         loops = run.write_tables((_with_confirmed(q, cands, loop, confirmed.get(q)) for q, cands, loop in rows), keys)
         verified = bool(cal.inlier_null) if cal is not None else bool(resolved["policy"]["verify"])
+        t0 = time.perf_counter()
         edges = _edges(seq, resolved, cal, det, loops) if verified else []
+        seconds["loop_edges"] = time.perf_counter() - t0
+        log.info("loop edges: %d of %d loops in %.1f s", len(edges), len(loops), seconds["loop_edges"])
         if metric_from_poses:
             edges = metric_edges(edges, seq.poses)
         run.write_edges(edges, seq.poses, keys, T_body_camera)

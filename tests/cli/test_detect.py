@@ -374,6 +374,7 @@ class TestDetectOnline:
         summary = json.loads((run / "summary.json").read_text())
         assert summary["calibration"]["online"] and not (run / "calibration.h5").exists()
         assert 0 < summary["seconds"]["calibration_online"] < summary["seconds"]["frames"]  # refits inside the frames
+        assert summary["loop_edges"] > 0 and summary["seconds"]["loop_edges"] > 0  # the edges' own time, apart
         assert summary["confirmed"] > 0  # the loops the refit at 80 keyframes found late, written as delayed loops
         before = read_csv(run / "loops.csv")
         with h5py.File(run / "keyframes.h5", "a") as f:  # killed after frame 59: later blocks never committed
