@@ -109,7 +109,7 @@ from .descriptors import GlobalDescriptor
 from .temporal import PAIR_CHUNK, CodeTable, NoFilter, SequenceFilter, TemporalFilter
 
 __all__ = ["Calibration", "TooFewFrames", "CALIBRATION_FORMAT", "calibrate", "calibrated_features", "run_needed",
-           "calibration_frames", "far_side_scores"]
+           "calibration_frames", "far_side_scores", "score_level"]
 
 log = logging.getLogger(__name__)
 
@@ -193,10 +193,7 @@ class Calibration:
         ``_out_of_sample``; measured by a stream's fit on the inlier path, ``calibrate``'s ``held_out``): the level
         its drift checks compare the frames after the fit with (``retrieval.online``). None where not measured."""
         scores = self.samples.get("held_out_far_side")
-        if scores is None or len(scores) < 20:
-            return None
-        q50, _, spread = _tail_fit(np.asarray(scores, np.float64))
-        return q50, max(spread / 1.2816, 1e-4)
+        return score_level(scores) if scores is not None and len(scores) >= 20 else None
 
     @property
     def path(self) -> str:
@@ -460,6 +457,15 @@ def _tail_fit(values: np.ndarray) -> tuple[float, float, float]:
     return float(q50), float(q90), float(q90 - q50)
 
 
+def score_level(scores: np.ndarray) -> tuple[float, float]:
+    """``(median, sigma)`` of far-side scores ``(n,)``, sigma read from the 90th percentile (as a Gaussian's, robust
+    to a contaminated tail); ``(0, 1e-4)`` for none."""
+    if not len(scores):
+        return 0.0, 1e-4
+    q50, _, spread = _tail_fit(np.asarray(scores, np.float64))
+    return q50, max(spread / 1.2816, 1e-4)
+
+
 def calibrated_features(conf: dict[str, Any]) -> dict[str, Any]:
     """The local features' conf of a calibrated run (the calibration's and the run's, whose inlier thresholds are
     calibrated on them): ``features`` with its longer side ``calibration.features_px``; ``features`` as they are
@@ -537,12 +543,13 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
     shared += _inlier_path(cal, conf, images, null, table, K, progress, features, local, verified)
     if held_out and not cal.inlier_null:  # a stream on the score path: its nulls measured out of sample
         null_table, apart = _out_of_sample(cal, conf["whitening"], descriptor, filt, ids, codes, moved, window,
-                                           held_out)
+                                           held_out, "the score path's null")
     else:
         if held_out:  # a stream on the inlier path: the level its drift checks read, measured out of sample too
             try:
-                cal.samples["held_out_far_side"] = _out_of_sample(cal, conf["whitening"], descriptor, filt, ids,
-                                                                  codes, moved, window, held_out)[1][:, 2]
+                cal.samples["held_out_far_side"] = _out_of_sample(
+                    cal, conf["whitening"], descriptor, filt, ids, codes, moved, window, held_out,
+                    "the level the stream's drift checks compare its newest frames with")[1][:, 2]
             except TooFewFrames:  # too few newest frames: the checks read the in-sample level (``adopt``)
                 pass
         null_table, apart = table, _null_scores(ids, table, filt, window, moved, window // 2)  # far apart in moved
@@ -670,10 +677,9 @@ def _score_path(cal: Calibration, null: np.ndarray, filt: TemporalFilter, table:
     measured per span; the run's tests counted at every span. ``score_null``'s median and sigma (90th percentile)
     only describe the null (the detector's "above chance" gate for verification); no Gaussian tail decides."""
     scores = null[:, 2]
-    q50, q90, spread = _tail_fit(scores)
+    (q50, sigma), q90 = score_level(scores), _tail_fit(scores)[1]
     tail = EmpiricalTail(scores)
-    cal.score_null = {"median": q50, "sigma": max(spread / 1.2816, 1e-4), "samples": float(len(scores)),
-                      "empirical": 1.0}
+    cal.score_null = {"median": q50, "sigma": sigma, "samples": float(len(scores)), "empirical": 1.0}
     cal.samples["score_null"] = scores
     cal.notes.append(f"score null: {len(scores)} far-side pairs, median {q50:.4f}, 90th percentile {q90:.4f}, max "
                      f"{scores.max():.4f}: one window's empirical p-value, at most {tail.max_evidence:.1f} decades "
@@ -697,8 +703,8 @@ def _score_path(cal: Calibration, null: np.ndarray, filt: TemporalFilter, table:
 
 
 def _out_of_sample(cal: Calibration, wconf: dict[str, Any], descriptor: GlobalDescriptor, filt: TemporalFilter,
-                   ids: np.ndarray, codes: np.ndarray, moved: np.ndarray, window: int, held_out: float
-                   ) -> tuple[CodeTable, np.ndarray]:
+                   ids: np.ndarray, codes: np.ndarray, moved: np.ndarray, window: int, held_out: float,
+                   purpose: str) -> tuple[CodeTable, np.ndarray]:
     """The score path's nulls measured out of sample (issue 27), for a whitening fitted on every frame ``ids (n,)``
     (raw ``codes (n, D)``, ``moved (n,)`` as ``_moved``) that decides the frames after them: a second whitening is
     fitted on the frames before the newest ones that hold the share ``held_out`` of the frames where the camera moved
@@ -710,8 +716,9 @@ def _out_of_sample(cal: Calibration, wconf: dict[str, Any], descriptor: GlobalDe
     their best window over the whole map has a median of 0.06 and 0.26 (07's frames 121-156 then pass for 00's
     96-130). The second whitening is fitted on fewer frames, so on fewer dimensions (its cosines spread wider) and
     with as many frames a dimension: its frames after the fit stand for the deciding whitening's. Frames in the fit
-    (decided again at a refit) face a null higher than their own: a bar only raised. Returns the code table under
-    the second whitening and the null rows (``_null_scores``).
+    (decided again at a refit) face a null higher than their own: a bar only raised. ``purpose`` names what the
+    pairs are for in the calibration's note. Returns the code table under the second whitening and the null rows
+    (``_null_scores``).
 
     Raises:
         TooFewFrames: the held-out frames hold fewer than 20 far-side pairs.
@@ -729,9 +736,9 @@ def _out_of_sample(cal: Calibration, wconf: dict[str, Any], descriptor: GlobalDe
     if len(rows) < 20:
         raise TooFewFrames(f"the newest {len(ids) - cut} frames hold only {len(rows)} far-side pairs to measure the "
                            "score path's nulls out of sample")
-    cal.notes.append(f"score path, out of sample: the score null drawn from the far-side pairs of the newest "
-                     f"{len(ids) - cut} frames under a whitening fitted on the {cut} before them (the frames a stream "
-                     "decides come after its whitening's fit)")
+    cal.notes.append(f"out of sample: {purpose} drawn from the far-side pairs of the newest {len(ids) - cut} frames "
+                     f"under a whitening fitted on the {cut} before them (the frames a stream decides come after its "
+                     "whitening's fit)")
     return table, rows
 
 

@@ -102,7 +102,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .calibrate import Calibration, TooFewFrames, calibrate, calibration_frames, far_side_scores
+from .calibrate import Calibration, TooFewFrames, calibrate, calibration_frames, far_side_scores, score_level
 from .descriptors import GlobalDescriptor
 from .temporal import CodeTable, TemporalFilter, create_filter
 
@@ -288,10 +288,8 @@ class OnlineCalibration:
         self.level = cal.far_side_level()  # out of sample, as the frames the checks read (the inlier path)
         if self.level is None:  # the score path: in sample, the stricter check (the codes are its only evidence)
             ids = np.array([s.frame_id for s in self.seen], np.int64)
-            scores = far_side_scores(ids[-min(len(ids), self.conf["calibration"]["max_frames"]):], table, filt,
-                                     self.window)
-            q50, q90 = np.quantile(scores, [0.5, 0.9]) if len(scores) else (0.0, 0.0)
-            self.level = (float(q50), max(float(q90 - q50) / 1.2816, 1e-4))
+            self.level = score_level(far_side_scores(ids[-min(len(ids), self.conf["calibration"]["max_frames"]):],
+                                                     table, filt, self.window))
         return self.ready
 
 
