@@ -18,7 +18,7 @@ Points are ``(N, 3)`` per keyframe feature, NaN where a feature has no 3D point;
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -88,9 +88,11 @@ class OverlapTracker:
         self.rules: dict[tuple[str, str], OverlapRule] = {}
 
     def update(self, robot: str, keyframe: int, matches: Mapping[str, int],
-               required: Mapping[str, int] | None = None) -> list[str]:
+               required: Mapping[str, int] | None = None, among: Collection[str] | None = None) -> list[str]:
         """Records ``robot``'s keyframe and its best verified match in each other robot (absent: no match);
-        ``required``: per other robot, the consecutive matches that accept (absent: ``required`` of the conf).
+        ``required``: per other robot, the consecutive matches that accept (absent: ``required`` of the conf);
+        ``among``: the other robots the keyframe was matched against (None: all; the rules of the others are left
+        as they are: a catch-up replays one robot's earlier keyframes against some robots only).
 
         Returns:
             The other robots whose overlap with ``robot`` this keyframe accepted.
@@ -99,7 +101,9 @@ class OverlapTracker:
         for other in set(matches) - {robot}:
             self.rules.setdefault((robot, other), OverlapRule(self.conf["required"], self.conf["max_match_gap"]))
         for (query, other), rule in self.rules.items():
-            if query == robot and rule.update(keyframe, matches.get(other), (required or {}).get(other)):
+            if query != robot or (among is not None and other not in among):
+                continue
+            if rule.update(keyframe, matches.get(other), (required or {}).get(other)):
                 accepted.append(other)
         return sorted(accepted)
 

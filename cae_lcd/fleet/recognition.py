@@ -28,7 +28,11 @@ inter-robot overlaps, each turned into a pose-graph edge (a similarity from 3D-3
   fused decision needs of such frames to accept a loop (``retrieval.calibrate.run_needed``: 5 on KITTI), at least
   ``overlap.required``: ``certified_match`` of each robot, the stricter of the two (``_cross_rule``). Nothing counts
   (nothing is verified) until both robots are out of their warm-up, nor with a robot on the score path (too few
-  local features to verify). The promise, and what it rests on: each match of the run is as strong as the
+  local features to verify). **Catch-up**: on a robot's first certified keyframe, its keyframes from before (its
+  warm-up, at most ``cross.catch_up``) are matched against every robot with which the pair's rule is then in
+  force, in keyframe order, each pair's run going on into the live keyframes (``_catch_up_due``): robots that met
+  only in their warm-ups (a fleet leaving one depot) find their overlap. The other direction needs no second pass
+  (the other robot's catch-up, or its queries once certified), so every pair of keyframes is checked once. The promise, and what it rests on: each match of the run is as strong as the
   strongest non-loop pair both robots measured, and the run is the one each robot's own calibration needs to keep
   its expected false loops under ``calibration.expected_false_loops / 2`` (counted with the tests of its own stream,
   not the fleet's: a query tests every other robot, so with many robots the cross-robot tests grow with the robot
@@ -189,6 +193,8 @@ class _Robot:
         self.ids: list[int] = []  # keyframes in the place memory (passed the gate), ascending
         self.points: OrderedDict[int, np.ndarray] = OrderedDict()  # keyframe -> (N, 3) feature points (LRU)
         self.last: tuple[int, np.ndarray] | None = None  # the latest keyframe's searched entry (for ``export``)
+        #: keyframes sent before the robot was first certified, not yet matched across (None: caught up)
+        self.unchecked: list[int] | None = []
         self.lock = threading.Lock()  # held while its detector processes a keyframe, and to read its features
 
     def remember_points(self, keyframe: int, points: np.ndarray) -> np.ndarray:
@@ -246,6 +252,8 @@ class FleetRecognizer:
             "min_inliers": 50,  # fixed policy only (detector.calibration.enabled: false): the geometric inliers a
             #                     cross-robot match needs (chosen on KITTI at 512 px); calibrated, the robots' own
             #                     measured nulls say it (above every hard negative of both: the module doc)
+            "catch_up": 200,  # calibrated only: when a robot is first certified, at most this many of its keyframes
+            #                   from before (its warm-up), newest first, are matched across then (0: none)
         },
         "places": {"name": "local",  # the place memory across robots (cae_lcd.fleet.places): local (in each process)
                    "index": {"name": "fp16"}},  # or milvus (one collection every worker shares: uri, collection, ...)
@@ -260,7 +268,7 @@ class FleetRecognizer:
     }
     conf_rules: dict[str, Any] = {
         "cross": {"search_k": Int(1, 100_000), "k": Int(1, 1000), "budget": Int(0, 100_000), "min_score": Float(-1, 1), "min_matches": Int(0),
-                  "min_inliers": Int(0)},
+                  "min_inliers": Int(0), "catch_up": Int(0, 100_000)},
         "overlap": OverlapTracker.conf_rules, "triangulation": PointTriangulator.conf_rules,
         "sim3": Sim3Ransac.conf_rules, "min_points": Int(3), "max_edges_per_pair": Int(1), "points_cache": Int(1),
         "adopted_features": Int(1)}
@@ -346,6 +354,7 @@ class FleetRecognizer:
             return robot
         stored = self._stored_entries(det)
         robot.ids = [fid for fid, _ in stored]
+        robot.unchecked = None if self._certified(robot) is not None else list(robot.ids)
         if stored:  # a shared memory may hold them already (another replica, a previous run): an upsert
             self.places.add(name, robot.ids, [entry for _, entry in stored])
         for fid, pose in zip(robot.ids, det.db.poses()):
@@ -480,12 +489,11 @@ class FleetRecognizer:
             if depth is not None and r.K is not None:
                 r.remember_points(keyframe, points_from_depth(self._features(robot, [keyframe])[0].keypoints,
                                                               depth, r.K))
-            c = self.conf["cross"]
-            found = self._known(self.places.search(robot, entry, c["search_k"]))  # {other: (keyframes, scores)}
-            chosen = shortlist({o: s for o, (_, s) in found.items()}, c["k"], c["min_score"], c["budget"])
-            rules = {o: self._cross_rule(r, self.robots[o]) for o in chosen}  # (inliers, run) or None: no match
-        matches = {o: m for o, top in chosen.items()
-                   if (m := self._best_match(robot, keyframe, o, found[o][0][top], rules[o]))}
+            due = self._catch_up_due(robot, keyframe)  # {other: rule}: its earlier keyframes to match now
+            chosen, rules = self._shortlist(robot, entry)
+        caught = [(k, self._matched(robot, k, *self._shortlist(robot, e, due))) for k, e in
+                  sorted(self._entries(r, r.unchecked or []).items())] if due else []
+        matches = self._matched(robot, keyframe, chosen, rules)
         # delayed loops of earlier keyframes (a run, or a refit, certified them; the detector reports each once)
         delayed = [(cd.frame_id, q, self._verify_pair(robot, q, cd.frame_id)) for q, cd in res.confirmed]
         out = Recognition()
@@ -494,9 +502,58 @@ class FleetRecognizer:
                 self._add_edge(out, "loop", (robot, res.loop.frame_id), (robot, keyframe), res.verification)
             for ref, q, check in delayed:
                 self._add_edge(out, "loop", (robot, ref), (robot, q), check)
-            self._cross(out, robot, keyframe, matches, {o: rules[o][1] for o in matches})
+            for k, (found, runs) in caught:  # in keyframe order, before this one: each pair's run goes on from them
+                self._cross(out, robot, k, found, runs, among=due)
+            if due:
+                log.info("robot %s certified: %d earlier keyframes matched against %d robots (%d matches)", robot,
+                         len(caught), len(due), sum(len(f) for _, (f, _) in caught))
+                r.unchecked = None
+            self._cross(out, robot, keyframe, *matches)
             self.places.add(robot, [keyframe], [entry])
         return out
+
+    def _catch_up_due(self, robot: str, keyframe: int) -> dict[str, tuple[int, int]]:
+        """The robots against which ``robot``'s earlier keyframes are matched now (their pair's rule, ``_cross_rule``):
+        on the robot's first certified keyframe, every robot whose pair rule is then in force, the robot's
+        keyframes before it (its warm-up, at most ``cross.catch_up`` newest) being those no rule could check. The
+        other direction needs no second pass: another robot's keyframes from before it was certified are matched
+        against this robot's by its own catch-up, its later ones by its own queries, so every pair of keyframes is
+        checked once. Called under the lock; ``unchecked`` tracks the robot's keyframes until then."""
+        r = self.robots[robot]
+        if r.unchecked is None or not self._calibrated:
+            return {}
+        if self._certified(r) is None:
+            r.unchecked.append(keyframe)
+            return {}
+        r.unchecked = [k for k in r.unchecked if k != keyframe][-self.conf["cross"]["catch_up"]:] \
+            if self.conf["cross"]["catch_up"] else []
+        due = {o: rule for o in self.robots if o != robot and (rule := self._cross_rule(r, self.robots[o]))}
+        if not due or not r.unchecked:
+            r.unchecked = None
+            return {}
+        return due
+
+    def _shortlist(self, robot: str, entry: np.ndarray, among: dict[str, tuple[int, int]] | None = None
+                   ) -> tuple[dict[str, np.ndarray], dict[str, tuple[int, int] | None]]:
+        """The other robots' keyframes to verify against an entry of ``robot`` (the fleet memory's top
+        ``cross.search_k``, at most ``cross.k`` a robot and ``cross.budget`` in all) and each pair's rule
+        (``_cross_rule``; ``among``: only these robots, with these rules)."""
+        c = self.conf["cross"]
+        with self._lock:
+            found = self._known(self.places.search(robot, entry, c["search_k"]))  # {other: (keyframes, scores)}
+            if among is not None:
+                found = {o: hits for o, hits in found.items() if o in among}
+            chosen = shortlist({o: s for o, (_, s) in found.items()}, c["k"], c["min_score"], c["budget"])
+            rules = {o: among[o] if among is not None else self._cross_rule(self.robots[robot], self.robots[o])
+                     for o in chosen}  # (inliers, run) or None: no match
+            return {o: found[o][0][top] for o, top in chosen.items()}, rules
+
+    def _matched(self, robot: str, keyframe: int, candidates: dict[str, np.ndarray],
+                 rules: dict[str, tuple[int, int] | None]) -> tuple[dict[str, tuple[int, Verification]], dict[str, int]]:
+        """``robot``'s keyframe verified against each other robot's ``candidates``: its matches (``_best_match``)
+        and the run each matched pair needs."""
+        matches = {o: m for o, top in candidates.items() if (m := self._best_match(robot, keyframe, o, top, rules[o]))}
+        return matches, {o: rules[o][1] for o in matches}  # type: ignore[index]
 
     def _known(self, found: dict[str, tuple[np.ndarray, np.ndarray]]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         """The search results of keyframes this recognizer has (a shared place memory may hold another worker's
@@ -510,10 +567,10 @@ class FleetRecognizer:
         return out
 
     def _cross(self, out: Recognition, robot: str, keyframe: int, matches: dict[str, tuple[int, Verification]],
-               runs: dict[str, int]) -> None:
+               runs: dict[str, int], among: dict[str, Any] | None = None) -> None:
         """Updates the overlap rules with the keyframe's verified matches of other robots (``runs``: the consecutive
-        matches each pair needs, ``_cross_rule``), adds edges."""
-        accepted = self.tracker.update(robot, keyframe, {o: m[0] for o, m in matches.items()}, runs)
+        matches each pair needs, ``_cross_rule``; ``among``: only the rules of these robots), adds edges."""
+        accepted = self.tracker.update(robot, keyframe, {o: m[0] for o, m in matches.items()}, runs, among)
         keep = max([self.conf["overlap"]["required"], *runs.values()])
         for other, (match, check) in matches.items():
             recent = self._checks.setdefault((robot, other), {})

@@ -13,7 +13,9 @@ import pytest
 
 from cae_lcd.fleet.recognition import FleetRecognizer, certified_match
 
-ONLINE = {"detector": {"search": {"exclude_recent": 20}}}  #: the default (online calibration), a shorter window
+#: the default (online calibration), a shorter window; room for the edges of B's whole pass (a catch-up accepts the
+#: overlap with 30 at once: the default cap)
+ONLINE = {"detector": {"search": {"exclude_recent": 20}}, "max_edges_per_pair": 200}
 WARM_UP = 40  #: keyframes of a robot's warm-up at that window (``retrieval.online``: 2 windows, at least 40)
 
 
@@ -117,12 +119,12 @@ def test_the_fleet_memory_keeps_one_code_space_across_refits(split90, truth):
 
 
 def test_a_cross_robot_overlap_is_accepted_on_the_calibrated_rule(split90, truth):
-    """The overlap is accepted once, after both warm-ups and a run of the rule's length; every overlap edge is a
-    true pair."""
+    """The overlap is accepted once, no earlier than B's first certified keyframe (its catch-up matches the keyframes
+    of its warm-up then); every overlap edge is a true pair."""
     run, before, after = split90
     overlaps = [(i, o) for _, i, found, _ in run for o in found.overlaps]
     assert len(overlaps) == 1 and {overlaps[0][1].robot_a, overlaps[0][1].robot_b} == {"A", "B"}
-    assert overlaps[0][0] >= 100 + WARM_UP + before["rule"][1] - 2
+    assert overlaps[0][0] >= 100 + WARM_UP - 1
     edges = [e for _, _, found, _ in run + after["run"] for e in found.edges]
     assert len(edges) >= 5 and {e.kind for e in edges} == {"overlap"}
     assert all(frozenset((e.keyframe_a, e.keyframe_b)) in truth for e in edges)
@@ -174,6 +176,38 @@ def test_robots_that_never_meet_have_no_overlap_once_calibrated(tmp_path, kitti_
     assert not accepted  # no run of certified matches (an edge would also need a similarity from 3D points)
     assert not [e for *_, found, _ in run for e in found.edges if e.kind == "overlap"]
     assert not [o for *_, found, _ in run for o in found.overlaps]
+
+
+def meet_in_warm_up(rec, kitti_frame):
+    """A: KITTI 90 frames 0-39 (ids 0-39) then 07 frames 0-79 (ids 40-119); B: 90 frames 100-139 (ids 100-139, A's
+    road again) then 07 frames 80-159 (ids 140-219); interleaved, all with 90's intrinsics (a robot keeps its
+    first). They meet only in their first 40 keyframes, where neither is certified yet. Returns every keyframe's
+    ``Recognition``."""
+    a = [("A", "90", i) for i in range(40)] + [("A", "07", i) for i in range(80)]
+    b = [("B", "90", i) for i in range(100, 140)] + [("B", "07", i) for i in range(80, 160)]
+    ids = {"A": iter(range(120)), "B": iter(range(100, 220))}
+    found = []
+    for robot, seq, i in [f for pair in zip(a, b) for f in pair]:
+        image, pose, _ = kitti_frame(seq, i)
+        found.append(rec.process(robot, next(ids[robot]), float(i), pose, image, kitti_frame("90", 0)[2]))
+    rec.close()
+    return found
+
+
+def test_robots_that_met_in_their_warm_ups_are_caught_up(tmp_path, kitti_frame, cae_descriptor, truth):
+    """Two robots whose only common road is in their warm-ups (a fleet leaving one depot): when the second is first
+    certified, its earlier keyframes are matched against the first's (``cross.catch_up``) and the overlap is
+    accepted, every overlap edge a true pair of the common road; without the catch-up nothing is ever found."""
+    found = meet_in_warm_up(FleetRecognizer(tmp_path / "on", ONLINE, descriptor=cae_descriptor), kitti_frame)
+    overlaps = [o for f in found for o in f.overlaps]
+    edges = [e for f in found for e in f.edges if e.kind == "overlap"]
+    assert len(overlaps) == 1 and len(edges) >= 5
+    assert all({e.robot_a, e.robot_b} == {"A", "B"} for e in edges)
+    pairs = [(e.keyframe_a, e.keyframe_b) if e.robot_a == "A" else (e.keyframe_b, e.keyframe_a) for e in edges]
+    assert all(a < 40 and 100 <= b < 140 and frozenset((a, b)) in truth for a, b in pairs)
+    off = {**ONLINE, "cross": {"catch_up": 0}}
+    found = meet_in_warm_up(FleetRecognizer(tmp_path / "off", off, descriptor=cae_descriptor), kitti_frame)
+    assert not [o for f in found for o in f.overlaps] and not [e for f in found for e in f.edges if e.kind == "overlap"]
 
 
 def test_delayed_loops_become_loop_edges_once(tmp_path, kitti_frame, cae_descriptor, truth):
