@@ -94,6 +94,14 @@ def dusk(image: np.ndarray, rng: np.random.Generator, scale: float = 0.45, gamma
     return (x * 255 + 0.5).astype(np.uint8)
 
 
+def coarse(image: np.ndarray, factor: int = 2) -> np.ndarray:
+    """A camera of ``1 / factor`` the resolution: the frame shrunk by area averaging, then brought back to its size
+    (bilinear). ``(H, W[, C])`` uint8 in and out."""
+    h, w = image.shape[:2]
+    small = cv2.resize(image, (max(1, w // factor), max(1, h // factor)), interpolation=cv2.INTER_AREA)
+    return cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR)
+
+
 def augmented_frames(paths: Sequence[Path], n: int, seed: int = 0) -> Iterator[tuple[Path, np.ndarray]]:
     """``n`` augmented frames: the real frames in order, again and again, each pass with new augmentations.
 

@@ -289,9 +289,11 @@ def _quick_study_sets(d: _Data) -> list[Any]:
 
 
 def _study_sets(run_dir: Path, d: _Data) -> list[Any]:
-    """Nordland summer -> winter (fine-tuned on a folder of links to the summer half), KITTI 90 at 160x120 with a
-    dark, noisy second pass, and KITTI 90 at full size with a dusk second pass."""
-    from .aliasing import dark_proxy_folder, dusk_folder
+    """Nordland summer -> winter (fine-tuned on a folder of links to the summer half), the same with its winter
+    frames darkened (``bench.augment.darken``) and at half their resolution (``bench.augment.coarse``), KITTI 90 at
+    160x120 with a dark, noisy second pass, and KITTI 90 at full size with a dusk second pass."""
+    from .aliasing import dark_proxy_folder, dusk_folder, plain_folder
+    from .augment import coarse, darken
     from .methods import StudySet
 
     nordland = d.loop.parent.parent.parent / "nordland"
@@ -305,8 +307,14 @@ def _study_sets(run_dir: Path, d: _Data) -> list[Any]:
             link.symlink_to(src.resolve())
     frames90 = list(open_sequence(d.loop).frames)
     truth90 = read_loop_pairs(d.loop / "loops.txt")
-    return [StudySet("Nordland summer -> winter (64x32)", nordland, len(_season_frames(nordland, "summer")),
-                     read_loop_pairs(nordland / "loops.txt"), summer),
+    frames, n_summer = list(open_sequence(nordland).frames), len(_season_frames(nordland, "summer"))
+    truth = read_loop_pairs(nordland / "loops.txt")
+    rng = np.random.default_rng(0)
+    dark = plain_folder(run_dir / "study_nordland_dark", frames, None, lambda image: darken(image, rng), n_summer)
+    half = plain_folder(run_dir / "study_nordland_half", frames, None, coarse, n_summer)
+    return [StudySet("Nordland summer -> winter (64x32)", nordland, n_summer, truth, summer),
+            StudySet("Nordland, winter frames darkened", dark, n_summer, truth),
+            StudySet("Nordland, winter frames at half resolution", half, n_summer, truth),
             StudySet("KITTI 90 at 160x120, second pass dark and noisy",
                      dark_proxy_folder(run_dir / "study_k90_160_dark", frames90), len(frames90) // 2, truth90),
             StudySet("KITTI 90 (1241x376), second pass at dusk", dusk_folder(run_dir / "study_k90_dusk", frames90),

@@ -1,8 +1,11 @@
-"""The training study's single-frame measure (issue 28) against a brute-force count, and the dusk pass."""
+"""The training study's single-frame measure (issue 28) against a brute-force count, the dusk pass and the coarse
+camera."""
 
 import numpy as np
 
-from bench.augment import dusk
+import cv2
+
+from bench.augment import coarse, dusk
 from bench.methods import single_frame_retrieval
 
 
@@ -38,3 +41,13 @@ def test_dusk_darkens_the_ground_more_than_the_sky(sample_image):
     ratio_top = out[:h].mean() / grey[:h].mean()
     ratio_bottom = out[-h:].mean() / grey[-h:].mean()
     assert ratio_bottom < ratio_top < 1
+
+
+def test_coarse_keeps_the_size_and_loses_the_fine_detail(sample_image):
+    image = sample_image(0)
+    out = coarse(image)
+    assert out.shape == image.shape and out.dtype == np.uint8
+    detail = lambda im: cv2.Laplacian(im.astype(np.float32), cv2.CV_32F).var()
+    assert detail(out) < 0.5 * detail(image)
+    assert abs(float(out.mean()) - float(image.mean())) < 1.0  # the light stays
+    np.testing.assert_array_equal(coarse(image, 1), image)
