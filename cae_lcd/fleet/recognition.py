@@ -45,12 +45,13 @@ inter-robot overlaps, each turned into a pose-graph edge (a similarity from 3D-3
   transform); nothing is verified twice. A delayed loop (``FrameResult.confirmed``: a run, or a refit, certified an
   earlier keyframe's loop; the detector reports each once) is verified by the detector's verifier on the two
   keyframes' features (``LoopDetector.keyframe_features``) and becomes a loop edge like the others.
-- **Cost**: a robot's fit or refit runs on the keyframe that triggers it, inside that keyframe's request (a robot's
-  requests are serialised, other robots' go on: ``parallel_robots``); the server bounds the body's size and read
-  time (``cae_lcd.fleet.limits``), not the processing. Measured (quiet 2-core machine, ``python -m
-  bench.fleet_online --set 90one``): KITTI 90 as one robot of 200 keyframes, 33 ms a keyframe (median; mean 42),
-  the worst request the refit at its 200th keyframe, 1.4 s (the fixed policy: 32 / 32 ms, worst 0.20 s); 61 loop
-  edges, all true (fixed: 58). A refit's request grows with the map up to ``calibration.max_frames`` (2000: a fit
+- **Cost**: a robot's fit or refit, and its catch-up, run on the keyframe that triggers them, inside that keyframe's
+  request (a robot's requests are serialised, other robots' go on: ``parallel_robots``); the server bounds the
+  body's size and read time (``cae_lcd.fleet.limits``), and the catch-up by ``cross.catch_up`` keyframes of
+  ``cross.budget`` candidates each. Measured (quiet 2-core machine, ``python -m bench.fleet_online --set 90one``):
+  KITTI 90 as one robot of 200 keyframes, 32 ms a keyframe (median; mean 41), the worst request the refit at its
+  200th keyframe, 1.3 s (the fixed policy: 31 / 30 ms, worst 0.16 s); 61 loop edges, all true (fixed: 58). A
+  catch-up: about 20 ms a keyframe caught up (``--set 90split``: B's fit and catch-up of 99 keyframes, 2.4 s). A refit's request grows with the map up to ``calibration.max_frames`` (2000: a fit
   reads at most that many frames and decides again at most the newest that many): KITTI 00 lap after lap as one
   robot (``--set 00laps --keyframes 1700``), the refits at 380, 760 and 1520 keyframes took 2.2, 3.4 and 5.6 s. A
   request that outlasts ``FleetClient``'s 30 s default timeout is stored all the same, and the robot's retry is
