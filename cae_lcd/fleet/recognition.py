@@ -29,18 +29,19 @@ inter-robot overlaps, each turned into a pose-graph edge (a similarity from 3D-3
   ``overlap.required``: ``certified_match`` of each robot, the stricter of the two (``_cross_rule``). Nothing counts
   (nothing is verified) until both robots are out of their warm-up, nor with a robot on the score path (too few
   local features to verify). **Catch-up**: on a robot's first certified keyframe, its keyframes from before (its
-  warm-up, at most ``cross.catch_up``) are matched against every robot with which the pair's rule is then in
-  force, in keyframe order, each pair's run going on into the live keyframes (``_catch_up_due``): robots that met
-  only in their warm-ups (a fleet leaving one depot) find their overlap. The other direction needs no second pass
-  (the other robot's catch-up, or its queries once certified), so every pair of keyframes is checked once. The promise, and what it rests on: each match of the run is as strong as the
-  strongest non-loop pair both robots measured, and the run is the one each robot's own calibration needs to keep
-  its expected false loops under ``calibration.expected_false_loops / 2`` (counted with the tests of its own stream,
-  not the fleet's: a query tests every other robot, so with many robots the cross-robot tests grow with the robot
-  pairs, which this does not count); cross-robot pairs are taken to be no likelier to look alike than a robot's
-  own far-side pairs (the same camera model; a fleet of unlike cameras breaks this), and the frames of one run are
-  not independent, so the rule is checked on real look-alikes: KITTI 00 vs 07 as two robots accepts no overlap
-  (with the floor alone, 12 inliers x 3, it does: ``tests/fleet/test_recognition_online.py``). With the fixed
-  policy the rule is ``cross.min_inliers`` inliers and ``overlap.required`` matches.
+  warm-up, at most ``cross.catch_up``) are matched against every robot with which the pair's rule is then in force,
+  in keyframe order, each pair's run going on into the live keyframes (``_catch_up_due``): robots that met only in
+  their warm-ups (a fleet leaving one depot) find their overlap. The other direction needs no second pass (the other
+  robot's catch-up, or its queries once certified), so every pair of keyframes is checked once. The promise, and
+  what it rests on: each match of the run is as strong as the strongest non-loop pair both robots measured, and the
+  run is the one each robot's own calibration needs to keep its expected false loops under
+  ``calibration.expected_false_loops / 2`` (counted with the tests of its own stream, not the fleet's: a query tests
+  every other robot, so with many robots the cross-robot tests grow with the robot pairs, which this does not
+  count); cross-robot pairs are taken to be no likelier to look alike than a robot's own far-side pairs (the same
+  camera model; a fleet of unlike cameras breaks this), and the frames of one run are not independent, so the rule
+  is checked on real look-alikes: KITTI 00 vs 07 as two robots accepts no overlap (with the floor alone, 12 inliers
+  x 3, it does: ``tests/fleet/test_recognition_online.py``). With the fixed policy the rule is ``cross.min_inliers``
+  inliers and ``overlap.required`` matches.
 - A loop edge takes the detector's own verification of the pair (``FrameResult.verification``: its matches and
   transform); nothing is verified twice. A delayed loop (``FrameResult.confirmed``: a run, or a refit, certified an
   earlier keyframe's loop; the detector reports each once) is verified by the detector's verifier on the two
@@ -51,11 +52,11 @@ inter-robot overlaps, each turned into a pose-graph edge (a similarity from 3D-3
   ``cross.budget`` candidates each. Measured (quiet 2-core machine, ``python -m bench.fleet_online --set 90one``):
   KITTI 90 as one robot of 200 keyframes, 32 ms a keyframe (median; mean 41), the worst request the refit at its
   200th keyframe, 1.3 s (the fixed policy: 31 / 30 ms, worst 0.16 s); 61 loop edges, all true (fixed: 58). A
-  catch-up: about 20 ms a keyframe caught up (``--set 90split``: B's fit and catch-up of 99 keyframes, 2.4 s). A refit's request grows with the map up to ``calibration.max_frames`` (2000: a fit
-  reads at most that many frames and decides again at most the newest that many): KITTI 00 lap after lap as one
-  robot (``--set 00laps --keyframes 1700``), the refits at 380, 760 and 1520 keyframes took 2.2, 3.4 and 5.6 s. A
-  request that outlasts ``FleetClient``'s 30 s default timeout is stored all the same, and the robot's retry is
-  answered from the store.
+  catch-up: about 20 ms a keyframe caught up (``--set 90split``: B's fit and catch-up of 99 keyframes, 2.4 s). A
+  refit's request grows with the map up to ``calibration.max_frames`` (2000: a fit reads at most that many frames
+  and decides again at most the newest that many): KITTI 00 lap after lap as one robot (``--set 00laps --keyframes
+  1700``), the refits at 380, 760 and 1520 keyframes took 2.2, 3.4 and 5.6 s. A request that outlasts
+  ``FleetClient``'s 30 s default timeout is stored all the same, and the robot's retry is answered from the store.
 - An edge's similarity: 3D points of the matched features on both sides (the depth map when the keyframe came with
   one, else triangulated from the robot's own neighbouring keyframe with its local poses), then ``estimate_overlap``.
 
@@ -253,8 +254,8 @@ class FleetRecognizer:
             "min_inliers": 50,  # fixed policy only (detector.calibration.enabled: false): the geometric inliers a
             #                     cross-robot match needs (chosen on KITTI at 512 px); calibrated, the robots' own
             #                     measured nulls say it (above every hard negative of both: the module doc)
-            "catch_up": 200,  # calibrated only: when a robot is first certified, at most this many of its keyframes
-            #                   from before (its warm-up), newest first, are matched across then (0: none)
+            "catch_up": 200,  # calibrated only: when a robot is first certified, its keyframes from before (its
+            #                   warm-up; at most this many, the newest) are matched across then (0: none)
         },
         "places": {"name": "local",  # the place memory across robots (cae_lcd.fleet.places): local (in each process)
                    "index": {"name": "fp16"}},  # or milvus (one collection every worker shares: uri, collection, ...)
