@@ -348,8 +348,9 @@ class TestStops:
 
 class TestScorePathOnNordland:
     """The score path (64x32: nothing to verify) on real Nordland frames, with the alternative shipped weights
-    ``cae_places.pt``: summer 0-149 then winter 500-649 (a revisit a season apart). The Gaussian tail it used to
-    extrapolate accepted winter 568 -> summer 57 (the place is 67-69); the measured null accepts none."""
+    ``cae_places.pt``: summer 0-149 then winter 500-649 (a revisit a season apart). With the first place-term weights
+    the Gaussian tail it used to extrapolate accepted winter 568 -> summer 57 (the place is 67-69); the measured null
+    accepts none, with those weights and with the ones shipped now."""
 
     def test_no_false_loop_with_the_places_weights(self, tmp_path):
         from bench.aliasing import plain_folder
