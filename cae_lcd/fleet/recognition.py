@@ -527,8 +527,8 @@ class FleetRecognizer:
         if self._certified(r) is None:
             r.unchecked.append(keyframe)
             return {}
-        r.unchecked = [k for k in r.unchecked if k != keyframe][-self.conf["cross"]["catch_up"]:] \
-            if self.conf["cross"]["catch_up"] else []
+        limit = self.conf["cross"]["catch_up"]  # this keyframe is not among them: it goes live
+        r.unchecked = r.unchecked[-limit:] if limit else []
         due = {o: rule for o in self.robots if o != robot and (rule := self._cross_rule(r, self.robots[o]))}
         if not due or not r.unchecked:
             r.unchecked = None
