@@ -38,7 +38,7 @@ from .calibrate import Calibration, TooFewFrames, calibrate, calibrated_features
 from .database import KeyframeDatabase
 from .descriptors import GlobalDescriptor, create_descriptor
 from .detector import STAGES, LoopDetector, resolve_conf
-from .edges import check_edge_frame, edge_features, loop_edges, metric_edges
+from .edges import check_edge_frame, edge_features, loop_edges, metric_edges, serialised
 from .temporal import create_filter
 from .run_folder import FrameKeys, RunFolder
 from .sequences import Sequence, open_sequence
@@ -256,13 +256,14 @@ def with_camera(seq: Sequence, conf: dict[str, Any] | None, given: CameraModel |
 def _edges(seq: Sequence, resolved: dict[str, Any], cal: Calibration | None, det: LoopDetector,
            loops: np.ndarray) -> list[Any]:
     """The loops' edges (``retrieval.edges.loop_edges``; only where the loops were verified), from the run's own
-    local features, or, for a calibrated run whose features are cheaper than the extractor's
-    (``calibration.features_px``), the extractor's own resolution read again from the frames
-    (``retrieval.edges.edge_features``: a more precise pose for 2 extractions a loop, on every core)."""
-    if cal is None or calibrated_features(resolved) == resolved["features"]:
-        return loop_edges(det.keyframe_features, loops, seq.K, resolved)
-    features = edge_features(lambda i: seq.read_frame(i)[0], resolved["features"], det.keyframe_features)
-    return loop_edges(features, loops, seq.K, resolved, workers=cpu_count())
+    local features on every core; for a calibrated run whose features are cheaper than the extractor's
+    (``calibration.features_px``), the edges they give least surely made again at the extractor's own resolution,
+    read again from the frames (``retrieval.edges.edge_features``: 2 extractions a loop, for those only)."""
+    features = serialised(det.keyframe_features)
+    precise = None
+    if cal is not None and calibrated_features(resolved) != resolved["features"]:
+        precise = edge_features(lambda i: seq.read_frame(i)[0], resolved["features"], features)
+    return loop_edges(features, loops, seq.K, resolved, workers=cpu_count(), precise=precise)
 
 
 def _body_pose(seq: Sequence, edge_frame: str) -> np.ndarray | None:

@@ -10,7 +10,7 @@ import json
 import numpy as np
 import pytest
 
-from retrieval.edges import LoopEdge, edge_errors, g2o_order, loop_edges, rotation_to_quaternion
+from retrieval.edges import REDO_RATIO, LoopEdge, edge_errors, g2o_order, loop_edges, rotation_to_quaternion
 from retrieval.run_folder import EDGE_COLUMNS, FrameKeys, RunFolder, key_columns
 from verify.geometry import UNOBSERVED_INFORMATION, pose_information
 
@@ -68,6 +68,25 @@ def test_edges_side_by_side_are_the_edges_one_after_another(sample_seq, sample_K
     for a, b in zip(one, two):
         np.testing.assert_allclose(b.R, a.R, atol=1e-12)
         np.testing.assert_allclose(b.information(), a.information(), rtol=1e-9)
+
+
+def test_only_the_unsure_edges_are_made_again_from_finer_features(sift_features, sample_K):
+    """With ``precise``, the edges the run's own features give surely are kept as they are, and only the unsure one
+    (frame 99 left with a few of its keypoints: a rotation far less certain than the others') is made again from the
+    finer features, whose frames alone are asked for."""
+    from verify.features import Features
+
+    def thinned(i):
+        f = sift_features(i)
+        return Features(f.keypoints[:40], f.descriptors[:40], f.scales[:40], f.metric) if i == 99 else f
+
+    asked = []
+    own = loop_edges(thinned, PAIRS, sample_K, {}, workers=2)
+    both = loop_edges(thinned, PAIRS, sample_K, {}, workers=2, precise=lambda i: asked.append(i) or sift_features(i))
+    sure = loop_edges(sift_features, PAIRS, sample_K, {})
+    assert sorted(asked) == [49, 99]
+    assert [e.inliers for e in both] == [e.inliers for e in own[:3]] + [sure[3].inliers]
+    assert both[3].sigmas()[0] == sure[3].sigmas()[0] < own[3].sigmas()[0] / 2
 
 
 def test_the_information_comes_from_the_residuals(sift_features, sample_K):
@@ -146,10 +165,13 @@ def test_the_detect_run_writes_edges_a_back_end_loads(cli_sample_run, sample_seq
     loops, edges = run.read_loops(), run.read_edges()
     assert len(edges) == len(loops) > 0
     assert np.array_equal(edges[:, :2], loops[:, :2])
-    # a calibrated run detects on 384 px features (calibration.features_px): the edges are made on the extractor's
-    # own 512 px, read again (retrieval.edges.edge_features), with more inliers than the detection counted
+    # a calibrated run detects on 384 px features (calibration.features_px): the edges are made on them (inliers
+    # within a few of what the detection counted), and the unsure ones again at the extractor's own 512 px (read
+    # again, retrieval.edges.edge_features: more inliers), so that none stays REDO_RATIO x less sure than the median
     assert json.loads(run.summary.read_text())["calibration"] is not None
-    assert np.median(edges[:, 2] / loops[:, 4]) > 1.2
+    assert np.median(np.abs(edges[:, 2] - loops[:, 4])) <= 5
+    sigma = edges[:, EDGE_COLUMNS.index("sigma_rot_rad")]
+    assert (sigma <= REDO_RATIO * np.median(sigma)).all()
     graph, initial = gtsam.readG2o(str(run.edges_g2o), True)
     assert graph.size() == len(loops) and initial.size() > 0
     from_g2o = [LoopEdge(int(f.keys()[1]), int(f.keys()[0]), 0, f.measured().rotation().matrix(),
