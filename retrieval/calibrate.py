@@ -19,8 +19,14 @@ Before a run, the calibration looks at the sequence itself (``cae-lcd calibrate 
    **The score path's null is measured, not extrapolated** (issue 27): every far-side pair whose line stays half
    the window apart in frames where the camera *moved* (a stop in between does not make two frames of one station
    far apart), thousands of them (Nordland: about 11,000; a stream calibrating itself draws them out of sample:
-   ``held_out``, from its newest frames under a whitening fitted on the frames before them, ``_out_of_sample``). One
-   window's temporal score is read from that sample as
+   ``held_out``, from its newest frames under a whitening fitted on the frames before them, ``_out_of_sample``).
+   Look-alike stretches recur at every distance (a railway's forest, a corridor's doors), where the far side does not
+   reach, and a forward line there may be a revisit; so **reversed lines** between frames far apart join the sample
+   (``_reversed_lines``, up to ``REVERSED_LINES``): the query's frames going back against the reference's going
+   forward, which a revisit in the direction of travel crosses at one frame at most (a place longer than a window,
+   a slow stretch into a station, can still lie on one: it raises the bar, it never lowers it; Nordland with a code
+   that makes far stretches alike: summer frames closing on summer 181 back with the far side alone, none with the
+   reversed lines). One window's temporal score is read from that sample as
    it is (``retrieval.decision.EmpiricalTail``: ``(#{null >= s} + 1) / (n + 1)``), so it claims at most
    ``log10(n + 1)`` decades, never a tail past the sample; the run tests about ``n_keyframes^2 / 2`` pairs at each
    of ``SPAN`` spans (Nordland: 2e6), which no one window can certify, so **a loop is a run of consecutive windows on
@@ -118,6 +124,9 @@ CALIBRATION_FORMAT = 4  #: ``format_version`` of calibration.h5 (3: the local fe
 STILL_COS = 0.999  #: raw codes of adjacent frames this alike: the camera stood still (one place: not a null pair,
 #                     weighed once by the whitening, matched only to a stop as long)
 PROBE = 4  #: one sampled query in this many is looked at first: are there local features enough to verify?
+REVERSED_LINES = 20_000  #: the score path's long-range lines (``_reversed_lines``) drawn at most, seeded: a random
+#   sample of every pair far enough apart where there are more (a stream of 2000 frames holds ~1.5 million). Nordland
+#   streamed: 0 (before) recall 0.900, 13.4 ms a frame; 20,000: 0.922, 15.1 ms; 100,000: 0.930, 19.6 ms
 _LN10 = math.log(10.0)
 
 
@@ -451,6 +460,53 @@ def far_side_scores(ids: np.ndarray, table: CodeTable, filt: TemporalFilter, win
     return rows[:, 2] if len(rows) else np.zeros(0)
 
 
+def _reversed_lines(ids: np.ndarray, table: CodeTable, filt: TemporalFilter, window: int, moved: np.ndarray,
+                    newest: int) -> tuple[np.ndarray, CodeTable]:
+    """The score path's long-range null (module doc, item 3): *reversed* lines between frames far apart, the query's
+    frames going back against the reference's going forward (``(q - i, r + i)`` where a revisit's line is
+    ``(q - i, r - i)``). A revisit in the direction of travel lies on a forward line, and a reversed one crosses it at
+    one frame at most, so every reversed line is known not to be a loop at any distance, where look-alike stretches
+    recur (a railway's forest, a corridor's doors) and the far-side pairs, ``window // 2`` to ``window`` frames back,
+    do not reach. Each line's frames, over ``SPAN`` windows of the filter's ``length``, stay ``window // 2`` moved
+    frames apart (``moved``: ``(n,)`` bool by position in ``ids``, ``_moved``); its query is at least ``newest`` (the
+    frames the near null's queries are drawn from); at most ``REVERSED_LINES`` of them, a seeded sample. None for a
+    filter that also follows reverse revisits (a velocity <= 0) or one without lines (``bayes``).
+
+    Returns:
+        ``(rows (m, 3), mirror)``: ``(query, ref, score)`` rows with the ids of ``mirror``, a code table holding frame
+        ``k`` at ``off + k`` and, mirrored, at ``off - 1 - k`` (``off`` = the last id + 1), so that the filter's and
+        ``ScoreSpans``' forward lines through ``(off + q, off - 1 - r)`` read the reversed ones.
+    """
+    velocities = filt.conf.get("velocities", [1.0])
+    ids = np.asarray(ids, np.int64)
+    if not isinstance(filt, (SequenceFilter, NoFilter)) or min(velocities) <= 0 or len(ids) < 2:
+        return np.zeros((0, 3)), table
+    off = int(ids.max()) + 1
+    tids, codes = table.items()
+    mirror = CodeTable.fixed(np.r_[off - 1 - tids[::-1], off + tids], np.r_[codes[::-1], codes])
+    reach = SPAN * int(filt.conf.get("length", 1)) - 1  # frames a line reads back from its query
+    ahead = int(math.ceil(max(velocities) * reach))  # and forward from its reference
+    count = np.zeros(off + 1, np.int64)  # moved frames before each frame id
+    count[ids + 1] = np.asarray(moved, np.int64)
+    count = np.cumsum(count)
+    refs = ids[ids + ahead < off]
+    queries = ids[(ids >= newest) & (ids - reach >= 0)]
+    # a query's references are a prefix of ``refs``: those whose last frame leaves window // 2 moved frames before
+    # the query's first (the count of moved frames only grows with the frame id)
+    n_refs = np.searchsorted(count[refs + ahead + 1], count[queries - reach] - window // 2, side="right")
+    ends = np.cumsum(n_refs)
+    if not len(queries) or not ends[-1]:
+        return np.zeros((0, 3)), mirror
+    flat = np.arange(ends[-1]) if ends[-1] <= REVERSED_LINES else np.sort(
+        np.random.default_rng(0).choice(ends[-1], REVERSED_LINES, replace=False))
+    row = np.searchsorted(ends, flat, side="right")  # the query of each drawn pair, then its reference
+    q, r = queries[row], refs[flat - (ends[row] - n_refs[row])]
+    qm, rm = off + q, off - 1 - r
+    scores = np.concatenate([np.zeros(0)] + [filt.score(qm[i:i + PAIR_CHUNK], rm[i:i + PAIR_CHUNK], mirror)
+                                             for i in range(0, len(qm), PAIR_CHUNK)])
+    return np.column_stack([qm, rm, scores]), mirror
+
+
 def _tail_fit(values: np.ndarray) -> tuple[float, float, float]:
     """Robust ``(median, q90, q90 - median)`` of null samples (up to ~10% of them may be contaminated)."""
     q50, q90 = np.quantile(values, [0.5, 0.9])
@@ -554,7 +610,8 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
                 pass
         null_table, apart = table, _null_scores(ids, table, filt, window, moved, window // 2)  # far apart in moved
         apart = apart if len(apart) >= 20 else null  # frames too
-    _score_path(cal, apart, filt, null_table)
+    far = None if cal.inlier_null else _reversed_lines(ids, null_table, filt, window, moved, int(apart[:, 0].min()))
+    _score_path(cal, apart, filt, null_table, far)
     if null_table is not table:
         cal.score_null["held_out"] = float(held_out)
     _stretch(cal, ids, table, moved)
@@ -670,25 +727,32 @@ def _moved(codes: np.ndarray) -> np.ndarray:
     return np.r_[True, np.einsum("ij,ij->i", unit[1:], unit[:-1]) < STILL_COS]
 
 
-def _score_path(cal: Calibration, null: np.ndarray, filt: TemporalFilter, table: CodeTable) -> None:
+def _score_path(cal: Calibration, null: np.ndarray, filt: TemporalFilter, table: CodeTable,
+                far: tuple[np.ndarray, CodeTable] | None = None) -> None:
     """The score path's nulls, measured (module doc, item 3): the far-side pairs' temporal scores as they are (an
     ``EmpiricalTail``: no p-value below ``1 / (n + 1)``) and, with a filter whose score is the run's (sequence,
     none), the fused evidence of the same pairs' lines over 1..``SPAN`` windows (``retrieval.decision.ScoreSpans``),
-    measured per span; the run's tests counted at every span. ``score_null``'s median and sigma (90th percentile)
-    only describe the null (the detector's "above chance" gate for verification); no Gaussian tail decides."""
-    scores = null[:, 2]
-    (q50, sigma), q90 = score_level(scores), _tail_fit(scores)[1]
+    measured per span; the run's tests counted at every span. ``far``: the long-range reversed lines and their
+    table (``_reversed_lines``), which join both nulls. ``score_null``'s median and sigma (90th percentile) only
+    describe the far-side pairs (the detector's "above chance" gate for verification); no Gaussian tail decides."""
+    parts = [(null, table)] + ([far] if far is not None and len(far[0]) else [])
+    scores = np.concatenate([rows[:, 2] for rows, _ in parts])
+    (q50, sigma), q90 = score_level(null[:, 2]), _tail_fit(null[:, 2])[1]
     tail = EmpiricalTail(scores)
     cal.score_null = {"median": q50, "sigma": sigma, "samples": float(len(scores)), "empirical": 1.0}
     cal.samples["score_null"] = scores
-    cal.notes.append(f"score null: {len(scores)} far-side pairs, median {q50:.4f}, 90th percentile {q90:.4f}, max "
-                     f"{scores.max():.4f}: one window's empirical p-value, at most {tail.max_evidence:.1f} decades "
-                     f"(no tail past the sample); {cal.tests['score']:.3g} pairs tested in the run")
+    longer = "" if len(parts) == 1 else (
+        f" and {len(far[0])} reversed lines between frames far apart (max {far[0][:, 2].max():.4f}; "
+        f"{int((far[0][:, 2] > null[:, 2].max()).sum())} above every far-side pair)")
+    cal.notes.append(f"score null: {len(null)} far-side pairs, median {q50:.4f}, 90th percentile {q90:.4f}, max "
+                     f"{null[:, 2].max():.4f}{longer}: one window's empirical p-value, at most "
+                     f"{tail.max_evidence:.1f} decades (no tail past the sample); {cal.tests['score']:.3g} pairs "
+                     "tested in the run")
     if not isinstance(filt, (SequenceFilter, NoFilter)):
         return
     window = int(filt.conf.get("length", 1))
     spans = ScoreSpans(filt.score, window, tail, [MeasuredTail(np.zeros(0))] * SPAN, 1.0)
-    fused = spans.fused(spans.windows(null[:, 0], null[:, 1], table))
+    fused = np.vstack([spans.fused(spans.windows(rows[:, 0], rows[:, 1], t)) for rows, t in parts])
     cal.samples["score_fused"] = fused
     cal.spans = {"window": float(window), "measured": 1.0, "span": float(SPAN)}
     cal.tests["score"] *= SPAN

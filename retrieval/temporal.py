@@ -104,12 +104,16 @@ class CodeTable:
         self._n += 1
 
     def _find(self, frame_ids: np.ndarray) -> np.ndarray:
-        """``(n,)`` int64: the row of each of ``frame_ids`` ``(n,)``, -1 where not stored: by bisection over the ids
-        where they were added in increasing order, else one lookup each (the same rows)."""
+        """``(n,)`` int64: the row of each of ``frame_ids`` ``(n,)``, -1 where not stored: by subtraction where the ids
+        were added one after another without a gap, by bisection where in increasing order, else one lookup each (the
+        same rows)."""
         frame_ids = np.asarray(frame_ids, np.int64).reshape(-1)
         if not self._ascending:
             return np.array([self._rows.get(int(i), -1) for i in frame_ids.tolist()], np.int64)
         ids = self._ids[: self._n]
+        if self._n and ids[-1] - ids[0] == self._n - 1:  # consecutive ids: the row is the id's offset
+            pos = frame_ids - ids[0]
+            return np.where((pos >= 0) & (pos < self._n), pos, -1)
         pos = np.minimum(np.searchsorted(ids, frame_ids), max(self._n - 1, 0))
         hit = (ids[pos] == frame_ids) if self._n else np.zeros(len(frame_ids), bool)
         return np.where(hit, pos, -1).astype(np.int64)

@@ -369,3 +369,98 @@ class TestScorePathOnNordland:
         assert [pair for pair in loops if pair not in truth] == []
         assert len(loops) >= 80  # of 150 winter frames, 146 with a true place in the slice
         assert run.read_summary()["calibration"]["verification"] is False  # the score path decided
+
+
+class TestReversedLines:
+    """The score path's long-range null (``_reversed_lines``): lines read backwards between frames far apart."""
+
+    def test_every_far_pair_read_backwards_as_the_definition_gives_it(self, nordland_codes, monkeypatch):
+        """On real Nordland codes (a summer and a winter stretch: gaps in the ids, a stop in summer), the lines are
+        every ``(q, r)`` whose reversed frames over ``SPAN`` windows leave ``window // 2`` moved frames between them,
+        ``q >= newest``, each scored as the filter's mean of ``sim(q - i, r + i)`` (missing frames 0); at most
+        ``REVERSED_LINES`` of them, a subset; none for a filter that follows reverse revisits."""
+        from retrieval.calibrate import _moved, _reversed_lines
+        from retrieval.decision import SPAN
+        from retrieval.temporal import CodeTable, create_filter
+
+        ids = np.array(sorted(nordland_codes), np.int64)
+        raw = np.stack([nordland_codes[int(i)] for i in ids])
+        codes, moved = raw / np.linalg.norm(raw, axis=1, keepdims=True), _moved(raw)
+        table = CodeTable.fixed(ids, codes)
+        filt, window, newest = create_filter({"name": "sequence", "length": 4}), 20, 200
+        reach, off, by_id = SPAN * 4 - 1, int(ids.max()) + 1, dict(zip(ids.tolist(), codes))
+        moved_ids = ids[moved]
+        want = {}
+        for q in ids[ids >= newest].tolist():
+            for r in ids.tolist():
+                lo, hi = q - reach, r + reach
+                if lo < 0 or hi >= off or ((moved_ids > hi) & (moved_ids < lo)).sum() < window // 2:
+                    continue
+                terms = [by_id[q - i] @ by_id[r + i] if q - i in by_id and r + i in by_id else 0.0 for i in range(4)]
+                want[(q, r)] = float(np.mean(terms))
+        rows, mirror = _reversed_lines(ids, table, filt, window, moved, newest)
+        got = {(int(q) - off, off - 1 - int(r)): s for q, r, s in rows}  # the mirror's ids -> frame ids
+        assert len(want) > 1000 and got.keys() == want.keys()
+        assert np.allclose([got[k] for k in want], list(want.values()), atol=1e-5)
+        back = rows[:, :2] - 4  # both ids back (as ScoreSpans' windows): the query's frame back, the reference's on
+        frames = [(int(q) - off, off - 1 - int(r)) for q, r in back]
+        expect = [by_id[a] @ by_id[b] if a in by_id and b in by_id else np.nan for a, b in frames]
+        assert np.allclose(mirror.pairs(back[:, 0], back[:, 1]), expect, atol=1e-5, equal_nan=True)
+        assert np.isfinite(expect).sum() > 1000
+        monkeypatch.setattr("retrieval.calibrate.REVERSED_LINES", 300)
+        some, _ = _reversed_lines(ids, table, filt, window, moved, newest)
+        assert len(some) == 300 and {(int(q), int(r)) for q, r, _ in some} <= {(int(q), int(r)) for q, r, _ in rows}
+        both = create_filter({"name": "sequence", "length": 4, "velocities": [1.0, -1.0]})
+        assert len(_reversed_lines(ids, table, both, window, moved, newest)[0]) == 0
+
+    def test_far_look_alikes_join_the_null(self, encoder, monkeypatch):
+        """Nordland's 1000 real frames (64x32: the score path) under a code that makes stretches far apart look alike
+        (each image standardised before the shipped encoder: a proxy, BENCHMARKS.md): with the far-side pairs alone
+        as the null, summer frames 443 and 449 close on summer 262 and 268, 181 frames back, where the railway has no
+        revisit (summer is one traversal); with the reversed lines joined, no summer frame closes on another, and the
+        summer -> winter revisits are still found."""
+        import torch
+
+        from cae_lcd.core.images import read_image
+        from retrieval.calibrate import calibrate
+        from retrieval.detector import resolve_conf
+        from retrieval.descriptors import create_descriptor
+        from retrieval.temporal import CodeTable, create_filter
+        from tests.conftest import NORDLAND
+
+        if not (NORDLAND / "images").is_dir():
+            pytest.skip(f"shared Nordland data not found at {NORDLAND}")
+
+        class Standardised(torch.nn.Module):
+            def __init__(self, inner):
+                super().__init__()
+                self.inner = inner
+
+            def forward(self, x):
+                mean, std = x.mean(dim=(1, 2, 3), keepdim=True), x.std(dim=(1, 2, 3), keepdim=True).clamp_min(1e-3)
+                return self.inner(((x - mean) / std * 0.25 + 0.5).clamp(0, 1))
+
+        images = [read_image(NORDLAND / "images" / f"{i:06d}.png") for i in range(1000)]
+        conf, filt = resolve_conf({}), create_filter({"name": "sequence"})
+        descriptor = create_descriptor({"name": "cae"}, encoder=Standardised(encoder))
+        codes = dict(enumerate(descriptor.encode_batch(images)))
+        truth = load_ground_truth(NORDLAND / "loops.txt").pairs
+        ids = np.arange(1000)
+        q, r = np.meshgrid(ids, ids, indexing="ij")
+        far = (q - r >= 50) & (q < 500)
+        q_summer, r_summer = q[far], r[far]
+        q_true, r_true = truth[:, 0], truth[:, 1]
+
+        def accepted(lines: int) -> tuple[set, int]:
+            monkeypatch.setattr("retrieval.calibrate.REVERSED_LINES", lines)
+            cal = calibrate(enumerate(images), 1000, conf, descriptor, filt, progress=False, codes=dict(codes))
+            table = CodeTable.fixed(ids, cal.whitening.transform(np.stack([codes[i] for i in ids])))
+            spans = cal.score_spans(filt)
+            summer = spans.span_confidences(q_summer, r_summer, table).max(1) >= cal.accept_at
+            found = spans.span_confidences(q_true, r_true, table).max(1) >= cal.accept_at
+            return set(zip(q_summer[summer].tolist(), r_summer[summer].tolist())), len(set(q_true[found].tolist()))
+
+        alone, _ = accepted(0)
+        joined, revisits = accepted(20_000)
+        assert {(443, 262), (449, 268)} <= alone
+        assert joined == set() and revisits >= 300

@@ -153,15 +153,17 @@ class TestCodeTable:
         table.remove_last(5)
         assert 5 not in table and 3 in table
 
-    def test_bisection_finds_the_rows_one_lookup_each_finds(self, sample_frames):
-        """The fast path (ids added in increasing order, rows found by bisection) against brute force (each pair's
-        two codes looked up and multiplied): the same similarities, NaN where a frame is not stored, after a removal
-        and with ids added out of order (the lookup path); empty in, empty out."""
+    @pytest.mark.parametrize("step", [3, 1])
+    def test_bisection_finds_the_rows_one_lookup_each_finds(self, sample_frames, step):
+        """The fast paths (ids added in increasing order, rows found by bisection, or by subtraction where the ids
+        have no gap: ``step`` 1) against brute force (each pair's two codes looked up and multiplied): the same
+        similarities, NaN where a frame is not stored, after a removal and with ids added out of order (the lookup
+        path); empty in, empty out."""
         from cae_lcd.core.images import read_image
         from retrieval.descriptors import create_descriptor
 
         descriptor = create_descriptor({"name": "cae"})
-        codes = {3 * i + 1: descriptor(read_image(p)) for i, p in enumerate(sample_frames[:8])}
+        codes = {step * i + 1: descriptor(read_image(p)) for i, p in enumerate(sample_frames[:8])}
         codes = {f: c / np.linalg.norm(c) for f, c in codes.items()}
         rng = np.random.default_rng(0)
         for order in (sorted(codes), sorted(codes, reverse=True)):
