@@ -10,8 +10,9 @@ Here it is computed again with the run's own matcher and geometry settings, from
 calibrated run whose features are cheaper than the extractor's (``calibration.features_px``), the few edges they
 give least surely (a rotation standard deviation over ``REDO_RATIO`` times the run's median, or no pose) are made
 again from the extractor's own resolution read again for their frames (``edge_features``: more inliers, a more
-precise pose), and the surer one kept; a resumed run gets its edges too. From two images without depth the length of the baseline cannot be known: ``t`` is written as a unit
-direction and **the edge says so in its information matrix**.
+precise pose), and the surer one kept; a resumed run gets its edges too. From two images without depth the length
+of the baseline cannot be known: ``t`` is written as a unit direction and **the edge says so in its information
+matrix**.
 
 Information (``verify.geometry.pose_information``): the Gauss-Newton information of the inliers' Sampson residuals
 (pixel noise estimated from the residuals themselves), in gtsam's ``Pose3`` tangent (right perturbation), divided by
@@ -266,9 +267,10 @@ def serialised(features: Callable[[int], Features]) -> Callable[[int], Features]
 def edge_features(read: Callable[[int], Any], features_conf: dict[str, Any],
                   fallback: Callable[[int], Features]) -> Callable[[int], Features]:
     """Local features for the loop edges at the extractor's own resolution (``features_conf``), where a calibrated
-    run detected with cheaper ones (``calibration.features_px``; ``loop_edges``' ``precise``): each frame read again (``read(i)``: an image,
-    or the reason it cannot be read) and extracted once, kept in the store's form (``Features.compact``); a frame
-    that cannot be read again gets ``fallback``'s (the run's own). Safe to call from several threads at once.
+    run detected with cheaper ones (``calibration.features_px``; ``loop_edges``' ``precise``): each frame read again
+    (``read(i)``: an image, or the reason it cannot be read) and extracted once, kept in the store's form
+    (``Features.compact``); a frame that cannot be read again gets ``fallback``'s (the run's own). Safe to call from
+    several threads at once.
 
     KITTI 90 through a fisheye (``python -m bench.fisheye``): at the run's 384 px one pair's rotation was 2.7
     degrees off (138 inliers, ambiguous between the forward motion's two minima), at the extractor's 512 px 0.08
