@@ -470,21 +470,23 @@ def _reversed_lines(ids: np.ndarray, table: CodeTable, filt: TemporalFilter, win
     do not reach. Each line's frames, over ``SPAN`` windows of the filter's ``length``, stay ``window // 2`` moved
     frames apart (``moved``: ``(n,)`` bool by position in ``ids``, ``_moved``); its query is at least ``newest`` (the
     frames the near null's queries are drawn from); at most ``REVERSED_LINES`` of them, a seeded sample. None for a
-    filter that also follows reverse revisits (a velocity <= 0) or one without lines (``bayes``).
+    filter that also follows reverse revisits (a velocity <= 0), one without lines (``bayes``) or whose window is one
+    frame (``none``, a sequence of ``length`` 1: one pair read backwards is the pair itself, a revisit among them).
 
     Returns:
         ``(rows (m, 3), mirror)``: ``(query, ref, score)`` rows with the ids of ``mirror``, a code table holding frame
         ``k`` at ``off + k`` and, mirrored, at ``off - 1 - k`` (``off`` = the last id + 1), so that the filter's and
         ``ScoreSpans``' forward lines through ``(off + q, off - 1 - r)`` read the reversed ones.
     """
-    velocities = filt.conf.get("velocities", [1.0])
     ids = np.asarray(ids, np.int64)
-    if not isinstance(filt, (SequenceFilter, NoFilter)) or min(velocities) <= 0 or len(ids) < 2:
+    if not isinstance(filt, SequenceFilter) or filt.conf["length"] < 2 or min(filt.conf["velocities"]) <= 0 \
+            or len(ids) < 2:
         return np.zeros((0, 3)), table
+    velocities = filt.conf["velocities"]
     off = int(ids.max()) + 1
     tids, codes = table.items()
     mirror = CodeTable.fixed(np.r_[off - 1 - tids[::-1], off + tids], np.r_[codes[::-1], codes])
-    reach = SPAN * int(filt.conf.get("length", 1)) - 1  # frames a line reads back from its query
+    reach = SPAN * int(filt.conf["length"]) - 1  # frames a line reads back from its query
     ahead = int(math.ceil(max(velocities) * reach))  # and forward from its reference
     count = np.zeros(off + 1, np.int64)  # moved frames before each frame id
     count[ids + 1] = np.asarray(moved, np.int64)

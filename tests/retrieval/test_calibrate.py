@@ -378,7 +378,8 @@ class TestReversedLines:
         """On real Nordland codes (a summer and a winter stretch: gaps in the ids, a stop in summer), the lines are
         every ``(q, r)`` whose reversed frames over ``SPAN`` windows leave ``window // 2`` moved frames between them,
         ``q >= newest``, each scored as the filter's mean of ``sim(q - i, r + i)`` (missing frames 0); at most
-        ``REVERSED_LINES`` of them, a subset; none for a filter that follows reverse revisits."""
+        ``REVERSED_LINES`` of them, a subset; none for a filter that follows reverse revisits, reads one frame a
+        window or has no lines."""
         from retrieval.calibrate import _moved, _reversed_lines
         from retrieval.decision import SPAN
         from retrieval.temporal import CodeTable, create_filter
@@ -410,8 +411,9 @@ class TestReversedLines:
         monkeypatch.setattr("retrieval.calibrate.REVERSED_LINES", 300)
         some, _ = _reversed_lines(ids, table, filt, window, moved, newest)
         assert len(some) == 300 and {(int(q), int(r)) for q, r, _ in some} <= {(int(q), int(r)) for q, r, _ in rows}
-        both = create_filter({"name": "sequence", "length": 4, "velocities": [1.0, -1.0]})
-        assert len(_reversed_lines(ids, table, both, window, moved, newest)[0]) == 0
+        for conf in ({"name": "sequence", "length": 4, "velocities": [1.0, -1.0]}, {"name": "sequence", "length": 1},
+                     {"name": "none"}, {"name": "bayes"}):  # reverse revisits followed, one-frame windows, no lines
+            assert len(_reversed_lines(ids, table, create_filter(conf), window, moved, newest)[0]) == 0
 
     def test_far_look_alikes_join_the_null(self, encoder, monkeypatch):
         """Nordland's 1000 real frames (64x32: the score path) under a code that makes stretches far apart look alike
