@@ -44,6 +44,31 @@ def test_dark_proxy_darkens_the_second_pass_only(tmp_path):
     assert abs(float(darken(flat, rng).mean()) - 255 * 0.38) < 2  # 0.35 * 1 ** 1.8 + 0.03
 
 
+def test_the_darker_proxy_leaves_too_few_keypoints_to_verify(tmp_path):
+    """``DARKER``: the second pass of KITTI 90 at 160x120 keeps fewer SIFT keypoints a frame than verification needs
+    (``calibration.min_features``), the first pass several times more (the proxy for the held-out night walk)."""
+    import numpy as np
+    import pytest
+
+    from bench.aliasing import DARKER, dark_proxy_folder
+    from cae_lcd.core.images import read_image
+    from retrieval.calibrate import calibrated_features
+    from retrieval.detector import resolve_conf
+    from retrieval.sequences import open_sequence
+    from tests.conftest import KITTI_SEQUENCES
+    from verify.features import create_extractor
+
+    if not (KITTI_SEQUENCES / "90").is_dir():
+        pytest.skip("shared KITTI data not found")
+    frames = list(open_sequence(KITTI_SEQUENCES / "90").frames)[::10]  # 10 of each pass
+    folder = dark_proxy_folder(tmp_path / "darker", frames, **DARKER)
+    conf = resolve_conf({})
+    extractor = create_extractor(calibrated_features(conf))
+    counts = [len(extractor.extract(read_image(folder / f"{i:06d}.png"))) for i in range(len(frames))]
+    day, night = np.median(counts[:10]), np.median(counts[10:])
+    assert night < conf["calibration"]["min_features"] < day / 2
+
+
 def test_online_rows_beside_the_offline_ones():
     """The online table (issue 27): the stream's loops, precision and recall, its retrieval Recall@10 and the recall
     over it (a stream safe by being blind shows it), beside the offline recall, their ratio,
