@@ -50,8 +50,8 @@ from retrieval.sequences import open_sequence
 from .augment import darken, dusk
 from .common import detect_run, md_table, study_parser
 
-__all__ = ["plain_folder", "dark_proxy_folder", "DARKER", "dusk_folder", "stress_folders", "stress_sets", "evaluate", "aliasing_table",
-           "stream_run", "carried_row", "online_table", "main"]
+__all__ = ["plain_folder", "dark_proxy_folder", "DARKER", "dusk_folder", "stress_folders", "stress_sets", "evaluate",
+           "aliasing_table", "stream_run", "carried_row", "online_table", "main"]
 
 log = logging.getLogger(__name__)
 

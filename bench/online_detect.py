@@ -6,8 +6,9 @@ runs/bench/online_detect] [--no-write]`` (the shared datasets beside the reposit
 ones, ``loops.csv``) and the API stream's (``bench.aliasing.stream_run``: one frame at a time, no store), their
 precision / recall, whether the two sets of loops are the same, and the milliseconds a frame of each (``detect``: its
 frames' wall time, the stream's own calibration inside it apart; the whole run's wall time a frame, its loop edges
-included and their share apart, against one SIFT extraction at 512 px measured in the same run, ``bench.frame_time.sift_yardstick``: the
-yardstick issue 27 sets; the stream: the mean, refits amortised, and its worst frame). Rewrites the
+included and their share apart, against one SIFT extraction at 512 px measured in the same run,
+``bench.frame_time.sift_yardstick``: the yardstick issue 27 sets; the stream: the mean, refits amortised, and its
+worst frame). Rewrites the
 ``bench:online-detect`` section of BENCHMARKS.md.
 """
 

@@ -26,7 +26,8 @@ log = logging.getLogger(__name__)
 
 DEFAULT_WEIGHTS = Path(__file__).with_name("weights") / "cae_mixed.pt"  #: shipped: KITTI 00+07 and Nordland summer
 #: trained further with the place term (issue 28) on every frame of ../shared; not the default: with them the
-#: offline (look-ahead) detector's Nordland recall falls to 0.874 (BENCHMARKS.md, "Training the shipped weights")
+#: offline (look-ahead) detector's Nordland recall falls under the 0.9 issue 27 asks (BENCHMARKS.md, "Training the
+#: shipped weights")
 PLACES_WEIGHTS = Path(__file__).with_name("weights") / "cae_places.pt"
 CHECKPOINT_VERSION = 1
 DEVICE_PATTERN = r"auto|cpu|cuda(:[0-9]+)?"  #: the devices a conf may name

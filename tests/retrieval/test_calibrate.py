@@ -420,7 +420,7 @@ class TestReversedLines:
         (each image standardised before the shipped encoder: a proxy, BENCHMARKS.md): with the far-side pairs alone
         as the null, summer frames 443 and 449 close on summer 262 and 268, 181 frames back, where the railway has no
         revisit (summer is one traversal); with the reversed lines joined, no summer frame closes on another, and the
-        summer -> winter revisits are still found."""
+        summer -> winter revisits are still found (measured: 375 of the 500 winter queries)."""
         import torch
 
         from cae_lcd.core.images import read_image
