@@ -182,17 +182,20 @@ def single_frame_retrieval(codes: np.ndarray, n_first: int, truth: np.ndarray, k
 
 
 def _study_variants(run_dir: Path) -> dict[str, dict[str, Any]]:
-    """Descriptor confs of the rows every set has: shipped weights, the place-term weights (when in the package),
-    the same network at random init, a thumbnail."""
+    """Descriptor confs of the rows every set has: shipped weights, the reconstruction-only weights they were trained
+    from (the paper's objective), the same network at random init (reading its input as the shipped weights do), a
+    thumbnail."""
     from cae.model import Encoder
-    from cae.weights import PLACES_WEIGHTS, save_checkpoint
+    from cae.weights import (DEFAULT_WEIGHTS, RECONSTRUCTION_WEIGHTS, checkpoint_input_norm, load_checkpoint,
+                             save_checkpoint)
 
     torch.manual_seed(0)
     random_ckpt = run_dir / "random_encoder.pt"
-    save_checkpoint(random_ckpt, Encoder(), {"init": "N(0, 0.05), torch.manual_seed(0)"})
-    places = {"place-term weights (cae_places.pt)": {"name": "cae", "weights": str(PLACES_WEIGHTS)}} \
-        if PLACES_WEIGHTS.is_file() else {}
-    return {"shipped weights": {"name": "cae"}, **places,
+    norm = checkpoint_input_norm(load_checkpoint(DEFAULT_WEIGHTS), DEFAULT_WEIGHTS)
+    save_checkpoint(random_ckpt, Encoder(norm), {"init": "N(0, 0.05), torch.manual_seed(0)", "input_norm": norm})
+    return {"shipped weights": {"name": "cae"},
+            "reconstruction only (cae_mixed.pt, the paper's objective)": {"name": "cae",
+                                                                           "weights": str(RECONSTRUCTION_WEIGHTS)},
             "same network, random init": {"name": "cae", "weights": str(random_ckpt)},
             "thumbnail 64x48": {"name": "thumbnail"}}
 

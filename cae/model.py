@@ -1,8 +1,11 @@
-"""The convolutional autoencoder of Leonardi & Stahl (IFAC 2018), exactly as the paper describes it.
+"""The convolutional autoencoder of Leonardi & Stahl (IFAC 2018), as the paper describes it, with one addition
+that has no parameters: the input may be standardised per image (``input_norm``, below).
 
 Shapes (B = batch):
 
     image  (B, 3, 256, 256) float in [0, 1]
+      input_norm "standardise": each image brought to mean 0.5 and spread 0.25, clipped to [0, 1] (its light level
+      and contrast removed: a night frame and a day frame of one place enter alike); "none": as given (the paper)
       Encoder: 4 x [conv 3x3 (32, 32, 32, 16 filters, zero padding) + ReLU + max-pool 2x2]
     code   (B, 16, 16, 16)  -> flattened (B, 4096), channel-major (C, H, W) order
       Decoder: 4 x [nearest-neighbour resize x2 + conv 3x3x32 + ReLU], then conv 3x3x3
@@ -17,13 +20,27 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from cae_lcd.core.errors import ImageError
+from cae_lcd.core.errors import ConfigError, ImageError
 
-__all__ = ["Encoder", "Decoder", "ConvAutoencoder", "INPUT_SIZE", "CODE_SHAPE", "CODE_DIM"]
+__all__ = ["Encoder", "Decoder", "ConvAutoencoder", "INPUT_SIZE", "CODE_SHAPE", "CODE_DIM", "INPUT_NORMS",
+           "standardise"]
 
 INPUT_SIZE = 256  #: side of the square network input, pixels
 CODE_SHAPE = (16, 16, 16)  #: (channels, height, width) of the bottleneck
 CODE_DIM = 16 * 16 * 16  #: length of the flattened code
+INPUT_NORMS = ("none", "standardise")  #: what ``Encoder`` does to an image before its first layer
+_MEAN, _SPREAD = 0.5, 0.25  #: a standardised image's mean and standard deviation (before clipping)
+
+
+def standardise(x: torch.Tensor) -> torch.Tensor:
+    """Each image of ``(B, C, H, W)`` in [0, 1] brought to mean 0.5 and standard deviation 0.25 over all its values,
+    clipped to [0, 1]; a flat image becomes flat grey. Same shape and memory layout."""
+    if x.shape[0] == 0:
+        return x
+    wide = x.double()  # per-image statistics in double: an image's code does not depend on its batch
+    mean = wide.mean(dim=(1, 2, 3), keepdim=True).to(x.dtype)
+    std = wide.std(dim=(1, 2, 3), keepdim=True).to(x.dtype)
+    return ((x - mean) / (std / _SPREAD + 1e-3) + _MEAN).clamp_(0.0, 1.0)
 
 
 def _init(module: nn.Module, std: float = 0.05) -> None:
@@ -40,12 +57,19 @@ class Encoder(nn.Module):
     output ``(B, 4096)`` of unit L2 norm, as ``cae.encode_images`` gives (an all-zero code stays zero);
     ``forward_map`` gives the code map before normalisation (what the decoder reads). Accepts channels-last input,
     which is faster on CPU.
+
+    Args:
+        input_norm: one of ``INPUT_NORMS``, what is done to each image first (saved in a checkpoint's conf;
+            ``cae.load_encoder`` sets it from there).
     """
 
     filters = (32, 32, 32, 16)
 
-    def __init__(self) -> None:
+    def __init__(self, input_norm: str = "none") -> None:
         super().__init__()
+        if input_norm not in INPUT_NORMS:
+            raise ConfigError(f"input_norm must be one of {', '.join(INPUT_NORMS)}; got {input_norm!r}")
+        self.input_norm = input_norm
         layers: list[nn.Module] = []
         c_in = 3
         for c_out in self.filters:
@@ -63,7 +87,11 @@ class Encoder(nn.Module):
         if x.ndim != 4 or tuple(x.shape[1:]) != (3, INPUT_SIZE, INPUT_SIZE):
             raise ImageError(f"the encoder takes (B, 3, {INPUT_SIZE}, {INPUT_SIZE}) images; got {tuple(x.shape)} "
                              "(cae.preprocess or cae.encode_images make them from any image)")
-        return self.features(x)
+        return self.features(self.network_input(x))
+
+    def network_input(self, x: torch.Tensor) -> torch.Tensor:
+        """``(B, 3, 256, 256)`` in [0, 1] -> what the first layer reads (``input_norm``; the reconstruction's target)."""
+        return standardise(x) if self.input_norm == "standardise" else x
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """``(B, 3, 256, 256)`` -> codes ``(B, 4096)`` of unit L2 norm."""
@@ -89,11 +117,12 @@ class Decoder(nn.Module):
 
 
 class ConvAutoencoder(nn.Module):
-    """Encoder + decoder; ``forward`` returns reconstruction logits ``(B, 3, 256, 256)``."""
+    """Encoder + decoder; ``forward`` returns reconstruction logits ``(B, 3, 256, 256)`` of the encoder's input
+    (``Encoder.network_input``: the standardised image with ``input_norm`` "standardise")."""
 
-    def __init__(self) -> None:
+    def __init__(self, input_norm: str = "none") -> None:
         super().__init__()
-        self.encoder = Encoder()
+        self.encoder = Encoder(input_norm)
         self.decoder = Decoder()
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:

@@ -1,6 +1,7 @@
 """Training the autoencoder on a folder of images (``cae-lcd train --images DIR``, or ``python train.py ...``).
 
-The loss: the paper's reconstruction (sigmoid cross-entropy on the logits, the target the clean frame) plus,
+The loss: the paper's reconstruction (sigmoid cross-entropy on the logits, the target the clean frame as the encoder
+reads it: standardised with ``input_norm: standardise``, the default) plus,
 weighted by ``contrastive``, a place term (``cae.contrastive``: InfoNCE on the code between two views of a frame or
 of a frame and its temporal neighbour, ``cae.views``), so that the code keeps the place and drops the light, the
 camera and the framing; no labels, each folder read as one sequence in name order. ``init: shipped`` fine-tunes the
@@ -33,17 +34,18 @@ import torch
 import torch.nn.functional as F
 from cae_lcd.core.progress import progress_bar as tqdm  # a bar on a terminal, log lines in a log
 
-from cae_lcd.core.conf import ConfigError, Float, Int, Text, check_conf, conf_diff, dump_conf, merge_conf
+from cae_lcd.core.conf import Choice, ConfigError, Float, Int, Text, check_conf, conf_diff, dump_conf, merge_conf
 from cae_lcd.core.errors import ImageError
 from cae_lcd.core.files import prepare_out_dir, write_text_atomic
 from cae_lcd.core.images import IMAGE_EXTENSIONS, image_entries, read_image
 from .contrastive import far_mask, info_nce, neighbour_partners, not_revisits, with_revisits
-from .model import INPUT_SIZE, ConvAutoencoder
+from .model import INPUT_NORMS, INPUT_SIZE, ConvAutoencoder
 from .preprocess import to_network_u8
 from .revisits import mine_revisits
 from .encode import CPU_BATCH, encode_images
 from .views import default_views, photometric, view_rules, warp
-from .weights import DEFAULT_WEIGHTS, DEVICE_PATTERN, load_checkpoint, resolve_device, save_checkpoint
+from .weights import (DEFAULT_WEIGHTS, DEVICE_PATTERN, STILL_COS, checkpoint_input_norm, checkpoint_still_cos,
+                      load_checkpoint, resolve_device, save_checkpoint)
 from .whitening import DEFAULT_DIM, DEFAULT_SHRINK, MIN_FIT_CODES, Whitening
 
 __all__ = ["default_conf", "conf_rules", "list_images", "load_image_folder", "sequence_order", "main"]
@@ -63,6 +65,9 @@ default_conf: dict[str, Any] = {
     "augment": 0.4,  # photometric augmentation strength (0: none): the input's gain, offset and gamma are jittered
     #                  by up to this fraction and the target stays the clean image (a denoising autoencoder),
     #                  so the code learns to ignore light and exposure (measured: BENCHMARKS.md, training study)
+    "input_norm": "standardise",  # what the encoder does to each image first (cae.model.INPUT_NORMS): "standardise"
+    #                              (mean 0.5, spread 0.25: light level and contrast removed; the shipped weights')
+    #                              or "none" (the paper); a warning where the init weights read their input otherwise
     "init": None,  # starting weights: None = random N(0, 0.05) (the paper), "shipped" = the weights in the package
     #               (fine-tuning), or a checkpoint path; a run resumed from last.pt keeps its own weights
     "contrastive": 1.0,  # weight of the place term (cae.contrastive, InfoNCE on the code) beside the reconstruction;
@@ -99,6 +104,7 @@ conf_rules: dict[str, Any] = {
     "augment": Float(0, 0.9),
     "whitening_dim": Int(0, 4096),
     "whitening_shrink": Float(0, 100),
+    "input_norm": Choice(*INPUT_NORMS),
     "init": Text(optional=True),
     "contrastive": Float(0, 100),
     "temperature": Float(0.01, 10),
@@ -193,7 +199,7 @@ def _prepare(images: str | Path | Sequence[str | Path], out: Path, conf: dict[st
     if conf["contrastive"] and conf["far"] <= conf["neighbours"]:
         raise ConfigError(f"'far' ({conf['far']}) must be larger than 'neighbours' ({conf['neighbours']}): a "
                           "positive cannot also be a negative")
-    _initial_weights(conf)
+    _init_path(conf)  # a missing init file is named before anything is written
     _check_out(out)
     folders = [str(images)] if isinstance(images, (str, Path)) else [str(f) for f in images]
     if not folders:
@@ -254,7 +260,7 @@ def _split(frames: _Frames, files: list[Path], conf: dict[str, Any]) -> tuple[_F
     return frames.take(train_idx), frames.take(val_idx), split
 
 
-def _initial_weights(conf: dict[str, Any]) -> Path | None:
+def _init_path(conf: dict[str, Any]) -> Path | None:
     """The checkpoint ``init`` names (``"shipped"``: the package's weights), or None for a random start.
 
     Raises:
@@ -268,6 +274,16 @@ def _initial_weights(conf: dict[str, Any]) -> Path | None:
     return path
 
 
+def _initial_weights(conf: dict[str, Any]) -> Path | None:
+    """``_init_path``, with a warning where those weights read their input otherwise than ``input_norm``."""
+    path = _init_path(conf)
+    if path is not None and (theirs := checkpoint_input_norm(load_checkpoint(path), path)) != conf["input_norm"]:
+        log.warning("init: %s was trained with input_norm %r; training with %r (its weights start reading standardised "
+                    "or raw images they were not trained on; set input_norm: %s to keep its own)", path, theirs,
+                    conf["input_norm"], theirs)
+    return path
+
+
 def _resume_or_start(last_path: Path, conf: dict[str, Any], device: torch.device, val_set: _Frames,
                      restart: bool) -> tuple[ConvAutoencoder, torch.optim.Optimizer, _Progress]:
     """A seeded model and optimizer, restored from ``last_path`` when it exists (unless ``restart``).
@@ -276,7 +292,7 @@ def _resume_or_start(last_path: Path, conf: dict[str, Any], device: torch.device
         ConfigError: ``last_path`` is damaged, not a training checkpoint, or does not fit the model.
     """
     torch.manual_seed(conf["seed"])
-    model = ConvAutoencoder()
+    model = ConvAutoencoder(conf["input_norm"])
     init = _initial_weights(conf)
     if init is not None and (restart or not last_path.exists()):
         try:
@@ -330,7 +346,8 @@ def _evaluate(model: ConvAutoencoder, frames: _Frames, conf: dict[str, Any], dev
     with torch.inference_mode():
         for start in range(0, len(frames), batch):
             x = _to_batch(frames.images[start:start + batch], device)
-            total += F.binary_cross_entropy_with_logits(model(x), x, reduction="sum").item() / x[0].numel()
+            total += F.binary_cross_entropy_with_logits(model(x), model.encoder.network_input(x),
+                                                        reduction="sum").item() / x[0].numel()
             if conf["contrastive"] and len(x) > 1:
                 a, b = (model.encoder.forward_map(_view(x, rng, conf)[1]).flatten(1) for _ in range(2))
                 neg = torch.as_tensor(far_mask(frames.folder[start:start + batch], frames.position[start:start + batch],
@@ -389,8 +406,10 @@ def _place_step(model: ConvAutoencoder, train_set: _Frames, picks: np.ndarray, r
 
 def _reconstruction(model: ConvAutoencoder, code_maps: torch.Tensor, targets: torch.Tensor, count: int) -> torch.Tensor:
     """The reconstruction term's share of ``code_maps`` ``(b, 16, 16, 16)`` against their ``targets``
-    ``(b, 3, 256, 256)``: the summed binary cross-entropy over ``count`` (the elements of every decoded view)."""
-    return F.binary_cross_entropy_with_logits(model.decoder(code_maps), targets, reduction="sum") / count
+    ``(b, 3, 256, 256)`` (clean images, read as the encoder reads them: ``Encoder.network_input``): the summed binary
+    cross-entropy over ``count`` (the elements of every decoded view)."""
+    return F.binary_cross_entropy_with_logits(model.decoder(code_maps), model.encoder.network_input(targets),
+                                              reduction="sum") / count
 
 
 def _train_epoch(model: ConvAutoencoder, optim: torch.optim.Optimizer, train_set: _Frames, epoch: int,
@@ -408,7 +427,7 @@ def _train_epoch(model: ConvAutoencoder, optim: torch.optim.Optimizer, train_set
         else:
             x = _to_batch(train_set.images[picks], device)
             x_in = _jitter(x, conf["augment"], rng) if conf["augment"] else x
-            loss = F.binary_cross_entropy_with_logits(model(x_in), x)
+            loss = F.binary_cross_entropy_with_logits(model(x_in), model.encoder.network_input(x))
             loss.backward()
             value = loss.item()
         optim.step()
@@ -474,21 +493,25 @@ def _fit(model: ConvAutoencoder, optim: torch.optim.Optimizer, train_set: _Frame
     return progress
 
 
-def _save_whitening(best: Path, data: np.ndarray, conf: dict[str, Any], device: torch.device) -> Whitening | None:
-    """Fits the code normalisation on every image's code with the best weights and adds it to ``best.pt``."""
-    if not conf["whitening_dim"] or len(data) < MIN_FIT_CODES:
-        if conf["whitening_dim"]:
-            log.warning("only %d images: no whitening saved (it needs %d)", len(data), MIN_FIT_CODES)
-        return None
+def _finish_best(best: Path, data: np.ndarray, conf: dict[str, Any], device: torch.device) -> Whitening | None:
+    """Adds to ``best.pt`` what the detector reads with the weights: the init weights' ``still_cos`` in the conf
+    (``cae.weights.checkpoint_still_cos``: a fine-tuned camera keeps the shipped weights' own; ``STILL_COS`` from a
+    random start), and the code normalisation fitted on every image's code (``whitening_dim``; returned, None without
+    one)."""
     ckpt = load_checkpoint(best)
-    model = ConvAutoencoder()
+    model = ConvAutoencoder(conf["input_norm"])
     model.load_state_dict(ckpt["state_dict"], strict=True)
-    encoder = model.encoder.to(device).eval()
-    codes = encode_images(encoder, list(data), prepared=True)
-    white = Whitening.fit(codes, conf["whitening_dim"], conf["whitening_shrink"])
+    white = None
+    if conf["whitening_dim"] and len(data) >= MIN_FIT_CODES:
+        codes = encode_images(model.encoder.to(device).eval(), list(data), prepared=True)
+        white = Whitening.fit(codes, conf["whitening_dim"], conf["whitening_shrink"])
+        log.info("whitening: %d-d, fitted on %d codes, saved in %s", white.dim, white.fitted_on, best)
+    elif conf["whitening_dim"]:
+        log.warning("only %d images: no whitening saved (it needs %d)", len(data), MIN_FIT_CODES)
+    init = _init_path(conf)
+    still = STILL_COS if init is None else checkpoint_still_cos(load_checkpoint(init), init)
     extra = {k: v for k, v in ckpt.items() if k not in ("format_version", "conf", "state_dict", "whitening")}
-    save_checkpoint(best, model, ckpt["conf"], whitening=white, **extra)
-    log.info("whitening: %d-d, fitted on %d codes, saved in %s", white.dim, white.fitted_on, best)
+    save_checkpoint(best, model, {**ckpt["conf"], "still_cos": still}, whitening=white, **extra)
     return white
 
 
@@ -548,7 +571,7 @@ def main(images: str | Path | Sequence[str | Path], out: str | Path = "runs/trai
     progress = _fit(model, optim, train_set, val_set, conf, device, out, progress)
     if not (out / "best.pt").is_file():
         raise ConfigError(f"{out / 'best.pt'} is missing (deleted after an earlier run?); run with --restart")
-    white = _save_whitening(out / "best.pt", data, conf, device)
+    white = _finish_best(out / "best.pt", data, conf, device)
     summary = {"best_val_loss": progress.best_val, "best_epoch": progress.best_epoch,
                "epochs_run": len(progress.history) - 1, "first_val_loss": progress.history[0]["val_loss"],
                "best": str(out / "best.pt"), "history": progress.history, "images": len(used),

@@ -2,7 +2,8 @@
 
 A checkpoint is ``{"format_version": 1, "conf": <training conf>, "state_dict": <ConvAutoencoder or Encoder>}``
 written with ``torch.save``, plus ``"whitening"`` (``cae.whitening.Whitening.state()`` as tensors) when training
-fitted one on its images; it is always loaded with ``strict=True``.
+fitted one on its images; it is always loaded with ``strict=True``. The conf's ``input_norm`` (``cae.model``;
+absent: "none", the paper's) says what the encoder does to an image before its first layer.
 """
 
 from __future__ import annotations
@@ -16,20 +17,26 @@ from typing import Any
 import torch
 
 from cae_lcd.core.errors import ConfigError
-from .model import ConvAutoencoder, Encoder
+from .model import INPUT_NORMS, ConvAutoencoder, Encoder
 from .whitening import Whitening
 
-__all__ = ["DEFAULT_WEIGHTS", "PLACES_WEIGHTS", "CHECKPOINT_VERSION", "DEVICE_PATTERN", "save_checkpoint", "load_checkpoint",
-           "load_encoder", "load_autoencoder", "encoder_identity", "resolve_device", "checkpoint_whitening"]
+__all__ = ["DEFAULT_WEIGHTS", "RECONSTRUCTION_WEIGHTS", "CHECKPOINT_VERSION", "DEVICE_PATTERN", "save_checkpoint",
+           "load_checkpoint", "load_encoder", "load_autoencoder", "encoder_identity", "resolve_device",
+           "checkpoint_whitening", "checkpoint_input_norm", "checkpoint_still_cos", "STILL_COS"]
 
 log = logging.getLogger(__name__)
 
-DEFAULT_WEIGHTS = Path(__file__).with_name("weights") / "cae_mixed.pt"  #: shipped: KITTI 00+07 and Nordland summer
-#: trained further with the place term (issue 28) on every frame of ../shared; not the default: with them the
-#: offline (look-ahead) detector's Nordland recall falls under the 0.9 issue 27 asks (BENCHMARKS.md, "Training the
-#: shipped weights")
-PLACES_WEIGHTS = Path(__file__).with_name("weights") / "cae_places.pt"
+#: the default: the reconstruction term and the place term (issue 28) on every frame of ../shared, standardised input
+#: (BENCHMARKS.md, "Training the shipped weights")
+DEFAULT_WEIGHTS = Path(__file__).with_name("weights") / "cae_places.pt"
+#: the paper's objective alone (reconstruction, photometric augmentation) on KITTI 00+07 and Nordland summer: the
+#: weights the default was trained from, kept for the training study's comparison
+RECONSTRUCTION_WEIGHTS = Path(__file__).with_name("weights") / "cae_mixed.pt"
 CHECKPOINT_VERSION = 1
+#: raw codes of adjacent frames this alike: the camera stood still; for weights whose conf does not say
+#: (``still_cos``: the weights' own, below the cosine between a frame's code and its code under one grey level of
+#: sensor noise; the paper-input weights: 0.9999 and more)
+STILL_COS = 0.999
 DEVICE_PATTERN = r"auto|cpu|cuda(:[0-9]+)?"  #: the devices a conf may name
 
 
@@ -54,7 +61,11 @@ def resolve_device(device: str | torch.device | None = None) -> torch.device:
 
 def save_checkpoint(path: str | Path, model: torch.nn.Module, conf: dict[str, Any],
                     whitening: Whitening | None = None, **extra: Any) -> None:
-    """Writes ``{"format_version", "conf", "state_dict", ["whitening"], **extra}`` atomically (temp file, rename)."""
+    """Writes ``{"format_version", "conf", "state_dict", ["whitening"], **extra}`` atomically (temp file, rename);
+    the conf's ``input_norm`` is the model's own (``Encoder.input_norm``), whatever ``conf`` says."""
+    norm = getattr(getattr(model, "encoder", model), "input_norm", None)
+    if norm is not None:
+        conf = {**conf, "input_norm": norm}
     if whitening is not None:
         extra["whitening"] = {k: torch.as_tensor(v) for k, v in whitening.state().items()}
     path = Path(path)
@@ -97,7 +108,7 @@ def _encoder_state(state_dict: dict[str, torch.Tensor]) -> dict[str, torch.Tenso
 def load_autoencoder(path: str | Path | None = None, device: str | torch.device | None = None) -> ConvAutoencoder:
     """The full autoencoder from a checkpoint (default: the shipped weights), in eval mode."""
     ckpt = load_checkpoint(path or DEFAULT_WEIGHTS)
-    model = ConvAutoencoder()
+    model = ConvAutoencoder(checkpoint_input_norm(ckpt, path or DEFAULT_WEIGHTS))
     try:
         model.load_state_dict(ckpt["state_dict"], strict=True)
     except RuntimeError as err:
@@ -119,15 +130,35 @@ def load_encoder(path: str | Path | None = None, device: str | torch.device | No
         attribute is the ``Whitening`` saved with the weights, or None.
     """
     ckpt = load_checkpoint(path or DEFAULT_WEIGHTS)
-    encoder = Encoder()
+    encoder = Encoder(checkpoint_input_norm(ckpt, path or DEFAULT_WEIGHTS))
     try:
         encoder.load_state_dict(_encoder_state(ckpt["state_dict"]), strict=True)
     except RuntimeError as err:
         raise ConfigError(f"weights {path} do not fit the encoder: {str(err).splitlines()[0]}") from None
     encoder.identity = encoder_identity(encoder)
+    encoder.still_cos = checkpoint_still_cos(ckpt, path or DEFAULT_WEIGHTS)
     encoder.whitening = checkpoint_whitening(ckpt, path or DEFAULT_WEIGHTS)
     dev = resolve_device(device)
     return encoder.to(dev, memory_format=torch.channels_last).eval()
+
+
+def checkpoint_input_norm(ckpt: dict[str, Any], path: str | Path) -> str:
+    """The checkpoint's ``input_norm`` (``cae.model.INPUT_NORMS``; "none" where its conf has none)."""
+    conf = ckpt.get("conf")
+    value = conf.get("input_norm", "none") if isinstance(conf, dict) else "none"
+    if value not in INPUT_NORMS:
+        raise ConfigError(f"{path}: conf input_norm must be one of {', '.join(INPUT_NORMS)}; got {value!r}")
+    return value
+
+
+def checkpoint_still_cos(ckpt: dict[str, Any], path: str | Path) -> float:
+    """The raw-code cosine at which these weights say the camera stood still (conf ``still_cos``; ``STILL_COS``
+    where it has none)."""
+    conf = ckpt.get("conf")
+    value = conf.get("still_cos", STILL_COS) if isinstance(conf, dict) else STILL_COS
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.9 <= value < 1:
+        raise ConfigError(f"{path}: conf still_cos must be a number in [0.9, 1); got {value!r}")
+    return float(value)
 
 
 def checkpoint_whitening(ckpt: dict[str, Any], path: str | Path) -> Whitening | None:
@@ -142,8 +173,12 @@ def checkpoint_whitening(ckpt: dict[str, Any], path: str | Path) -> Whitening | 
 
 
 def encoder_identity(encoder: torch.nn.Module) -> str:
-    """A 16-hex-digit hash of the encoder's parameters: equal weights give an equal identity."""
+    """A 16-hex-digit hash of the encoder's parameters and its ``input_norm``: equal weights that read their input
+    alike give an equal identity (the paper's encoder, input_norm "none", hashes its parameters alone)."""
     h = hashlib.sha256()
+    norm = getattr(encoder, "input_norm", "none")
+    if norm != "none":
+        h.update(f"input_norm={norm}".encode())
     for name, tensor in sorted(encoder.state_dict().items()):
         h.update(name.encode())
         h.update(tensor.detach().cpu().contiguous().numpy().tobytes())

@@ -6,7 +6,7 @@ Before a run, the calibration looks at the sequence itself (``cae-lcd calibrate 
 1. **The gate's reference**: the median edge ratio of the sequence (``verify.gate``, relative mode).
 2. **The code normalisation**: PCA-whitening fitted on the sequence's own codes (``cae.whitening``), each place
    weighed once: with ``whitening.skip_still`` (the default) a stop, the frames where the camera stood still (raw
-   code unchanged from the frame before, cosine >= ``STILL_COS``), counts as its first frame only, not as often as
+   code unchanged from the frame before, cosine >= the weights' ``GlobalDescriptor.still_cos``), counts as its first frame only, not as often as
    the robot waited there (on Nordland 176 of 985 frames are three stations; fitted on them all, the whitening spends
    its variance on those few places and the waiting frames find no match); with ``whitening.source: weights``, the
    one ``cae-lcd train`` fitted on the training images and saved with the weights.
@@ -100,6 +100,7 @@ import h5py
 import numpy as np
 from cae_lcd.core.progress import progress_bar as tqdm  # a bar on a terminal, log lines in a log
 
+from cae.weights import STILL_COS  # for weights that do not say (``GlobalDescriptor.still_cos``)
 from cae.whitening import MIN_FIT_CODES, Whitening
 from cae_lcd.core.conf import ConfigError
 from cae_lcd.core.errors import DatabaseError
@@ -121,8 +122,6 @@ log = logging.getLogger(__name__)
 
 CALIBRATION_FORMAT = 4  #: ``format_version`` of calibration.h5 (3: the local features it was made on recorded; 4: the
 #                           score path's nulls measured, ``samples/score_null`` and ``samples/score_fused``)
-STILL_COS = 0.999  #: raw codes of adjacent frames this alike: the camera stood still (one place: not a null pair,
-#                     weighed once by the whitening, matched only to a stop as long)
 PROBE = 4  #: one sampled query in this many is looked at first: are there local features enough to verify?
 REVERSED_LINES = 20_000  #: the score path's long-range lines (``_reversed_lines``) drawn at most, seeded: a random
 #   sample of every pair far enough apart where there are more (a stream of 2000 frames holds ~1.5 million). Nordland
@@ -587,7 +586,7 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
                          f"({gate.conf['relative']:g} x median) are gated: {len(images) - len(raw)} of {len(images)}")
     ids = np.array(sorted(raw), np.int64)
     codes = np.stack([raw[i] for i in ids])
-    moved = _moved(codes)  # False where the camera stood still (the code did not change)
+    moved = _moved(codes, descriptor.still_cos)  # False where the camera stood still (the code did not change)
     cal.whitening = _whitening(conf["whitening"], descriptor, codes, cal.notes, moved)
     normed = cal.whitening.transform(codes) if cal.whitening is not None else codes
     table = CodeTable.fixed(ids, normed)
@@ -616,7 +615,7 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
     _score_path(cal, apart, filt, null_table, far)
     if null_table is not table:
         cal.score_null["held_out"] = float(held_out)
-    _stretch(cal, ids, table, moved)
+    _stretch(cal, ids, table, moved, descriptor.still_cos)
     for key, value in cal.thresholds().items():
         if value is not None:
             cal.notes.append(f"accept: {key} >= {value:.4g} (expected false loops over the run "
@@ -667,7 +666,8 @@ def _timed(cal: Calibration, n_images: int, total: float, shared: float) -> None
                      f"extracting local features the run reuses {shared:.1f} s")
 
 
-def _stretch(cal: Calibration, ids: np.ndarray, table: CodeTable, moved: np.ndarray) -> None:
+def _stretch(cal: Calibration, ids: np.ndarray, table: CodeTable, moved: np.ndarray,
+             ceiling: float = STILL_COS) -> None:
     """The cosine under which a frame no longer looks like the query (the 10th percentile of adjacent frames'), and
     the normalised codes' cosine at which the camera stood still (``_still_cos``): ``retrieval.decision.Horizon``
     and ``Stops``."""
@@ -676,7 +676,7 @@ def _stretch(cal: Calibration, ids: np.ndarray, table: CodeTable, moved: np.ndar
     cal.samples["adjacent_cos"] = adjacent
     cal.fused["stretch_cos"] = float(np.quantile(adjacent, 0.1)) if len(adjacent) else 1.0
     still = ~moved[adj]
-    cal.fused["still_cos"] = _still_cos(adjacent, still)
+    cal.fused["still_cos"] = _still_cos(adjacent, still, ceiling)
     cal.notes.append(f"too recent: frames within search.exclude_recent, and every frame back to where the code "
                      f"stops looking like the query (cosine < {cal.fused['stretch_cos']:.3f}, the adjacent frames' "
                      "10th percentile)")
@@ -685,16 +685,17 @@ def _stretch(cal: Calibration, ids: np.ndarray, table: CodeTable, moved: np.ndar
                      "stood still as long")
 
 
-def _still_cos(adjacent: np.ndarray, still: np.ndarray) -> float:
+def _still_cos(adjacent: np.ndarray, still: np.ndarray, ceiling: float = STILL_COS) -> float:
     """The normalised cosine that best reproduces the raw codes' verdict (``_moved``) on the adjacent frames
     (``adjacent`` ``(n,)`` cosines, ``still`` ``(n,)`` bool): the fewest pairs on the wrong side, the lowest such cosine
-    (every still pair still where they agree); ``STILL_COS`` where the camera never stood still."""
+    (every still pair still where they agree), at most ``ceiling`` (the raw codes' own, ``GlobalDescriptor.still_cos``;
+    returned where the camera never stood still)."""
     if not still.any():
-        return STILL_COS
+        return ceiling
     cand = np.unique(adjacent[still])
     moving = np.sort(adjacent[~still])
     wrong = np.searchsorted(np.sort(adjacent[still]), cand, "left") + len(moving) - np.searchsorted(moving, cand)
-    return float(min(cand[int(np.argmin(wrong))], STILL_COS))
+    return float(min(cand[int(np.argmin(wrong))], ceiling))
 
 
 def _whitening(wconf: dict[str, Any], descriptor: GlobalDescriptor, codes: np.ndarray, notes: list[str],
@@ -720,13 +721,13 @@ def _whitening(wconf: dict[str, Any], descriptor: GlobalDescriptor, codes: np.nd
     return white
 
 
-def _moved(codes: np.ndarray) -> np.ndarray:
-    """``(n,)`` bool: False for a code the same as the one before it (cosine >= ``STILL_COS``: the camera stood
-    still). Far-side pairs between which the camera stood still are one place, not pairs known not to be loops;
+def _moved(codes: np.ndarray, still_cos: float = STILL_COS) -> np.ndarray:
+    """``(n,)`` bool: False for a code the same as the one before it (cosine >= ``still_cos``, the weights' own
+    ``GlobalDescriptor.still_cos``: the camera stood still). Far-side pairs between which the camera stood still are one place, not pairs known not to be loops;
     with ``whitening.skip_still`` the whitening leaves such frames out too (a robot waiting at a station would weigh
     that one place as often as it waited)."""
     unit = codes / np.maximum(np.linalg.norm(codes, axis=1, keepdims=True), 1e-12)
-    return np.r_[True, np.einsum("ij,ij->i", unit[1:], unit[:-1]) < STILL_COS]
+    return np.r_[True, np.einsum("ij,ij->i", unit[1:], unit[:-1]) < still_cos]
 
 
 def _score_path(cal: Calibration, null: np.ndarray, filt: TemporalFilter, table: CodeTable,

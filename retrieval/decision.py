@@ -24,7 +24,8 @@ verified as in the run), and what a loop looks like: the **positives** (a frame 
   admissible then (not too recent, not a stop), is reported at ``t`` (once); a refused run certifies nothing. On the
   score path the run is ``m`` windows, ``m * length`` frames: each earlier frame of them with an admissible candidate
   on the run's line (one frame off at most: where its keyframe on the line was refused, e.g. by the stop rule, an
-  admissible one beside it) is reported.
+  admissible one beside it) and its own window localised on that line (``ScoreSpans.localised``: a line one frame
+  past a revisit's start reads the revisit's windows, not the frame before it) is reported.
 - **Whether one pair may decide alone**: only where geometry separates on this sequence (the median positive pair
   would be accepted alone and no hard negative is); elsewhere a loop needs evidence from ``min_support`` frames.
 - **The score path fuses too** (``ScoreSpans``, where local features are too few to verify; issue 27: measured, not
@@ -495,8 +496,8 @@ class Decision:
 
     def _window_members(self, query_id: int, ref: int, source: Any) -> list[tuple[int, int]]:
         """The score path's ``run_members``: the frames of the accepted span (``ScoreSpans.best_run``: ``m`` windows,
-        ``m * window`` frames on the line ``query_id - ref``), each with its keyframe on that line (one frame off at
-        most); empty where the run does not reach ``accept_at`` or the score path does not fuse (``source``: the
+        ``m * window`` frames on the line ``query_id - ref``) whose own window is localised on it, each with its
+        keyframe on that line (one frame off at most); empty where the run does not reach ``accept_at`` or the score path does not fuse (``source``: the
         code store the windows are scored on)."""
         if self.spans is None or source is None:
             return []
@@ -510,7 +511,12 @@ class Decision:
             off = np.abs((q - refs) - offset)
             if off.min() <= 1:
                 out.append((int(q), int(refs[int(np.argmin(off))])))
-        return out
+        if not out:
+            return out
+        # a member whose own window another line nearby beats does not lie on the run (a line one frame past a
+        # revisit's start reads the revisit's windows, not the frame before it: KITTI 90's frame 99 on frame 0)
+        qs = np.array([q for q, _ in out], np.int64)
+        return [m for m, ok in zip(out, self.spans.localised(qs, qs - offset, source)) if ok]
 
     def confidences(self, query_id: int, refs: np.ndarray, inliers: np.ndarray, source: Any,
                     fallback: np.ndarray | None = None) -> np.ndarray:

@@ -17,7 +17,7 @@ from cae.encode import encode_images
 from cae.preprocess import to_network_u8
 from cae_lcd.core.images import to_uint8
 from cae.model import CODE_DIM
-from cae.weights import DEVICE_PATTERN, load_encoder
+from cae.weights import DEVICE_PATTERN, STILL_COS, load_encoder
 from verify.features import Features
 
 __all__ = ["GlobalDescriptor", "CAEDescriptor", "DESCRIPTORS", "create_descriptor"]
@@ -37,6 +37,7 @@ class GlobalDescriptor:
         self.dim = 0
         self.identity = ""
         self.whitening = None  #: a ``cae.whitening.Whitening`` that came with the weights, if any
+        self.still_cos = STILL_COS  #: cosine of two codes at or above which the camera stood still
 
     def size_text(self) -> str:
         """What one frame's description holds, for tables (``"4096"``; MILD: ``"800 x 256 bits"``)."""
@@ -81,6 +82,7 @@ class CAEDescriptor(GlobalDescriptor):
         self.dim = CODE_DIM
         self.identity = getattr(self.encoder, "identity", "")
         self.whitening = getattr(self.encoder, "whitening", None)
+        self.still_cos = getattr(self.encoder, "still_cos", STILL_COS)  # the weights' own
 
     def __call__(self, image: np.ndarray, features: Features | None = None,
                  network_image: np.ndarray | None = None) -> np.ndarray:

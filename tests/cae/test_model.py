@@ -118,3 +118,39 @@ class TestConvAutoencoder:
         mse_trained = ((trained.reconstruct(batch) - batch) ** 2).mean()
         mse_fresh = ((fresh.reconstruct(batch) - batch) ** 2).mean()
         assert mse_trained < mse_fresh
+
+
+class TestStandardisedInput:
+    """``input_norm: standardise`` (the shipped weights'): each image to mean 0.5 and spread 0.25 before the first
+    layer, so the light level of a frame does not reach the code."""
+
+    def test_an_image_and_its_darkened_copy_enter_alike(self, batch):
+        from cae.model import standardise
+
+        dark = batch * 0.3  # the same frames with 30 % of the light
+        torch.testing.assert_close(standardise(dark), standardise(batch), atol=2e-3, rtol=0)
+        x = standardise(batch)
+        assert x.min() >= 0 and x.max() <= 1
+        torch.testing.assert_close(x.mean(dim=(1, 2, 3)), torch.full((3,), 0.5), atol=0.03, rtol=0)  # clipped tails
+        assert standardise(batch[:0]).shape == (0, 3, INPUT_SIZE, INPUT_SIZE)  # empty in, empty out
+        torch.testing.assert_close(standardise(torch.full((1, 3, 8, 8), 0.2)), torch.full((1, 3, 8, 8), 0.5))
+
+    def test_the_shipped_code_of_a_darkened_frame_is_its_day_code(self, encoder, sample_image):
+        """On a real frame brought to 30 % of its light (uint8, as a camera gives it): the shipped weights' code
+        hardly moves; the paper's raw input (the same weights, ``input_norm`` none) moves it."""
+        from cae import encode_images
+
+        day = sample_image(10)
+        night = (day.astype(np.float32) * 0.3).round().astype(np.uint8)
+        assert encoder.input_norm == "standardise"
+        a, b = encode_images(encoder, [day, night])
+        raw = Encoder("none").eval()
+        raw.load_state_dict(encoder.state_dict())
+        c, d = encode_images(raw.to(memory_format=torch.channels_last), [day, night])
+        assert float(a @ b) > 0.99 > float(c @ d)
+
+    def test_an_unknown_input_norm_is_refused(self):
+        from cae_lcd.core.errors import ConfigError
+
+        with pytest.raises(ConfigError, match="input_norm must be one of none, standardise"):
+            Encoder("clahe")

@@ -46,7 +46,7 @@ class TestLoadEncoder:
         save_checkpoint(path, encoder, {"note": "encoder only"})
         ckpt = load_checkpoint(path)
         assert set(ckpt) >= {"format_version", "conf", "state_dict"}
-        assert ckpt["conf"] == {"note": "encoder only"}
+        assert ckpt["conf"] == {"note": "encoder only", "input_norm": encoder.input_norm}  # the encoder's own
         enc2 = load_encoder(path, device="cpu")
         assert enc2.identity == encoder.identity
         with torch.no_grad():
@@ -121,3 +121,27 @@ class TestPackageApi:
         assert cae.CODE_DIM == 4096 and cae.INPUT_SIZE == 256
         for name in cae.__all__:
             assert hasattr(cae, name)
+
+
+class TestInputNormAndStillCos:
+    """What a checkpoint says about reading its input (``input_norm``) and about a still camera (``still_cos``)."""
+
+    def test_the_shipped_and_the_paper_weights_say_what_they_read(self):
+        from cae.weights import RECONSTRUCTION_WEIGHTS, STILL_COS
+
+        shipped, paper = load_encoder(device="cpu"), load_encoder(RECONSTRUCTION_WEIGHTS, device="cpu")
+        assert (shipped.input_norm, paper.input_norm) == ("standardise", "none")  # paper: a conf without the key
+        assert shipped.still_cos < paper.still_cos == STILL_COS
+
+    def test_equal_weights_read_otherwise_are_another_identity(self, encoder):
+        other = Encoder("none")
+        other.load_state_dict(encoder.state_dict())
+        assert encoder_identity(other) != encoder_identity(encoder)
+
+    @pytest.mark.parametrize("conf, match", [({"input_norm": "clahe"}, "input_norm must be one of"),
+                                             ({"still_cos": 1.5}, r"still_cos must be a number in \[0.9, 1\)")])
+    def test_a_bad_value_is_named(self, tmp_path, encoder, conf, match):
+        path = tmp_path / "bad.pt"
+        torch.save({"format_version": 1, "conf": conf, "state_dict": encoder.state_dict()}, path)
+        with pytest.raises(ConfigError, match=match):
+            load_encoder(path, device="cpu")

@@ -210,17 +210,22 @@ def test_robots_that_met_in_their_warm_ups_are_caught_up(tmp_path, kitti_frame, 
     assert not [o for f in found for o in f.overlaps] and not [e for f in found for e in f.edges if e.kind == "overlap"]
 
 
-def test_delayed_loops_become_loop_edges_once(tmp_path, kitti_frame, cae_descriptor, truth):
+def test_delayed_loops_become_loop_edges_once(tmp_path, kitti_frame, cae_descriptor, truth, monkeypatch):
     """One robot on KITTI 90 frames 0-79 then 100-119 (its second pass from the start): the run that accepts the
-    revisit certifies its earlier frames (``FrameResult.confirmed``); each becomes one loop edge, a true pair."""
+    revisit certifies its earlier frames (``FrameResult.confirmed``); each is offered once as a loop edge (made where
+    its similarity can be estimated: here the revisit's first frames have too few 3D points, their nearest stored
+    neighbour being frame 79), every edge a true pair."""
     rec = FleetRecognizer(tmp_path, ONLINE, descriptor=cae_descriptor)
     feed(rec, kitti_frame, [("A", "90", i) for i in range(80)])
-    det, confirmed = rec.robots["A"].detector, []
-    real = det.process
+    det, confirmed, offered = rec.robots["A"].detector, [], []
+    real, add = det.process, FleetRecognizer._add_edge
     det.process = lambda *a, **kw: (lambda res: confirmed.extend(res.confirmed) or res)(real(*a, **kw))
+    monkeypatch.setattr(FleetRecognizer, "_add_edge", lambda self, out, kind, a, b, check:
+                        offered.append((kind, a[1], b[1])) or add(self, out, kind, a, b, check))
     run = feed(rec, kitti_frame, [("A", "90", i) for i in range(100, 120)])
     rec.close()
     loops = [(e.keyframe_a, e.keyframe_b) for _, i, found, _ in run for e in found.edges if e.kind == "loop"]
-    delayed = [(e.keyframe_a, e.keyframe_b) for _, i, found, _ in run for e in found.edges if e.keyframe_b != i]
-    assert confirmed and delayed and set(delayed) <= {(c.frame_id, q) for q, c in confirmed}
-    assert len(loops) == len(set(loops)) and all(frozenset(pair) in truth for pair in loops)
+    delayed = {(c.frame_id, q) for q, c in confirmed}
+    assert confirmed and delayed <= {(a, b) for kind, a, b in offered if kind == "loop"}  # each offered
+    assert len([o for o in offered if o[0] == "loop"]) == len({o for o in offered if o[0] == "loop"})  # once
+    assert loops and len(loops) == len(set(loops)) and all(frozenset(pair) in truth for pair in loops)

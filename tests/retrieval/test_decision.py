@@ -184,9 +184,9 @@ class TestStops:
 
     @staticmethod
     def _stops():
-        from retrieval.calibrate import STILL_COS
+        from cae.weights import load_encoder
 
-        return Stops(STILL_COS)
+        return Stops(load_encoder().still_cos)  # the shipped weights' own
 
     def test_stop_lengths(self, table):
         lengths = self._stops().lengths(np.array([206, 207, 240, 241, 242, 744]), table)
@@ -287,6 +287,7 @@ class TestScoreSpans:
     def _nordland(nordland_codes):
         """``(calibration, null rows, code table, filter)``: the score path calibrated on the real Nordland frames of
         the fixture (a summer and a winter stretch, raw codes)."""
+        from cae.weights import load_encoder
         from retrieval.calibrate import Calibration, _moved, _null_scores, _score_path
         from retrieval.temporal import CodeTable, create_filter
 
@@ -296,7 +297,7 @@ class TestScoreSpans:
         for fid, code in zip(ids, codes):
             table.add(int(fid), code / np.linalg.norm(code))
         filt = create_filter({"name": "sequence"})
-        null = _null_scores(ids, table, filt, 50, _moved(codes), 25)
+        null = _null_scores(ids, table, filt, 50, _moved(codes, load_encoder().still_cos), 25)
         cal = Calibration(tests={"score": 1e6}, expected_false_loops=0.1)
         _score_path(cal, null, filt, table)
         return cal, null, table, filt
@@ -466,6 +467,26 @@ class TestConfirmations:
         assert replayed.keys() == confirmed.keys()
         for q, (r, c) in replayed.items():
             assert r == confirmed[q][0] and c == pytest.approx(confirmed[q][1], abs=1e-4)  # stored as float32
+
+    def test_a_run_does_not_certify_the_frame_before_its_revisit(self, kitti_sequences, tmp_path):
+        """KITTI 90 at 64x32 (the score path; ``detect --lookahead``): two passes joined, the second (100-199)
+        beginning where the first began. A run accepted on the line one frame off the revisit's (offset 99) reads the
+        revisit's windows; its earliest member would be frame 99 on frame 0, the first pass's last frame, which is not
+        that place. Its own window is beaten on a line nearby (``ScoreSpans.localised``): not certified (it was, as a
+        delayed loop, with the shipped weights, before members had to be localised: precision 0.990)."""
+        from bench.aliasing import plain_folder
+        from cae_lcd.evaluation.ground_truth import load_ground_truth
+        from cae_lcd.evaluation.metrics import precision_recall
+        from retrieval.detect import main as detect
+        from retrieval.run_folder import RunFolder
+
+        frames = sorted((kitti_sequences / "90" / "image_0").glob("*.png"))
+        detect(plain_folder(tmp_path / "k90_64", frames, (64, 32)), tmp_path / "run",
+               {"calibration": {"online": False}}, progress=False)
+        loops = RunFolder(tmp_path / "run").read_loops()[:, :2].astype(np.int64)
+        pr = precision_recall(loops, load_ground_truth(kitti_sequences / "90" / "loops.txt").pairs)
+        assert 99 not in loops[:, 0].tolist()
+        assert pr.precision == 1.0 and pr.recall >= 0.95
 
     def test_detect_writes_delayed_loops(self, small, tmp_path):
         """``detect`` on the same frames: the delayed loop is a row of loops.csv (the accepting run's confidence, at
