@@ -192,7 +192,7 @@ def _study_variants(run_dir: Path) -> dict[str, dict[str, Any]]:
     torch.manual_seed(0)
     random_ckpt = run_dir / "random_encoder.pt"
     norm = checkpoint_input_norm(load_checkpoint(DEFAULT_WEIGHTS), DEFAULT_WEIGHTS)
-    save_checkpoint(random_ckpt, Encoder(norm), {"init": "N(0, 0.05), torch.manual_seed(0)", "input_norm": norm})
+    save_checkpoint(random_ckpt, Encoder(norm), {"init": "N(0, 0.05), torch.manual_seed(0)"})  # its input_norm too
     return {"shipped weights": {"name": "cae"},
             "reconstruction only (cae_mixed.pt, the paper's objective)": {"name": "cae",
                                                                            "weights": str(RECONSTRUCTION_WEIGHTS)},

@@ -126,8 +126,9 @@ def load_encoder(path: str | Path | None = None, device: str | torch.device | No
 
     Returns:
         ``Encoder`` in eval mode, channels-last, mapping ``(B, 3, 256, 256)`` in [0, 1] to ``(B, 4096)``.
-        Its ``identity`` attribute is a short hash of the weights (stored in keyframe databases); its ``whitening``
-        attribute is the ``Whitening`` saved with the weights, or None.
+        Its ``identity`` attribute is a short hash of the weights and their ``input_norm`` (stored in keyframe
+        databases); ``input_norm`` and ``still_cos`` are the checkpoint's (``checkpoint_input_norm``,
+        ``checkpoint_still_cos``); ``whitening`` is the ``Whitening`` saved with the weights, or None.
     """
     ckpt = load_checkpoint(path or DEFAULT_WEIGHTS)
     encoder = Encoder(checkpoint_input_norm(ckpt, path or DEFAULT_WEIGHTS))

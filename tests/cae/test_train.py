@@ -463,6 +463,9 @@ class TestPlaceObjective:
         best = load_checkpoint(out / "best.pt")
         assert not same_weights(best["state_dict"], shipped)
         assert best["conf"]["init"] == "shipped" and "whitening" in best  # the whitening saved with the weights
+        shipped_conf = load_checkpoint(cae.DEFAULT_WEIGHTS)["conf"]
+        assert best["conf"]["still_cos"] == shipped_conf["still_cos"] < 0.999  # the init weights' own, carried
+        assert best["conf"]["input_norm"] == shipped_conf["input_norm"] == "standardise"
 
 
 @pytest.mark.parametrize("chunk", [2, 64])
