@@ -57,7 +57,8 @@ verified as in the run), and what a loop looks like: the **positives** (a frame 
   decided on its own evidence). A moving query is not affected. But where the arrival *was* a loop, the stop is that
   place: each still frame after it carries the arrival's loop (``Decision.stop_carry``: to its candidate nearest
   after the loop's keyframe in the reference's own stop, which may begin ``STOP_EDGE`` frame later, with the
-  arrival's confidence; nothing new is claimed).
+  arrival's confidence; nothing new is claimed; the keyframe after the loop's is kept among the frame's hypotheses
+  whatever its rank, ``Decision.carry_to``: a stop's frames all look alike).
 
 Shapes: ``Decision.confidences(query_id, refs (m,) int64, inliers (m,) int64, source) -> (m,) float64``;
 ``Decision.commit(query_id, refs (m,), inliers (m,))``.
@@ -581,6 +582,12 @@ class Decision:
             inside &= after == after[inside].min()
         self._offered = (int(query_id), refs[inside])
         return inside, last[2]
+
+    def carry_to(self, query_id: int) -> np.ndarray:
+        """``(0,)`` or ``(1,)``: the keyframe ``stop_carry`` would carry the frame before's loop to first (the one after
+        its keyframe), kept among the frame's hypotheses whatever its rank; empty where the frame before was no loop."""
+        last = self._last_loop
+        return np.array([last[1] + 1] if last is not None and last[0] == query_id - 1 else [], np.int64)
 
     def note_loop(self, query_id: int, ref: int | None, confidence: float = 0.0) -> None:
         """Records the decision of frame ``query_id`` (its loop's keyframe, or None) for ``stop_carry``: a loop to

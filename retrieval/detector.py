@@ -11,8 +11,9 @@ default, searched by cosine; MILD's ORB descriptors, searched by multi-index has
     frame_id    int
     gated       bool          True when the quality gate rejected the frame (nothing else ran)
     edge_ratio  float         the gate's edge-pixel ratio
-    candidates  list[Candidate]  top-k hypotheses (recent keyframes excluded) with score, seq_score, matches,
-                                 inliers and confidence
+    candidates  list[Candidate]  top-k hypotheses (recent keyframes excluded; and the one a stop carries the frame
+                                 before's loop to, ``Decision.carry_to``) with score, seq_score, matches, inliers
+                                 and confidence
     loop        Candidate | None  the accepted match, if any
     confirmed   list[(int, Candidate)]  delayed loops (calibrated, verified): the run of consecutive frames on one
                                  offset that accepted ``loop`` certifies its earlier members; ``(earlier frame_id,
@@ -636,7 +637,10 @@ class LoopDetector:
         ms["search"] = (time.perf_counter() - t0) * 1e3
         t0 = time.perf_counter()
         hyp, seq = self.filter.update(fid, ids, self.places.source)
-        hyp, seq = hyp[:k], seq[:k]
+        kept = np.arange(len(hyp)) < k  # the top k, and the keyframe a stop would carry the frame before's loop to
+        if self.decision is not None:  # (a reference stop's frames all look alike: its rank among them is noise)
+            kept |= np.isin(hyp, self.decision.carry_to(fid))
+        hyp, seq = hyp[kept], seq[kept]
         single = self.places.source.pairs(np.full(len(hyp), fid), hyp)
         candidates = [Candidate(int(i), float(s), seq_score=float(q)) for i, s, q in zip(hyp, single, seq)]
         ms["filter"] = (time.perf_counter() - t0) * 1e3

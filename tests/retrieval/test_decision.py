@@ -252,6 +252,39 @@ class TestStops:
             dec.note_loop(q, q - 500, 9.0)
         assert not dec.stop_carry(742, np.array([242, 243]), table)[0].any()
 
+class TestStopCarryThroughTheDetector:
+    """``Decision.carry_to``: the keyframe a stop would carry the frame before's loop to stays among the frame's
+    hypotheses whatever its rank (a reference stop's frames all look alike: their order among the top k is noise)."""
+
+    def test_carry_to_names_the_keyframe_after_the_frame_befores(self):
+        dec = Decision(None, TailModel(0.0, 1.0), 1.0, 1.0, False)
+        assert dec.carry_to(725).tolist() == []  # no loop yet
+        dec.note_loop(724, 224, 9.0)
+        assert dec.carry_to(725).tolist() == [225] and dec.carry_to(726).tolist() == []  # only the next frame
+        dec.note_loop(725, None)
+        assert dec.carry_to(726).tolist() == []
+
+    def test_a_winter_stop_is_carried_to_its_end(self, tmp_path):
+        """Nordland summer 100-299 and winter 600-799 (``detect --lookahead``, the score path): the winter train waits
+        706-745 in the station the summer train waited in (207-241). Its loop, carried frame by frame, ran out at 722
+        when summer's next stop frame fell out of the top 10 (measured); kept, it reaches 741, every loop true."""
+        from bench.aliasing import plain_folder
+        from cae_lcd.evaluation.ground_truth import read_loop_pairs
+        from retrieval.detect import main as detect
+        from retrieval.run_folder import RunFolder
+        from tests.conftest import NORDLAND
+
+        if not (NORDLAND / "images").is_dir():
+            pytest.skip(f"shared Nordland data not found at {NORDLAND}")
+        frames = [*range(100, 300), *range(600, 800)]
+        folder = plain_folder(tmp_path / "seq", [NORDLAND / "images" / f"{i:06d}.png" for i in frames])
+        detect(folder, tmp_path / "run", {"calibration": {"online": False}}, progress=False)
+        loops = [(frames[int(q)], frames[int(r)]) for q, r in RunFolder(tmp_path / "run").read_loops()[:, :2]]
+        truth = set(map(tuple, read_loop_pairs(NORDLAND / "loops.txt").tolist()))
+        assert [pair for pair in loops if pair not in truth] == []
+        assert set(range(723, 742)) <= {q for q, _ in loops}
+
+
 class TestScoreSpans:
     """The score path fuses consecutive windows on one line (``ScoreSpans``), each window's evidence read from the
     measured null (issue 27: no p-value below ``1 / (n + 1)`` of its sample)."""
