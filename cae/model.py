@@ -91,7 +91,8 @@ class Encoder(nn.Module):
         return self.features(self.network_input(x))
 
     def network_input(self, x: torch.Tensor) -> torch.Tensor:
-        """``(B, 3, 256, 256)`` in [0, 1] -> what the first layer reads (``input_norm``; the reconstruction's target)."""
+        """``(B, 3, 256, 256)`` in [0, 1] -> what the first layer reads (``input_norm``); the reconstruction's
+        target."""
         return standardise(x) if self.input_norm == "standardise" else x
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:

@@ -107,8 +107,9 @@ def _encoder_state(state_dict: dict[str, torch.Tensor]) -> dict[str, torch.Tenso
 
 def load_autoencoder(path: str | Path | None = None, device: str | torch.device | None = None) -> ConvAutoencoder:
     """The full autoencoder from a checkpoint (default: the shipped weights), in eval mode."""
-    ckpt = load_checkpoint(path or DEFAULT_WEIGHTS)
-    model = ConvAutoencoder(checkpoint_input_norm(ckpt, path or DEFAULT_WEIGHTS))
+    path = path or DEFAULT_WEIGHTS
+    ckpt = load_checkpoint(path)
+    model = ConvAutoencoder(checkpoint_input_norm(ckpt, path))
     try:
         model.load_state_dict(ckpt["state_dict"], strict=True)
     except RuntimeError as err:
@@ -130,15 +131,16 @@ def load_encoder(path: str | Path | None = None, device: str | torch.device | No
         databases); ``input_norm`` and ``still_cos`` are the checkpoint's (``checkpoint_input_norm``,
         ``checkpoint_still_cos``); ``whitening`` is the ``Whitening`` saved with the weights, or None.
     """
-    ckpt = load_checkpoint(path or DEFAULT_WEIGHTS)
-    encoder = Encoder(checkpoint_input_norm(ckpt, path or DEFAULT_WEIGHTS))
+    path = path or DEFAULT_WEIGHTS
+    ckpt = load_checkpoint(path)
+    encoder = Encoder(checkpoint_input_norm(ckpt, path))
     try:
         encoder.load_state_dict(_encoder_state(ckpt["state_dict"]), strict=True)
     except RuntimeError as err:
         raise ConfigError(f"weights {path} do not fit the encoder: {str(err).splitlines()[0]}") from None
     encoder.identity = encoder_identity(encoder)
-    encoder.still_cos = checkpoint_still_cos(ckpt, path or DEFAULT_WEIGHTS)
-    encoder.whitening = checkpoint_whitening(ckpt, path or DEFAULT_WEIGHTS)
+    encoder.still_cos = checkpoint_still_cos(ckpt, path)
+    encoder.whitening = checkpoint_whitening(ckpt, path)
     dev = resolve_device(device)
     return encoder.to(dev, memory_format=torch.channels_last).eval()
 

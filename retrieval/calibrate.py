@@ -6,8 +6,8 @@ Before a run, the calibration looks at the sequence itself (``cae-lcd calibrate 
 1. **The gate's reference**: the median edge ratio of the sequence (``verify.gate``, relative mode).
 2. **The code normalisation**: PCA-whitening fitted on the sequence's own codes (``cae.whitening``), each place
    weighed once: with ``whitening.skip_still`` (the default) a stop, the frames where the camera stood still (raw
-   code unchanged from the frame before, cosine >= the weights' ``GlobalDescriptor.still_cos``), counts as its first frame only, not as often as
-   the robot waited there (on Nordland 176 of 985 frames are three stations; fitted on them all, the whitening spends
+   code unchanged from the frame before, cosine >= the weights' ``GlobalDescriptor.still_cos``), counts as its first
+   frame only, not as often as the robot waited there (on Nordland 176 of 985 frames are three stations; fitted on them all, the whitening spends
    its variance on those few places and the waiting frames find no match); with ``whitening.source: weights``, the
    one ``cae-lcd train`` fitted on the training images and saved with the weights.
 3. **The null distributions**: frames on the far side of the exclusion window (from half of ``search.exclude_recent``
@@ -723,9 +723,9 @@ def _whitening(wconf: dict[str, Any], descriptor: GlobalDescriptor, codes: np.nd
 
 def _moved(codes: np.ndarray, still_cos: float = STILL_COS) -> np.ndarray:
     """``(n,)`` bool: False for a code the same as the one before it (cosine >= ``still_cos``, the weights' own
-    ``GlobalDescriptor.still_cos``: the camera stood still). Far-side pairs between which the camera stood still are one place, not pairs known not to be loops;
-    with ``whitening.skip_still`` the whitening leaves such frames out too (a robot waiting at a station would weigh
-    that one place as often as it waited)."""
+    ``GlobalDescriptor.still_cos``: the camera stood still). Far-side pairs between which the camera stood still are
+    one place, not pairs known not to be loops; with ``whitening.skip_still`` the whitening leaves such frames out too
+    (a robot waiting at a station would weigh that one place as often as it waited)."""
     unit = codes / np.maximum(np.linalg.norm(codes, axis=1, keepdims=True), 1e-12)
     return np.r_[True, np.einsum("ij,ij->i", unit[1:], unit[:-1]) < still_cos]
 

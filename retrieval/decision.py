@@ -498,8 +498,8 @@ class Decision:
     def _window_members(self, query_id: int, ref: int, source: Any) -> list[tuple[int, int]]:
         """The score path's ``run_members``: the frames of the accepted span (``ScoreSpans.best_run``: ``m`` windows,
         ``m * window`` frames on the line ``query_id - ref``) whose own window is localised on it, each with its
-        keyframe on that line (one frame off at most); empty where the run does not reach ``accept_at`` or the score path does not fuse (``source``: the
-        code store the windows are scored on)."""
+        keyframe on that line (one frame off at most); empty where the run does not reach ``accept_at`` or the score
+        path does not fuse (``source``: the code store the windows are scored on)."""
         if self.spans is None or source is None:
             return []
         value, frames = self.spans.best_run(query_id, ref, source)

@@ -417,13 +417,12 @@ class TestReversedLines:
 
     def test_far_look_alikes_join_the_null(self, monkeypatch):
         """Nordland's 1000 real frames (64x32: the score path) under a code that makes stretches far apart look alike
-        (each image standardised before the reconstruction-only encoder, ``cae_mixed.pt``, not trained so: a proxy,
-        BENCHMARKS.md): with the far-side pairs alone
-        as the null, summer frames 443 and 449 close on summer 262 and 268, 181 frames back, where the railway has no
-        revisit (summer is one traversal); with the reversed lines joined, no summer frame closes on another, and the
-        summer -> winter revisits are still found (measured: 375 of the 500 winter queries)."""
-        import torch
-
+        (the reconstruction-only weights, ``cae_mixed.pt``, reading standardised images they were not trained on: a
+        proxy, BENCHMARKS.md): with the far-side pairs alone as the null, summer frames 443 and 449 close on summer 262
+        and 268, 181 frames back, where the railway has no revisit (summer is one traversal); with the reversed lines
+        joined, no summer frame closes on another, and the summer -> winter revisits are still found (measured: 375 of
+        the 500 winter queries)."""
+        from cae.model import Encoder
         from cae.weights import RECONSTRUCTION_WEIGHTS, load_encoder
         from cae_lcd.core.images import read_image
         from retrieval.calibrate import calibrate
@@ -435,18 +434,11 @@ class TestReversedLines:
         if not (NORDLAND / "images").is_dir():
             pytest.skip(f"shared Nordland data not found at {NORDLAND}")
 
-        class Standardised(torch.nn.Module):
-            def __init__(self, inner):
-                super().__init__()
-                self.inner = inner
-
-            def forward(self, x):
-                mean, std = x.mean(dim=(1, 2, 3), keepdim=True), x.std(dim=(1, 2, 3), keepdim=True).clamp_min(1e-3)
-                return self.inner(((x - mean) / std * 0.25 + 0.5).clamp(0, 1))
-
+        proxy = Encoder("standardise").eval()
+        proxy.load_state_dict(load_encoder(RECONSTRUCTION_WEIGHTS, "cpu").state_dict())
         images = [read_image(NORDLAND / "images" / f"{i:06d}.png") for i in range(1000)]
         conf, filt = resolve_conf({}), create_filter({"name": "sequence"})
-        descriptor = create_descriptor({"name": "cae"}, encoder=Standardised(load_encoder(RECONSTRUCTION_WEIGHTS, "cpu")))
+        descriptor = create_descriptor({"name": "cae"}, encoder=proxy)
         codes = dict(enumerate(descriptor.encode_batch(images)))
         truth = load_ground_truth(NORDLAND / "loops.txt").pairs
         ids = np.arange(1000)
