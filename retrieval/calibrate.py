@@ -116,7 +116,7 @@ from .descriptors import GlobalDescriptor
 from .temporal import PAIR_CHUNK, CodeTable, NoFilter, SequenceFilter, TemporalFilter
 
 __all__ = ["Calibration", "TooFewFrames", "CALIBRATION_FORMAT", "calibrate", "calibrated_features", "run_needed",
-           "calibration_frames", "far_side_scores", "score_level"]
+           "calibration_frames", "far_side_scores", "camera_moved", "score_level"]
 
 log = logging.getLogger(__name__)
 
@@ -416,7 +416,7 @@ def _null_scores(ids: np.ndarray, table: CodeTable, filt: TemporalFilter, window
                  moved: np.ndarray | None = None, min_apart: int = 1) -> np.ndarray:
     """``(query, ref, score)`` rows for every far-side pair: ``window // 2 <= query - ref < window``, leaving out
     the pairs whose line passes two frames between which the camera stood still (``moved``: ``(n,)`` bool by position
-    in ``ids``, ``_moved``): the pair moved back together over the frames its fused score reads (``SPAN`` windows of
+    in ``ids``, ``camera_moved``): the pair moved back together over the frames its fused score reads (``SPAN`` windows of
     the filter's ``length``) must have moved apart at every step; a pair at one stop is one place, not a pair known
     not to be a loop, and its line would carry that place into the nulls' tails."""
     ids = np.asarray(ids, np.int64)
@@ -443,17 +443,17 @@ def _null_scores(ids: np.ndarray, table: CodeTable, filt: TemporalFilter, window
     return np.concatenate(out)
 
 
-def far_side_scores(ids: np.ndarray, table: CodeTable, filt: TemporalFilter, window: int,
-                    still_cos: float = STILL_COS, newest: int = 0) -> np.ndarray:
+def far_side_scores(ids: np.ndarray, table: CodeTable, filt: TemporalFilter, window: int, moved: np.ndarray,
+                    newest: int = 0) -> np.ndarray:
     """``(n,)`` temporal scores of the far-side pairs of keyframes ``ids`` (``window // 2 <= query - ref <
-    window``, both in ``ids``; pairs through a stop, adjacent codes at least ``still_cos`` alike, left out; with
-    ``newest``, only those whose query is among the ``newest`` last ids): what the nulls are drawn from, for a stream
-    that checks a calibration against its newest frames (``retrieval.online``)."""
+    window``, both in ``ids``; pairs through a stop left out: ``moved (len(ids),)`` bool, False where the camera
+    stood still, ``camera_moved`` of the raw codes as a fit reads them; with ``newest``, only those whose query is among
+    the ``newest`` last ids): what the nulls are drawn from, for a stream that checks a calibration against its
+    newest frames (``retrieval.online``)."""
     ids = np.asarray(ids, np.int64)
     if len(ids) < 2:
         return np.zeros(0)
-    moved = np.r_[True, table.pairs(ids[1:], ids[:-1]) < still_cos]
-    rows = _null_scores(ids, table, filt, window, moved)
+    rows = _null_scores(ids, table, filt, window, np.asarray(moved, bool))
     if newest and len(rows):
         rows = rows[rows[:, 0] >= ids[-min(newest, len(ids))]]
     return rows[:, 2] if len(rows) else np.zeros(0)
@@ -467,7 +467,7 @@ def _reversed_lines(ids: np.ndarray, table: CodeTable, filt: TemporalFilter, win
     one frame at most, so every reversed line is known not to be a loop at any distance, where look-alike stretches
     recur (a railway's forest, a corridor's doors) and the far-side pairs, ``window // 2`` to ``window`` frames back,
     do not reach. Each line's frames, over ``SPAN`` windows of the filter's ``length``, stay ``window // 2`` moved
-    frames apart (``moved``: ``(n,)`` bool by position in ``ids``, ``_moved``); its query is at least ``newest`` (the
+    frames apart (``moved``: ``(n,)`` bool by position in ``ids``, ``camera_moved``); its query is at least ``newest`` (the
     frames the near null's queries are drawn from); at most ``REVERSED_LINES`` of them, a seeded sample. None for a
     filter that also follows reverse revisits (a velocity <= 0), one without lines (``bayes``) or whose window is one
     frame (``none``, a sequence of ``length`` 1: one pair read backwards is the pair itself, a revisit among them).
@@ -586,7 +586,7 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
                          f"({gate.conf['relative']:g} x median) are gated: {len(images) - len(raw)} of {len(images)}")
     ids = np.array(sorted(raw), np.int64)
     codes = np.stack([raw[i] for i in ids])
-    moved = _moved(codes, descriptor.still_cos)  # False where the camera stood still (the code did not change)
+    moved = camera_moved(codes, descriptor.still_cos)  # False where the camera stood still (the code did not change)
     cal.whitening = _whitening(conf["whitening"], descriptor, codes, cal.notes, moved)
     normed = cal.whitening.transform(codes) if cal.whitening is not None else codes
     table = CodeTable.fixed(ids, normed)
@@ -686,7 +686,7 @@ def _stretch(cal: Calibration, ids: np.ndarray, table: CodeTable, moved: np.ndar
 
 
 def _still_cos(adjacent: np.ndarray, still: np.ndarray, ceiling: float = STILL_COS) -> float:
-    """The normalised cosine that best reproduces the raw codes' verdict (``_moved``) on the adjacent frames
+    """The normalised cosine that best reproduces the raw codes' verdict (``camera_moved``) on the adjacent frames
     (``adjacent`` ``(n,)`` cosines, ``still`` ``(n,)`` bool): the fewest pairs on the wrong side, the lowest such cosine
     (every still pair still where they agree), at most ``ceiling`` (the raw codes' own, ``GlobalDescriptor.still_cos``;
     returned where the camera never stood still)."""
@@ -701,7 +701,7 @@ def _still_cos(adjacent: np.ndarray, still: np.ndarray, ceiling: float = STILL_C
 def _whitening(wconf: dict[str, Any], descriptor: GlobalDescriptor, codes: np.ndarray, notes: list[str],
                moved: np.ndarray) -> Whitening | None:
     """The code normalisation (see the module doc); with ``whitening.skip_still``, fitted on the codes of frames
-    where the camera moved (``moved``, ``_moved``) when there are enough of them."""
+    where the camera moved (``moved``, ``camera_moved``) when there are enough of them."""
     if not wconf["enabled"]:
         notes.append(f"codes: raw {codes.shape[1]}-d cosine (whitening.enabled: false)")
         return None
@@ -721,7 +721,7 @@ def _whitening(wconf: dict[str, Any], descriptor: GlobalDescriptor, codes: np.nd
     return white
 
 
-def _moved(codes: np.ndarray, still_cos: float = STILL_COS) -> np.ndarray:
+def camera_moved(codes: np.ndarray, still_cos: float = STILL_COS) -> np.ndarray:
     """``(n,)`` bool: False for a code the same as the one before it (cosine >= ``still_cos``, the weights' own
     ``GlobalDescriptor.still_cos``: the camera stood still). Far-side pairs between which the camera stood still are
     one place, not pairs known not to be loops; with ``whitening.skip_still`` the whitening leaves such frames out too
@@ -773,7 +773,7 @@ def _out_of_sample(cal: Calibration, wconf: dict[str, Any], descriptor: GlobalDe
                    ids: np.ndarray, codes: np.ndarray, moved: np.ndarray, window: int, held_out: float,
                    purpose: str) -> tuple[CodeTable, np.ndarray]:
     """The score path's nulls measured out of sample (issue 27), for a whitening fitted on every frame ``ids (n,)``
-    (raw ``codes (n, D)``, ``moved (n,)`` as ``_moved``) that decides the frames after them: a second whitening is
+    (raw ``codes (n, D)``, ``moved (n,)`` as ``camera_moved``) that decides the frames after them: a second whitening is
     fitted on the frames before the newest ones that hold the share ``held_out`` of the frames where the camera moved
     (a stop holds no null pair), and the nulls are the far-side pairs (far apart in moved frames; ``window``:
     ``search.exclude_recent``) whose query is one of those newest frames, scored under it. A whitening fitted on few

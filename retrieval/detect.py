@@ -20,6 +20,7 @@ from __future__ import annotations
 import functools
 import logging
 import time
+from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Iterator
@@ -59,6 +60,7 @@ def stage_stats(timings: list[dict[str, float]]) -> dict[str, dict[str, float]]:
             for s in STAGES if full and all(s in t for t in full)}
 
 
+PREFETCH = 2  #: frames after the current one whose local features are extracted ahead (``prefetch_features``)
 Ahead = tuple[np.ndarray | ImageError, str, np.ndarray | None]  #: (image or why not, fingerprint, raw code or None)
 
 
@@ -95,6 +97,19 @@ def _ahead(seq: Sequence, ids: list[int], descriptor: GlobalDescriptor | None = 
             current = pending.result()
             pending = pool.submit(_read_and_encode, seq, nxt, descriptor) if nxt is not None else None
             yield from current
+
+
+def _looking_ahead(items: Iterator[Ahead], n: int) -> Iterator[tuple[Ahead, list[Ahead]]]:
+    """Each item with the (up to) ``n`` items after it."""
+    window: deque[Ahead] = deque()
+    for item in items:
+        window.append(item)
+        if len(window) > n:
+            current = window.popleft()
+            yield current, list(window)
+    while window:
+        current = window.popleft()
+        yield current, list(window)
 
 
 def _frame_again(seq: Sequence, frame_id: int) -> np.ndarray:
@@ -215,7 +230,13 @@ def _run_frames(det: LoopDetector, seq: Sequence, start: int, progress: bool,
     n_loops = 0
     todo = list(range(start, len(seq)))
     encoder = _batch_encoder(det.descriptor) if len(codes) < len(todo) else None
-    for i, (image, print_, code) in zip(bar, _ahead(seq, todo, encoder)):
+    for i, ((image, print_, code), upcoming) in zip(bar, _looking_ahead(_ahead(seq, todo, encoder), PREFETCH)):
+        for k, (later, _, _) in enumerate(upcoming, start=i + 1):
+            if not isinstance(later, ImageError):
+                try:
+                    det.prefetch_features(later, k)  # extracted beside this frame's verification
+                except ImageError:  # reported when that frame is processed
+                    pass
         name = seq.frame_name(i)
         code = codes.pop(i, code)
         if not isinstance(image, ImageError):

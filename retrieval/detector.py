@@ -70,6 +70,7 @@ __all__ = ["Candidate", "FrameResult", "LoopDetector", "weights_whitening", "STA
 
 log = logging.getLogger(__name__)
 
+MAX_PREFETCHED = 8  #: frames ``LoopDetector.prefetch_features`` holds at most (their images and extraction jobs)
 LATE_BATCH = 256  #: pairs verified late at a refit at a time (``LoopDetector._verify_late``: their features held)
 STAGES = ("gate", "encode", "features", "search", "filter", "verify", "insert", "total")  #: keys of ``FrameResult.ms``
 
@@ -370,6 +371,8 @@ class LoopDetector:
         self._pool = BesideExecutor(thread_name_prefix="verify") \
             if c["runtime"]["verify_worker"] and (self._verify or online) else None
         self._wanted = False  # whether the previous frame's query needed its local features
+        #: ``prefetch_features``' frames: id -> (the image given, as uint8, grey, its prepared image once)
+        self._ahead: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, Callable[[], Any]]] = {}
         self._delayed: dict[int, tuple[int, float]] = {}  # online: delayed loops reported, {frame: (keyframe, conf)}
         self._refitted: bool | None = None  # online: this keyframe's step adopted a decision (True: and rewhitened)
         self.features = FeatureStore(self.db if c["runtime"]["features"] in ("database", "image") else None,
@@ -514,10 +517,8 @@ class LoopDetector:
             code = self._given_code(code)
         ms: dict[str, float] = {}
         t_start = t0 = time.perf_counter()
-        image8 = to_uint8(image)  # once: 16-bit and float frames are scanned and scaled here only
-        gray = to_gray_u8(image8)
+        image8, gray, prep = self._prepared_frame(fid, image)
         net = to_network_u8(image8) if code is None else None  # the encoder's input
-        prep = self._prepare_once(gray)
         if self._jobs is not None and fid not in self._given and (not self._lazy or self._wanted):
             self._jobs.submit(fid, functools.partial(_own_features, prep), urgent=True)  # the worker starts now
         gate = self.gate(gray)
@@ -652,6 +653,62 @@ class LoopDetector:
                 feats = self._own(fid, prep) if self._verify or self._online is not None else self._no_features()
             ms["features"] = ms["features_wait"] = (time.perf_counter() - t0) * 1e3  # what the frame waited
         return feats, code, entry, candidates
+
+    def prefetch_features(self, image: np.ndarray, frame_id: int) -> bool:
+        """Starts extracting the local features of a frame still to come, on the feature worker, where the stream
+        wants them (``runtime.lazy_features`` off, or the frame processed last verified a candidate): ``process``
+        with this same ``image`` object and ``frame_id`` then takes them as its own. A caller holding the next frames
+        (``cae-lcd detect`` reads ahead) calls it for them before ``process`` of the current one, so that their
+        extraction runs while this one is verified. At most ``MAX_PREFETCHED`` frames are held (later calls are
+        refused); ``process`` of a frame drops those of earlier ids, and a prefetch of the same id with another
+        image (its job too). Nothing is decided or stored here.
+
+        Returns:
+            True when the frame's extraction is started (now or by an earlier call with the same image).
+
+        Raises:
+            ImageError: ``image`` is not an image array ``process`` takes.
+            ConfigError: ``frame_id`` is not an id after the last frame processed, or the detector is closed.
+        """
+        fid = self._frame_id(frame_id)
+        check_image(image, "image")
+        held = self._ahead.get(fid)
+        if held is not None and held[0] is image:
+            return True
+        self._drop_ahead(lambda f: f == fid)
+        if self._jobs is None or fid in self._given or fid in self._jobs or not (not self._lazy or self._wanted) \
+                or len(self._ahead) >= MAX_PREFETCHED:
+            return False
+        image8 = to_uint8(image)
+        gray = to_gray_u8(image8)
+        prep = self._prepare_once(gray)
+        self._ahead[fid] = (image, image8, gray, prep)
+        self._jobs.submit(fid, functools.partial(_own_features, prep))
+        return True
+
+    def _prepared_frame(self, fid: int, image: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray, Callable[[], tuple[np.ndarray, float, bytes]]]:
+        """``(image as uint8, grey uint8, its features' prepared image once)`` of frame ``fid``: those of
+        ``prefetch_features`` when it was called with this image and id, else made here; the prefetches of this
+        frame with another image and of earlier frames dropped."""
+        held = self._ahead.pop(fid, None)
+        if held is not None and held[0] is not image:
+            self._jobs.drop(fid)
+            held = None
+        self._drop_ahead(lambda f: f < fid)
+        if held is not None:
+            return held[1], held[2], held[3]
+        image8 = to_uint8(image)  # once: 16-bit and float frames are scanned and scaled here only
+        gray = to_gray_u8(image8)
+        return image8, gray, self._prepare_once(gray)
+
+    def _drop_ahead(self, which: Callable[[int], bool]) -> None:
+        """Forgets the prefetched frames ``which`` says and their extraction jobs (their features would be other
+        images')."""
+        for fid in [f for f in self._ahead if which(f)]:
+            del self._ahead[fid]
+            if self._jobs is not None:
+                self._jobs.drop(fid)
 
     def _prepare_once(self, gray: np.ndarray) -> Callable[[], tuple[np.ndarray, float, bytes]]:
         """``() -> (image, scale, copy)``, computed once (by whichever thread asks first): the grey image a frame's
@@ -827,7 +884,8 @@ class LoopDetector:
             return []
         if step == "check" or on.unchecked:
             carried, on.unchecked = on.unchecked, False
-            z = on.drift(self.places.source, self.filter, 0 if carried else None)  # a prior: the whole warm-up
+            # a prior is checked on the whole warm-up
+            z = on.drift(self.places.source, self.filter, self.descriptor.still_cos, 0 if carried else None)
             if z <= DRIFT_Z:
                 on.next_fit = on.next_fit if not carried else 2 * len(on.seen)
                 if carried:
@@ -853,7 +911,8 @@ class LoopDetector:
         """Makes ``cal`` (fitted on the stream) the run's: the gate's reference, the index moved into its whitening,
         the decision, what is verified."""
         self._install(cal, cal.whitening is not self.places.whitening)
-        self._verify = self._online.adopt(cal, self.places.source, self.filter) and bool(cal.inlier_null)
+        self._verify = self._online.adopt(cal, self.places.source, self.filter, self.descriptor.still_cos) \
+            and bool(cal.inlier_null)
 
     def _install(self, cal: Calibration, rewhiten: bool) -> None:
         """``cal`` the run's calibration and the gate's reference; with ``rewhiten`` every keyframe moved into its
@@ -1052,6 +1111,7 @@ class LoopDetector:
     def close(self) -> None:
         """Flushes and closes the database and stops the worker thread; ``process`` refuses to run afterwards."""
         self._closed = True
+        self._ahead.clear()
         if self._jobs is not None:
             self._jobs.close()
             self._jobs = None

@@ -113,6 +113,11 @@ class FeatureJobs:
             raise task.error
         return task.result
 
+    def drop(self, frame_id: int) -> None:
+        """Forgets ``frame_id``'s job (queued, running or done): its result is never taken."""
+        with self._lock:
+            self._tasks.pop(int(frame_id), None)
+
     def _trim(self) -> None:
         """Drops the oldest finished results past ``keep`` (under the lock)."""
         done = [fid for fid, task in self._tasks.items() if task.done.is_set()]

@@ -102,7 +102,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .calibrate import Calibration, TooFewFrames, calibrate, calibration_frames, far_side_scores, score_level
+from .calibrate import (Calibration, TooFewFrames, calibrate, calibration_frames, camera_moved, far_side_scores,
+                        score_level)
 from .descriptors import GlobalDescriptor
 from .temporal import CodeTable, TemporalFilter, create_filter
 
@@ -232,16 +233,16 @@ class OnlineCalibration:
             self.record(fid, ratios[fid], codes[fid], arrays["refs"][lo:hi], arrays["matches"][lo:hi],
                         arrays["inliers"][lo:hi], bool(reported))
 
-    def drift(self, table: CodeTable, filt: TemporalFilter, newest: int | None = None) -> float:
+    def drift(self, table: CodeTable, filt: TemporalFilter, still_cos: float, newest: int | None = None) -> float:
         """How far (in the calibration's sigmas) the far-side scores of the ``newest`` keyframes (default: half a
         window; 0: every keyframe seen, a carried calibration's check at the end of the warm-up) lie above the level
-        the calibration measured (``table``: the codes as searched, under its whitening); ``inf`` without a
-        level."""
+        the calibration measured (``table``: the codes as searched, under its whitening; pairs through a stop, raw
+        codes ``still_cos`` alike, left out as a fit leaves them); ``inf`` without a level."""
         if self.level is None:
             return float("inf")
         hold = max(self.window // 2, 1) if newest is None else newest
         ids = np.array([s.frame_id for s in (self.seen[-(self.window + hold):] if hold else self.seen)], np.int64)
-        scores = far_side_scores(ids, table, filt, self.window, newest=hold)
+        scores = far_side_scores(ids, table, filt, self.window, self._moved(ids, still_cos), newest=hold)
         if len(scores) < 20:
             return 0.0
         return float((np.median(scores) - self.level[0]) / max(self.level[1], 1e-6))
@@ -276,10 +277,11 @@ class OnlineCalibration:
                  "at %d", n, len(ids), cal.path, _null_size(cal), thr or "runs of frames", self.next_fit)
         return cal
 
-    def adopt(self, cal: Calibration, table: CodeTable, filt: TemporalFilter) -> bool:
+    def adopt(self, cal: Calibration, table: CodeTable, filt: TemporalFilter, still_cos: float) -> bool:
         """Makes ``cal`` the stream's calibration; its level is measured on the stream's far-side pairs (``table``:
-        the codes already moved into its whitening). It decides (``ready``, returned) on the inlier path, and on the
-        score path only with ``SCORE_PATH_DECIDES`` (else nothing is accepted: one log line)."""
+        the codes already moved into its whitening; stops as ``drift`` reads them). It decides (``ready``, returned)
+        on the inlier path, and on the score path only with ``SCORE_PATH_DECIDES`` (else nothing is accepted: one
+        log line)."""
         self.calibration, self.ready = cal, cal.path == "inliers" or SCORE_PATH_DECIDES
         if not self.ready:
             log.info("online calibration at %d keyframes: the score path (too few local features to verify) decides "
@@ -288,9 +290,15 @@ class OnlineCalibration:
         self.level = cal.far_side_level()  # out of sample, as the frames the checks read (the inlier path)
         if self.level is None:  # the score path: in sample, the stricter check (the codes are its only evidence)
             ids = np.array([s.frame_id for s in self.seen], np.int64)
-            self.level = score_level(far_side_scores(ids[-min(len(ids), self.conf["calibration"]["max_frames"]):],
-                                                     table, filt, self.window))
+            ids = ids[-min(len(ids), self.conf["calibration"]["max_frames"]):]
+            self.level = score_level(far_side_scores(ids, table, filt, self.window, self._moved(ids, still_cos)))
         return self.ready
+
+    def _moved(self, ids: np.ndarray, still_cos: float) -> np.ndarray:
+        """``(len(ids),)`` bool: False where the camera stood still (``camera_moved`` of their raw codes, as a fit
+        reads them)."""
+        return camera_moved(np.stack([self.codes[int(i)] for i in ids]).astype(np.float32), still_cos) if len(ids) \
+            else np.zeros(0, bool)
 
 
 def _null_size(cal: Calibration) -> int:

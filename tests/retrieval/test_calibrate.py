@@ -275,11 +275,11 @@ class TestStops:
 
     @staticmethod
     def _summer(nordland_codes, still_cos):
-        from retrieval.calibrate import _moved
+        from retrieval.calibrate import camera_moved
 
         ids = np.array([i for i in sorted(nordland_codes) if i < 500], np.int64)
         codes = np.stack([nordland_codes[int(i)] for i in ids])
-        return ids, codes, _moved(codes, still_cos)
+        return ids, codes, camera_moved(codes, still_cos)
 
     def test_no_null_line_through_a_stop(self, nordland_codes, encoder):
         from retrieval.calibrate import _null_scores
@@ -296,6 +296,25 @@ class TestStops:
         assert (200, 160) in pairs and len(pairs) > 500  # far from the stop: a null pair
         assert (250, 220) not in pairs  # the camera moved between them, but their line runs through the stop
         assert not any({q - t, r - t} <= stop for q, r in pairs for t in range(back))
+
+    def test_far_side_scores_see_the_stop_in_the_raw_codes(self, nordland_codes, encoder):
+        """The stream's drift checks (``far_side_scores``) leave out the pairs through a stop as a fit does, from the
+        raw codes at the weights' ``still_cos``: read from the whitened codes at the default ``STILL_COS`` (as the
+        checks did), most of the stop's frames looked moved and its lines stayed in their null."""
+        from cae.weights import STILL_COS
+        from cae.whitening import Whitening
+        from retrieval.calibrate import far_side_scores
+        from retrieval.temporal import CodeTable, create_filter
+
+        ids, codes, moved = self._summer(nordland_codes, encoder.still_cos)
+        white = Whitening.fit(codes).transform(codes)
+        unit = white / np.linalg.norm(white, axis=1, keepdims=True)
+        whitened_moved = np.r_[True, np.einsum("ij,ij->i", unit[1:], unit[:-1]) < STILL_COS]
+        at_stop = (ids > 206) & (ids < 242)
+        assert (~moved[at_stop]).sum() >= 30 and (~whitened_moved[at_stop]).sum() < 15
+        table, filt = CodeTable.fixed(ids, white), create_filter({"name": "sequence"})
+        kept = far_side_scores(ids, table, filt, 50, moved)
+        assert 500 < len(kept) < len(far_side_scores(ids, table, filt, 50, whitened_moved)) - 100
 
     def test_null_lines_scored_in_bulk_as_pair_by_pair(self, nordland_codes, encoder, monkeypatch):
         """The far-side lines, scored ``PAIR_CHUNK`` at a time (a chunk of 97 cuts through queries), are the rows the
@@ -380,13 +399,13 @@ class TestReversedLines:
         ``q >= newest``, each scored as the filter's mean of ``sim(q - i, r + i)`` (missing frames 0); at most
         ``REVERSED_LINES`` of them, a subset; none for a filter that follows reverse revisits, reads one frame a
         window or has no lines."""
-        from retrieval.calibrate import _moved, _reversed_lines
+        from retrieval.calibrate import camera_moved, _reversed_lines
         from retrieval.decision import SPAN
         from retrieval.temporal import CodeTable, create_filter
 
         ids = np.array(sorted(nordland_codes), np.int64)
         raw = np.stack([nordland_codes[int(i)] for i in ids])
-        codes, moved = raw / np.linalg.norm(raw, axis=1, keepdims=True), _moved(raw)
+        codes, moved = raw / np.linalg.norm(raw, axis=1, keepdims=True), camera_moved(raw)
         table = CodeTable.fixed(ids, codes)
         filt, window, newest = create_filter({"name": "sequence", "length": 4}), 20, 200
         reach, off, by_id = SPAN * 4 - 1, int(ids.max()) + 1, dict(zip(ids.tolist(), codes))

@@ -321,7 +321,7 @@ class TestScoreSpans:
         """``(calibration, null rows, code table, filter)``: the score path calibrated on the real Nordland frames of
         the fixture (a summer and a winter stretch, raw codes)."""
         from cae.weights import load_encoder
-        from retrieval.calibrate import Calibration, _moved, _null_scores, _score_path
+        from retrieval.calibrate import Calibration, camera_moved, _null_scores, _score_path
         from retrieval.temporal import CodeTable, create_filter
 
         ids = np.array(sorted(nordland_codes), np.int64)
@@ -330,7 +330,7 @@ class TestScoreSpans:
         for fid, code in zip(ids, codes):
             table.add(int(fid), code / np.linalg.norm(code))
         filt = create_filter({"name": "sequence"})
-        null = _null_scores(ids, table, filt, 50, _moved(codes, load_encoder().still_cos), 25)
+        null = _null_scores(ids, table, filt, 50, camera_moved(codes, load_encoder().still_cos), 25)
         cal = Calibration(tests={"score": 1e6}, expected_false_loops=0.1)
         _score_path(cal, null, filt, table)
         return cal, null, table, filt

@@ -487,6 +487,26 @@ class TestLazyFeatures:
         assert all(r.ms["features"] == 0 for r in copies[:50])  # no candidate yet: nothing extracted
         assert calls and len(set(calls)) == len(calls)  # frames read again when a candidate needed them, once
 
+    def test_prefetched_features_give_the_same_results(self, encoder, sample_seq, sample_image):
+        """``prefetch_features`` of the next two frames before each one (as ``detect`` does), one of them with a
+        wrong image under the right id: the same candidates and loops as extracting each frame's when it comes."""
+        plain = self.run({}, encoder, sample_seq, sample_image)
+        images = {i: sample_image(i) for i in self.FRAMES}
+        wrong = 60  # prefetched with another frame's image: process then gets the right one
+        started, results = [], []
+        with LoopDetector({"calibration": {"online": False}}, K=sample_seq.K, encoder=encoder) as det:
+            for i in self.FRAMES:
+                for k in (i + 1, i + 2):
+                    if k in images:
+                        started.append(det.prefetch_features(images[k + 5] if k == wrong else images[k], k))
+                results.append(det.process(images[i], i))
+            with pytest.raises(ConfigError, match="not after the last frame"):
+                det.prefetch_features(images[3], 3)
+        assert any(started) and not all(started)  # before the first candidate nothing is wanted ahead
+        assert [[c.as_row() for c in r.candidates] for r in results] == \
+            [[c.as_row() for c in r.candidates] for r in plain]
+        assert loops_of(results).tolist() == loops_of(plain).tolist() and len(loops_of(plain)) >= 15
+
     def test_given_codes_equal_encoded(self, encoder, sample_seq, sample_image):
         from retrieval.descriptors import create_descriptor
 

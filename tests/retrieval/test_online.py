@@ -102,13 +102,13 @@ def test_recorded_frames_are_scored_in_bulk_as_one_at_a_time(sample_seq, sample_
     assert [[c.as_row() for c in cands] for cands in together] == [[c.as_row() for c in cands] for cands in one_by_one]
 
 
-def test_the_drift_checks_compare_with_a_level_measured_out_of_sample(online_run):
+def test_the_drift_checks_compare_with_a_level_measured_out_of_sample(online_run, encoder):
     """On the inlier path a stream's drift checks read its newest frames, which its whitening was not fitted on, and
     the level they are compared with is measured so too (``Calibration.far_side_level``: the far-side pairs of the
     fit's newest frames under a whitening fitted on the frames before them); those scatter wider than the fit's own
     frames do in sample (KITTI 00's first fit: sigma 0.14 against 0.06), which refitted KITTI 00, a stream without a
     revisit, every 30 keyframes."""
-    from retrieval.calibrate import far_side_scores
+    from retrieval.calibrate import camera_moved, far_side_scores
     from retrieval.temporal import CodeTable, create_filter
 
     _, _, state, _, _ = online_run
@@ -116,7 +116,7 @@ def test_the_drift_checks_compare_with_a_level_measured_out_of_sample(online_run
     assert cal.path == "inliers" and state.level is not None and state.level == cal.far_side_level()
     ids, raw = state.raw()
     in_sample = far_side_scores(ids, CodeTable.fixed(ids, cal.whitening.transform(raw)),
-                                create_filter(state.conf["temporal"]), state.window)
+                                create_filter(state.conf["temporal"]), state.window, camera_moved(raw, encoder.still_cos))
     q50, q90 = np.quantile(in_sample, [0.5, 0.9])
     assert (q90 - q50) / 1.2816 < state.level[1]
 
