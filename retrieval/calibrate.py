@@ -467,7 +467,10 @@ def _reversed_lines(ids: np.ndarray, table: CodeTable, filt: TemporalFilter, win
     one frame at most, so every reversed line is known not to be a loop at any distance, where look-alike stretches
     recur (a railway's forest, a corridor's doors) and the far-side pairs, ``window // 2`` to ``window`` frames back,
     do not reach. Each line's frames, over ``SPAN`` windows of the filter's ``length``, stay ``window // 2`` moved
-    frames apart (``moved``: ``(n,)`` bool by position in ``ids``, ``camera_moved``); its query is at least ``newest`` (the
+    frames apart, and either both of its sides pass a frame where the camera stood still or neither does (``moved``:
+    ``(n,)`` bool by position in ``ids``, ``camera_moved``: a stop is one place, which the other side, passing by
+    that place, meets for as long as the stop lasts; Nordland at half resolution, summer's station stops against
+    winter passing them: windows as alike as the revisit's); its query is at least ``newest`` (the
     frames the near null's queries are drawn from); at most ``REVERSED_LINES`` of them, a seeded sample. None for a
     filter that also follows reverse revisits (a velocity <= 0), one without lines (``bayes``) or whose window is one
     frame (``none``, a sequence of ``length`` 1: one pair read backwards is the pair itself, a revisit among them).
@@ -490,18 +493,37 @@ def _reversed_lines(ids: np.ndarray, table: CodeTable, filt: TemporalFilter, win
     count = np.zeros(off + 1, np.int64)  # moved frames before each frame id
     count[ids + 1] = np.asarray(moved, np.int64)
     count = np.cumsum(count)
+    still = np.zeros(off + 1, np.int64)  # frames before each frame id where the camera stood still
+    still[ids + 1] = ~np.asarray(moved, bool)
+    still = np.cumsum(still)
     refs = ids[ids + ahead < off]
     queries = ids[(ids >= newest) & (ids - reach >= 0)]
-    # a query's references are a prefix of ``refs``: those whose last frame leaves window // 2 moved frames before
-    # the query's first (the count of moved frames only grows with the frame id)
-    n_refs = np.searchsorted(count[refs + ahead + 1], count[queries - reach] - window // 2, side="right")
-    ends = np.cumsum(n_refs)
-    if not len(queries) or not ends[-1]:
+    # a side that passes a stop reads one place: a line is a reversed line where both sides move (or both pass a
+    # stop: two stops alike), not where one side's stop meets the other side passing by that place
+    ref_stops = still[refs + ahead + 1] > still[refs]
+    query_stops = still[queries + 1] > still[queries - reach]
+    parts = []
+    for side in (False, True):
+        qs, rs = queries[query_stops == side], refs[ref_stops == side]
+        # a query's references are a prefix of ``rs``: those whose last frame leaves window // 2 moved frames before
+        # the query's first (the count of moved frames only grows with the frame id)
+        parts.append((qs, rs, np.searchsorted(count[rs + ahead + 1], count[qs - reach] - window // 2, side="right")))
+    sizes = [int(n.sum()) for _, _, n in parts]
+    total = sum(sizes)
+    if not total:
         return np.zeros((0, 3)), mirror
-    flat = np.arange(ends[-1]) if ends[-1] <= REVERSED_LINES else np.sort(
-        np.random.default_rng(0).choice(ends[-1], REVERSED_LINES, replace=False))
-    row = np.searchsorted(ends, flat, side="right")  # the query of each drawn pair, then its reference
-    q, r = queries[row], refs[flat - (ends[row] - n_refs[row])]
+    flat = np.arange(total) if total <= REVERSED_LINES else np.sort(
+        np.random.default_rng(0).choice(total, REVERSED_LINES, replace=False))
+    picked, first = [], 0
+    for (qs, rs, n_refs), size in zip(parts, sizes):
+        mine = flat[(flat >= first) & (flat < first + size)] - first
+        ends = np.cumsum(n_refs)
+        row = np.searchsorted(ends, mine, side="right")  # the query of each drawn pair, then its reference
+        picked.append((qs[row], rs[mine - (ends[row] - n_refs[row])]))
+        first += size
+    q, r = np.concatenate([p[0] for p in picked]), np.concatenate([p[1] for p in picked])
+    order = np.lexsort((r, q))
+    q, r = q[order], r[order]
     qm, rm = off + q, off - 1 - r
     scores = np.concatenate([np.zeros(0)] + [filt.score(qm[i:i + PAIR_CHUNK], rm[i:i + PAIR_CHUNK], mirror)
                                              for i in range(0, len(qm), PAIR_CHUNK)])
