@@ -23,7 +23,7 @@ import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
@@ -307,15 +307,21 @@ def frame_keys(seq: Sequence) -> FrameKeys:
     return FrameKeys(seq.timestamps, [seq.source_id(i) for i in range(len(seq))])
 
 
-def _with_confirmed(query: int, cands: np.ndarray, loop: int,
-                    confirmed: tuple[int, float] | None) -> tuple[int, np.ndarray, int]:
+def _with_confirmed(query: int, cands: np.ndarray, loop: int, confirmed: tuple[int, float] | None,
+                    scores: Callable[[int, int], tuple[float, float]]) -> tuple[int, np.ndarray, int]:
     """A stored row ``(query, candidates (k, 6), loop)`` with its delayed loop, if any
     (``LoopDetector.confirmed_loops``: the keyframe and the accepting run's confidence, written as the candidate's, as
-    the API reports it)."""
+    the API reports it); a keyframe that was not among the frame's stored hypotheses (a stop's carry, found at a
+    refit) is added as a candidate row, ``scores(query, keyframe)`` giving its ``(score, seq_score)``, unverified."""
     if confirmed is None or loop >= 0:
         return query, cands, loop
     cands = cands.copy()
-    cands[cands[:, 0] == confirmed[0], 5] = confirmed[1]
+    hit = cands[:, 0] == confirmed[0]
+    if hit.any():
+        cands[hit, 5] = confirmed[1]
+    else:
+        score, seq_score = scores(query, confirmed[0])
+        cands = np.vstack([cands.reshape(-1, 6), [confirmed[0], score, 0, -1, seq_score, confirmed[1]]])
     return query, cands, confirmed[0]
 
 
@@ -417,7 +423,8 @@ def main(path: str | Path | Sequence | None = None, out: str | Path | None = Non
         keys = frame_keys(seq)
         rows = list(det.db.results())
         confirmed = det.confirmed_loops(rows)  # delayed loops: a run accepted at t certifies its earlier frames
-        loops = run.write_tables((_with_confirmed(q, cands, loop, confirmed.get(q)) for q, cands, loop in rows), keys)
+        loops = run.write_tables((_with_confirmed(q, cands, loop, confirmed.get(q), det.pair_scores)
+                                   for q, cands, loop in rows), keys)
         verified = bool(cal.inlier_null) if cal is not None else bool(resolved["policy"]["verify"])
         t0 = time.perf_counter()
         edges = _edges(seq, resolved, cal, det, loops) if verified else []

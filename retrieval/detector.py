@@ -939,11 +939,14 @@ class LoopDetector:
         rows = list(zip(seens, self._recorded(seens)))
         self._verify_late(rows)
         for seen, cands in rows:
-            q = seen.frame_id
+            q, refs = seen.frame_id, seen.refs
+            carried = self._carry_candidates(q, refs)
+            if carried:
+                cands, refs = cands + carried, np.r_[refs, [cd.frame_id for cd in carried]].astype(np.int64)
             for cand in cands:
                 cand.confidence = self._confidence(cand)
             counted = np.array([self._counted(cd) for cd in cands], np.int64)
-            fused = dec.confidences(q, seen.refs, counted, src, np.array([cd.confidence for cd in cands]))
+            fused = dec.confidences(q, refs, counted, src, np.array([cd.confidence for cd in cands]))
             for cand, value in zip(cands, fused):
                 cand.confidence = float(max(value, -1e9))
             loop = self._decide(q, cands, [None] * len(cands))[0]  # the run's rule, stop carry included
@@ -954,10 +957,32 @@ class LoopDetector:
                           (confirm.confirm(dec, q, loop.frame_id, self._counted(loop), src) if loop is not None
                            else [])]
                 confirm.add(q, {cd.frame_id: (cd.confidence, cd) for cd in cands}, loop is not None)
-            dec.commit(q, seen.refs, counted)
+            dec.commit(q, refs, counted)
             out += [(f, cd) for f, cd in found if not self._online.reported(f)]
             self._online.mark([f for f, _ in found])
         return sorted({f: cd for f, cd in out}.items())
+
+    def pair_scores(self, query_id: int, ref_id: int) -> tuple[float, float]:
+        """``(score, seq_score)`` of keyframes ``query_id`` and ``ref_id`` in the current code space: their entries'
+        similarity and the temporal filter's score (NaN where either is not a keyframe)."""
+        src = self.places.source
+        q, r = np.array([query_id], np.int64), np.array([ref_id], np.int64)
+        return float(src.pairs(q, r)[0]), float(self.filter.score(q, r, src)[0])
+
+    def _carry_candidates(self, query_id: int, refs: np.ndarray) -> list[Candidate]:
+        """The keyframe the replayed decision's stop carry names (``Decision.carry_to``) where frame ``query_id``'s
+        recorded hypotheses ``refs`` lack it (the frame was no loop's carry when it was processed: the loop it
+        carries came later, at a refit), as a candidate scored now in the current code space; not verified (a carry
+        claims nothing new). Nordland streamed: the winter station stop, its loops found at a refit, was carried
+        to frame 723 only, 224 not among 724's hypotheses."""
+        want = np.setdiff1d(self.decision.carry_to(query_id), refs)
+        if not len(want):
+            return []
+        src = self.places.source
+        queries = np.full(len(want), query_id, np.int64)
+        sims, scores = src.pairs(queries, want), self.filter.score(queries, want, src)
+        return [Candidate(int(r), float(a), 0, -1, float(b)) for r, a, b in zip(want.tolist(), sims, scores)
+                if np.isfinite(a)]
 
     def _recorded(self, seens: list[Seen]) -> list[list[Candidate]]:
         """Recorded frames' candidates (``retrieval.online.Seen``) with their scores in the current code space, every
