@@ -10,7 +10,8 @@ One run of the default config (nothing tuned per data set) on:
 - **aliasing stress sets** (no revisit, so every loop reported is false): KITTI 00 followed by 07 as one sequence
   (full size and 160x120), and the hardest look-alike we can make from the shared data: KITTI 00 followed by its own
   frames mirrored left-right at 160x120 (the same textures, kerbs and cars on the other side: a different place
-  that looks alike, frame after frame, in order).
+  that looks alike, frame after frame, in order); and 00 then 07 at 64x32 with the camera pausing 15 frames at 4
+  places (``paused_folder``: a stop on one side of the score path's look-alike lines).
 
 The offline rows are ``detect --lookahead`` (``LOOKAHEAD``: a calibration pass over the whole sequence, then its
 fixed decision). Beside each offline row, the online one (what ``detect`` runs by default): the same set streamed through the Python API from frame 0 with no
@@ -91,6 +92,30 @@ def stress_folders(kitti: Path, run_dir: Path) -> dict[str, Path]:
     return out
 
 
+#: the paused stress set (``paused_folder``): frame of 00 then 07 -> frames the camera then stands still (a robot
+#: waiting at a door: a stop on one side of the score path's look-alike lines, ``retrieval.calibrate._reversed_lines``)
+PAUSES = {50: 15, 120: 15, 240: 15, 300: 15}
+PAUSE_NOISE = 1.0  #: sensor noise (grey levels, Gaussian sigma) on each frame of a pause
+
+
+def paused_folder(dst: Path, sources: list[Path], size: tuple[int, int], seed: int = 0) -> Path:
+    """``sources`` resized to ``size`` (w, h, INTER_AREA) with the camera standing still after the frames of
+    ``PAUSES`` (each frame of a pause the same image under new sensor noise, ``PAUSE_NOISE``, seeded); a plain folder,
+    reused when already built."""
+    total = len(sources) + sum(n for i, n in PAUSES.items() if i < len(sources))
+    if dst.is_dir() and len(list(dst.glob("*.png"))) == total:
+        return dst
+    dst.mkdir(parents=True, exist_ok=True)
+    rng, k = np.random.default_rng(seed), 0
+    for i, src in enumerate(sources):
+        image = cv2.resize(read_image(src), size, interpolation=cv2.INTER_AREA).astype(np.float32)
+        for _ in range(1 + PAUSES.get(i, 0)):
+            noisy = np.clip(image + rng.normal(0.0, PAUSE_NOISE, image.shape), 0, 255).astype(np.uint8)
+            cv2.imwrite(str(dst / f"{k:06d}.png"), noisy)
+            k += 1
+    return dst
+
+
 #: ``bench.augment.darken``'s arguments for the darker night proxy (``dark_proxy_folder``): its second pass keeps a
 #: median of 17 SIFT keypoints a frame at 160x120 (86 with the defaults, 190 in daylight), too few to verify, while
 #: retrieval's Recall@10 stays 1.000: where the code and the sequence must carry the decision (issue 27)
@@ -134,6 +159,9 @@ def stress_sets(data: Path, run_dir: Path) -> dict[str, tuple[Path, np.ndarray |
         "stress: 00 then 07 at 160x120": (stress["00+07 @160x120"], None),
         "stress: 00 then 07 at 64x32 (score path)": (stress["00+07 @64x32"], None),
         "stress: 00 then 00 mirrored at 160x120": (stress["00+00 mirrored @160x120"], None),
+        "stress: 00 then 07 at 64x32, the camera pausing 4 times (score path)": (paused_folder(
+            run_dir / "s0007_64_paused", [*open_sequence(kitti / "00").frames, *open_sequence(kitti / "07").frames],
+            (64, 32)), None),
     }
 
 

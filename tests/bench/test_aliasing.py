@@ -83,3 +83,27 @@ def test_online_rows_beside_the_offline_ones():
     table = online_table(offline, online)
     assert "| KITTI 90 | 99 | 1.000 | 0.891 | 0.990 / 0.900 | 0.990 | 0.90 | 61.7 | 20.2 | 4361 |" in table
     assert "| KITTI 00 | 0 | 1.000 | n/a (no revisit) | n/a | n/a | n/a | 40.0 | 20.0 | 900 |" in table
+
+
+def test_the_paused_proxy_stands_still_where_it_says(tmp_path, monkeypatch):
+    """``paused_folder``: each frame of a pause the frame it follows under new sensor noise (``PAUSE_NOISE`` grey
+    levels): a stop the calibration finds (``camera_moved``), the other frames moving."""
+    import cv2
+    import numpy as np
+
+    from bench.aliasing import paused_folder
+    from cae.weights import load_encoder
+    from retrieval.calibrate import camera_moved
+    from retrieval.descriptors import create_descriptor
+    from tests.conftest import SAMPLE_DIR
+
+    monkeypatch.setattr("bench.aliasing.PAUSES", {3: 4})
+    sources = sorted((SAMPLE_DIR / "image_0").glob("*.jpg"))[:8]
+    folder = paused_folder(tmp_path / "p", sources, (64, 32))
+    images = [cv2.imread(str(p)) for p in sorted(folder.glob("*.png"))]
+    assert len(images) == 12 and all(im.shape == (32, 64, 3) for im in images)
+    diff = [np.abs(images[k].astype(float) - images[3].astype(float)).mean() for k in range(3, 8)]
+    assert diff[0] == 0 and all(0.3 < d < 1.5 for d in diff[1:])  # the pause: noise only
+    d = create_descriptor({"name": "cae"}, encoder=load_encoder())
+    moved = camera_moved(np.stack(d.encode_batch(images)), d.still_cos)
+    assert (~moved).sum() >= 3 and moved[:4].all() and moved[8:].all()
