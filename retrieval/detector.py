@@ -519,7 +519,7 @@ class LoopDetector:
         t_start = t0 = time.perf_counter()
         image8, gray, prep = self._prepared_frame(fid, image)
         net = to_network_u8(image8) if code is None else None  # the encoder's input
-        if self._jobs is not None and fid not in self._given and (not self._lazy or self._wanted):
+        if self._jobs is not None and fid not in self._given and self._features_wanted:
             self._jobs.submit(fid, functools.partial(_own_features, prep), urgent=True)  # the worker starts now
         gate = self.gate(gray)
         ms["gate"] = (time.perf_counter() - t0) * 1e3
@@ -676,7 +676,7 @@ class LoopDetector:
         if held is not None and held[0] is image:
             return True
         self._drop_ahead(lambda f: f == fid)
-        if self._jobs is None or fid in self._given or fid in self._jobs or not (not self._lazy or self._wanted) \
+        if self._jobs is None or fid in self._given or fid in self._jobs or not self._features_wanted \
                 or len(self._ahead) >= MAX_PREFETCHED:
             return False
         image8 = to_uint8(image)
@@ -685,6 +685,12 @@ class LoopDetector:
         self._ahead[fid] = (image, image8, gray, prep)
         self._jobs.submit(fid, functools.partial(_own_features, prep))
         return True
+
+    @property
+    def _features_wanted(self) -> bool:
+        """Whether a frame's own local features are extracted as it comes (not lazy, or the frame before verified a
+        candidate: a revisit under way), rather than only once a candidate needs them."""
+        return not self._lazy or self._wanted
 
     def _prepared_frame(self, fid: int, image: np.ndarray
                         ) -> tuple[np.ndarray, np.ndarray, Callable[[], tuple[np.ndarray, float, bytes]]]:
@@ -975,14 +981,12 @@ class LoopDetector:
         carries came later, at a refit), as a candidate scored now in the current code space; not verified (a carry
         claims nothing new). Nordland streamed: the winter station stop, its loops found at a refit, was carried
         to frame 723 only, 224 not among 724's hypotheses."""
-        want = np.setdiff1d(self.decision.carry_to(query_id), refs)
-        if not len(want):
-            return []
-        src = self.places.source
-        queries = np.full(len(want), query_id, np.int64)
-        sims, scores = src.pairs(queries, want), self.filter.score(queries, want, src)
-        return [Candidate(int(r), float(a), 0, -1, float(b)) for r, a, b in zip(want.tolist(), sims, scores)
-                if np.isfinite(a)]
+        out = []
+        for ref in np.setdiff1d(self.decision.carry_to(query_id), refs).tolist():
+            score, seq_score = self.pair_scores(query_id, ref)
+            if np.isfinite(score):
+                out.append(Candidate(int(ref), score, 0, -1, seq_score))
+        return out
 
     def _recorded(self, seens: list[Seen]) -> list[list[Candidate]]:
         """Recorded frames' candidates (``retrieval.online.Seen``) with their scores in the current code space, every
