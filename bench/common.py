@@ -48,17 +48,17 @@ class Budget:
         return estimate_s <= self.left()
 
 
-def _detect_child(path: str, out: str, conf: dict[str, Any]) -> tuple[dict[str, Any], int]:
+def _detect_child(path: str, out: str, conf: dict[str, Any], options: dict[str, Any]) -> tuple[dict[str, Any], int]:
     """Runs ``retrieval.detect.main`` in this (fresh) process; returns its summary and peak RSS in bytes."""
     import retrieval.baselines  # noqa: F401  (registers the baseline descriptors)
     from retrieval.detect import main as detect
 
-    summary = detect(path, out, conf, progress=False)
+    summary = detect(path, out, conf, progress=False, **options)
     return summary, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
 
 
 def detect_run(path: str | Path, out: str | Path, conf: dict[str, Any] | None = None,
-               isolate: bool = False) -> dict[str, Any]:
+               isolate: bool = False, **options: Any) -> dict[str, Any]:
     """A fresh ``cae-lcd detect`` run (the run folder is emptied first).
 
     Args:
@@ -67,6 +67,7 @@ def detect_run(path: str | Path, out: str | Path, conf: dict[str, Any] | None = 
         conf: detector overrides.
         isolate: run in a freshly spawned process, so that ``peak_rss_bytes`` is the detector's own peak memory
             (resident set size: numpy and torch buffers included) and not this process's.
+        options: ``retrieval.detect.main``'s other keyword arguments (``camera_info``, ``intrinsics``, ...).
 
     Returns:
         ``retrieval.detect.main``'s summary plus ``wall_s`` and, when isolated, ``peak_rss_bytes``.
@@ -76,13 +77,13 @@ def detect_run(path: str | Path, out: str | Path, conf: dict[str, Any] | None = 
     t0 = time.perf_counter()
     if isolate:
         with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
-            summary, rss = pool.submit(_detect_child, str(path), str(out), conf or {}).result()
+            summary, rss = pool.submit(_detect_child, str(path), str(out), conf or {}, options).result()
         summary["peak_rss_bytes"] = rss
     else:
         import retrieval.baselines  # noqa: F401
         from retrieval.detect import main as detect
 
-        summary = detect(path, out, conf or {}, progress=False)
+        summary = detect(path, out, conf or {}, progress=False, **options)
     summary["wall_s"] = time.perf_counter() - t0
     return summary
 

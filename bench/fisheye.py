@@ -80,12 +80,11 @@ def rotation_gaps(a: list, b: list) -> np.ndarray:
 def main(out: str | Path = "runs/bench/fisheye", write: bool = True) -> dict[str, Any]:
     """Runs the three detections and returns their comparison (and writes BENCHMARKS.md's section)."""
     from cae_lcd.evaluation.ground_truth import read_loop_pairs
-    from retrieval import detect
     from retrieval.edges import edge_errors
     from retrieval.run_folder import RunFolder
     from retrieval.sequences import open_sequence
 
-    from .common import md_table
+    from .common import detect_run, md_table
     from .run import write_section
 
     out = Path(out)
@@ -101,7 +100,7 @@ def main(out: str | Path = "runs/bench/fisheye", write: bool = True) -> dict[str
     truth = {tuple(p) for p in read_loop_pairs(seq.ground_truth).tolist()}
     for name, (path, camera) in runs.items():
         run_dir = out / name.split(",")[0].replace(" ", "_").replace(":", "")
-        summary = detect.main(path, run_dir, None, progress=False, **camera)
+        summary = detect_run(path, run_dir, None, **camera)  # a fresh run: another round's weights resume nothing
         run = RunFolder(run_dir)
         loops = {tuple(map(int, r[:2])) for r in run.read_loops()}
         edges = run.read_edge_list()

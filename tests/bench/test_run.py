@@ -174,3 +174,16 @@ def test_kill_resume_trials_identical(tmp_path):
     (tmp_path / "c.yaml").write_text("search: {exclude_recent: 8}\n")
     res = kill_resume(seq, tmp_path / "work", moments=2, seed=1, config=tmp_path / "c.yaml")
     assert res["identical"] == 2, res["failures"]
+
+
+def test_detect_run_starts_fresh_and_passes_detect_its_options(tmp_path, sample_seq):
+    """``bench.common.detect_run``: a run folder left by another run (here a store that is not one) is emptied first,
+    so a bench run after the weights changed does not try to resume it, and ``retrieval.detect.main``'s options
+    (the camera's intrinsics) reach it."""
+    from bench.common import detect_run
+
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "keyframes.h5").write_bytes(b"another run's store")
+    summary = detect_run(sample_seq, out, {"calibration": {"online": False}}, intrinsics="300,300,310,94")
+    assert summary["frames"] == 100 and summary["camera"]["K"][0] == [300.0, 0.0, 310.0]
