@@ -16,10 +16,9 @@ import numpy as np
 
 from cae_lcd.core.conf import load_conf_file
 from cae_lcd.evaluation.metrics import best_per_query, correct_mask
-from retrieval.detect import main as detect
 from retrieval.run_folder import CANDIDATE_COLUMNS, RunFolder, read_csv_table
 
-from .common import ground_truth_pairs
+from .common import detect_run, ground_truth_pairs
 
 THRESHOLDS = (20, 30, 40, 50, 60, 80)
 
@@ -31,7 +30,7 @@ def study(shared: Path, out: Path, conf: dict | None = None,
     for name in sequences:
         root = shared / "datasets/kitti/sequences" / name
         run = out / name
-        detect(root, run, {**(conf or {}), "policy": {"min_inliers": 0, "check_all": True}}, progress=False)
+        detect_run(root, run, {**(conf or {}), "policy": {"min_inliers": 0, "check_all": True}})  # a fresh run
         gt = ground_truth_pairs(root)
         gt = np.zeros((0, 2), np.int64) if gt is None else gt
         cands = read_csv_table(RunFolder(run).candidates, CANDIDATE_COLUMNS)
