@@ -145,10 +145,15 @@ def load_encoder(path: str | Path | None = None, device: str | torch.device | No
     return encoder.to(dev, memory_format=torch.channels_last).eval()
 
 
+def _conf_value(ckpt: dict[str, Any], key: str, default: Any) -> Any:
+    """``key`` of the checkpoint's training conf, ``default`` where the conf (or the key) is absent."""
+    conf = ckpt.get("conf")
+    return conf.get(key, default) if isinstance(conf, dict) else default
+
+
 def checkpoint_input_norm(ckpt: dict[str, Any], path: str | Path) -> str:
     """The checkpoint's ``input_norm`` (``cae.model.INPUT_NORMS``; "none" where its conf has none)."""
-    conf = ckpt.get("conf")
-    value = conf.get("input_norm", "none") if isinstance(conf, dict) else "none"
+    value = _conf_value(ckpt, "input_norm", "none")
     if value not in INPUT_NORMS:
         raise ConfigError(f"{path}: conf input_norm must be one of {', '.join(INPUT_NORMS)}; got {value!r}")
     return value
@@ -157,8 +162,7 @@ def checkpoint_input_norm(ckpt: dict[str, Any], path: str | Path) -> str:
 def checkpoint_still_cos(ckpt: dict[str, Any], path: str | Path) -> float:
     """The raw-code cosine at which these weights say the camera stood still (conf ``still_cos``; ``STILL_COS``
     where it has none)."""
-    conf = ckpt.get("conf")
-    value = conf.get("still_cos", STILL_COS) if isinstance(conf, dict) else STILL_COS
+    value = _conf_value(ckpt, "still_cos", STILL_COS)
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.9 <= value < 1:
         raise ConfigError(f"{path}: conf still_cos must be a number in [0.9, 1); got {value!r}")
     return float(value)
