@@ -48,9 +48,9 @@ Before a run, the calibration looks at the sequence itself (``cae-lcd calibrate 
    each distinct pair verified once), each followed back ``SPAN - 1``
    frames (look-alike streets look alike for several frames). A random far-side pair per query is verified too (and
    joins the null), to show the difference; the **positives** are a frame and its neighbour ``exclude_recent // 25``
-   frames back, followed back
-   likewise. ``retrieval.decision`` turns them into the pair null (issue 27: the measured sample itself, every pair of
-   the hard sequences and the random ones, ``calibration.null_pairs`` verified pairs in all: an empirical p-value that
+   frames back, followed back likewise, for one sampled query in ``POSITIVE_EVERY`` (they only describe).
+   ``retrieval.decision`` turns them into the pair null (issue 27: the measured sample itself, every pair of the hard
+   sequences and the random ones, ``calibration.null_pairs`` verified pairs in all: an empirical p-value that
    claims nothing past the sample, ``retrieval.decision.EmpiricalTail``; one pair then never decides alone, a loop
    is a run of frames on one offset, fused over up to ``SPAN`` frames) and the fused-evidence tail measured
    on the hard-negative sequences.
@@ -122,7 +122,10 @@ log = logging.getLogger(__name__)
 
 CALIBRATION_FORMAT = 4  #: ``format_version`` of calibration.h5 (3: the local features it was made on recorded; 4: the
 #                           score path's nulls measured, ``samples/score_null`` and ``samples/score_fused``)
-PROBE = 4  #: one sampled query in this many is looked at first: are there local features enough to verify?
+#: positives are verified for one sampled query in this many: they only describe (the notes, ``samples/``), no
+#: decision reads them, and each costs the full check (3.4 ms against 1.2 for a hard negative the pre-check stops:
+#: KITTI 90, every query's positives were 0.6 of the calibration's 2.0 CPU seconds)
+POSITIVE_EVERY = 8
 REVERSED_LINES = 20_000  #: the score path's long-range lines (``_reversed_lines``) drawn at most, seeded: a random
 #   sample of every pair far enough apart where there are more (a stream of 2000 frames holds ~1.5 million). Nordland
 #   streamed: 0 (before) recall 0.900, 13.4 ms a frame; 20,000: 0.922, 15.1 ms; 100,000: 0.930, 19.6 ms
@@ -918,22 +921,24 @@ class _Verify:
 def _plan(null: np.ndarray, table: CodeTable, picks: np.ndarray, gap: int,
           window: int, span: int = SPAN) -> list[tuple[str, list[tuple[int, int]]]]:
     """The pairs to verify for sampled queries: a random far-side pair, the two far-side keyframes retrieval would
-    return (hard negatives, each followed back ``span - 1`` frames: a look-alike sequence), and a positive sequence
-    (the query and the frame ``gap`` before it, followed back likewise); ``(kind, [(query, ref), ...])``, the query's
-    pair first. Hard negatives keep ``window // 10`` frames away from the exclusion boundary: a revisit just past it
-    (a place longer than the window) is not a look-alike, and the run refuses it as too recent anyway. They are drawn
-    only inside the window (``null``: the far side), where a pair is known not to be a loop: beyond it a true
-    revisit would pass for a look-alike (KITTI 90 revisits 75-125 frames back) and blind the run."""
+    return (hard negatives, each followed back ``span - 1`` frames: a look-alike sequence), and, for one query in
+    ``POSITIVE_EVERY``, a positive sequence (the query and the frame ``gap`` before it, followed back likewise);
+    ``(kind, [(query, ref), ...])``, the query's pair first. Hard negatives keep ``window // 10`` frames away from
+    the exclusion boundary: a revisit just past it (a place longer than the window) is not a look-alike, and the run
+    refuses it as too recent anyway. They are drawn only inside the window (``null``: the far side), where a pair is
+    known not to be a loop: beyond it a true revisit would pass for a look-alike (KITTI 90 revisits 75-125 frames
+    back) and blind the run."""
     rng = np.random.default_rng(0)  # the same pairs every time: a resumed or repeated calibration agrees
     plan, margin = [], max(1, window // 10)
-    for q in picks.tolist():
+    for n, q in enumerate(picks.tolist()):
         refs = null[null[:, 0] == q, 1].astype(np.int64)
         inner = refs[q - refs < window - margin]
         hard = inner if len(inner) else refs
         hard = hard[np.argsort(-np.nan_to_num(table.pairs(np.full(len(hard), q), hard), nan=-2.0), kind="stable")]
         rand = int(inner[rng.integers(len(inner))]) if len(inner) else -1
         for name, ref in (("random", rand), ("hard", int(hard[0]) if len(hard) else -1),
-                          ("hard2", int(hard[min(1, len(hard) - 1)]) if len(hard) else -1), ("positive", q - gap)):
+                          ("hard2", int(hard[min(1, len(hard) - 1)]) if len(hard) else -1),
+                          ("positive", q - gap if n % POSITIVE_EVERY == 0 else -1)):
             if ref >= 0:
                 plan.append((name, [(q - j, ref - j) for j in range(1 if name == "random" else span)]))
     return plan
@@ -995,7 +1000,8 @@ def _inlier_path(cal: Calibration, conf: dict[str, Any], images: dict[int, np.nd
     window = conf["search"]["exclude_recent"]
     gap = max(1, window // 25)  # a near neighbour: the same place under the sequence's own motion
     plan = _plan(null, table, picks, gap, window)
-    verify.prefetch(f for _, pairs in plan[::PROBE] for pair in pairs for f in pair)  # features enough to verify?
+    # features enough to verify? Looked at first on every query's random pair (its two frames)
+    verify.prefetch(f for name, pairs in plan if name == "random" for pair in pairs for f in pair)
     median_kp = float(np.median(verify.keypoints()))
     if cc["verification"] == "auto" and median_kp < cc["min_features"]:
         cal.notes.append(f"verification: off, local features too few to verify (median {median_kp:.0f} keypoints "

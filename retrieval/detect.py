@@ -277,14 +277,16 @@ def with_camera(seq: Sequence, conf: dict[str, Any] | None, given: CameraModel |
 def _edges(seq: Sequence, resolved: dict[str, Any], cal: Calibration | None, det: LoopDetector,
            loops: np.ndarray) -> list[Any]:
     """The loops' edges (``retrieval.edges.loop_edges``; only where the loops were verified), from the run's own
-    local features on every core; for a calibrated run whose features are cheaper than the extractor's
-    (``calibration.features_px``), the edges they give least surely made again at the extractor's own resolution,
-    read again from the frames (``retrieval.edges.edge_features``: 2 extractions a loop, for those only)."""
+    checks (``LoopDetector.verified_geometry``) or its own local features on every core; for a calibrated run whose
+    features are cheaper than the extractor's (``calibration.features_px``), the edges they give least surely made
+    again at the extractor's own resolution, read again from the frames (``retrieval.edges.edge_features``: 2
+    extractions a loop, for those only)."""
     features = serialised(det.keyframe_features)
     precise = None
     if cal is not None and calibrated_features(resolved) != resolved["features"]:
         precise = edge_features(lambda i: seq.read_frame(i)[0], resolved["features"], features)
-    return loop_edges(features, loops, seq.K, resolved, workers=cpu_count(), precise=precise)
+    return loop_edges(features, loops, seq.K, resolved, workers=cpu_count(), precise=precise,
+                      verified=det.verified_geometry)
 
 
 def _body_pose(seq: Sequence, edge_frame: str) -> np.ndarray | None:

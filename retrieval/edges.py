@@ -5,8 +5,9 @@ The verification (``verify.verifier``) matches the query's local features agains
 when the camera has a distortion model: ``geometry.distortion``), then RANSAC on the essential matrix gives ``R, t``
 with ``x_match = R x_query + t`` for a point ``x`` in each camera's frame, i.e. the pose of the query camera in the
 match camera's frame, refined on all its inliers (``GeometryResult.refined``: ``verify.geometry.refined_pose``).
-Here it is computed again with the run's own matcher and geometry settings, from the keyframes' features
-(``LoopDetector.keyframe_features``: the inliers of ``loops.csv`` within a few), side by side on every core; for a
+Here it is the run's own check where the detector kept it (``LoopDetector.verified_geometry``), else computed again
+with the run's own matcher and geometry settings from the keyframes' features (``LoopDetector.keyframe_features``:
+the inliers of ``loops.csv`` within a few), side by side on every core; for a
 calibrated run whose features are cheaper than the extractor's (``calibration.features_px``), the few edges they
 give least surely (a rotation standard deviation over ``REDO_RATIO`` times the run's median, or no pose) are made
 again from the extractor's own resolution read again for their frames (``edge_features``: more inliers, a more
@@ -48,7 +49,7 @@ import numpy as np
 
 from cae_lcd.core.conf import check_choice
 from verify.features import Features, create_extractor
-from verify.geometry import UNOBSERVED_INFORMATION, pose_information
+from verify.geometry import UNOBSERVED_INFORMATION, GeometryResult, pose_information
 from verify.verifier import create_verifier
 
 __all__ = ["LoopEdge", "loop_edges", "edge_errors", "rotation_to_quaternion", "ROTATION_SIGMA_1",
@@ -191,8 +192,8 @@ def rotation_to_quaternion(R: np.ndarray) -> np.ndarray:
 
 
 def loop_edges(features: Callable[[int], Features], loops: Iterable[tuple[int, int]], K: np.ndarray | None,
-               conf: dict[str, Any], workers: int = 1,
-               precise: Callable[[int], Features] | None = None) -> list[LoopEdge]:
+               conf: dict[str, Any], workers: int = 1, precise: Callable[[int], Features] | None = None,
+               verified: Callable[[int, int], GeometryResult | None] | None = None) -> list[LoopEdge]:
     """The relative pose of each loop, from the keyframes' local features.
 
     Args:
@@ -207,6 +208,9 @@ def loop_edges(features: Callable[[int], Features], loops: Iterable[tuple[int, i
             give least surely: an edge with no pose, or whose rotation standard deviation is more than
             ``REDO_RATIO`` times the median of this run's edges, is made again from them, and the one with the
             surer rotation kept (the extraction a loop frame costs is paid only for those).
+        verified: the geometry the run's own check found for a ``(query, match)`` pair from ``features``
+            (``LoopDetector.verified_geometry``), or None where it has none: that pair is not verified again (its
+            matching and RANSAC were a third of an edge's cost), the others are.
 
     Returns:
         One ``LoopEdge`` per loop whose essential matrix gave a pose (and its inliers an information: at least 6),
@@ -215,7 +219,7 @@ def loop_edges(features: Callable[[int], Features], loops: Iterable[tuple[int, i
     if K is None:
         return []
     loops = [(int(q), int(m)) for q, m in loops]
-    made = _edges_of(features, loops, K, conf, workers)
+    made = _edges_of(features, loops, K, conf, workers, verified)
     if precise is not None:
         sigmas = [e.sigmas()[0] for e in made if e is not None]
         bar = REDO_RATIO * float(np.median(sigmas)) if sigmas else float("inf")
@@ -227,16 +231,19 @@ def loop_edges(features: Callable[[int], Features], loops: Iterable[tuple[int, i
 
 
 def _edges_of(features: Callable[[int], Features], loops: list[tuple[int, int]], K: np.ndarray,
-              conf: dict[str, Any], workers: int) -> list[LoopEdge | None]:
-    """``loop_edges``' edges from one source of features, None where a loop gave no pose, in the order of
-    ``loops``."""
+              conf: dict[str, Any], workers: int,
+              verified: Callable[[int, int], GeometryResult | None] | None = None) -> list[LoopEdge | None]:
+    """``loop_edges``' edges from one source of features (the pairs ``verified`` gives a geometry not verified
+    again), None where a loop gave no pose, in the order of ``loops``."""
     verifiers = threading.local()
 
     def edge(pair: tuple[int, int]) -> LoopEdge | None:
-        if not hasattr(verifiers, "verifier"):  # one per thread
-            verifiers.verifier = create_verifier(conf.get("matcher"), conf.get("geometry"))
         q, m = pair
-        geo = verifiers.verifier.verify(features(q), [features(m)], K)[0].geometry
+        geo = verified(q, m) if verified is not None else None
+        if geo is None:
+            if not hasattr(verifiers, "verifier"):  # one per thread
+                verifiers.verifier = create_verifier(conf.get("matcher"), conf.get("geometry"))
+            geo = verifiers.verifier.verify(features(q), [features(m)], K)[0].geometry
         if geo.refined is None or geo.essential is None:
             return None
         R, t = (np.asarray(v, np.float64) for v in geo.refined)

@@ -93,6 +93,8 @@ def sampson_residuals(xq: np.ndarray, xc: np.ndarray, R: np.ndarray, t: np.ndarr
 #: can still invert the matrix (a standard deviation of 1000 units of the unit translation)
 UNOBSERVED_INFORMATION = 1e-6
 _STEP = 1e-6  #: central-difference step of the Jacobian, radians and units of the unit translation
+_STEPS = np.vstack([np.eye(6) * _STEP, -np.eye(6) * _STEP, np.zeros((1, 6))])  #: (13, 6) +h, -h, the pose itself
+_STEP_ROTATIONS = np.stack([cv2.Rodrigues(h[:3].reshape(3, 1))[0] for h in _STEPS])  #: (13, 3, 3) their rotations
 
 
 def _normalised(pts: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, float]:
@@ -106,9 +108,8 @@ def _residual_jacobian(xq: np.ndarray, xc: np.ndarray, focal: float, R: np.ndarr
                        t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The inliers' Sampson residuals in pixels ``(n,)`` at the pose ``R, t`` and their Jacobian ``(n, 6)`` in the
     right-perturbed tangent ``(omega, delta)`` (``R exp(omega)``, ``t + R delta``), by central differences."""
-    steps = np.vstack([np.eye(6) * _STEP, -np.eye(6) * _STEP, np.zeros((1, 6))])  # +h, -h, the pose itself
-    Rs = np.stack([R @ cv2.Rodrigues(h[:3].reshape(3, 1))[0] for h in steps])
-    r = focal * sampson_residuals(xq, xc, Rs, t + steps[:, 3:] @ R.T)  # (13, n): every perturbed pose at once
+    Rs = R @ _STEP_ROTATIONS
+    r = focal * sampson_residuals(xq, xc, Rs, t + _STEPS[:, 3:] @ R.T)  # (13, n): every perturbed pose at once
     return r[12], ((r[:6] - r[6:12]) / (2 * _STEP)).T
 
 
@@ -159,6 +160,10 @@ def pose_information(pts_q: np.ndarray, pts_c: np.ndarray, K: np.ndarray, R: np.
 
 _REFINE_ITERATIONS = 20  #: Gauss-Newton steps of the pose refinement at most
 _REFINE_HALVINGS = 8  #: step halvings tried when a full step does not lower the cost
+#: the refinement stops when a step lowers the cost by less than this share of it: KITTI 90's 204 refinements
+#: (its loop edges, two starts each) take 5.1 steps instead of 9.2 at 1e-9, their rotations 0.001 degree and their
+#: directions 0.03 degree from where 1e-9 stops (the edges' own standard deviations are ~0.05 and ~1 degree)
+_REFINE_TOL = 1e-5
 
 
 def _cauchy_cost(r: np.ndarray, scale: float) -> float:
@@ -211,7 +216,7 @@ def refine_pose(pts_q: np.ndarray, pts_c: np.ndarray, K: np.ndarray, R: np.ndarr
             step = step / 2
         else:
             break
-        done = cost - new < 1e-9 * max(cost, 1.0)
+        done = cost - new < _REFINE_TOL * max(cost, 1.0)
         R, t, cost = Rn, tn, new
         if done:
             break

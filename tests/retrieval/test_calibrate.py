@@ -233,6 +233,27 @@ def test_verifications_side_by_side_equal_one_after_another(sample_image):
     assert got["positive"][0][0] > 20  # real neighbours verify
 
 
+def test_positives_are_planned_for_one_query_in_positive_every():
+    """``_plan``: every sampled query gets its random pair and its two hard sequences (the null the decision reads);
+    the positives, which only describe, one query in ``POSITIVE_EVERY`` (each costs the full check)."""
+    from retrieval.calibrate import POSITIVE_EVERY, SPAN, _plan
+    from retrieval.temporal import CodeTable
+
+    rng = np.random.default_rng(0)
+    ids = np.arange(200)
+    table = CodeTable.fixed(ids, rng.normal(size=(200, 16)).astype(np.float32))
+    window = 50
+    null = np.array([(q, r) for q in range(window + 20, 200) for r in range(q - window + 5, q - window // 2)])
+    picks = np.arange(window + 20, 200, 2)
+    plan = _plan(null, table, picks, 2, window)
+    kinds = [name for name, _ in plan]
+    assert kinds.count("random") == kinds.count("hard") == kinds.count("hard2") == len(picks)
+    assert kinds.count("positive") == -(-len(picks) // POSITIVE_EVERY) and POSITIVE_EVERY > 1
+    positives = [pairs for name, pairs in plan if name == "positive"]
+    assert [p[0] for p in positives] == [(int(q), int(q) - 2) for q in picks[::POSITIVE_EVERY]]
+    assert all(len(p) == SPAN for p in positives)
+
+
 @pytest.mark.parametrize("K_known", [True, False])
 def test_null_counts_under_the_floor_stop_early_and_decide_nothing(sample_image, sample_K, K_known):
     """Null pairs are checked as the run checks its candidates (the same call: the same count, with or without

@@ -94,6 +94,28 @@ class TestLoopDetector:
                 assert np.linalg.norm(r.t) == pytest.approx(1.0, abs=1e-6)
         assert all(not r.candidates and r.loop is None for r in results[:50])
 
+    def test_a_loops_check_is_kept_for_its_edge(self, encoder, sample_seq, sample_image, detect_conf):
+        """``verified_geometry``: the check that found a loop's pose is what the detector keeps for the pair (its
+        edge reuses it, ``retrieval.edges.loop_edges``); a pair never verified has none; the oldest go first."""
+        import retrieval.detector as detector
+
+        with LoopDetector(detect_conf, K=sample_seq.K, encoder=encoder) as det:
+            results = [det.process(sample_image(i), i) for i in range(58)]
+            loops = [r for r in results if r.loop is not None]
+            assert loops
+            for r in loops:
+                assert det.verified_geometry(r.frame_id, r.loop.frame_id) is r.verification.geometry
+                assert r.verification.geometry.essential is not None
+            assert det.verified_geometry(57, 56) is None and det.verified_geometry(5, 55) is None
+            kept = len(det._geometries)
+            first = next(iter(det._geometries))
+            old, detector.KEPT_GEOMETRIES = detector.KEPT_GEOMETRIES, kept
+            try:
+                det.process(sample_image(58), 58)
+            finally:
+                detector.KEPT_GEOMETRIES = old
+            assert len(det._geometries) == kept and det.verified_geometry(*first) is None
+
     def test_to_dict_json(self, stream_run):
         loop_frame = next(r for r in stream_run["results"] if r.loop is not None)
         for r in (stream_run["results"][0], loop_frame):

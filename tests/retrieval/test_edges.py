@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 
+import cv2
 import numpy as np
 import pytest
 
@@ -42,6 +43,28 @@ def test_real_revisits_give_the_ground_truth_rotation(sift_features, sample_K, s
         # rank 5: nothing is known along the translation (its length), in g2o's order translation first
         assert w[0] == pytest.approx(UNOBSERVED_INFORMATION, rel=1e-2) and w[1] > 10
         assert abs(v[:3, 0] @ (e.R.T @ e.t)) > 0.999
+
+
+def test_a_pair_the_run_verified_is_not_verified_again(sift_features, sample_K):
+    """``loop_edges``' ``verified``: a pair whose check the run kept takes that geometry (its features are not even
+    asked for) and gives the edge its own verification would; a pair it has none for is verified from the
+    features."""
+    from verify.verifier import create_verifier
+
+    kept = {pair: create_verifier().verify(sift_features(pair[0]), [sift_features(pair[1])], sample_K)[0].geometry
+            for pair in PAIRS[:2]}
+    asked = []
+    edges = loop_edges(lambda i: asked.append(i) or sift_features(i), PAIRS, sample_K, {},
+                       verified=lambda q, m: kept.get((q, m)))
+    assert sorted(set(asked)) == sorted({f for pair in PAIRS[2:] for f in pair})  # the kept pairs: no features
+    again = loop_edges(sift_features, PAIRS, sample_K, {})
+    assert [(e.query, e.match) for e in edges] == PAIRS
+    for e, a, pair in zip(edges, again, PAIRS):
+        if pair in kept:
+            assert e.inliers == kept[pair].inliers
+            np.testing.assert_allclose(e.R, kept[pair].refined[0], atol=1e-12)
+        rotation = np.degrees(np.linalg.norm(cv2.Rodrigues(e.R.T @ a.R)[0]))
+        assert rotation < 0.5 and abs(e.inliers - a.inliers) <= max(5, 0.1 * a.inliers)
 
 
 def test_edges_side_by_side_are_the_edges_one_after_another(sample_seq, sample_K):
