@@ -63,7 +63,7 @@ from .feature_jobs import FeatureJobs, grey_copy, read_grey_copy
 from .index import INDEXES
 from .online import DRIFT_Z, OnlineCalibration, Seen
 from .places import create_places
-from .temporal import FILTERS, PAIR_CHUNK, create_filter
+from .temporal import FILTERS, PAIR_CHUNK, CodeTable, create_filter
 
 __all__ = ["Candidate", "FrameResult", "LoopDetector", "weights_whitening", "STAGES", "default_conf", "conf_rules",
            "resolve_conf"]
@@ -945,9 +945,9 @@ class LoopDetector:
         self.decision = dec = cal.decision(c["search"]["exclude_recent"], self.filter)
         self._min_inliers = int(dec.floor)
         self._confirm = confirm = Confirmations(dec.reach) if dec.confirms else None
-        src, out = self.places.source, []
+        src, out = self._replay_source(), []
         seens = self._online.seen[-c["calibration"]["max_frames"]:]
-        rows = list(zip(seens, self._recorded(seens)))
+        rows = list(zip(seens, self._recorded(seens, src)))
         self._verify_late(rows)
         for seen, cands in rows:
             q, refs = seen.frame_id, seen.refs
@@ -993,10 +993,20 @@ class LoopDetector:
                 out.append(Candidate(int(ref), score, 0, -1, seq_score))
         return out
 
-    def _recorded(self, seens: list[Seen]) -> list[list[Candidate]]:
-        """Recorded frames' candidates (``retrieval.online.Seen``) with their scores in the current code space, every
-        frame's pairs scored together (``PAIR_CHUNK`` a call: the same scores as one frame at a time)."""
+    def _replay_source(self) -> CodeTable:
+        """The keyframes' current codes copied into a table (``retrieval.temporal.CodeTable``, the same admission
+        rule): a replay scores tens of thousands of pairs, each read from the index otherwise (Nordland streamed: 2.7
+        of its 4.4 s of replays), with the same float32 products, so the same scores."""
         src = self.places.source
+        table = CodeTable(src.dim, src.searchable)
+        for fid, code in zip(*src.items()):
+            table.add(int(fid), code)
+        return table
+
+    def _recorded(self, seens: list[Seen], src: Any) -> list[list[Candidate]]:
+        """Recorded frames' candidates (``retrieval.online.Seen``) with their scores in the current code space
+        (``src``: ``_replay_source``), every frame's pairs scored together (``PAIR_CHUNK`` a call: the same scores as
+        one frame at a time)."""
         queries = np.repeat(np.array([s.frame_id for s in seens], np.int64), [len(s.refs) for s in seens])
         refs = np.concatenate([s.refs for s in seens]).astype(np.int64) if seens else np.zeros(0, np.int64)
         sims, scores = np.zeros(len(refs)), np.zeros(len(refs))

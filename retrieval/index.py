@@ -25,7 +25,6 @@ frame ids beside the faiss index, and a detector with a keyframe store saves it 
 
 from __future__ import annotations
 
-import bisect
 import json
 import logging
 import os
@@ -284,7 +283,8 @@ class KeyframeIndex:
     def __init__(self, dim: int, index_conf: dict[str, Any] | None = None, exclude_recent: int = 0,
                  exclude_recent_s: float | None = None) -> None:
         self.index = create_index(dim, index_conf)
-        self.frame_ids: list[int] = []  # position in the index -> frame id
+        self.frame_ids: list[int] = []  # position in the index -> frame id (admitted in increasing frame order)
+        self._ids = np.zeros(0, np.int64)  # the same as an array, for ``codes``' lookups (kept with ``frame_ids``)
         self._queue = AdmissionQueue(exclude_recent, exclude_recent_s)
 
     def __len__(self) -> int:
@@ -299,6 +299,7 @@ class KeyframeIndex:
         ready = self._queue.pop_ready(frame_id, timestamp)
         if ready:
             self.frame_ids.extend(fid for fid, _ in ready)
+            self._ids = np.r_[self._ids, np.array([fid for fid, _ in ready], np.int64)]
             self.index.add(np.stack([code for _, code in ready]))
 
     def save(self, path: str | Path) -> bool:
@@ -332,7 +333,7 @@ class KeyframeIndex:
             log.warning("%s was saved for other keyframes or another index; the index is rebuilt from the keyframe "
                         "store", path)
             return 0
-        self.index, self.frame_ids = index, ids.tolist()
+        self.index, self.frame_ids, self._ids = index, ids.tolist(), np.asarray(ids, np.int64).copy()
         return len(ids)
 
     def mapped(self, fn: Any, dim: int, codes_of: Any) -> "KeyframeIndex":
@@ -340,7 +341,7 @@ class KeyframeIndex:
         -> ``(n, dim)``); ``codes_of(frame_ids) -> (n, D)`` gives their codes, the admitted and the queued ones' (a
         stream's whitening, fitted on its keyframes: ``retrieval.places``)."""
         out = KeyframeIndex(dim, self.index.conf, self._queue.exclude_recent, self._queue.exclude_recent_s)
-        out.frame_ids = list(self.frame_ids)
+        out.frame_ids, out._ids = list(self.frame_ids), self._ids.copy()
         if out.frame_ids:
             out.index.add(fn(codes_of(np.asarray(out.frame_ids, np.int64))))
         for fid, ts, _ in self._queue:
@@ -363,8 +364,8 @@ class KeyframeIndex:
 
     def _position(self, frame_id: int) -> int:
         """The admitted keyframe's position in the index, -1 if not admitted (admitted in increasing frame order)."""
-        pos = bisect.bisect_left(self.frame_ids, frame_id)
-        return pos if pos < len(self.frame_ids) and self.frame_ids[pos] == frame_id else -1
+        pos = int(np.searchsorted(self._ids, frame_id))
+        return pos if pos < len(self._ids) and self._ids[pos] == frame_id else -1
 
     def holds(self, frame_id: int) -> bool:
         """True when the keyframe is queued or admitted."""
@@ -379,16 +380,17 @@ class KeyframeIndex:
         """
         fids = np.asarray(frame_ids, np.int64).reshape(-1)
         found, out = np.zeros(len(fids), bool), np.zeros((len(fids), self.index.dim), np.float32)
-        queued = {fid: code for fid, _, code in self._queue}
-        positions, rows = [], []
-        for row, fid in enumerate(fids.tolist()):
-            if fid in queued:
-                out[row], found[row] = queued[fid], True
-            elif (pos := self._position(fid)) >= 0:
-                positions.append(pos)
-                rows.append(row)
-        if rows:
-            out[rows], found[rows] = self.index.reconstruct(np.asarray(positions, np.int64)), True
+        pos = np.minimum(np.searchsorted(self._ids, fids), max(len(self._ids) - 1, 0))
+        admitted = self._ids[pos] == fids if len(self._ids) else np.zeros(len(fids), bool)
+        rest = np.flatnonzero(~admitted)  # queued ones among them (a code is queued or admitted, never both)
+        if len(self._queue) and len(rest):
+            queued = {fid: code for fid, _, code in self._queue}
+            for row in rest.tolist():
+                code = queued.get(int(fids[row]))
+                if code is not None:
+                    out[row], found[row] = code, True
+        if admitted.any():
+            out[admitted], found[admitted] = self.index.reconstruct(pos[admitted]), True
         return found, out
 
 

@@ -245,9 +245,10 @@ class IndexedCodes:
         fids = np.asarray(frame_ids, np.int64).reshape(-1)
         uniq, back = np.unique(fids, return_inverse=True)
         found, codes = self._index().codes(uniq)
-        for i, fid in enumerate(uniq.tolist()):
-            if fid in self._recent:
-                found[i], codes[i] = True, self._recent[fid]
+        for fid, code in self._recent.items():  # a few (searched, not inserted yet)
+            i = int(np.searchsorted(uniq, fid))
+            if i < len(uniq) and uniq[i] == fid:
+                found[i], codes[i] = True, code
         return found[back], codes[back]
 
     def items(self) -> tuple[np.ndarray, np.ndarray]:

@@ -337,6 +337,27 @@ class TestKeyframeIndex:
         np.testing.assert_array_equal(ids, Ib[0][Ib[0] >= 0])
         assert np.all(np.diff(scores) <= 1e-6)  # best first
 
+    @pytest.mark.parametrize("mapped", [False, True])
+    def test_codes_give_back_admitted_and_queued_ones_by_id(self, codes, mapped):
+        """``codes``: each id's code, admitted (from the index) or queued alike, in the order asked, repeats and ids
+        it does not hold (zeros, not found) among them; the same after ``mapped`` (a stream's whitening) and
+        ``restore``-like rebuilds keep the id lookup with the list."""
+        kf = KeyframeIndex(D, exclude_recent=5)
+        ids = [0, 2, 3, 7, 8, 11, 12, 15, 16, 17]  # gaps: not every frame is a keyframe
+        for i in ids:
+            kf.admit(i)
+            kf.add(i, codes[i])
+        if mapped:
+            kf = kf.mapped(lambda x: x, D, lambda fids: codes[np.asarray(fids)])
+        assert kf.frame_ids and kf.queued_ids()  # both kinds held
+        asked = np.array([17, 1, 0, 12, 12, 39, 3, 16, 11, 8, 100, 2, 7, 15, -1], np.int64)
+        found, got = kf.codes(asked)
+        expected = np.isin(asked, ids)
+        np.testing.assert_array_equal(found, expected)
+        np.testing.assert_array_equal(got[expected], codes[asked[expected]])
+        assert not got[~expected].any()
+        assert kf.codes(np.zeros(0, np.int64))[1].shape == (0, D)
+
     def test_exclusion_follows_query_frame(self, codes):
         kf = KeyframeIndex(D, exclude_recent=5)
         assert query(kf, codes[0], 0, 3)[1].size == 0  # empty index: no results

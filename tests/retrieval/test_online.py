@@ -84,20 +84,22 @@ def test_a_refit_decides_again_only_the_newest_max_frames(sample_seq, sample_ima
         replayed: list[int] = []
         recorded = LoopDetector._recorded
         monkeypatch.setattr(LoopDetector, "_recorded",
-                            lambda self, seens: replayed.extend(s.frame_id for s in seens) or recorded(self, seens))
+                            lambda self, seens, src: replayed.extend(s.frame_id for s in seens) or recorded(self, seens,
+                                                                                                             src))
         det._redecide()
     assert replayed == list(range(30, len(sample_seq) + 30))
 
 
 def test_recorded_frames_are_scored_in_bulk_as_one_at_a_time(sample_seq, sample_image, encoder, monkeypatch):
-    """A refit scores every recorded frame's candidates together, ``PAIR_CHUNK`` pairs a call: the same candidates
-    and scores as frame by frame (a chunk of 7 pairs cuts through frames)."""
+    """A refit scores every recorded frame's candidates together, ``PAIR_CHUNK`` pairs a call, on the keyframes'
+    codes copied into a table (``_replay_source``): the same candidates and scores, bit for bit, as frame by frame
+    on the index's own codes (a chunk of 7 pairs cuts through frames)."""
     with LoopDetector(CONF, K=sample_seq.K, encoder=encoder) as det:
         stream(det, sample_image, range(len(sample_seq)))
         seens = det._online.seen
-        one_by_one = [det._recorded([s])[0] for s in seens]
+        one_by_one = [det._recorded([s], det.places.source)[0] for s in seens]
         monkeypatch.setattr("retrieval.detector.PAIR_CHUNK", 7)
-        together = det._recorded(seens)
+        together = det._recorded(seens, det._replay_source())
     assert sum(len(c) for c in together) > 7 * 10
     assert [[c.as_row() for c in cands] for cands in together] == [[c.as_row() for c in cands] for cands in one_by_one]
 
@@ -181,9 +183,9 @@ def test_late_checks_equal_one_call_per_frame(online_run, sample_seq):
     for seen in state.seen:
         blank = dataclasses.replace(seen, matches=np.zeros_like(seen.matches), inliers=np.full_like(seen.inliers, -1),
                                     reported=False)
-        rows.append((blank, det._recorded([blank])[0]))
+        rows.append((blank, det._recorded([blank], det.places.source)[0]))
         loop = dataclasses.replace(blank, inliers=blank.inliers.copy(), reported=True)
-        looped.append((loop, det._recorded([loop])[0]))
+        looped.append((loop, det._recorded([loop], det.places.source)[0]))
     det._pool = BesideExecutor(thread_name_prefix="verify")  # the stream's was shut down with it
     try:
         det._verify_late(rows)
@@ -194,7 +196,7 @@ def test_late_checks_equal_one_call_per_frame(online_run, sample_seq):
     assert all((seen.inliers == -1).all() and all(cd.inliers == -1 for cd in cands) for seen, cands in looped)
     todo = 0
     for seen, cands in rows:
-        want = [i for i, cd in enumerate(det._recorded([seen])[0]) if det._could_pass(cd)]
+        want = [i for i, cd in enumerate(det._recorded([seen], det.places.source)[0]) if det._could_pass(cd)]
         got = det.verifier.verify(det.keyframe_features(seen.frame_id), [det.keyframe_features(cands[i].frame_id)
                                   for i in want], sample_seq.K, det.conf["policy"]["min_matches"], det._min_inliers)
         assert [(cands[i].matches, cands[i].inliers) for i in want] == [(g.matches, g.inliers) for g in got]
