@@ -38,7 +38,7 @@ from verify.camera import CameraModel, camera_from_options
 from .calibrate import Calibration, TooFewFrames, calibrate, calibrated_features, calibration_frames
 from .database import KeyframeDatabase
 from .descriptors import GlobalDescriptor, create_descriptor
-from .detector import STAGES, LoopDetector, resolve_conf
+from .detector import KEPT_GEOMETRIES, STAGES, LoopDetector, resolve_conf
 from .edges import check_edge_frame, edge_features, loop_edges, metric_edges, serialised
 from .temporal import create_filter
 from .run_folder import FrameKeys, RunFolder
@@ -211,7 +211,8 @@ def _calibrated_detector(run: RunFolder, seq: Sequence, conf: dict[str, Any], pr
     features: dict[int, Any] = {}
     cal = _calibration(run, seq, conf, descriptor, progress, codes, features)
     return cal, LoopDetector(conf, K=seq.K, database=run.database, calibration=cal, descriptor=descriptor,
-                             frame_source=functools.partial(_frame_again, seq), features=features)
+                             frame_source=functools.partial(_frame_again, seq), features=features,
+                             kept_geometries=KEPT_GEOMETRIES)
 
 
 def default_out(seq: Sequence) -> Path:

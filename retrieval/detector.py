@@ -72,9 +72,11 @@ log = logging.getLogger(__name__)
 
 MAX_PREFETCHED = 8  #: frames ``LoopDetector.prefetch_features`` holds at most (their images and extraction jobs)
 LATE_BATCH = 256  #: pairs verified late at a refit at a time (``LoopDetector._verify_late``: their features held)
-#: verified pairs with a pose (an essential matrix) whose two-view geometry is kept, the oldest dropped first: a
-#: loop's edge reuses its check (``LoopDetector.verified_geometry``; KITTI 90: 100 loops, 200 such pairs checked)
+#: verified pairs with a pose (an essential matrix) whose two-view geometry ``detect`` has its detector keep
+#: (``LoopDetector(kept_geometries=...)``, the oldest dropped first), so that a loop's edge reuses its check
+#: (``LoopDetector.verified_geometry``): ~6 kB a pair (its inliers' points), ~25 MB at most; KITTI 90 checks 200
 KEPT_GEOMETRIES = 4096
+REPLAY_COPY_BYTES = 64 << 20  #: a refit's replay copies the keyframes' codes up to this size (``_replay_source``)
 STAGES = ("gate", "encode", "features", "search", "filter", "verify", "insert", "total")  #: keys of ``FrameResult.ms``
 
 default_conf: dict[str, Any] = {
@@ -301,6 +303,8 @@ class LoopDetector:
             PNG copy of the grey frame at the extractor's resolution is kept in memory instead.
         features: local features already extracted for some frames (``{frame_id: Features}``, e.g. by the
             calibration, from the same images): used instead of extracting them again.
+        kept_geometries: the newest checks with a pose (an essential matrix) kept for ``verified_geometry``, at
+            most (``detect`` keeps ``KEPT_GEOMETRIES`` for its loop edges); 0: none kept.
 
     Raises:
         ConfigError: a bad conf value, a K that is not a finite 3x3 matrix, or a database made with another conf.
@@ -311,9 +315,13 @@ class LoopDetector:
                  database: str | Path | None = None, encoder: torch.nn.Module | None = None,
                  calibration: Calibration | None = None, descriptor: GlobalDescriptor | None = None,
                  frame_source: Callable[[int], np.ndarray] | None = None,
-                 features: dict[int, Features] | None = None) -> None:
+                 features: dict[int, Features] | None = None, kept_geometries: int = 0) -> None:
         self.conf = resolve_conf(conf)
         c = self.conf
+        if isinstance(kept_geometries, bool) or not isinstance(kept_geometries, (int, np.integer)) \
+                or kept_geometries < 0:
+            raise ConfigError(f"kept_geometries must be an integer >= 0; got {kept_geometries!r}")
+        self._kept_geometries = int(kept_geometries)
         self.K = None if K is None else check_intrinsics(K, "K")
         if c["runtime"]["features"] == "database" and database is None:
             raise ConfigError("runtime.features 'database' needs a keyframe database (database=... / --out)")
@@ -993,11 +1001,14 @@ class LoopDetector:
                 out.append(Candidate(int(ref), score, 0, -1, seq_score))
         return out
 
-    def _replay_source(self) -> CodeTable:
+    def _replay_source(self) -> Any:
         """The keyframes' current codes copied into a table (``retrieval.temporal.CodeTable``, the same admission
-        rule): a replay scores tens of thousands of pairs, each read from the index otherwise (Nordland streamed: 2.7
-        of its 4.4 s of replays), with the same float32 products, so the same scores."""
+        rule) where they take at most ``REPLAY_COPY_BYTES``, else the place memory's own source: a replay scores tens
+        of thousands of pairs, each read from the index otherwise (Nordland streamed: 2.7 of its 4.4 s of replays),
+        with the same float32 products, so the same scores."""
         src = self.places.source
+        if len(src) * src.dim * 4 > REPLAY_COPY_BYTES:
+            return src
         table = CodeTable(src.dim, src.searchable)
         for fid, code in zip(*src.items()):
             table.add(int(fid), code)
@@ -1051,19 +1062,21 @@ class LoopDetector:
                 self._keep_geometries(seen.frame_id, [cd], [got])
 
     def _keep_geometries(self, fid: int, candidates: list[Candidate], checks: list[Verification | None]) -> None:
-        """Keeps the checks of ``fid``'s candidates that found a pose (``verified_geometry``), ``KEPT_GEOMETRIES`` at
+        """Keeps the checks of ``fid``'s candidates that found a pose (``verified_geometry``), ``kept_geometries`` at
         most."""
+        if not self._kept_geometries:
+            return
         for cd, check in zip(candidates, checks):
             if check is not None and check.geometry.essential is not None:
                 self._geometries[(fid, cd.frame_id)] = check.geometry
                 self._geometries.move_to_end((fid, cd.frame_id))
-        while len(self._geometries) > KEPT_GEOMETRIES:
+        while len(self._geometries) > self._kept_geometries:
             self._geometries.popitem(last=False)
 
     def verified_geometry(self, query: int, match: int) -> GeometryResult | None:
         """The two-view geometry this detector's check found for keyframe ``query`` against ``match``, where it found
-        a pose (an essential matrix: intrinsics known) among the newest ``KEPT_GEOMETRIES`` such checks; else None
-        (not verified, no pose, dropped, or verified by an earlier process of a resumed run)."""
+        a pose (an essential matrix: intrinsics known) among the newest ``kept_geometries`` such checks; else None
+        (not verified, no pose, none kept, dropped, or verified by an earlier process of a resumed run)."""
         return self._geometries.get((int(query), int(match)))
 
     def _confirmed(self, fid: int, candidates: list[Candidate],

@@ -283,12 +283,21 @@ class KeyframeIndex:
     def __init__(self, dim: int, index_conf: dict[str, Any] | None = None, exclude_recent: int = 0,
                  exclude_recent_s: float | None = None) -> None:
         self.index = create_index(dim, index_conf)
-        self.frame_ids: list[int] = []  # position in the index -> frame id (admitted in increasing frame order)
-        self._ids = np.zeros(0, np.int64)  # the same as an array, for ``codes``' lookups (kept with ``frame_ids``)
+        self._ids = np.zeros(64, np.int64)  # position in the index -> frame id, the first ``_n`` (grown by doubling)
+        self._n = 0
         self._queue = AdmissionQueue(exclude_recent, exclude_recent_s)
 
+    @property
+    def frame_ids(self) -> np.ndarray:
+        """``(n,)`` int64: the admitted keyframes' frame ids by position in the index (admitted in increasing frame
+        order; a view, valid until the next ``admit``)."""
+        return self._ids[: self._n]
+
+    def _set_ids(self, ids: np.ndarray) -> None:
+        self._ids, self._n = np.array(ids, np.int64).reshape(-1), len(ids)
+
     def __len__(self) -> int:
-        return len(self.frame_ids) + len(self._queue)
+        return self._n + len(self._queue)
 
     def add(self, frame_id: int, code: np.ndarray, timestamp: float | None = None) -> None:
         """Queues a keyframe's unit-norm ``(d,)`` code."""
@@ -298,8 +307,10 @@ class KeyframeIndex:
         """Makes searchable every queued code old enough for a query at ``frame_id`` (and ``timestamp``)."""
         ready = self._queue.pop_ready(frame_id, timestamp)
         if ready:
-            self.frame_ids.extend(fid for fid, _ in ready)
-            self._ids = np.r_[self._ids, np.array([fid for fid, _ in ready], np.int64)]
+            if self._n + len(ready) > len(self._ids):
+                self._ids = np.resize(self._ids, max(2 * len(self._ids), self._n + len(ready), 64))
+            self._ids[self._n:self._n + len(ready)] = [fid for fid, _ in ready]
+            self._n += len(ready)
             self.index.add(np.stack([code for _, code in ready]))
 
     def save(self, path: str | Path) -> bool:
@@ -333,7 +344,8 @@ class KeyframeIndex:
             log.warning("%s was saved for other keyframes or another index; the index is rebuilt from the keyframe "
                         "store", path)
             return 0
-        self.index, self.frame_ids, self._ids = index, ids.tolist(), np.asarray(ids, np.int64).copy()
+        self.index = index
+        self._set_ids(ids)
         return len(ids)
 
     def mapped(self, fn: Any, dim: int, codes_of: Any) -> "KeyframeIndex":
@@ -341,9 +353,9 @@ class KeyframeIndex:
         -> ``(n, dim)``); ``codes_of(frame_ids) -> (n, D)`` gives their codes, the admitted and the queued ones' (a
         stream's whitening, fitted on its keyframes: ``retrieval.places``)."""
         out = KeyframeIndex(dim, self.index.conf, self._queue.exclude_recent, self._queue.exclude_recent_s)
-        out.frame_ids, out._ids = list(self.frame_ids), self._ids.copy()
-        if out.frame_ids:
-            out.index.add(fn(codes_of(np.asarray(out.frame_ids, np.int64))))
+        out._set_ids(self.frame_ids)
+        if out._n:
+            out.index.add(fn(codes_of(out.frame_ids.copy())))
         for fid, ts, _ in self._queue:
             out._queue.push(fid, ts, fn(codes_of(np.array([fid], np.int64)))[0])
         return out
@@ -356,7 +368,7 @@ class KeyframeIndex:
         """
         D, I = self.index.search(np.asarray(code, np.float32).reshape(1, -1), k)
         keep = I[0] >= 0
-        return D[0][keep], np.array([self.frame_ids[i] for i in I[0][keep].tolist()], np.int64)  # O(k), not O(map)
+        return D[0][keep], self.frame_ids[I[0][keep]]
 
     def queued_ids(self) -> list[int]:
         """Frame ids of the keyframes still queued (not searchable yet), oldest first."""
@@ -364,8 +376,9 @@ class KeyframeIndex:
 
     def _position(self, frame_id: int) -> int:
         """The admitted keyframe's position in the index, -1 if not admitted (admitted in increasing frame order)."""
-        pos = int(np.searchsorted(self._ids, frame_id))
-        return pos if pos < len(self._ids) and self._ids[pos] == frame_id else -1
+        ids = self.frame_ids
+        pos = int(np.searchsorted(ids, frame_id))
+        return pos if pos < len(ids) and ids[pos] == frame_id else -1
 
     def holds(self, frame_id: int) -> bool:
         """True when the keyframe is queued or admitted."""
@@ -380,8 +393,9 @@ class KeyframeIndex:
         """
         fids = np.asarray(frame_ids, np.int64).reshape(-1)
         found, out = np.zeros(len(fids), bool), np.zeros((len(fids), self.index.dim), np.float32)
-        pos = np.minimum(np.searchsorted(self._ids, fids), max(len(self._ids) - 1, 0))
-        admitted = self._ids[pos] == fids if len(self._ids) else np.zeros(len(fids), bool)
+        ids = self.frame_ids
+        pos = np.minimum(np.searchsorted(ids, fids), max(len(ids) - 1, 0))
+        admitted = ids[pos] == fids if len(ids) else np.zeros(len(fids), bool)
         rest = np.flatnonzero(~admitted)  # queued ones among them (a code is queued or admitted, never both)
         if len(self._queue) and len(rest):
             queued = {fid: code for fid, _, code in self._queue}

@@ -148,7 +148,7 @@ class CodePlaces(Places):
 
     def _searchable(self, refs: np.ndarray) -> np.ndarray:
         """True for keyframes the current query may match (admitted to the index: old enough)."""
-        newest = self.index.frame_ids[-1] if self.index.frame_ids else -1
+        newest = int(self.index.frame_ids[-1]) if len(self.index.frame_ids) else -1
         return np.array([r <= newest and r in self.source for r in np.asarray(refs).tolist()], bool)
 
     def search(self, frame_id: int, entry: np.ndarray, timestamp: float | None,
@@ -254,7 +254,7 @@ class IndexedCodes:
     def items(self) -> tuple[np.ndarray, np.ndarray]:
         """Frame ids ``(n,)`` int64 ascending and their codes ``(n, dim)`` float32."""
         index = self._index()
-        ids = np.unique(np.asarray([*index.frame_ids, *index.queued_ids(), *self._recent], np.int64))
+        ids = np.unique(np.r_[index.frame_ids, np.asarray([*index.queued_ids(), *self._recent], np.int64)])
         return ids, self._codes(ids)[1]
 
     def pairs(self, queries: np.ndarray, refs: np.ndarray) -> np.ndarray:

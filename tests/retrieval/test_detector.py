@@ -96,11 +96,11 @@ class TestLoopDetector:
 
     def test_a_loops_check_is_kept_for_its_edge(self, encoder, sample_seq, sample_image, detect_conf):
         """``verified_geometry``: the check that found a loop's pose is what the detector keeps for the pair (its
-        edge reuses it, ``retrieval.edges.loop_edges``); a pair never verified has none; the oldest go first."""
-        import retrieval.detector as detector
-
-        with LoopDetector(detect_conf, K=sample_seq.K, encoder=encoder) as det:
-            results = [det.process(sample_image(i), i) for i in range(58)]
+        edge reuses it, ``retrieval.edges.loop_edges``); a pair never verified has none; the oldest go first, and
+        by default (``kept_geometries`` 0) none is kept."""
+        frames = [sample_image(i) for i in range(60)]
+        with LoopDetector(detect_conf, K=sample_seq.K, encoder=encoder, kept_geometries=1000) as det:
+            results = [det.process(frames[i], i) for i in range(58)]
             loops = [r for r in results if r.loop is not None]
             assert loops
             for r in loops:
@@ -108,13 +108,19 @@ class TestLoopDetector:
                 assert r.verification.geometry.essential is not None
             assert det.verified_geometry(57, 56) is None and det.verified_geometry(5, 55) is None
             kept = len(det._geometries)
-            first = next(iter(det._geometries))
-            old, detector.KEPT_GEOMETRIES = detector.KEPT_GEOMETRIES, kept
-            try:
-                det.process(sample_image(58), 58)
-            finally:
-                detector.KEPT_GEOMETRIES = old
-            assert len(det._geometries) == kept and det.verified_geometry(*first) is None
+        with LoopDetector(detect_conf, K=sample_seq.K, encoder=encoder, kept_geometries=kept) as det:
+            for i in range(58):
+                det.process(frames[i], i)
+            oldest = next(iter(det._geometries))
+            last = [r for r in (det.process(frames[i], i) for i in (58, 59)) if r.loop is not None][-1]
+            assert len(det._geometries) == kept and det.verified_geometry(*oldest) is None
+            assert det.verified_geometry(last.frame_id, last.loop.frame_id) is last.verification.geometry
+        with LoopDetector(detect_conf, K=sample_seq.K, encoder=encoder) as det:
+            for i in range(58):
+                det.process(frames[i], i)
+            assert not det._geometries and det.verified_geometry(loops[-1].frame_id, loops[-1].loop.frame_id) is None
+        with pytest.raises(ConfigError, match="kept_geometries"):
+            LoopDetector(detect_conf, encoder=encoder, kept_geometries=-1)
 
     def test_to_dict_json(self, stream_run):
         loop_frame = next(r for r in stream_run["results"] if r.loop is not None)
@@ -244,7 +250,7 @@ class TestSavedIndex:
                 assert "restored the place index of" in caplog.text
                 second = run(det, range(RESUME_AT, len(seq)))
                 indexed = det.places.index.frame_ids
-                assert indexed == sorted(set(indexed)) and det.places.index.index.ntotal == len(indexed)
+                assert (np.diff(indexed) > 0).all() and det.places.index.index.ntotal == len(indexed)
         assert first + second == whole
         assert sum(m >= 0 for _, m in whole) >= 45
 

@@ -349,7 +349,7 @@ class TestKeyframeIndex:
             kf.add(i, codes[i])
         if mapped:
             kf = kf.mapped(lambda x: x, D, lambda fids: codes[np.asarray(fids)])
-        assert kf.frame_ids and kf.queued_ids()  # both kinds held
+        assert len(kf.frame_ids) and kf.queued_ids()  # both kinds held
         asked = np.array([17, 1, 0, 12, 12, 39, 3, 16, 11, 8, 100, 2, 7, 15, -1], np.int64)
         found, got = kf.codes(asked)
         expected = np.isin(asked, ids)

@@ -99,7 +99,10 @@ def test_recorded_frames_are_scored_in_bulk_as_one_at_a_time(sample_seq, sample_
         seens = det._online.seen
         one_by_one = [det._recorded([s], det.places.source)[0] for s in seens]
         monkeypatch.setattr("retrieval.detector.PAIR_CHUNK", 7)
-        together = det._recorded(seens, det._replay_source())
+        copied = det._replay_source()
+        together = det._recorded(seens, copied)
+        monkeypatch.setattr("retrieval.detector.REPLAY_COPY_BYTES", 1000)  # a map too large to copy: scored in place
+        assert copied is not det.places.source and det._replay_source() is det.places.source
     assert sum(len(c) for c in together) > 7 * 10
     assert [[c.as_row() for c in cands] for cands in together] == [[c.as_row() for c in cands] for cands in one_by_one]
 
