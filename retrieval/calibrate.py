@@ -115,7 +115,7 @@ from .decision import (AGREE, SPAN, TOL, Decision, EmpiricalTail, Horizon, Measu
 from .descriptors import GlobalDescriptor
 from .temporal import PAIR_CHUNK, CodeTable, NoFilter, SequenceFilter, TemporalFilter
 
-__all__ = ["Calibration", "TooFewFrames", "CALIBRATION_FORMAT", "calibrate", "calibrated_features", "run_needed",
+__all__ = ["Calibration", "TooFewFrames", "ThinnerNull", "CALIBRATION_FORMAT", "calibrate", "calibrated_features", "run_needed",
            "calibration_frames", "far_side_scores", "camera_moved", "score_level"]
 
 log = logging.getLogger(__name__)
@@ -375,6 +375,15 @@ class TooFewFrames(ConfigError):
     """The sequence is too short to calibrate on (``detect`` then falls back to the fixed policy, with a warning)."""
 
 
+class ThinnerNull(Exception):
+    """``calibrate`` stopped early: the null it would measure holds ``samples``, fewer than its ``at_least`` (a
+    stream's refit that would not replace the current calibration, ``retrieval.online``)."""
+
+    def __init__(self, samples: int) -> None:
+        super().__init__(f"the null would hold {samples} samples")
+        self.samples = samples
+
+
 # ------------------------------------------------------------------------------------------------- the calibration
 def calibration_frames(n_frames: int, window: int, length: int, max_frames: int) -> np.ndarray:
     """Frame indices the calibration reads: all of them, or contiguous blocks spread over a long sequence.
@@ -422,9 +431,19 @@ def _null_scores(ids: np.ndarray, table: CodeTable, filt: TemporalFilter, window
     in ``ids``, ``camera_moved``): the pair moved back together over the frames its fused score reads (``SPAN`` windows of
     the filter's ``length``) must have moved apart at every step; a pair at one stop is one place, not a pair known
     not to be a loop, and its line would carry that place into the nulls' tails."""
+    q, r = _null_pairs(ids, filt, window, moved, min_apart)
+    out = [np.zeros((0, 3))] + [np.column_stack([q[lo:lo + PAIR_CHUNK], r[lo:lo + PAIR_CHUNK],
+                                                 filt.score(q[lo:lo + PAIR_CHUNK], r[lo:lo + PAIR_CHUNK], table)])
+                                for lo in range(0, len(q), PAIR_CHUNK)]  # the similarities read in bulk, a chunk a call
+    return np.concatenate(out)
+
+
+def _null_pairs(ids: np.ndarray, filt: TemporalFilter, window: int, moved: np.ndarray | None = None,
+                min_apart: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """``_null_scores``' pairs, unscored: ``(queries (m,), refs (m,))`` int64, by query then ref ascending."""
     ids = np.asarray(ids, np.int64)
     if not len(ids):
-        return np.zeros((0, 3))
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
     moves = np.full(int(ids.max()) + 1, -1, np.int64)  # moved frames up to each frame id (-1: not present)
     moves[ids] = np.cumsum(np.ones(len(ids), bool) if moved is None else moved)
     back = np.arange(SPAN * int(filt.conf.get("length", 1)), dtype=np.int64)
@@ -434,16 +453,12 @@ def _null_scores(ids: np.ndarray, table: CodeTable, filt: TemporalFilter, window
     q, r = q[keep], r[keep]
     keep = moves[r] >= 0
     q, r = q[keep], r[keep]
-    out = [np.zeros((0, 3))]
-    for lo in range(0, len(q), PAIR_CHUNK):  # one score call a chunk: the similarities read in bulk, memory bounded
-        qc, rc = q[lo:lo + PAIR_CHUNK], r[lo:lo + PAIR_CHUNK]
-        qs, rs = qc[:, None] - back[None, :], rc[:, None] - back[None, :]
+    kept = np.zeros(len(q), bool)
+    for lo in range(0, len(q), PAIR_CHUNK):  # the lines' frames a chunk at a time: memory bounded
+        qs, rs = q[lo:lo + PAIR_CHUNK, None] - back[None, :], r[lo:lo + PAIR_CHUNK, None] - back[None, :]
         mq, mr = moves[np.maximum(qs, 0)], moves[np.maximum(rs, 0)]
-        apart = ((rs < 0) | (mq < 0) | (mr < 0) | (mq - mr >= min_apart)).all(1)
-        if apart.any():
-            qc, rc = qc[apart], rc[apart]
-            out.append(np.column_stack([qc, rc, filt.score(qc, rc, table)]))
-    return np.concatenate(out)
+        kept[lo:lo + PAIR_CHUNK] = ((rs < 0) | (mq < 0) | (mr < 0) | (mq - mr >= min_apart)).all(1)
+    return q[kept], r[kept]
 
 
 def far_side_scores(ids: np.ndarray, table: CodeTable, filt: TemporalFilter, window: int, moved: np.ndarray,
@@ -483,14 +498,30 @@ def _reversed_lines(ids: np.ndarray, table: CodeTable, filt: TemporalFilter, win
         ``k`` at ``off + k`` and, mirrored, at ``off - 1 - k`` (``off`` = the last id + 1), so that the filter's and
         ``ScoreSpans``' forward lines through ``(off + q, off - 1 - r)`` read the reversed ones.
     """
+    q, r = _reversed_pairs(ids, filt, window, moved, newest)
+    if q is None:
+        return np.zeros((0, 3)), table
+    off = int(np.asarray(ids).max()) + 1
+    tids, codes = table.items()
+    mirror = CodeTable.fixed(np.r_[off - 1 - tids[::-1], off + tids], np.r_[codes[::-1], codes])
+    if not len(q):
+        return np.zeros((0, 3)), mirror
+    qm, rm = off + q, off - 1 - r
+    scores = np.concatenate([np.zeros(0)] + [filt.score(qm[i:i + PAIR_CHUNK], rm[i:i + PAIR_CHUNK], mirror)
+                                             for i in range(0, len(qm), PAIR_CHUNK)])
+    return np.column_stack([qm, rm, scores]), mirror
+
+
+def _reversed_pairs(ids: np.ndarray, filt: TemporalFilter, window: int, moved: np.ndarray,
+                    newest: int) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """``_reversed_lines``' lines, unscored: ``(queries (m,), refs (m,))`` int64 in the frames' own ids (a line reads
+    ``(q - i, r + i)``), by query then ref; ``(None, None)`` for a filter without reversed lines."""
     ids = np.asarray(ids, np.int64)
     if not isinstance(filt, SequenceFilter) or filt.conf["length"] < 2 or min(filt.conf["velocities"]) <= 0 \
             or len(ids) < 2:
-        return np.zeros((0, 3)), table
+        return None, None
     velocities = filt.conf["velocities"]
     off = int(ids.max()) + 1
-    tids, codes = table.items()
-    mirror = CodeTable.fixed(np.r_[off - 1 - tids[::-1], off + tids], np.r_[codes[::-1], codes])
     reach = SPAN * int(filt.conf["length"]) - 1  # frames a line reads back from its query
     ahead = int(math.ceil(max(velocities) * reach))  # and forward from its reference
     count = np.zeros(off + 1, np.int64)  # moved frames before each frame id
@@ -514,7 +545,7 @@ def _reversed_lines(ids: np.ndarray, table: CodeTable, filt: TemporalFilter, win
     sizes = [int(n.sum()) for _, _, n in parts]
     total = sum(sizes)
     if not total:
-        return np.zeros((0, 3)), mirror
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
     flat = np.arange(total) if total <= REVERSED_LINES else np.sort(
         np.random.default_rng(0).choice(total, REVERSED_LINES, replace=False))
     picked, first = [], 0
@@ -526,11 +557,7 @@ def _reversed_lines(ids: np.ndarray, table: CodeTable, filt: TemporalFilter, win
         first += size
     q, r = np.concatenate([p[0] for p in picked]), np.concatenate([p[1] for p in picked])
     order = np.lexsort((r, q))
-    q, r = q[order], r[order]
-    qm, rm = off + q, off - 1 - r
-    scores = np.concatenate([np.zeros(0)] + [filt.score(qm[i:i + PAIR_CHUNK], rm[i:i + PAIR_CHUNK], mirror)
-                                             for i in range(0, len(qm), PAIR_CHUNK)])
-    return np.column_stack([qm, rm, scores]), mirror
+    return q[order], r[order]
 
 
 def _tail_fit(values: np.ndarray) -> tuple[float, float, float]:
@@ -562,7 +589,7 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
               progress: bool = True, codes: dict[int, np.ndarray] | None = None,
               features: dict[int, Any] | None = None, ratios: dict[int, float] | None = None,
               local: Callable[[int], Any] | None = None, held_out: float = 0.0,
-              verified: dict[tuple[int, int], int] | None = None) -> Calibration:
+              verified: dict[tuple[int, int], int] | None = None, at_least: int = 0) -> Calibration:
     """Calibrates on a sequence's frames (see the module doc).
 
     Args:
@@ -587,10 +614,14 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
             whitening is not fitted on, the score path's nulls drawn from their far-side pairs only
             (``_out_of_sample``: a stream decides frames its whitening has not seen, ``retrieval.online``); 0: fitted
             on every frame, the nulls from every frame (a sequence calibrated before its run).
+        at_least: on the score path with ``held_out``, the samples its null must hold (a stream's current
+            calibration's, ``retrieval.online``): counted before the second whitening and the nulls are scored, and
+            fewer stop the fit there (``ThinnerNull``), as a fit measured to the end would be discarded.
 
     Raises:
         ConfigError: too few usable frames, or an exclusion window too short to hold null pairs (``TooFewFrames``
             also where ``held_out`` frames hold too few far-side pairs).
+        ThinnerNull: the score path's null would hold fewer samples than ``at_least``.
     """
     cc, window = conf["calibration"], conf["search"]["exclude_recent"]
     if window < 4:
@@ -624,6 +655,9 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
                  "inliers": n_keyframes * conf["search"]["k"] * SPAN}  # every run length 1..span counted
     shared += _inlier_path(cal, conf, images, null, table, K, progress, features, local, verified)
     if held_out and not cal.inlier_null:  # a stream on the score path: its nulls measured out of sample
+        samples = _score_null_size(ids, filt, window, moved, held_out) if at_least else None
+        if samples is not None and samples < at_least:
+            raise ThinnerNull(samples)
         null_table, apart = _out_of_sample(cal, conf["whitening"], descriptor, filt, ids, codes, moved, window,
                                            held_out, "the score path's null")
     else:
@@ -815,9 +849,7 @@ def _out_of_sample(cal: Calibration, wconf: dict[str, Any], descriptor: GlobalDe
     Raises:
         TooFewFrames: the held-out frames hold fewer than 20 far-side pairs.
     """
-    pos = np.flatnonzero(moved)
-    keep = len(pos) - int(round(held_out * len(pos)))  # moved frames the second whitening is fitted on
-    cut = int(pos[keep]) if MIN_FIT_CODES <= keep < len(pos) else len(ids)
+    cut = _held_out_cut(moved, held_out)
     rows = np.zeros((0, 3))
     if cut < len(ids):
         white = _whitening(wconf, descriptor, codes[:cut], [], moved[:cut])
@@ -832,6 +864,29 @@ def _out_of_sample(cal: Calibration, wconf: dict[str, Any], descriptor: GlobalDe
                      f"under a whitening fitted on the {cut} before them (the frames a stream decides come after its "
                      "whitening's fit)")
     return table, rows
+
+
+def _held_out_cut(moved: np.ndarray, held_out: float) -> int:
+    """``_out_of_sample``'s split of a fit's frames (``moved (n,)`` as ``camera_moved``): the position of the first
+    held-out frame, the frames before it fitting the second whitening; ``n`` where too few moved frames are left to
+    fit it."""
+    pos = np.flatnonzero(moved)
+    keep = len(pos) - int(round(held_out * len(pos)))  # moved frames the second whitening is fitted on
+    return int(pos[keep]) if MIN_FIT_CODES <= keep < len(pos) else len(moved)
+
+
+def _score_null_size(ids: np.ndarray, filt: TemporalFilter, window: int, moved: np.ndarray,
+                     held_out: float) -> int | None:
+    """The samples the score path's null measured out of sample will hold (``_out_of_sample``'s far-side pairs and
+    ``_reversed_lines``' lines: ``Calibration.score_null["samples"]``), counted before anything is whitened or
+    scored; None where ``_out_of_sample`` will refuse (fewer than 20 far-side pairs held out)."""
+    cut = _held_out_cut(moved, held_out)
+    q, _ = _null_pairs(ids, filt, window, moved, window // 2) if cut < len(ids) else (np.zeros(0, np.int64), None)
+    q = q[q >= ids[cut]] if cut < len(ids) else q
+    if len(q) < 20:
+        return None
+    far, _ = _reversed_pairs(ids, filt, window, moved, int(q.min()))
+    return len(q) + (0 if far is None else len(far))
 
 
 def _windows_needed(cal: Calibration, filt: TemporalFilter) -> str:

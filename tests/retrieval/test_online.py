@@ -322,6 +322,35 @@ def test_a_carried_score_path_calibration_gives_way_to_the_streams_own(kitti_64x
     assert not any("never loosens" in r.getMessage() for r in caplog.records)
 
 
+def test_a_refit_that_would_not_be_kept_stops_where_its_null_is_counted(kitti_64x32, encoder):
+    """On the score path a stream's refit is kept only where its null holds at least the current one's samples; those
+    are counted before anything is whitened or scored (``calibrate``'s ``at_least``): a fit asked for one sample more
+    than it measures stops (``ThinnerNull``, with the count the whole fit measures), one asked for as many is made
+    whole, the same calibration as without the bar."""
+    from retrieval.calibrate import ThinnerNull, calibrate
+    from retrieval.detector import resolve_conf
+    from retrieval.descriptors import create_descriptor
+    from retrieval.online import HELD_OUT
+    from retrieval.temporal import create_filter
+
+    conf = resolve_conf({})
+    descriptor = create_descriptor(conf["descriptor"], encoder=encoder)
+    frames = kitti_64x32("00")
+
+    def fit(at_least: int):
+        return calibrate(enumerate(frames), len(frames), conf, descriptor, create_filter(conf["temporal"]), None,
+                         False, held_out=HELD_OUT, at_least=at_least)
+
+    whole = fit(0)
+    samples = int(whole.score_null["samples"])
+    assert whole.path == "score" and whole.score_null.get("held_out") and samples > 1000
+    with pytest.raises(ThinnerNull) as stopped:
+        fit(samples + 1)
+    assert stopped.value.samples == samples
+    again = fit(samples)
+    assert again.thresholds() == whole.thresholds() and again.score_null == whole.score_null
+
+
 def _judged(det: LoopDetector, sample_image, frames, loops: dict) -> dict[int, list[tuple]]:
     """Streams ``frames`` (their loops into ``loops``, as ``stream``); ``{frame: [(keyframe, score, temporal score,
     inliers, confidence)]}``: how each frame's candidates were judged."""
