@@ -115,8 +115,8 @@ from .decision import (AGREE, SPAN, TOL, Decision, EmpiricalTail, Horizon, Measu
 from .descriptors import GlobalDescriptor
 from .temporal import PAIR_CHUNK, CodeTable, NoFilter, SequenceFilter, TemporalFilter
 
-__all__ = ["Calibration", "TooFewFrames", "ThinnerNull", "CALIBRATION_FORMAT", "calibrate", "calibrated_features", "run_needed",
-           "calibration_frames", "far_side_scores", "camera_moved", "score_level"]
+__all__ = ["Calibration", "TooFewFrames", "ThinnerNull", "CALIBRATION_FORMAT", "calibrate", "calibrated_features",
+           "run_needed", "calibration_frames", "far_side_scores", "camera_moved", "score_level"]
 
 log = logging.getLogger(__name__)
 
@@ -881,8 +881,10 @@ def _score_null_size(ids: np.ndarray, filt: TemporalFilter, window: int, moved: 
     ``_reversed_lines``' lines: ``Calibration.score_null["samples"]``), counted before anything is whitened or
     scored; None where ``_out_of_sample`` will refuse (fewer than 20 far-side pairs held out)."""
     cut = _held_out_cut(moved, held_out)
-    q, _ = _null_pairs(ids, filt, window, moved, window // 2) if cut < len(ids) else (np.zeros(0, np.int64), None)
-    q = q[q >= ids[cut]] if cut < len(ids) else q
+    if cut >= len(ids):
+        return None
+    q, _ = _null_pairs(ids, filt, window, moved, window // 2)
+    q = q[q >= ids[cut]]
     if len(q) < 20:
         return None
     far, _ = _reversed_pairs(ids, filt, window, moved, int(q.min()))
