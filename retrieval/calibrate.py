@@ -126,6 +126,7 @@ CALIBRATION_FORMAT = 4  #: ``format_version`` of calibration.h5 (3: the local fe
 #: decision reads them, and each costs the full check (3.4 ms against 1.2 for a hard negative the pre-check stops:
 #: KITTI 90, every query's positives were 0.6 of the calibration's 2.0 CPU seconds)
 POSITIVE_EVERY = 8
+MIN_NULL_PAIRS = 20  #: far-side pairs a null (or a level read from them) needs at least
 REVERSED_LINES = 20_000  #: the score path's long-range lines (``_reversed_lines``) drawn at most, seeded: a random
 #   sample of every pair far enough apart where there are more (a stream of 2000 frames holds ~1.5 million). Nordland
 #   streamed: 0 (before) recall 0.900, 13.4 ms a frame; 20,000: 0.922, 15.1 ms; 100,000: 0.930, 19.6 ms
@@ -204,7 +205,7 @@ class Calibration:
         ``_out_of_sample``; measured by a stream's fit on the inlier path, ``calibrate``'s ``held_out``): the level
         its drift checks compare the frames after the fit with (``retrieval.online``). None where not measured."""
         scores = self.samples.get("held_out_far_side")
-        return score_level(scores) if scores is not None and len(scores) >= 20 else None
+        return score_level(scores) if scores is not None and len(scores) >= MIN_NULL_PAIRS else None
 
     @property
     def path(self) -> str:
@@ -431,11 +432,16 @@ def _null_scores(ids: np.ndarray, table: CodeTable, filt: TemporalFilter, window
     in ``ids``, ``camera_moved``): the pair moved back together over the frames its fused score reads (``SPAN`` windows of
     the filter's ``length``) must have moved apart at every step; a pair at one stop is one place, not a pair known
     not to be a loop, and its line would carry that place into the nulls' tails."""
-    q, r = _null_pairs(ids, filt, window, moved, min_apart)
-    out = [np.zeros((0, 3))] + [np.column_stack([q[lo:lo + PAIR_CHUNK], r[lo:lo + PAIR_CHUNK],
-                                                 filt.score(q[lo:lo + PAIR_CHUNK], r[lo:lo + PAIR_CHUNK], table)])
-                                for lo in range(0, len(q), PAIR_CHUNK)]  # the similarities read in bulk, a chunk a call
-    return np.concatenate(out)
+    return _scored(*_null_pairs(ids, filt, window, moved, min_apart), filt, table)
+
+
+def _scored(q: np.ndarray, r: np.ndarray, filt: TemporalFilter, table: CodeTable) -> np.ndarray:
+    """``(query, ref, score)`` rows ``(m, 3)`` of the pairs ``q``, ``r`` ``(m,)``: the filter's scores on ``table``,
+    ``PAIR_CHUNK`` pairs a call (the similarities read in bulk; the same scores as one pair at a time)."""
+    return np.concatenate([np.zeros((0, 3))] + [
+        np.column_stack([q[lo:lo + PAIR_CHUNK], r[lo:lo + PAIR_CHUNK],
+                         filt.score(q[lo:lo + PAIR_CHUNK], r[lo:lo + PAIR_CHUNK], table)])
+        for lo in range(0, len(q), PAIR_CHUNK)])
 
 
 def _null_pairs(ids: np.ndarray, filt: TemporalFilter, window: int, moved: np.ndarray | None = None,
@@ -504,12 +510,7 @@ def _reversed_lines(ids: np.ndarray, table: CodeTable, filt: TemporalFilter, win
     off = int(np.asarray(ids).max()) + 1
     tids, codes = table.items()
     mirror = CodeTable.fixed(np.r_[off - 1 - tids[::-1], off + tids], np.r_[codes[::-1], codes])
-    if not len(q):
-        return np.zeros((0, 3)), mirror
-    qm, rm = off + q, off - 1 - r
-    scores = np.concatenate([np.zeros(0)] + [filt.score(qm[i:i + PAIR_CHUNK], rm[i:i + PAIR_CHUNK], mirror)
-                                             for i in range(0, len(qm), PAIR_CHUNK)])
-    return np.column_stack([qm, rm, scores]), mirror
+    return _scored(off + q, off - 1 - r, filt, mirror), mirror
 
 
 def _reversed_pairs(ids: np.ndarray, filt: TemporalFilter, window: int, moved: np.ndarray,
@@ -647,7 +648,7 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
     normed = cal.whitening.transform(codes) if cal.whitening is not None else codes
     table = CodeTable.fixed(ids, normed)
     null = _null_scores(ids, table, filt, window, moved)
-    if len(null) < 20:
+    if len(null) < MIN_NULL_PAIRS:
         raise TooFewFrames(f"calibration found only {len(null)} far-side pairs; give a longer sequence or a larger "
                            "search.exclude_recent")
     n_keyframes = max(len(ids) * n_frames / max(len(images), 1), 2.0)
@@ -669,7 +670,7 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
             except TooFewFrames:  # too few newest frames: the checks read the in-sample level (``adopt``)
                 pass
         null_table, apart = table, _null_scores(ids, table, filt, window, moved, window // 2)  # far apart in moved
-        apart = apart if len(apart) >= 20 else null  # frames too
+        apart = apart if len(apart) >= MIN_NULL_PAIRS else null  # frames too
     far = None if cal.inlier_null else _reversed_lines(ids, null_table, filt, window, moved, int(apart[:, 0].min()))
     _score_path(cal, apart, filt, null_table, far)
     if null_table is not table:
@@ -844,22 +845,19 @@ def _out_of_sample(cal: Calibration, wconf: dict[str, Any], descriptor: GlobalDe
     with as many frames a dimension: its frames after the fit stand for the deciding whitening's. Frames in the fit
     (decided again at a refit) face a null higher than their own: a bar only raised. ``purpose`` names what the
     pairs are for in the calibration's note. Returns the code table under the second whitening and the null rows
-    (``_null_scores``).
+    (``_held_out_pairs`` scored).
 
     Raises:
-        TooFewFrames: the held-out frames hold fewer than 20 far-side pairs.
+        TooFewFrames: the held-out frames hold fewer than ``MIN_NULL_PAIRS`` far-side pairs.
     """
     cut = _held_out_cut(moved, held_out)
-    rows = np.zeros((0, 3))
-    if cut < len(ids):
-        white = _whitening(wconf, descriptor, codes[:cut], [], moved[:cut])
-        normed = white.transform(codes) if white is not None else codes
-        table = CodeTable.fixed(ids, normed)
-        rows = _null_scores(ids, table, filt, window, moved, window // 2)
-        rows = rows[rows[:, 0] >= ids[cut]] if len(rows) else rows
-    if len(rows) < 20:
-        raise TooFewFrames(f"the newest {len(ids) - cut} frames hold only {len(rows)} far-side pairs to measure the "
+    q, r = _held_out_pairs(ids, filt, window, moved, cut)
+    if len(q) < MIN_NULL_PAIRS:
+        raise TooFewFrames(f"the newest {len(ids) - cut} frames hold only {len(q)} far-side pairs to measure the "
                            "score path's nulls out of sample")
+    white = _whitening(wconf, descriptor, codes[:cut], [], moved[:cut])
+    table = CodeTable.fixed(ids, white.transform(codes) if white is not None else codes)
+    rows = _scored(q, r, filt, table)
     cal.notes.append(f"out of sample: {purpose} drawn from the far-side pairs of the newest {len(ids) - cut} frames "
                      f"under a whitening fitted on the {cut} before them (the frames a stream decides come after its "
                      "whitening's fit)")
@@ -875,17 +873,24 @@ def _held_out_cut(moved: np.ndarray, held_out: float) -> int:
     return int(pos[keep]) if MIN_FIT_CODES <= keep < len(pos) else len(moved)
 
 
+def _held_out_pairs(ids: np.ndarray, filt: TemporalFilter, window: int, moved: np.ndarray,
+                    cut: int) -> tuple[np.ndarray, np.ndarray]:
+    """The far-side pairs (far apart in moved frames) whose query is held out (from position ``cut`` of ``ids``,
+    ``_held_out_cut``): ``(queries (m,), refs (m,))``, none where nothing is held out."""
+    if cut >= len(ids):
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    q, r = _null_pairs(ids, filt, window, moved, window // 2)
+    keep = q >= ids[cut]
+    return q[keep], r[keep]
+
+
 def _score_null_size(ids: np.ndarray, filt: TemporalFilter, window: int, moved: np.ndarray,
                      held_out: float) -> int | None:
     """The samples the score path's null measured out of sample will hold (``_out_of_sample``'s far-side pairs and
     ``_reversed_lines``' lines: ``Calibration.score_null["samples"]``), counted before anything is whitened or
-    scored; None where ``_out_of_sample`` will refuse (fewer than 20 far-side pairs held out)."""
-    cut = _held_out_cut(moved, held_out)
-    if cut >= len(ids):
-        return None
-    q, _ = _null_pairs(ids, filt, window, moved, window // 2)
-    q = q[q >= ids[cut]]
-    if len(q) < 20:
+    scored; None where ``_out_of_sample`` will refuse (fewer than ``MIN_NULL_PAIRS`` far-side pairs held out)."""
+    q, _ = _held_out_pairs(ids, filt, window, moved, _held_out_cut(moved, held_out))
+    if len(q) < MIN_NULL_PAIRS:
         return None
     far, _ = _reversed_pairs(ids, filt, window, moved, int(q.min()))
     return len(q) + (0 if far is None else len(far))

@@ -63,7 +63,7 @@ from .feature_jobs import FeatureJobs, grey_copy, read_grey_copy
 from .index import INDEXES
 from .online import DRIFT_Z, OnlineCalibration, Seen
 from .places import create_places
-from .temporal import FILTERS, PAIR_CHUNK, CodeTable, create_filter
+from .temporal import FILTERS, PAIR_CHUNK, CodeTable, SimilaritySource, create_filter
 
 __all__ = ["Candidate", "FrameResult", "LoopDetector", "weights_whitening", "STAGES", "default_conf", "conf_rules",
            "resolve_conf"]
@@ -692,9 +692,7 @@ class LoopDetector:
         if self._jobs is None or fid in self._given or fid in self._jobs or not self._features_wanted \
                 or len(self._ahead) >= MAX_PREFETCHED:
             return False
-        image8 = to_uint8(image)
-        gray = to_gray_u8(image8)
-        prep = self._prepare_once(gray)
+        image8, gray, prep = self._frame_images(image)
         self._ahead[fid] = (image, image8, gray, prep)
         self._jobs.submit(fid, functools.partial(_own_features, prep))
         return True
@@ -715,8 +713,11 @@ class LoopDetector:
             self._jobs.drop(fid)
             held = None
         self._drop_ahead(lambda f: f < fid)
-        if held is not None:
-            return held[1], held[2], held[3]
+        return (held[1], held[2], held[3]) if held is not None else self._frame_images(image)
+
+    def _frame_images(self, image: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray, Callable[[], tuple[np.ndarray, float, bytes]]]:
+        """``(image as uint8, grey uint8, its features' prepared image once)`` of an accepted image."""
         image8 = to_uint8(image)  # once: 16-bit and float frames are scanned and scaled here only
         gray = to_gray_u8(image8)
         return image8, gray, self._prepare_once(gray)
@@ -959,7 +960,7 @@ class LoopDetector:
         self._verify_late(rows)
         for seen, cands in rows:
             q, refs = seen.frame_id, seen.refs
-            carried = self._carry_candidates(q, refs)
+            carried = self._carry_candidates(q, refs, src)
             if carried:
                 cands, refs = cands + carried, np.r_[refs, [cd.frame_id for cd in carried]].astype(np.int64)
             for cand in cands:
@@ -984,24 +985,27 @@ class LoopDetector:
     def pair_scores(self, query_id: int, ref_id: int) -> tuple[float, float]:
         """``(score, seq_score)`` of keyframes ``query_id`` and ``ref_id`` in the current code space: their entries'
         similarity and the temporal filter's score (NaN where either is not a keyframe)."""
-        src = self.places.source
+        return self._pair_scores(query_id, ref_id, self.places.source)
+
+    def _pair_scores(self, query_id: int, ref_id: int, src: SimilaritySource) -> tuple[float, float]:
+        """``pair_scores`` on the similarity source ``src``."""
         q, r = np.array([query_id], np.int64), np.array([ref_id], np.int64)
         return float(src.pairs(q, r)[0]), float(self.filter.score(q, r, src)[0])
 
-    def _carry_candidates(self, query_id: int, refs: np.ndarray) -> list[Candidate]:
+    def _carry_candidates(self, query_id: int, refs: np.ndarray, src: SimilaritySource) -> list[Candidate]:
         """The keyframe the replayed decision's stop carry names (``Decision.carry_to``) where frame ``query_id``'s
         recorded hypotheses ``refs`` lack it (the frame was no loop's carry when it was processed: the loop it
         carries came later, at a refit), as a candidate scored now in the current code space; not verified (a carry
-        claims nothing new). Nordland streamed: the winter station stop, its loops found at a refit, was carried
-        to frame 723 only, 224 not among 724's hypotheses."""
+        claims nothing new; ``src``: the replay's similarity source). Nordland streamed: the winter station stop, its
+        loops found at a refit, was carried to frame 723 only, 224 not among 724's hypotheses."""
         out = []
         for ref in np.setdiff1d(self.decision.carry_to(query_id), refs).tolist():
-            score, seq_score = self.pair_scores(query_id, ref)
+            score, seq_score = self._pair_scores(query_id, ref, src)
             if np.isfinite(score):
                 out.append(Candidate(int(ref), score, 0, -1, seq_score))
         return out
 
-    def _replay_source(self) -> Any:
+    def _replay_source(self) -> SimilaritySource:
         """The keyframes' current codes copied into a table (``retrieval.temporal.CodeTable``, the same admission
         rule) where they take at most ``REPLAY_COPY_BYTES``, else the place memory's own source: a replay scores tens
         of thousands of pairs, each read from the index otherwise (Nordland streamed: 2.7 of its 4.4 s of replays),
@@ -1014,7 +1018,7 @@ class LoopDetector:
             table.add(int(fid), code)
         return table
 
-    def _recorded(self, seens: list[Seen], src: Any) -> list[list[Candidate]]:
+    def _recorded(self, seens: list[Seen], src: SimilaritySource) -> list[list[Candidate]]:
         """Recorded frames' candidates (``retrieval.online.Seen``) with their scores in the current code space
         (``src``: ``_replay_source``), every frame's pairs scored together (``PAIR_CHUNK`` a call: the same scores as
         one frame at a time)."""

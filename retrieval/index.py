@@ -291,7 +291,9 @@ class KeyframeIndex:
     def frame_ids(self) -> np.ndarray:
         """``(n,)`` int64: the admitted keyframes' frame ids by position in the index (admitted in increasing frame
         order; a view, valid until the next ``admit``)."""
-        return self._ids[: self._n]
+        view = self._ids[: self._n]
+        view.flags.writeable = False
+        return view
 
     def _set_ids(self, ids: np.ndarray) -> None:
         self._ids, self._n = np.array(ids, np.int64).reshape(-1), len(ids)
@@ -355,7 +357,7 @@ class KeyframeIndex:
         out = KeyframeIndex(dim, self.index.conf, self._queue.exclude_recent, self._queue.exclude_recent_s)
         out._set_ids(self.frame_ids)
         if out._n:
-            out.index.add(fn(codes_of(out.frame_ids.copy())))
+            out.index.add(fn(codes_of(out.frame_ids)))
         for fid, ts, _ in self._queue:
             out._queue.push(fid, ts, fn(codes_of(np.array([fid], np.int64)))[0])
         return out

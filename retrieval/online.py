@@ -104,8 +104,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .calibrate import (Calibration, ThinnerNull, TooFewFrames, calibrate, calibration_frames, camera_moved,
-                        far_side_scores, score_level)
+from .calibrate import (MIN_NULL_PAIRS, Calibration, ThinnerNull, TooFewFrames, calibrate, calibration_frames,
+                        camera_moved, far_side_scores, score_level)
 from .descriptors import GlobalDescriptor
 from .temporal import CodeTable, TemporalFilter, create_filter
 
@@ -245,7 +245,7 @@ class OnlineCalibration:
         hold = max(self.window // 2, 1) if newest is None else newest
         ids = np.array([s.frame_id for s in (self.seen[-(self.window + hold):] if hold else self.seen)], np.int64)
         scores = far_side_scores(ids, table, filt, self.window, self._moved(ids, still_cos), newest=hold)
-        if len(scores) < 20:
+        if len(scores) < MIN_NULL_PAIRS:
             return 0.0
         return float((np.median(scores) - self.level[0]) / max(self.level[1], 1e-6))
 
@@ -280,7 +280,7 @@ class OnlineCalibration:
             return None
         thr = {k: round(v, 4) for k, v in cal.thresholds().items() if v is not None}
         log.info("online calibration at %d keyframes (%d read): %s path, null of %d samples, accept %s; next fit "
-                 "at %d", n, len(ids), cal.path, _null_size(cal), thr or "runs of frames", self.next_fit)
+                 "at %d", n, len(ids), cal.path, samples, thr or "runs of frames", self.next_fit)
         return cal
 
     def adopt(self, cal: Calibration, table: CodeTable, filt: TemporalFilter, still_cos: float) -> bool:
