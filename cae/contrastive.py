@@ -15,7 +15,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-__all__ = ["neighbour_partners", "with_revisits", "far_mask", "not_revisits", "info_nce"]
+__all__ = ["neighbour_partners", "with_revisits", "far_mask", "not_revisits", "info_nce", "code_anchor"]
 
 
 def neighbour_partners(folder: np.ndarray, position: np.ndarray, picks: np.ndarray, neighbours: int,
@@ -115,3 +115,20 @@ def info_nce(a: torch.Tensor, b: torch.Tensor, negatives: torch.Tensor, temperat
     allowed[idx, idx] = False
     logits = sims.masked_fill(~allowed, float("-inf"))
     return F.cross_entropy(logits, partner)
+
+
+def code_anchor(student: torch.Tensor, teacher: torch.Tensor) -> torch.Tensor:
+    """How far codes moved from a reference's: the batch mean of ``1 - cos`` between each student code and the
+    teacher's code of the same frame, both centred on the teacher batch's mean code (as ``info_nce`` centres).
+
+    Args:
+        student: ``(B, D)`` codes being trained (of a changed view).
+        teacher: ``(B, D)`` the reference weights' codes (of the clean frame), without a gradient.
+
+    Returns:
+        Scalar loss in [0, 2] (0 for an empty batch).
+    """
+    if len(student) == 0:
+        return student.sum() * 0.0
+    mean = teacher.mean(0, keepdim=True)
+    return (1.0 - F.cosine_similarity(student - mean, teacher - mean, dim=1)).mean()

@@ -5,9 +5,10 @@ reads it: standardised with ``input_norm: standardise``, the default) plus,
 weighted by ``contrastive``, a place term (``cae.contrastive``: InfoNCE on the code between two views of a frame or
 of a frame and its temporal neighbour, ``cae.views``), so that the code keeps the place and drops the light, the
 camera and the framing; no labels, each folder read as one sequence in name order. ``init: shipped`` fine-tunes the
-package's weights. Seeded 70/30 train/validation split, Adam, mini-batches of 32, validation loss each epoch,
-best-validation weights kept (``best.pt``, loadable by ``cae.load_encoder``), resumable from ``last.pt``, the
-resolved conf saved as ``conf.yaml`` and the loss curves as ``loss.png``.
+package's weights, the codes held near theirs (``anchor``: a term on the distance from the init weights' code).
+Seeded 70/30 train/validation split, Adam, mini-batches of 32, validation loss each epoch, best-validation weights
+kept (``best.pt``, loadable by ``cae.load_encoder``), resumable from ``last.pt``, the resolved conf saved as
+``conf.yaml`` and the loss curves as ``loss.png``.
 
 The paper trained for 5000 epochs on a GPU. The CPU default is 40 epochs with early stopping (patience 8); with the
 place term an epoch costs about 0.5 s a frame on 2 busy cores (each frame is encoded in two views).
@@ -38,8 +39,8 @@ from cae_lcd.core.conf import Choice, ConfigError, Float, Int, Text, check_conf,
 from cae_lcd.core.errors import ImageError
 from cae_lcd.core.files import prepare_out_dir, write_text_atomic
 from cae_lcd.core.images import IMAGE_EXTENSIONS, image_entries, read_image
-from .contrastive import far_mask, info_nce, neighbour_partners, not_revisits, with_revisits
-from .model import INPUT_NORMS, INPUT_SIZE, ConvAutoencoder
+from .contrastive import code_anchor, far_mask, info_nce, neighbour_partners, not_revisits, with_revisits
+from .model import INPUT_NORMS, INPUT_SIZE, ConvAutoencoder, Encoder
 from .preprocess import to_network_u8
 from .revisits import mine_revisits
 from .encode import CPU_BATCH, encode_images
@@ -73,6 +74,10 @@ default_conf: dict[str, Any] = {
     "contrastive": 1.0,  # weight of the place term (cae.contrastive, InfoNCE on the code) beside the reconstruction;
     #                     0 = reconstruction only (the paper; then `views` and the keys below are unused)
     "temperature": 0.1,  # the InfoNCE softmax temperature
+    "anchor": 10.0,  # weight of a term keeping each changed view's code near the init weights' code of its clean
+    #                 frame (cae.contrastive.code_anchor): a fine-tune adapts without forgetting what the init
+    #                 weights learned elsewhere (Nordland, summer-only fine-tune at lr 1e-3: Recall@1 0.596 without,
+    #                 0.734 with; shipped 0.758); acts only with `init` and the place term; 0 = none
     "neighbours": 1,  # positives: two views of a frame, or of a frame and one at most this many frames away in
     #                  its folder (name order = time order; 0 = the frame itself only)
     "far": 20,  # negatives: frames of the batch at least this many frames apart in one folder (or in another
@@ -108,6 +113,7 @@ conf_rules: dict[str, Any] = {
     "init": Text(optional=True),
     "contrastive": Float(0, 100),
     "temperature": Float(0.01, 10),
+    "anchor": Float(0, 100),
     "neighbours": Int(0, 1000),
     "far": Int(0, 1_000_000),
     "recon_share": Float(0, 1, lo_open=True),
@@ -284,8 +290,21 @@ def _initial_weights(conf: dict[str, Any]) -> Path | None:
     return path
 
 
+def _teacher(conf: dict[str, Any], device: torch.device) -> Encoder | None:
+    """The init weights' encoder, frozen, that ``anchor`` measures the codes against (None without ``anchor``, ``init``
+    or the place term)."""
+    if not (conf["anchor"] and conf["init"] and conf["contrastive"]):
+        return None
+    path = _init_path(conf)
+    state = load_checkpoint(path)
+    model = ConvAutoencoder(checkpoint_input_norm(state, path))
+    model.load_state_dict(state["state_dict"], strict=True)
+    return model.encoder.to(device, memory_format=torch.channels_last).eval().requires_grad_(False)
+
+
 def _resume_or_start(last_path: Path, conf: dict[str, Any], device: torch.device, val_set: _Frames,
-                     restart: bool) -> tuple[ConvAutoencoder, torch.optim.Optimizer, _Progress]:
+                     restart: bool, teacher: Encoder | None
+                     ) -> tuple[ConvAutoencoder, torch.optim.Optimizer, _Progress]:
     """A seeded model and optimizer, restored from ``last_path`` when it exists (unless ``restart``).
 
     Raises:
@@ -303,7 +322,7 @@ def _resume_or_start(last_path: Path, conf: dict[str, Any], device: torch.device
     model = model.to(device, memory_format=torch.channels_last)
     optim = torch.optim.Adam(model.parameters(), lr=conf["lr"])
     if restart or not last_path.exists():
-        val = _evaluate(model, val_set, conf, device)
+        val = _evaluate(model, val_set, conf, device, teacher)
         log.info("initial validation loss %.5f", val)
         return model, optim, _Progress(history=[{"epoch": 0, "train_loss": float("nan"), "val_loss": val,
                                                  "seconds": 0.0}])
@@ -337,9 +356,11 @@ def _to_batch(images: np.ndarray, device: torch.device) -> torch.Tensor:
     return x.contiguous(memory_format=torch.channels_last)
 
 
-def _evaluate(model: ConvAutoencoder, frames: _Frames, conf: dict[str, Any], device: torch.device) -> float:
+def _evaluate(model: ConvAutoencoder, frames: _Frames, conf: dict[str, Any], device: torch.device,
+              teacher: Encoder | None = None) -> float:
     """Validation loss: reconstruction of the clean frames, plus ``contrastive`` times the place term on two views
-    of each frame drawn from a fixed seed (the same views every epoch)."""
+    of each frame drawn from a fixed seed (the same views every epoch), plus ``anchor`` times the first view's
+    distance from the ``teacher``'s code of its clean frame."""
     model.eval()
     total, batch = 0.0, conf["batch_size"]
     rng = np.random.default_rng([conf["seed"], 2**31])
@@ -349,10 +370,14 @@ def _evaluate(model: ConvAutoencoder, frames: _Frames, conf: dict[str, Any], dev
             total += F.binary_cross_entropy_with_logits(model(x), model.encoder.network_input(x),
                                                         reduction="sum").item() / x[0].numel()
             if conf["contrastive"] and len(x) > 1:
-                a, b = (model.encoder.forward_map(_view(x, rng, conf)[1]).flatten(1) for _ in range(2))
+                views = [_view(x, rng, conf) for _ in range(2)]
+                a, b = (model.encoder.forward_map(v[1]).flatten(1) for v in views)
                 neg = torch.as_tensor(far_mask(frames.folder[start:start + batch], frames.position[start:start + batch],
                                                conf["far"]))
                 total += conf["contrastive"] * info_nce(a, b, neg, conf["temperature"]).item() * len(x)
+                if teacher is not None:
+                    held = teacher.forward_map(views[0][0]).flatten(1)  # the clean frames' codes, as in training
+                    total += conf["anchor"] * code_anchor(a, held).item() * len(x)
     return total / max(1, len(frames))
 
 
@@ -363,10 +388,13 @@ def _view(x: torch.Tensor, rng: np.random.Generator, conf: dict[str, Any]) -> tu
 
 
 def _place_step(model: ConvAutoencoder, train_set: _Frames, picks: np.ndarray, rng: np.random.Generator,
-                conf: dict[str, Any], device: torch.device, revisits: np.ndarray) -> float:
+                conf: dict[str, Any], device: torch.device, revisits: np.ndarray,
+                teacher: Encoder | None = None) -> float:
     """One batch with the place term, its gradient accumulated (``backward`` done here; returns the loss): two views
     (of a frame and of a temporal neighbour or a revisit), both encoded; the first ``recon_share`` of the first views
-    decoded and scored against their warped clean frames.
+    decoded and scored against their warped clean frames. With a ``teacher`` (the init weights' frozen encoder,
+    ``anchor`` > 0), ``anchor`` times ``code_anchor`` of the first views' codes against the teacher's codes of their
+    clean frames is added to the place term.
 
     On the CPU the network runs on ``CPU_BATCH`` images at a time, where its activations stay in the cache (1.75x
     faster a step than the whole batch at once): the codes first without a graph, the place term's gradient with
@@ -385,6 +413,10 @@ def _place_step(model: ConvAutoencoder, train_set: _Frames, picks: np.ndarray, r
         maps = [torch.cat([model.encoder.forward_map(v) for v in view.split(chunk)]) for view in (view_a, view_b)]
     codes = [m.flatten(1).requires_grad_() if cached else m.flatten(1) for m in maps]
     place = conf["contrastive"] * info_nce(codes[0], codes[1], neg, conf["temperature"])
+    if teacher is not None:  # the first views' codes against the init weights' codes of their clean frames
+        with torch.no_grad():
+            held = torch.cat([teacher.forward_map(t) for t in target.split(chunk)]).flatten(1)
+        place = place + conf["anchor"] * code_anchor(codes[0], held)
     if not cached:
         recon = _reconstruction(model, maps[0][:n_rec], target[:n_rec], target[:n_rec].numel())
         (place + recon).backward()
@@ -413,7 +445,8 @@ def _reconstruction(model: ConvAutoencoder, code_maps: torch.Tensor, targets: to
 
 
 def _train_epoch(model: ConvAutoencoder, optim: torch.optim.Optimizer, train_set: _Frames, epoch: int,
-                 conf: dict[str, Any], device: torch.device, revisits: np.ndarray) -> float:
+                 conf: dict[str, Any], device: torch.device, revisits: np.ndarray,
+                teacher: Encoder | None = None) -> float:
     """One pass over ``train_set`` in a batch order seeded by ``(seed, epoch)``; returns the mean training loss."""
     model.train()
     rng = np.random.default_rng([conf["seed"], epoch])
@@ -423,7 +456,7 @@ def _train_epoch(model: ConvAutoencoder, optim: torch.optim.Optimizer, train_set
         picks = np.sort(perm[start:start + conf["batch_size"]])
         optim.zero_grad(set_to_none=True)
         if conf["contrastive"] and len(picks) > 1:
-            value = _place_step(model, train_set, picks, rng, conf, device, revisits)
+            value = _place_step(model, train_set, picks, rng, conf, device, revisits, teacher)
         else:
             x = _to_batch(train_set.images[picks], device)
             x_in = _jitter(x, conf["augment"], rng) if conf["augment"] else x
@@ -459,7 +492,8 @@ def _jitter(x: torch.Tensor, strength: float, rng: np.random.Generator) -> torch
 
 
 def _fit(model: ConvAutoencoder, optim: torch.optim.Optimizer, train_set: _Frames, val_set: _Frames,
-         conf: dict[str, Any], device: torch.device, out: Path, progress: _Progress) -> _Progress:
+         conf: dict[str, Any], device: torch.device, out: Path, progress: _Progress,
+         teacher: Encoder | None) -> _Progress:
     """Trains from ``progress.start_epoch`` to ``conf["epochs"]`` (or an early stop); saves ``best.pt``,
     ``last.pt`` and ``loss.png`` after every epoch.
 
@@ -472,8 +506,8 @@ def _fit(model: ConvAutoencoder, optim: torch.optim.Optimizer, train_set: _Frame
         t0 = time.perf_counter()
         if progress.revisits is None or epoch % conf["revisit_every"] == 0:
             progress.revisits = _revisits(model, train_set, conf, device)
-        train_loss = _train_epoch(model, optim, train_set, epoch, conf, device, progress.revisits)
-        val = _evaluate(model, val_set, conf, device)
+        train_loss = _train_epoch(model, optim, train_set, epoch, conf, device, progress.revisits, teacher)
+        val = _evaluate(model, val_set, conf, device, teacher)
         if not (math.isfinite(train_loss) and math.isfinite(val)):
             raise ConfigError(f"training diverged in epoch {epoch + 1} (loss {train_loss}, validation {val}); "
                               f"lower 'lr' (now {conf['lr']:g}); nothing of this epoch was saved")
@@ -561,14 +595,15 @@ def main(images: str | Path | Sequence[str | Path], out: str | Path = "runs/trai
         torch.set_num_threads(conf["threads"])
     train_set, val_set, split = _split(_Frames(data, *sequence_order(used)), used, conf)
     out = prepare_out_dir(out)
-    model, optim, progress = _resume_or_start(out / "last.pt", conf, device, val_set, restart)
+    teacher = _teacher(conf, device)
+    model, optim, progress = _resume_or_start(out / "last.pt", conf, device, val_set, restart, teacher)
     write_text_atomic(out / "split.json", json.dumps(split, indent=1))
     dump_conf({**conf, "images": folders}, out / "conf.yaml")
     kept = set(used)
     skipped = [str(p) for p in files if p not in kept]
     log.info("training on %d images, validating on %d (%d unreadable skipped), device %s", len(train_set),
              len(val_set), len(skipped), device)
-    progress = _fit(model, optim, train_set, val_set, conf, device, out, progress)
+    progress = _fit(model, optim, train_set, val_set, conf, device, out, progress, teacher)
     if not (out / "best.pt").is_file():
         raise ConfigError(f"{out / 'best.pt'} is missing (deleted after an earlier run?); run with --restart")
     white = _finish_best(out / "best.pt", data, conf, device)

@@ -1,8 +1,9 @@
 """Views of a frame for training a code of places: the same place under another light, camera and framing.
 
 A view is a small viewpoint change (zoom-in crop, shift, small rotation: ``warp``) followed by a photometric change
-(``photometric``: gain, offset and gamma, a colour cast or grey, night-like darkening with sensor noise, blur or a
-low resolution brought back up, JPEG). ``cae.train`` draws two views of one frame (or of two temporal neighbours)
+(``photometric``: gain, offset and gamma, a colour cast or grey, night-like darkening, blur or a low resolution
+brought back up, JPEG, then sensor noise, drawn as coarse as a sensor with fewer pixels than the network would give
+it: the noise of a 64x32 camera brought up to 256 px spans 4-8 network pixels, and pooling does not average it away). ``cae.train`` draws two views of one frame (or of two temporal neighbours)
 and pulls their codes together; the reconstruction target is the warped frame before its photometric change.
 
 Shapes: batches ``(B, 3, S, S)`` float in [0, 1] (the network input, any device); every draw comes from the numpy
@@ -28,13 +29,16 @@ default_views: dict[str, Any] = {
     "grey": 0.3,  # probability that a view is made grey (many robot cameras are)
     "night": 0.35,  # probability of night-like darkening: 0.15-0.6 * x ** 1.2-2.4 + 0-0.05, then sensor noise
     "noise": 0.04,  # sensor noise: Gaussian sigma drawn up to this (after darkening, on every view)
+    "grain": 8.0,  # the noise drawn at 1/1 to 1/grain of the network's side (log-uniform) and brought up: the
+    #               noise of a sensor with fewer pixels than the network reads (a 64x32 camera: 1/4-1/8), coarser
+    #               than a pixel and not averaged away by pooling; 1 = per network pixel
     "low_res": 0.35,  # probability that a view is shrunk to 16-96 px wide (aspect 1-2.5) and brought back up
     "blur": 0.3,  # probability of a Gaussian blur of 0.5-3 network pixels
     "jpeg": 0.25,  # probability of a JPEG round trip at quality 15-60
 }
 #: allowed values of ``default_views`` (checked by ``cae.train.conf_rules``)
 view_rules: dict[str, tuple[float, float]] = {"crop": (0.0, 0.5), "rotate": (0.0, 45.0), "colour": (0.0, 0.9),
-                                              "grey": (0.0, 1.0), "night": (0.0, 1.0), "noise": (0.0, 0.5),
+                                              "grey": (0.0, 1.0), "night": (0.0, 1.0), "noise": (0.0, 0.5), "grain": (1.0, 64.0),
                                               "low_res": (0.0, 1.0), "blur": (0.0, 1.0), "jpeg": (0.0, 1.0)}
 
 
@@ -112,5 +116,20 @@ def photometric(x: torch.Tensor, rng: np.random.Generator, strength: float, conf
     x = torch.where(night, dark, x)
     x = torch.cat([_degrade(x[i:i + 1], rng, conf) for i in range(b)])
     sigma = _per_image(rng, 0, conf["noise"], b, x)
-    noise = torch.as_tensor(rng.standard_normal(x.shape), dtype=x.dtype, device=x.device)
-    return (x + sigma * noise).clamp(0, 1)
+    return (x + sigma * _sensor_noise(rng, x, conf["grain"])).clamp(0, 1)
+
+
+def _sensor_noise(rng: np.random.Generator, like: torch.Tensor, grain: float) -> torch.Tensor:
+    """Unit Gaussian noise shaped like ``like`` ``(B, C, S, S)``; with ``grain`` > 1, each image's drawn on a grid
+    ``S / g`` on a side (``g`` log-uniform in ``[1, grain]``) and brought up bilinearly, as a sensor with fewer pixels
+    than the network reads would give it (its per-pixel sigma kept: bilinear interpolation smooths it)."""
+    if grain <= 1:
+        return torch.as_tensor(rng.standard_normal(like.shape), dtype=like.dtype, device=like.device)
+    b, c, side = like.shape[0], like.shape[1], like.shape[-1]
+    parts = []
+    for g in grain ** rng.random(b):
+        n = max(1, int(round(side / g)))
+        part = torch.as_tensor(rng.standard_normal((1, c, n, n)), dtype=like.dtype, device=like.device)
+        parts.append(part if n == side else F.interpolate(part, size=(side, side), mode="bilinear",
+                                                             align_corners=False))
+    return torch.cat(parts) if parts else like.new_zeros(like.shape)

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 import cae.train as training
-from cae.contrastive import far_mask, info_nce, neighbour_partners
+from cae.contrastive import code_anchor, far_mask, info_nce, neighbour_partners
 from cae.model import ConvAutoencoder
 from cae.train import _Frames, _place_step, _view, default_conf, sequence_order
 from cae_lcd.core.conf import merge_conf
@@ -77,6 +77,64 @@ def test_info_nce_prefers_the_partner():
     shuffled = info_nce(a, a[torch.tensor([1, 2, 3, 4, 5, 0])], neg, 0.1)
     assert same < 0.1 < shuffled
     assert info_nce(a[:0], a[:0], neg[:0, :0], 0.1) == 0
+
+
+def test_code_anchor_measures_how_far_codes_moved():
+    g = torch.Generator().manual_seed(0)
+    teacher = torch.rand(6, 32, generator=g)
+    assert float(code_anchor(teacher.clone(), teacher)) == pytest.approx(0, abs=1e-6)
+    near = code_anchor(teacher + 0.01 * torch.randn(6, 32, generator=g), teacher)
+    far = code_anchor(torch.rand(6, 32, generator=g), teacher)
+    assert 0 < near < 0.01 < far
+    assert float(code_anchor(3 * (teacher - teacher.mean(0)) + teacher.mean(0), teacher)) == pytest.approx(0, abs=1e-6)
+    assert code_anchor(teacher[:0], teacher[:0]) == 0
+
+
+def test_anchor_keeps_a_fine_tune_near_its_init_weights(real_frames):
+    """A few aggressive steps from the shipped weights on 6 real frames: with ``anchor`` the codes of the clean frames
+    stay nearer the shipped weights' codes than without (red when the term is dropped)."""
+    from cae.weights import DEFAULT_WEIGHTS, load_checkpoint
+
+    state = load_checkpoint(DEFAULT_WEIGHTS)
+    x = training._to_batch(real_frames.images, torch.device("cpu"))
+
+    def moved(anchor):
+        model = ConvAutoencoder("standardise")
+        model.load_state_dict(state["state_dict"])
+        teacher = training._teacher(merge_conf(default_conf, {"anchor": 1.0, "init": "shipped"}), torch.device("cpu"))
+        with torch.no_grad():
+            before = teacher.forward_map(x).flatten(1)
+        optim = torch.optim.Adam(model.parameters(), lr=1e-3)  # train.py's default
+        conf = merge_conf(default_conf, {"far": 2, "neighbours": 0, "recon_share": 0.25, "anchor": anchor})
+        for step in range(4):
+            optim.zero_grad()
+            _place_step(model, real_frames, np.arange(len(real_frames)), np.random.default_rng(step), conf,
+                        torch.device("cpu"), np.zeros((0, 2), np.int64), teacher if anchor else None)
+            optim.step()
+        with torch.no_grad():
+            return float(code_anchor(model.encoder.forward_map(x).flatten(1), before))
+
+    free, anchored = moved(0.0), moved(default_conf["anchor"])
+    assert anchored < 0.5 * free, (anchored, free)
+
+
+def test_sensor_noise_is_as_coarse_as_its_grain():
+    """``grain`` draws the views' noise on a coarser grid, as a sensor with fewer pixels than the network reads:
+    neighbouring pixels share it (per network pixel, ``grain`` 1, they do not); empty in, empty out."""
+    from cae.views import _sensor_noise, photometric
+
+    only_noise = {"colour": 0.0, "grey": 0.0, "night": 0.0, "noise": 0.1, "low_res": 0.0, "blur": 0.0, "jpeg": 0.0}
+    x = torch.full((8, 3, 64, 64), 0.5)
+
+    def neighbour_corr(grain):
+        n = photometric(x, np.random.default_rng(0), 0.0, {**only_noise, "grain": grain}) - x
+        return float((n[..., 1:] * n[..., :-1]).mean() / (n * n).mean())
+
+    assert abs(neighbour_corr(1.0)) < 0.05 and neighbour_corr(8.0) > 0.5
+    fine = _sensor_noise(np.random.default_rng(0), x, 1.0)
+    assert fine.shape == x.shape and 0.95 < float(fine.std()) < 1.05
+    assert _sensor_noise(np.random.default_rng(0), x, 8.0).shape == x.shape
+    assert _sensor_noise(np.random.default_rng(0), x[:0], 8.0).shape == (0, 3, 64, 64)
 
 
 def test_sampling_follows_the_folder_order():

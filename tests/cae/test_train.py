@@ -438,7 +438,8 @@ class TestPlaceObjective:
                                            ({"neighbours": -1}, "neighbours"), ({"recon_share": 0}, "recon_share"),
                                            ({"threads": 0}, "threads"), ({"init": 3}, "init"),
                                            ({"views": {"night": 1.5}}, "views.night"),
-                                           ({"views": {"crop": -0.1}}, "views.crop")])
+                                           ({"views": {"crop": -0.1}}, "views.crop"), ({"anchor": -1}, "anchor"),
+                                           ({"views": {"grain": 0.5}}, "views.grain")])
     def test_bad_value_named_before_anything_is_written(self, images5, tmp_path, conf, key):
         out = tmp_path / "out"
         with pytest.raises(ConfigError, match=f"'{key}' must be"):
