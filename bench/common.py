@@ -15,13 +15,15 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from cae_lcd.core.conf import ConfigError
 from cae_lcd.evaluation.evaluate import KS
 from cae_lcd.evaluation.ground_truth import read_loop_pairs
 from cae_lcd.evaluation.metrics import best_per_query, pr_curve, precision_recall, recall_at_k
 from retrieval.run_folder import CANDIDATE_COLUMNS, RunFolder, read_csv_table
 from retrieval.sequences import open_sequence
 
-__all__ = ["Budget", "detect_run", "ground_truth_pairs", "run_metrics", "md_table", "fmt", "REPO", "study_parser", "work_study_cli"]
+__all__ = ["Budget", "detect_run", "ground_truth_pairs", "run_metrics", "md_table", "fmt", "REPO", "season_frames",
+           "study_parser", "work_study_cli"]
 
 log = logging.getLogger(__name__)
 
@@ -130,6 +132,17 @@ def fmt(v: Any, digits: int = 3) -> str:
     if isinstance(v, float):
         return f"{v:.{digits}f}"
     return str(v)
+
+
+def season_frames(root: Path, season: str) -> list[Path]:
+    """The images of one season, as the data set's ``frames.txt`` names them (``index season source``)."""
+    rows = [line.split() for line in (root / "frames.txt").read_text().splitlines()
+            if line.strip() and not line.startswith("#")]
+    frames = sorted((root / "images").glob("*.png"))
+    picked = [frames[int(r[0])] for r in rows if len(r) >= 2 and r[1] == season and int(r[0]) < len(frames)]
+    if not picked:
+        raise ConfigError(f"{root / 'frames.txt'} names no {season} frame")
+    return picked
 
 
 def md_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:

@@ -23,7 +23,7 @@ from retrieval.sequences import open_sequence
 from .common import REPO, Budget, detect_run, ground_truth_pairs, md_table, run_metrics
 
 __all__ = ["slug", "method_confs", "method_metrics", "run_methods", "false_loops", "methods_table",
-           "StudySet", "frame_codes", "single_frame_retrieval", "fine_tune", "training_study", "training_table"]
+           "StudySet", "image_codes", "frame_codes", "single_frame_retrieval", "fine_tune", "training_study", "training_table"]
 
 log = logging.getLogger(__name__)
 
@@ -134,16 +134,24 @@ class StudySet:
     tune: Path | None = None  #: unlabeled images the fine-tuned row adapts the shipped weights to (None: no such row)
 
 
+def image_codes(images: Sequence[np.ndarray], descriptor: Any) -> np.ndarray:
+    """``(N, dim)`` float32 codes of images with a ``retrieval.descriptors`` descriptor (batched when it can)."""
+    if not len(images):
+        return np.empty((0, descriptor.dim), np.float32)
+    images = list(images)
+    codes = descriptor.encode_batch(images) if descriptor.encodes_in_batches else [descriptor(im) for im in images]
+    return np.stack(codes).reshape(len(images), -1).astype(np.float32)
+
+
 def frame_codes(frames: Sequence[Path], descriptor: Any, batch: int = 32) -> np.ndarray:
-    """``(N, dim)`` float32 codes of image files with a ``retrieval.descriptors`` descriptor (batched when it can)."""
+    """``(N, dim)`` float32 codes of image files with a ``retrieval.descriptors`` descriptor (batched when it can),
+    ``batch`` files read at a time."""
     from cae_lcd.core.images import read_image
 
     out = [np.empty((0, descriptor.dim), np.float32)]
     for i in range(0, len(frames), batch):
-        images = [read_image(p) for p in frames[i:i + batch]]
-        out.append(np.stack(descriptor.encode_batch(images) if descriptor.encodes_in_batches
-                            else [descriptor(im) for im in images]).reshape(len(images), -1))
-    return np.concatenate(out).astype(np.float32)
+        out.append(image_codes([read_image(p) for p in frames[i:i + batch]], descriptor))
+    return np.concatenate(out)
 
 
 def single_frame_retrieval(codes: np.ndarray, n_first: int, truth: np.ndarray, ks: tuple[int, ...] = (1, 10),

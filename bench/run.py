@@ -46,7 +46,7 @@ from retrieval.detect import SAMPLE_DIR
 from retrieval.sequences import open_sequence
 
 from .aliasing import stress_folders
-from .common import REPO, Budget
+from .common import REPO, Budget, season_frames
 from .index_scaling import index_scaling, index_table, realistic_codes
 from .methods import false_loops, method_confs, methods_table, run_methods, training_study, training_table
 from .speed import encoder_throughput, stage_benchmark, stage_table, system_info, throughput_table
@@ -301,13 +301,13 @@ def _study_sets(run_dir: Path, d: _Data) -> list[Any]:
         raise ConfigError(f"the training study needs {nordland} (Nordland, summer and winter)")
     summer = run_dir / "nordland_summer"
     summer.mkdir(parents=True, exist_ok=True)
-    for src in _season_frames(nordland, "summer"):
+    for src in season_frames(nordland, "summer"):
         link = summer / src.name
         if not link.exists():
             link.symlink_to(src.resolve())
     frames90 = list(open_sequence(d.loop).frames)
     truth90 = read_loop_pairs(d.loop / "loops.txt")
-    frames, n_summer = list(open_sequence(nordland).frames), len(_season_frames(nordland, "summer"))
+    frames, n_summer = list(open_sequence(nordland).frames), len(season_frames(nordland, "summer"))
     truth = read_loop_pairs(nordland / "loops.txt")
     rng = np.random.default_rng(0)
     dark = plain_folder(run_dir / "study_nordland_dark", frames, None, lambda image: darken(image, rng), n_summer)
@@ -319,17 +319,6 @@ def _study_sets(run_dir: Path, d: _Data) -> list[Any]:
                      dark_proxy_folder(run_dir / "study_k90_160_dark", frames90), len(frames90) // 2, truth90),
             StudySet("KITTI 90 (1241x376), second pass at dusk", dusk_folder(run_dir / "study_k90_dusk", frames90),
                      len(frames90) // 2, truth90)]
-
-
-def _season_frames(root: Path, season: str) -> list[Path]:
-    """The images of one season, as the data set's ``frames.txt`` names them (``index season source``)."""
-    rows = [line.split() for line in (root / "frames.txt").read_text().splitlines()
-            if line.strip() and not line.startswith("#")]
-    frames = sorted((root / "images").glob("*.png"))
-    picked = [frames[int(r[0])] for r in rows if len(r) >= 2 and r[1] == season and int(r[0]) < len(frames)]
-    if not picked:
-        raise ConfigError(f"{root / 'frames.txt'} names no {season} frame")
-    return picked
 
 
 #: the section steps, in the order they run (methods' table waits for false-loops' column; see ``main``)

@@ -20,12 +20,11 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from .common import REPO, md_table, work_study_cli
+from cae.model import INPUT_SIZE
+
+from .common import REPO, md_table, season_frames, work_study_cli
 
 log = logging.getLogger(__name__)
-
-NETWORK_SIDE = 256  #: the side the encoder reads (``cae.model.INPUT_SIZE``)
-
 
 def noise_per_network_pixel(image: np.ndarray, rng: np.random.Generator, sigma: float = 0.02) -> np.ndarray:
     """``darken`` without its noise, brought up to the network's side, then Gaussian noise of ``sigma`` per pixel.
@@ -39,7 +38,7 @@ def noise_per_network_pixel(image: np.ndarray, rng: np.random.Generator, sigma: 
     """
     from .augment import darken
 
-    up = cv2.resize(darken(image, rng, noise_sigma=0.0), (NETWORK_SIDE, NETWORK_SIDE), interpolation=cv2.INTER_LINEAR)
+    up = cv2.resize(darken(image, rng, noise_sigma=0.0), (INPUT_SIZE, INPUT_SIZE), interpolation=cv2.INTER_LINEAR)
     x = np.clip(up.astype(np.float32) / 255.0 + rng.normal(0.0, sigma, up.shape).astype(np.float32), 0, 1)
     return (x * 255 + 0.5).astype(np.uint8)
 
@@ -62,12 +61,12 @@ def main(out: str | Path, write: bool = True) -> dict[str, dict[str, str]]:
     from retrieval.descriptors import create_descriptor
     from retrieval.sequences import open_sequence
 
-    from .methods import single_frame_retrieval
-    from .run import _season_frames, write_section
+    from .methods import image_codes, single_frame_retrieval
+    from .run import write_section
 
     nordland = REPO.parent / "shared" / "datasets" / "nordland"
     frames = [read_image(p) for p in open_sequence(nordland).frames]
-    n_summer, truth = len(_season_frames(nordland, "summer")), read_loop_pairs(nordland / "loops.txt")
+    n_summer, truth = len(season_frames(nordland, "summer")), read_loop_pairs(nordland / "loops.txt")
     codes = {"shipped weights": {"name": "cae"},
              "reconstruction only (cae_mixed.pt)": {"name": "cae", "weights": str(RECONSTRUCTION_WEIGHTS)},
              "thumbnail 64x48": {"name": "thumbnail"}}
@@ -78,8 +77,7 @@ def main(out: str | Path, write: bool = True) -> dict[str, dict[str, str]]:
         for variant, change in _winter_variants().items():
             rng = np.random.default_rng(0)
             images = frames[:n_summer] + [change(im, rng) for im in frames[n_summer:]]
-            x = np.stack(desc.encode_batch(images) if desc.encodes_in_batches else [desc(im) for im in images])
-            rk = single_frame_retrieval(x.reshape(len(images), -1).astype(np.float32), n_summer, truth)
+            rk = single_frame_retrieval(image_codes(images, desc), n_summer, truth)
             results[label][variant] = f"{rk[1]:.3f} / {rk[10]:.3f}"
             log.info("%s, %s: %s", label, variant, results[label][variant])
     variants = list(_winter_variants())

@@ -76,8 +76,8 @@ default_conf: dict[str, Any] = {
     "temperature": 0.1,  # the InfoNCE softmax temperature
     "anchor": 10.0,  # weight of a term keeping each changed view's code near the init weights' code of its clean
     #                 frame (cae.contrastive.code_anchor): a fine-tune adapts without forgetting what the init
-    #                 weights learned elsewhere (Nordland, summer-only fine-tune at lr 1e-3: Recall@1 0.596 without,
-    #                 0.734 with; shipped 0.758); acts only with `init` and the place term; 0 = none
+    #                 weights learned elsewhere (measured: BENCHMARKS.md, training study); acts only with `init`
+    #                 and the place term; 0 = none
     "neighbours": 1,  # positives: two views of a frame, or of a frame and one at most this many frames away in
     #                  its folder (name order = time order; 0 = the frame itself only)
     "far": 20,  # negatives: frames of the batch at least this many frames apart in one folder (or in another
