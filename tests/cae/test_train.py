@@ -244,6 +244,19 @@ class TestResume:
         if skipped is ConvAutoencoder:
             assert not same_weights(started_from, load_checkpoint(after_one[0] / "last.pt")["state_dict"])
 
+    def test_an_anchored_fine_tune_resumes_bit_for_bit(self, images5, tmp_path):
+        """``anchor`` (on by default where ``init`` is given) rebuilds its frozen copy of the init weights on resume:
+        1 + 1 resumed epochs equal 2 uninterrupted ones; the term is in the validation loss from the start (a changed
+        view's code is not its clean frame's, even where the copy is the model)."""
+        conf = {**RESUME, "init": "shipped"}
+        straight = main(images5, tmp_path / "straight", {**conf, "epochs": 2})
+        main(images5, tmp_path / "resumed", {**conf, "epochs": 1})
+        resumed = main(images5, tmp_path / "resumed", {**conf, "epochs": 2})
+        assert trajectory(resumed) == trajectory(straight)
+        assert same_weights(tmp_path / "resumed" / "last.pt", tmp_path / "straight" / "last.pt")
+        free = main(images5, tmp_path / "free", {**conf, "anchor": 0.0, "epochs": 1})
+        assert straight["history"][0]["val_loss"] > free["history"][0]["val_loss"] + 0.1
+
     def test_finished_run_and_restart(self, images5, straight, tmp_path):
         out = tmp_path / "run"
         shutil.copytree(straight[0], out)
