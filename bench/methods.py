@@ -23,7 +23,8 @@ from retrieval.sequences import open_sequence
 from .common import REPO, Budget, detect_run, ground_truth_pairs, md_table, run_metrics
 
 __all__ = ["slug", "method_confs", "method_metrics", "run_methods", "false_loops", "methods_table",
-           "StudySet", "image_codes", "frame_codes", "single_frame_retrieval", "fine_tune", "training_study", "training_table"]
+           "StudySet", "image_codes", "frame_codes", "single_frame_retrieval", "fine_tune", "training_study",
+           "training_table"]
 
 log = logging.getLogger(__name__)
 

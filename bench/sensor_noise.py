@@ -26,6 +26,7 @@ from .common import REPO, md_table, season_frames, work_study_cli
 
 log = logging.getLogger(__name__)
 
+
 def noise_per_network_pixel(image: np.ndarray, rng: np.random.Generator, sigma: float = 0.02) -> np.ndarray:
     """``darken`` without its noise, brought up to the network's side, then Gaussian noise of ``sigma`` per pixel.
 

@@ -46,7 +46,7 @@ from .revisits import mine_revisits
 from .encode import CPU_BATCH, encode_images
 from .views import default_views, photometric, view_rules, warp
 from .weights import (DEFAULT_WEIGHTS, DEVICE_PATTERN, STILL_COS, checkpoint_input_norm, checkpoint_still_cos,
-                      load_checkpoint, resolve_device, save_checkpoint)
+                      load_checkpoint, load_encoder, resolve_device, save_checkpoint)
 from .whitening import DEFAULT_DIM, DEFAULT_SHRINK, MIN_FIT_CODES, Whitening
 
 __all__ = ["default_conf", "conf_rules", "list_images", "load_image_folder", "sequence_order", "main"]
@@ -295,11 +295,7 @@ def _teacher(conf: dict[str, Any], device: torch.device) -> Encoder | None:
     or the place term)."""
     if not (conf["anchor"] and conf["init"] and conf["contrastive"]):
         return None
-    path = _init_path(conf)
-    state = load_checkpoint(path)
-    model = ConvAutoencoder(checkpoint_input_norm(state, path))
-    model.load_state_dict(state["state_dict"], strict=True)
-    return model.encoder.to(device, memory_format=torch.channels_last).eval().requires_grad_(False)
+    return load_encoder(_init_path(conf), device).requires_grad_(False)
 
 
 def _resume_or_start(last_path: Path, conf: dict[str, Any], device: torch.device, val_set: _Frames,
@@ -446,7 +442,7 @@ def _reconstruction(model: ConvAutoencoder, code_maps: torch.Tensor, targets: to
 
 def _train_epoch(model: ConvAutoencoder, optim: torch.optim.Optimizer, train_set: _Frames, epoch: int,
                  conf: dict[str, Any], device: torch.device, revisits: np.ndarray,
-                teacher: Encoder | None = None) -> float:
+                 teacher: Encoder | None = None) -> float:
     """One pass over ``train_set`` in a batch order seeded by ``(seed, epoch)``; returns the mean training loss."""
     model.train()
     rng = np.random.default_rng([conf["seed"], epoch])

@@ -3,8 +3,9 @@
 A view is a small viewpoint change (zoom-in crop, shift, small rotation: ``warp``) followed by a photometric change
 (``photometric``: gain, offset and gamma, a colour cast or grey, night-like darkening, blur or a low resolution
 brought back up, JPEG, then sensor noise, drawn as coarse as a sensor with fewer pixels than the network would give
-it: the noise of a 64x32 camera brought up to 256 px spans 4-8 network pixels, and pooling does not average it away). ``cae.train`` draws two views of one frame (or of two temporal neighbours)
-and pulls their codes together; the reconstruction target is the warped frame before its photometric change.
+it: the noise of a 64x32 camera brought up to 256 px spans 4-8 network pixels, and pooling does not average it
+away). ``cae.train`` draws two views of one frame (or of two temporal neighbours) and pulls their codes together;
+the reconstruction target is the warped frame before its photometric change.
 
 Shapes: batches ``(B, 3, S, S)`` float in [0, 1] (the network input, any device); every draw comes from the numpy
 generator passed in, so a seeded run is reproducible.
@@ -38,7 +39,8 @@ default_views: dict[str, Any] = {
 }
 #: allowed values of ``default_views`` (checked by ``cae.train.conf_rules``)
 view_rules: dict[str, tuple[float, float]] = {"crop": (0.0, 0.5), "rotate": (0.0, 45.0), "colour": (0.0, 0.9),
-                                              "grey": (0.0, 1.0), "night": (0.0, 1.0), "noise": (0.0, 0.5), "grain": (1.0, 64.0),
+                                              "grey": (0.0, 1.0), "night": (0.0, 1.0), "noise": (0.0, 0.5),
+                                              "grain": (1.0, 64.0),
                                               "low_res": (0.0, 1.0), "blur": (0.0, 1.0), "jpeg": (0.0, 1.0)}
 
 
