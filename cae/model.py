@@ -6,7 +6,8 @@ Shapes (B = batch):
     image  (B, 3, 256, 256) float in [0, 1]
       input_norm "standardise": each image brought to mean 0.5 and spread 0.25, clipped to [0, 1] (its light level
       and contrast removed: a night frame and a day frame of one place enter alike); "none": as given (the paper)
-      Encoder: 4 x [conv 3x3 (32, 32, 32, 16 filters, zero padding) + ReLU + max-pool 2x2]
+      Encoder: 4 x [conv 3x3 (32, 32, 32, 16 filters, zero padding) + ReLU + max-pool 2x2] (run pooled first: the
+               same values, the ReLU on a quarter of them)
     code   (B, 16, 16, 16)  -> flattened (B, 4096), channel-major (C, H, W) order
       Decoder: 4 x [nearest-neighbour resize x2 + conv 3x3x32 + ReLU], then conv 3x3x3
     logits (B, 3, 256, 256)  (sigmoid at inference; the loss takes logits)
@@ -74,7 +75,9 @@ class Encoder(nn.Module):
         layers: list[nn.Module] = []
         c_in = 3
         for c_out in self.filters:
-            layers += [nn.Conv2d(c_in, c_out, 3, padding=1), nn.ReLU(inplace=True), nn.MaxPool2d(2)]
+            # pooled before the ReLU: the same values (max and ReLU commute) with the ReLU on a quarter of them;
+            # the checkpoint keys are the same (the convolutions stay at 0, 3, 6, 9)
+            layers += [nn.Conv2d(c_in, c_out, 3, padding=1), nn.MaxPool2d(2), nn.ReLU(inplace=True)]
             c_in = c_out
         self.features = nn.Sequential(*layers)
         _init(self)

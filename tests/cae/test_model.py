@@ -56,6 +56,18 @@ class TestEncoder:
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
         assert a.abs().max() > 0  # real features, not all-zero ReLU outputs
 
+    def test_each_block_is_the_papers_conv_relu_pool(self, encoder, batch):
+        """The blocks pool before their ReLU (the ReLU then runs on a quarter of the values, and a batch of two 256x256
+        activations no longer spills the cache: 8.2 -> 6.7 ms an image on one core); max and ReLU commute, so the code
+        is the paper's conv -> ReLU -> max-pool bit for bit."""
+        convs = [m for m in encoder.features if isinstance(m, torch.nn.Conv2d)]
+        assert len(convs) == len(Encoder.filters)
+        with torch.no_grad():
+            h = encoder.network_input(batch)
+            for conv in convs:
+                h = F.max_pool2d(F.relu(F.conv2d(h, conv.weight, conv.bias, padding=1)), 2)
+            assert torch.equal(encoder.forward_map(batch), h)
+
     def test_batch_independent(self, encoder, batch):
         with torch.no_grad():
             full = encoder(batch)
