@@ -78,6 +78,10 @@ default_conf: dict[str, Any] = {
     #                 frame (cae.contrastive.code_anchor): a fine-tune adapts without forgetting what the init
     #                 weights learned elsewhere (measured: BENCHMARKS.md, training study); acts only with `init`
     #                 and the place term; 0 = none
+    "blend": 0.5,  # with `init`: best.pt's weights are this share of the fine-tuned weights plus the rest of the init
+    #               weights' (weight-space ensembling, WiSE-FT: Wortsman et al., CVPR 2022; what the init weights knew
+    #               of conditions the folder lacks stays; measured: BENCHMARKS.md, training study); 1 = the fine-tuned
+    #               weights as trained
     "neighbours": 1,  # positives: two views of a frame, or of a frame and one at most this many frames away in
     #                  its folder (name order = time order; 0 = the frame itself only)
     "far": 20,  # negatives: frames of the batch at least this many frames apart in one folder (or in another
@@ -114,6 +118,7 @@ conf_rules: dict[str, Any] = {
     "contrastive": Float(0, 100),
     "temperature": Float(0.01, 10),
     "anchor": Float(0, 100),
+    "blend": Float(0, 1, lo_open=True),
     "neighbours": Int(0, 1000),
     "far": Int(0, 1_000_000),
     "recon_share": Float(0, 1, lo_open=True),
@@ -523,14 +528,31 @@ def _fit(model: ConvAutoencoder, optim: torch.optim.Optimizer, train_set: _Frame
     return progress
 
 
+def _blend_with_init(model: ConvAutoencoder, init: Path, share: float) -> None:
+    """The model's weights become ``share`` x its own + ``(1 - share)`` x those in ``init`` (in place)."""
+    theirs = load_checkpoint(init)["state_dict"]
+    with torch.no_grad():
+        for key, value in model.state_dict().items():
+            if value.is_floating_point():
+                value.mul_(share).add_(theirs[key].to(value.device, value.dtype), alpha=1.0 - share)
+
+
 def _finish_best(best: Path, data: np.ndarray, conf: dict[str, Any], device: torch.device) -> Whitening | None:
-    """Adds to ``best.pt`` what the detector reads with the weights: the init weights' ``still_cos`` in the conf
+    """Makes ``best.pt`` what the detector reads: a fine-tune's weights blended with the init weights (``blend``;
+    once: a checkpoint that says ``blend`` already is not blended again, so a finished run resumed keeps its
+    weights; its ``val_loss`` is the fine-tuned weights' own), the init weights' ``still_cos`` in the conf
     (``cae.weights.checkpoint_still_cos``: a fine-tuned camera keeps the shipped weights' own; ``STILL_COS`` from a
     random start), and the code normalisation fitted on every image's code (``whitening_dim``; returned, None without
     one)."""
     ckpt = load_checkpoint(best)
     model = ConvAutoencoder(conf["input_norm"])
     model.load_state_dict(ckpt["state_dict"], strict=True)
+    init = _init_path(conf)
+    extra = {k: v for k, v in ckpt.items() if k not in ("format_version", "conf", "state_dict", "whitening")}
+    if init is not None and conf["blend"] < 1 and "blend" not in extra:
+        _blend_with_init(model, init, conf["blend"])
+        extra["blend"] = float(conf["blend"])
+        log.info("best.pt: %.2f x the fine-tuned weights + %.2f x %s (blend)", conf["blend"], 1 - conf["blend"], init)
     white = None
     if conf["whitening_dim"] and len(data) >= MIN_FIT_CODES:
         codes = encode_images(model.encoder.to(device).eval(), list(data), prepared=True)
@@ -538,9 +560,7 @@ def _finish_best(best: Path, data: np.ndarray, conf: dict[str, Any], device: tor
         log.info("whitening: %d-d, fitted on %d codes, saved in %s", white.dim, white.fitted_on, best)
     elif conf["whitening_dim"]:
         log.warning("only %d images: no whitening saved (it needs %d)", len(data), MIN_FIT_CODES)
-    init = _init_path(conf)
     still = STILL_COS if init is None else checkpoint_still_cos(load_checkpoint(init), init)
-    extra = {k: v for k, v in ckpt.items() if k not in ("format_version", "conf", "state_dict", "whitening")}
     save_checkpoint(best, model, {**ckpt["conf"], "still_cos": still}, whitening=white, **extra)
     return white
 

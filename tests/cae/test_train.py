@@ -452,7 +452,8 @@ class TestPlaceObjective:
                                            ({"threads": 0}, "threads"), ({"init": 3}, "init"),
                                            ({"views": {"night": 1.5}}, "views.night"),
                                            ({"views": {"crop": -0.1}}, "views.crop"), ({"anchor": -1}, "anchor"),
-                                           ({"views": {"grain": 0.5}}, "views.grain")])
+                                           ({"views": {"grain": 0.5}}, "views.grain"), ({"blend": 0}, "blend"),
+                                           ({"blend": 1.5}, "blend")])
     def test_bad_value_named_before_anything_is_written(self, images5, tmp_path, conf, key):
         out = tmp_path / "out"
         with pytest.raises(ConfigError, match=f"'{key}' must be"):
@@ -466,6 +467,24 @@ class TestPlaceObjective:
         with pytest.raises(ConfigError, match=match):
             main(images5, out, {**SMALL, **conf})
         assert not out.exists()
+
+    def test_a_fine_tune_is_blended_with_its_init_weights_once(self, images5, tmp_path):
+        """``blend`` (0.5 by default where ``init`` is given): best.pt holds the midpoint of the fine-tuned weights
+        (one epoch: last.pt's) and the init weights'; a finished run run again does not blend them a second time;
+        ``blend: 1`` keeps the fine-tuned weights as trained."""
+        conf = {**SMALL, "init": "shipped", "epochs": 1}
+        main(images5, tmp_path / "half", conf)
+        tuned = load_checkpoint(tmp_path / "half" / "last.pt")["state_dict"]
+        shipped = load_checkpoint(cae.DEFAULT_WEIGHTS)["state_dict"]
+        best = load_checkpoint(tmp_path / "half" / "best.pt")
+        assert best["blend"] == 0.5 and not same_weights(tuned, shipped)
+        for key, value in shipped.items():
+            torch.testing.assert_close(best["state_dict"][key], 0.5 * tuned[key] + 0.5 * value)
+        main(images5, tmp_path / "half", conf)  # finished: nothing trained, nothing blended again
+        assert same_weights(tmp_path / "half" / "best.pt", best["state_dict"])
+        main(images5, tmp_path / "whole", {**conf, "blend": 1.0})
+        assert same_weights(tmp_path / "whole" / "best.pt", tmp_path / "whole" / "last.pt")
+        assert "blend" not in load_checkpoint(tmp_path / "whole" / "best.pt")
 
     def test_fine_tune_from_shipped_loads_and_changes_the_weights(self, images12, tmp_path, monkeypatch):
         started_from = spy_first_epoch(monkeypatch)
