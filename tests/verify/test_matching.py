@@ -132,3 +132,41 @@ class TestPairwiseHamming:
         b = rng.integers(0, 256, (30, 32), dtype=np.uint8)
         ref = np.unpackbits(a[:, None, :] ^ b[None, :, :], axis=2).sum(-1)
         np.testing.assert_array_equal(pairwise_hamming(a, b), ref)
+
+
+@pytest.mark.skipif(not hasattr(__import__("torch"), "_int_mm"), reason="this torch has no 8-bit product")
+class TestByteProducts:
+    """SIFT's descriptors (integers 0-255) are matched from exact 8-bit products where those are faster: the same
+    distances as the float32 GEMM bit for bit, hence the same matches; anything else takes the float32 GEMM."""
+
+    def test_byte_distances_are_the_float_distances_bit_for_bit(self, descs):
+        from verify.matching import _ByteDistances
+
+        extremes = np.array([[0] * 128, [255] * 128, [0, 255] * 64], np.uint8)
+        for xq, xb in [(descs[55], descs[5]), (descs[5], descs[30]), (extremes, extremes), (extremes, descs[54])]:
+            fast = _ByteDistances(xq.astype(np.uint8)).to(_ByteDistances(xb.astype(np.uint8)))
+            assert fast.dtype == np.float32
+            np.testing.assert_array_equal(fast, pairwise_sq_l2(xq, xb))
+
+    @pytest.mark.parametrize("faster", [True, False], ids=["bytes", "float32"])
+    def test_either_product_gives_the_brute_force_matches(self, descs, monkeypatch, faster):
+        import verify.matching as matching
+
+        monkeypatch.setattr(matching, "_BYTES_FASTER", faster)
+        used = []
+        monkeypatch.setattr(matching._ByteDistances, "to", lambda self, other, to=matching._ByteDistances.to:
+                            used.append(1) or to(self, other))
+        cands = [descs[5], descs[30].astype(np.uint8), descs[54][:0], descs[54]]
+        for mutual in (False, True):
+            for m, xb in zip(match_ratio_many(descs[55], cands, mutual=mutual), cands):
+                np.testing.assert_array_equal(m, match_ratio(descs[55], xb, mutual=mutual))
+        assert len(used) == (6 if faster else 0)
+
+    def test_descriptors_that_are_not_bytes_take_the_float_product(self, descs, monkeypatch):
+        import verify.matching as matching
+
+        monkeypatch.setattr(matching, "_BYTES_FASTER", True)
+        monkeypatch.setattr(matching._ByteDistances, "to", lambda *_: pytest.fail("not bytes: no 8-bit product"))
+        for cands in ([descs[5] + 0.5], [descs[5] * 2.0], [descs[5] - 1.0]):  # a fraction, over 255, under 0
+            m = match_ratio_many(descs[55], cands)[0]
+            np.testing.assert_array_equal(m, match_ratio(descs[55], cands[0]))
