@@ -528,9 +528,8 @@ def _fit(model: ConvAutoencoder, optim: torch.optim.Optimizer, train_set: _Frame
     return progress
 
 
-def _blend_with_init(model: ConvAutoencoder, init: Path, share: float) -> None:
-    """The model's weights become ``share`` x its own + ``(1 - share)`` x those in ``init`` (in place)."""
-    theirs = load_checkpoint(init)["state_dict"]
+def _blend_with_init(model: ConvAutoencoder, theirs: dict[str, torch.Tensor], share: float) -> None:
+    """The model's weights become ``share`` x its own + ``(1 - share)`` x ``theirs`` (the init weights; in place)."""
     with torch.no_grad():
         for key, value in model.state_dict().items():
             if value.is_floating_point():
@@ -548,9 +547,10 @@ def _finish_best(best: Path, data: np.ndarray, conf: dict[str, Any], device: tor
     model = ConvAutoencoder(conf["input_norm"])
     model.load_state_dict(ckpt["state_dict"], strict=True)
     init = _init_path(conf)
+    init_ckpt = None if init is None else load_checkpoint(init)
     extra = {k: v for k, v in ckpt.items() if k not in ("format_version", "conf", "state_dict", "whitening")}
-    if init is not None and conf["blend"] < 1 and "blend" not in extra:
-        _blend_with_init(model, init, conf["blend"])
+    if init_ckpt is not None and conf["blend"] < 1 and "blend" not in extra:
+        _blend_with_init(model, init_ckpt["state_dict"], conf["blend"])
         extra["blend"] = float(conf["blend"])
         log.info("best.pt: %.2f x the fine-tuned weights + %.2f x %s (blend)", conf["blend"], 1 - conf["blend"], init)
     white = None
@@ -560,7 +560,7 @@ def _finish_best(best: Path, data: np.ndarray, conf: dict[str, Any], device: tor
         log.info("whitening: %d-d, fitted on %d codes, saved in %s", white.dim, white.fitted_on, best)
     elif conf["whitening_dim"]:
         log.warning("only %d images: no whitening saved (it needs %d)", len(data), MIN_FIT_CODES)
-    still = STILL_COS if init is None else checkpoint_still_cos(load_checkpoint(init), init)
+    still = STILL_COS if init_ckpt is None else checkpoint_still_cos(init_ckpt, init)
     save_checkpoint(best, model, {**ckpt["conf"], "still_cos": still}, whitening=white, **extra)
     return white
 

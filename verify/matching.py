@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch
@@ -87,6 +87,8 @@ def _bytes(x: np.ndarray) -> np.ndarray | None:
     None."""
     if x.dtype == np.uint8:
         return x
+    if not 0 <= x.min() <= x.max() <= 255:  # NaN fails too
+        return None
     u = x.astype(np.uint8)
     return u if np.array_equal(u, x) else None
 
@@ -143,7 +145,7 @@ def _bytes_faster() -> bool:
     return _BYTES_FASTER
 
 
-def _seconds(fn: Any) -> float:
+def _seconds(fn: Callable[[], Any]) -> float:
     t0 = time.perf_counter()
     fn()
     return time.perf_counter() - t0
@@ -155,8 +157,7 @@ def match_ratio_many(xq: np.ndarray, xbs: Sequence[np.ndarray], ratio: float = 0
 
     Same result as ``[match_ratio(xq, xb, ...) for xb in xbs]``: one fused GEMM per candidate (torch) instead of
     several full-size numpy temporaries; for byte descriptors (SIFT's), exact 8-bit products where this machine runs
-    them faster (``_bytes_faster``: on this project's 2-core test machine 0.13 against 0.42 ms for 400 x 128 each
-    way; KITTI 90's run 52.8 -> 51.2 ms of CPU a frame, the same loops).
+    them faster (``_bytes_faster``; measured in BENCHMARKS.md).
 
     Returns:
         One ``(M_i, 2)`` int64 array per candidate.
