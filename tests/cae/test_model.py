@@ -57,9 +57,8 @@ class TestEncoder:
         assert a.abs().max() > 0  # real features, not all-zero ReLU outputs
 
     def test_each_block_is_the_papers_conv_relu_pool(self, encoder, batch):
-        """The blocks pool before their ReLU (the ReLU then runs on a quarter of the values, and a batch of two 256x256
-        activations no longer spills the cache: 8.2 -> 6.7 ms an image on one core); max and ReLU commute, so the code
-        is the paper's conv -> ReLU -> max-pool bit for bit."""
+        """The blocks pool before their ReLU (the ReLU on a quarter of the values: BENCHMARKS.md); max and ReLU
+        commute, so the code is the paper's conv -> ReLU -> max-pool bit for bit."""
         convs = [m for m in encoder.features if isinstance(m, torch.nn.Conv2d)]
         assert len(convs) == len(Encoder.filters)
         with torch.no_grad():

@@ -160,7 +160,7 @@ class TestByteProducts:
         for mutual in (False, True):
             for m, xb in zip(match_ratio_many(descs[55], cands, mutual=mutual), cands):
                 np.testing.assert_array_equal(m, match_ratio(descs[55], xb, mutual=mutual))
-        assert len(used) == (6 if faster else 0)
+        assert len(used) == (2 * sum(len(xb) > 0 for xb in cands) if faster else 0)  # one product a candidate
 
     def test_descriptors_that_are_not_bytes_take_the_float_product(self, descs, monkeypatch):
         import verify.matching as matching
