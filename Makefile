@@ -5,6 +5,8 @@
 PYTHON ?= python3
 VENV ?= .venv
 TORCH ?= torch==2.13.0
+# pytest-xdist processes for make test (the CI machine's 2 cores)
+TEST_WORKERS ?= 2
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
@@ -27,7 +29,7 @@ fleet-demo: install
 	$(VENV)/bin/cae-lcd fleet-demo --out runs/fleet-demo --hostile
 
 test: install
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(TEST_WORKERS)
 
 bench: install
 	$(VENV)/bin/cae-lcd bench

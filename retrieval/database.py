@@ -65,7 +65,7 @@ import h5py
 import numpy as np
 
 from cae_lcd.core.conf import conf_diff, conf_get
-from cae_lcd.core.errors import ConfigError, DatabaseError
+from cae_lcd.core.errors import ConfigError, DatabaseError, printable
 from verify.features import KEYPOINT_STEP, Features
 
 from .wal import FrameLog, read_records
@@ -549,7 +549,7 @@ class KeyframeDatabase:
         if reason not in SKIP_REASONS:
             raise ValueError(f"reason must be one of {SKIP_REASONS}; got {reason!r}")
         row = self._row(frame_id, KINDS.index(reason), source, fingerprint, edge_ratio)
-        row["message"] = message[:300].encode("utf-8", "backslashreplace").decode("utf-8")  # names not UTF-8
+        row["message"] = printable(message[:300])  # names not UTF-8
         empty = {"codes": np.zeros((0, 0)), "candidates": np.zeros((0, len(CANDIDATE_ROW)))}
         self._append_row(row, empty, _pack_features(Features.empty()))
 

@@ -37,7 +37,7 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-from cae_lcd.core.errors import ConfigError
+from cae_lcd.core.errors import ConfigError, printable
 from cae_lcd.core.files import atomic_write, write_text_atomic
 
 from .database import LOG_SUFFIX
@@ -88,7 +88,7 @@ class FrameKeys:
         surrogates) as ``\\udcff`` escapes, so that the tables stay UTF-8; "" when unknown."""
         if not 0 <= i < len(self.sources):
             return ""
-        return str(self.sources[i]).encode("utf-8", "backslashreplace").decode("utf-8")
+        return printable(str(self.sources[i]))
 
     def row(self, a: int, b: int) -> list[str]:
         """The key columns of a pair (``key_columns``' order)."""

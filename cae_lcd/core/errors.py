@@ -6,11 +6,21 @@ All derive from ``LCDError``; ``ConfigError`` and ``ImageError`` are also ``Valu
 
 from __future__ import annotations
 
-__all__ = ["LCDError", "ConfigError", "ConflictError", "ImageError", "DatabaseError"]
+__all__ = ["LCDError", "ConfigError", "ConflictError", "ImageError", "DatabaseError", "printable"]
+
+
+def printable(text: str) -> str:
+    """``text`` with a file name's undecodable bytes (which Python keeps as lone surrogates) as ``\\udcff`` escapes:
+    writable as UTF-8 anywhere (a log file, a table, a test report)."""
+    return text.encode("utf-8", "backslashreplace").decode("utf-8")
 
 
 class LCDError(Exception):
-    """Base of every error this project raises on purpose; the message says what and where."""
+    """Base of every error this project raises on purpose; the message says what and where (``printable``: a name
+    that is not UTF-8 is written with escapes)."""
+
+    def __init__(self, *args: object) -> None:
+        super().__init__(*(printable(a) if isinstance(a, str) else a for a in args))
 
 
 class ConfigError(LCDError, ValueError):

@@ -60,6 +60,13 @@ class TestReadImage:
         with pytest.raises(ImageError):
             read_image(tmp_path)  # a folder
 
+    def test_a_name_not_utf8_is_escaped_in_the_message(self, tmp_path):
+        bad = tmp_path / os.fsdecode(b"frame\xfe.png")  # Python keeps the byte as a lone surrogate
+        bad.write_bytes(b"\x89PNG" + b"x" * 40)
+        with pytest.raises(ImageError) as err:
+            read_image(bad)
+        assert "frame\\udcfe.png" in str(err.value) and str(err.value).encode("utf-8")  # writable to a UTF-8 log
+
 
 class TestToUint8Dtypes:
     def test_signed_with_negatives_stretched(self, grey):
