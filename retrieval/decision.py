@@ -277,6 +277,21 @@ class ScoreSpans:
         decades on a nearby line (the reference moved by up to ``window // 2`` frames): evidence carried by the earlier
         windows does not say which frame the query is at, its own window does (a line a few frames off the true one
         still reads the true one's earlier windows)."""
+        ev = self.nearby_evidence(queries, refs, source)
+        return ev[:, self.window // 2] >= ev.max(axis=1, initial=0.0) - LOCALISE
+
+    def on_line(self, queries: np.ndarray, refs: np.ndarray, source: Any) -> np.ndarray:
+        """``(n,)`` bool: whether a run's member ``(queries[i], refs[i])`` lies on the run's line: its own window is
+        ``localised`` and no line more than one frame off (the confirmation's slack) beats it at all (a frame just
+        before a revisit's start has one pair of evidence on the line; a line a few frames off often reads as much)."""
+        ev, mid = self.nearby_evidence(queries, refs, source), self.window // 2
+        own, far = ev[:, mid], np.delete(ev, [mid - 1, mid, mid + 1], axis=1)
+        return (own >= far.max(axis=1, initial=0.0)) & (own >= ev.max(axis=1, initial=0.0) - LOCALISE)
+
+    def nearby_evidence(self, queries: np.ndarray, refs: np.ndarray, source: Any) -> np.ndarray:
+        """``(n, 2 * (window // 2) + 1)``: the evidence (decades) of the query's own window on each line through
+        ``(queries[i], refs[i] + d)``, ``d = -window // 2 .. window // 2`` (column ``window // 2``: the pair's own
+        line; 0 where the reference would lie before the first frame)."""
         queries, refs = np.asarray(queries, np.int64), np.asarray(refs, np.int64)
         near = np.arange(-(self.window // 2), self.window // 2 + 1, dtype=np.int64)
         qs, rs = np.repeat(queries, len(near)), (refs[:, None] + near[None, :]).ravel()
@@ -284,8 +299,7 @@ class ScoreSpans:
         scores = np.full(len(rs), -np.inf)
         if ok.any():
             scores[ok] = self.score(qs[ok], rs[ok], source)
-        ev = -self.tail.log10_sfs(scores).reshape(len(queries), len(near))
-        return ev[:, self.window // 2] >= ev.max(axis=1, initial=0.0) - LOCALISE
+        return -self.tail.log10_sfs(scores).reshape(len(queries), len(near))
 
     def confidences(self, queries: np.ndarray, refs: np.ndarray, source: Any,
                     accept_at: float = -math.inf) -> np.ndarray:
@@ -514,10 +528,10 @@ class Decision:
                 out.append((int(q), int(refs[int(np.argmin(off))])))
         if not out:
             return out
-        # a member whose own window another line nearby beats does not lie on the run (a line one frame past a
-        # revisit's start reads the revisit's windows, not the frame before it: KITTI 90's frame 99 on frame 0)
+        # a member whose own window a line nearby beats does not lie on the run: the frame just before a revisit's
+        # start reads only its own pair on the run's line (KITTI 90's frame 99 on frame 0, the revisit from 100 on)
         qs = np.array([q for q, _ in out], np.int64)
-        return [m for m, ok in zip(out, self.spans.localised(qs, qs - offset, source)) if ok]
+        return [m for m, ok in zip(out, self.spans.on_line(qs, qs - offset, source)) if ok]
 
     def confidences(self, query_id: int, refs: np.ndarray, inliers: np.ndarray, source: Any,
                     fallback: np.ndarray | None = None) -> np.ndarray:
