@@ -277,7 +277,10 @@ class ScoreSpans:
         decades on a nearby line (the reference moved by up to ``window // 2`` frames): evidence carried by the earlier
         windows does not say which frame the query is at, its own window does (a line a few frames off the true one
         still reads the true one's earlier windows)."""
-        ev = self.nearby_evidence(queries, refs, source)
+        return self._localised(self.nearby_evidence(queries, refs, source))
+
+    def _localised(self, ev: np.ndarray) -> np.ndarray:
+        """``localised`` from ``nearby_evidence``'s ``(n, window // 2 * 2 + 1)``."""
         return ev[:, self.window // 2] >= ev.max(axis=1, initial=0.0) - LOCALISE
 
     def on_line(self, queries: np.ndarray, refs: np.ndarray, source: Any) -> np.ndarray:
@@ -285,8 +288,8 @@ class ScoreSpans:
         ``localised`` and no line more than one frame off (the confirmation's slack) beats it at all (a frame just
         before a revisit's start has one pair of evidence on the line; a line a few frames off often reads as much)."""
         ev, mid = self.nearby_evidence(queries, refs, source), self.window // 2
-        own, far = ev[:, mid], np.delete(ev, [mid - 1, mid, mid + 1], axis=1)
-        return (own >= far.max(axis=1, initial=0.0)) & (own >= ev.max(axis=1, initial=0.0) - LOCALISE)
+        far = ev[:, np.abs(np.arange(ev.shape[1]) - mid) > 1]  # lines 2 or more frames off (none: a short window)
+        return self._localised(ev) & (ev[:, mid] >= far.max(axis=1, initial=0.0))
 
     def nearby_evidence(self, queries: np.ndarray, refs: np.ndarray, source: Any) -> np.ndarray:
         """``(n, 2 * (window // 2) + 1)``: the evidence (decades) of the query's own window on each line through
