@@ -328,11 +328,14 @@ class TestScoreSpans:
                 return np.array([values.get((int(a), int(b)), 0.0) for a, b in zip(q, r)], np.float64)
             return ScoreSpans(score, 10, EmpiricalTail(np.linspace(-0.1, 0.1, 9999)), [], 1e4)
 
+        def at(decades):  # the window score that reads ``decades`` against the null (uniform on [-0.1, 0.1])
+            return 0.1 - 0.2 * 10 ** -decades
+
         q, r = np.array([99]), np.array([0])
-        far = spans({(99, 0): 0.0888, (99, 5): 0.0961})  # 1.25 and 1.71 decades
+        far = spans({(99, 0): at(1.25), (99, 5): at(1.71)})
         assert far.localised(q, r, None)[0] and not far.on_line(q, r, None)[0]
-        assert spans({(99, 0): 0.0888, (99, 1): 0.0961}).on_line(q, r, None)[0]
-        assert not spans({(99, 0): 0.0, (99, 1): 0.0961}).on_line(q, r, None)[0]  # beaten by more than LOCALISE
+        assert spans({(99, 0): at(1.25), (99, 1): at(1.71)}).on_line(q, r, None)[0]
+        assert not spans({(99, 0): 0.0, (99, 1): at(1.71)}).on_line(q, r, None)[0]  # beaten by more than LOCALISE
 
     @staticmethod
     def _nordland(nordland_codes):
