@@ -195,13 +195,14 @@ def _study_variants(run_dir: Path) -> dict[str, dict[str, Any]]:
     from (the paper's objective), the same network at random init (reading its input as the shipped weights do), a
     thumbnail."""
     from cae.model import Encoder
-    from cae.weights import (DEFAULT_WEIGHTS, RECONSTRUCTION_WEIGHTS, checkpoint_input_norm, load_checkpoint,
-                             save_checkpoint)
+    from cae.weights import (DEFAULT_WEIGHTS, RECONSTRUCTION_WEIGHTS, checkpoint_input_norm, checkpoint_lowpass,
+                             load_checkpoint, save_checkpoint)
 
     torch.manual_seed(0)
     random_ckpt = run_dir / "random_encoder.pt"
-    norm = checkpoint_input_norm(load_checkpoint(DEFAULT_WEIGHTS), DEFAULT_WEIGHTS)
-    save_checkpoint(random_ckpt, Encoder(norm), {"init": "N(0, 0.05), torch.manual_seed(0)"})  # its input_norm too
+    shipped = load_checkpoint(DEFAULT_WEIGHTS)
+    reading = checkpoint_input_norm(shipped, DEFAULT_WEIGHTS), checkpoint_lowpass(shipped, DEFAULT_WEIGHTS)
+    save_checkpoint(random_ckpt, Encoder(*reading), {"init": "N(0, 0.05), torch.manual_seed(0)"})  # read alike
     return {"shipped weights": {"name": "cae"},
             "reconstruction only (cae_mixed.pt, the paper's objective)": {"name": "cae",
                                                                            "weights": str(RECONSTRUCTION_WEIGHTS)},

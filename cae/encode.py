@@ -70,7 +70,7 @@ def encode_images(encoder: Encoder, images: Sequence[np.ndarray] | np.ndarray, b
     out = [np.empty((0, CODE_DIM), np.float32)]
     for start in range(0, len(images), batch_size):
         chunk = images[start:start + batch_size]
-        x = (network_tensor(_prepared(chunk)) if prepared else preprocess(chunk)).to(device)
+        x = (network_tensor(_prepared(chunk)) if prepared else preprocess(chunk, lowpass=encoder.lowpass)).to(device)
         if use_half:
             with torch.autocast("cuda", dtype=torch.float16):
                 codes = encoder(x)

@@ -63,15 +63,19 @@ class Encoder(nn.Module):
     Args:
         input_norm: one of ``INPUT_NORMS``, what is done to each image first (saved in a checkpoint's conf;
             ``cae.load_encoder`` sets it from there).
+        lowpass: Gaussian sigma, in an image's own pixels, that ``cae.preprocess`` reads an image smaller than the
+            input through before bringing it up; 0 = none. Not applied here (the network sees 256x256 only): the
+            weights' fact, saved in a checkpoint's conf as ``input_norm`` is.
     """
 
     filters = (32, 32, 32, 16)
 
-    def __init__(self, input_norm: str = "none") -> None:
+    def __init__(self, input_norm: str = "none", lowpass: float = 0.0) -> None:
         super().__init__()
         if input_norm not in INPUT_NORMS:
             raise ConfigError(f"input_norm must be one of {', '.join(INPUT_NORMS)}; got {input_norm!r}")
         self.input_norm = input_norm
+        self.lowpass = float(lowpass)
         layers: list[nn.Module] = []
         c_in = 3
         for c_out in self.filters:
@@ -125,9 +129,9 @@ class ConvAutoencoder(nn.Module):
     """Encoder + decoder; ``forward`` returns reconstruction logits ``(B, 3, 256, 256)`` of the encoder's input
     (``Encoder.network_input``: the standardised image with ``input_norm`` "standardise")."""
 
-    def __init__(self, input_norm: str = "none") -> None:
+    def __init__(self, input_norm: str = "none", lowpass: float = 0.0) -> None:
         super().__init__()
-        self.encoder = Encoder(input_norm)
+        self.encoder = Encoder(input_norm, lowpass)
         self.decoder = Decoder()
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:

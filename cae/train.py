@@ -41,12 +41,12 @@ from cae_lcd.core.files import prepare_out_dir, write_text_atomic
 from cae_lcd.core.images import IMAGE_EXTENSIONS, image_entries, read_image
 from .contrastive import code_anchor, far_mask, info_nce, neighbour_partners, not_revisits, with_revisits
 from .model import INPUT_NORMS, INPUT_SIZE, ConvAutoencoder, Encoder
-from .preprocess import to_network_u8
+from .preprocess import MAX_LOWPASS, to_network_u8
 from .revisits import mine_revisits
 from .encode import CPU_BATCH, encode_images
 from .views import default_views, photometric, view_rules, warp
-from .weights import (DEFAULT_WEIGHTS, DEVICE_PATTERN, STILL_COS, checkpoint_input_norm, checkpoint_still_cos,
-                      load_checkpoint, load_encoder, resolve_device, save_checkpoint)
+from .weights import (DEFAULT_WEIGHTS, DEVICE_PATTERN, STILL_COS, checkpoint_input_norm, checkpoint_lowpass,
+                      checkpoint_still_cos, load_checkpoint, load_encoder, resolve_device, save_checkpoint)
 from .whitening import DEFAULT_DIM, DEFAULT_SHRINK, MIN_FIT_CODES, Whitening
 
 __all__ = ["default_conf", "conf_rules", "list_images", "load_image_folder", "sequence_order", "main"]
@@ -69,6 +69,9 @@ default_conf: dict[str, Any] = {
     "input_norm": "standardise",  # what the encoder does to each image first (cae.model.INPUT_NORMS): "standardise"
     #                              (mean 0.5, spread 0.25: light level and contrast removed; the shipped weights')
     #                              or "none" (the paper); a warning where the init weights read their input otherwise
+    "lowpass": None,  # Gaussian sigma, in an image's own pixels, that an image smaller than the network on both
+    #                  sides is read through before it is brought up (cae.preprocess; saved with the weights, which
+    #                  the detector then reads alike); None = the init weights' own (0, none, from a random start)
     "init": None,  # starting weights: None = random N(0, 0.05) (the paper), "shipped" = the weights in the package
     #               (fine-tuning), or a checkpoint path; a run resumed from last.pt keeps its own weights
     "contrastive": 1.0,  # weight of the place term (cae.contrastive, InfoNCE on the code) beside the reconstruction;
@@ -114,6 +117,7 @@ conf_rules: dict[str, Any] = {
     "whitening_dim": Int(0, 4096),
     "whitening_shrink": Float(0, 100),
     "input_norm": Choice(*INPUT_NORMS),
+    "lowpass": Float(0, MAX_LOWPASS, optional=True),
     "init": Text(optional=True),
     "contrastive": Float(0, 100),
     "temperature": Float(0.01, 10),
@@ -163,8 +167,9 @@ def list_images(folder: str | Path) -> list[Path]:
     return files
 
 
-def load_image_folder(files: Sequence[Path]) -> tuple[np.ndarray, list[Path]]:
-    """Reads and resizes images to the network size; unreadable ones are skipped with a warning naming the file.
+def load_image_folder(files: Sequence[Path], lowpass: float = 0.0) -> tuple[np.ndarray, list[Path]]:
+    """Reads and resizes images to the network size (``cae.preprocess.to_network_u8``, small ones through the
+    ``lowpass`` Gaussian first); unreadable ones are skipped with a warning naming the file.
 
     Returns:
         ``(N, 256, 256, 3)`` uint8 RGB array and the paths actually used.
@@ -175,7 +180,7 @@ def load_image_folder(files: Sequence[Path]) -> tuple[np.ndarray, list[Path]]:
     arrays, used = [], []
     for path in tqdm(files, desc="loading images", unit="img", leave=False):
         try:
-            arrays.append(to_network_u8(read_image(path), INPUT_SIZE))
+            arrays.append(to_network_u8(read_image(path), INPUT_SIZE, lowpass))
             used.append(path)
         except ImageError as err:
             log.warning("skipping %s: %s", path, err)
@@ -195,7 +200,8 @@ def _check_out(out: Path) -> None:
 
 def _prepare(images: str | Path | Sequence[str | Path], out: Path, conf: dict[str, Any] | None
              ) -> tuple[dict[str, Any], torch.device, list[str], list[Path]]:
-    """Checks the conf, the device, the output path and the image folders; reads and writes nothing.
+    """Checks the conf, the device, the output path and the image folders; reads only the init weights' conf (for
+    ``lowpass``) and writes nothing.
 
     Returns:
         The resolved conf, the device, the image folders and the image files to read (``max_images`` applied).
@@ -210,7 +216,9 @@ def _prepare(images: str | Path | Sequence[str | Path], out: Path, conf: dict[st
     if conf["contrastive"] and conf["far"] <= conf["neighbours"]:
         raise ConfigError(f"'far' ({conf['far']}) must be larger than 'neighbours' ({conf['neighbours']}): a "
                           "positive cannot also be a negative")
-    _init_path(conf)  # a missing init file is named before anything is written
+    init = _init_path(conf)  # a missing init file is named before anything is written
+    if conf["lowpass"] is None:
+        conf["lowpass"] = 0.0 if init is None else checkpoint_lowpass(load_checkpoint(init), init)
     _check_out(out)
     folders = [str(images)] if isinstance(images, (str, Path)) else [str(f) for f in images]
     if not folders:
@@ -312,7 +320,7 @@ def _resume_or_start(last_path: Path, conf: dict[str, Any], device: torch.device
         ConfigError: ``last_path`` is damaged, not a training checkpoint, or does not fit the model.
     """
     torch.manual_seed(conf["seed"])
-    model = ConvAutoencoder(conf["input_norm"])
+    model = ConvAutoencoder(conf["input_norm"], conf["lowpass"])
     init = _initial_weights(conf)
     if init is not None and (restart or not last_path.exists()):
         try:
@@ -544,7 +552,7 @@ def _finish_best(best: Path, data: np.ndarray, conf: dict[str, Any], device: tor
     random start), and the code normalisation fitted on every image's code (``whitening_dim``; returned, None without
     one)."""
     ckpt = load_checkpoint(best)
-    model = ConvAutoencoder(conf["input_norm"])
+    model = ConvAutoencoder(conf["input_norm"], conf["lowpass"])
     model.load_state_dict(ckpt["state_dict"], strict=True)
     init = _init_path(conf)
     init_ckpt = None if init is None else load_checkpoint(init)
@@ -606,7 +614,7 @@ def main(images: str | Path | Sequence[str | Path], out: str | Path = "runs/trai
         DatabaseError: a result file cannot be written.
     """
     conf, device, folders, files = _prepare(images, Path(out), conf)
-    data, used = load_image_folder(files)
+    data, used = load_image_folder(files, conf["lowpass"])
     if conf["threads"]:
         torch.set_num_threads(conf["threads"])
     train_set, val_set, split = _split(_Frames(data, *sequence_order(used)), used, conf)

@@ -3,7 +3,8 @@
 A checkpoint is ``{"format_version": 1, "conf": <training conf>, "state_dict": <ConvAutoencoder or Encoder>}``
 written with ``torch.save``, plus ``"whitening"`` (``cae.whitening.Whitening.state()`` as tensors) when training
 fitted one on its images; it is always loaded with ``strict=True``. The conf's ``input_norm`` (``cae.model``;
-absent: "none", the paper's) says what the encoder does to an image before its first layer.
+absent: "none", the paper's) says what the encoder does to an image before its first layer; its ``lowpass``
+(``cae.preprocess``; absent: 0, none) the Gaussian a small image is read through before it is brought up.
 """
 
 from __future__ import annotations
@@ -18,11 +19,12 @@ import torch
 
 from cae_lcd.core.errors import ConfigError
 from .model import INPUT_NORMS, ConvAutoencoder, Encoder
+from .preprocess import MAX_LOWPASS
 from .whitening import Whitening
 
 __all__ = ["DEFAULT_WEIGHTS", "RECONSTRUCTION_WEIGHTS", "CHECKPOINT_VERSION", "DEVICE_PATTERN", "save_checkpoint",
            "load_checkpoint", "load_encoder", "load_autoencoder", "encoder_identity", "resolve_device",
-           "checkpoint_whitening", "checkpoint_input_norm", "checkpoint_still_cos", "STILL_COS"]
+           "checkpoint_whitening", "checkpoint_input_norm", "checkpoint_lowpass", "checkpoint_still_cos", "STILL_COS"]
 
 log = logging.getLogger(__name__)
 
@@ -62,10 +64,11 @@ def resolve_device(device: str | torch.device | None = None) -> torch.device:
 def save_checkpoint(path: str | Path, model: torch.nn.Module, conf: dict[str, Any],
                     whitening: Whitening | None = None, **extra: Any) -> None:
     """Writes ``{"format_version", "conf", "state_dict", ["whitening"], **extra}`` atomically (temp file, rename);
-    the conf's ``input_norm`` is the model's own (``Encoder.input_norm``), whatever ``conf`` says."""
-    norm = getattr(getattr(model, "encoder", model), "input_norm", None)
-    if norm is not None:
-        conf = {**conf, "input_norm": norm}
+    the conf's ``input_norm`` and ``lowpass`` are the model's own (``Encoder.input_norm``, ``Encoder.lowpass``),
+    whatever ``conf`` says."""
+    encoder = getattr(model, "encoder", model)
+    if isinstance(encoder, Encoder):
+        conf = {**conf, "input_norm": encoder.input_norm, "lowpass": encoder.lowpass}
     if whitening is not None:
         extra["whitening"] = {k: torch.as_tensor(v) for k, v in whitening.state().items()}
     path = Path(path)
@@ -109,7 +112,7 @@ def load_autoencoder(path: str | Path | None = None, device: str | torch.device 
     """The full autoencoder from a checkpoint (default: the shipped weights), in eval mode."""
     path = path or DEFAULT_WEIGHTS
     ckpt = load_checkpoint(path)
-    model = ConvAutoencoder(checkpoint_input_norm(ckpt, path))
+    model = ConvAutoencoder(checkpoint_input_norm(ckpt, path), checkpoint_lowpass(ckpt, path))
     try:
         model.load_state_dict(ckpt["state_dict"], strict=True)
     except RuntimeError as err:
@@ -127,13 +130,14 @@ def load_encoder(path: str | Path | None = None, device: str | torch.device | No
 
     Returns:
         ``Encoder`` in eval mode, channels-last, mapping ``(B, 3, 256, 256)`` in [0, 1] to ``(B, 4096)``.
-        Its ``identity`` attribute is a short hash of the weights and their ``input_norm`` (stored in keyframe
-        databases); ``input_norm`` and ``still_cos`` are the checkpoint's (``checkpoint_input_norm``,
-        ``checkpoint_still_cos``); ``whitening`` is the ``Whitening`` saved with the weights, or None.
+        Its ``identity`` attribute is a short hash of the weights, their ``input_norm`` and ``lowpass`` (stored in
+        keyframe databases); ``input_norm``, ``lowpass`` and ``still_cos`` are the checkpoint's
+        (``checkpoint_input_norm``, ``checkpoint_lowpass``, ``checkpoint_still_cos``); ``whitening`` is the
+        ``Whitening`` saved with the weights, or None.
     """
     path = path or DEFAULT_WEIGHTS
     ckpt = load_checkpoint(path)
-    encoder = Encoder(checkpoint_input_norm(ckpt, path))
+    encoder = Encoder(checkpoint_input_norm(ckpt, path), checkpoint_lowpass(ckpt, path))
     try:
         encoder.load_state_dict(_encoder_state(ckpt["state_dict"]), strict=True)
     except RuntimeError as err:
@@ -159,6 +163,15 @@ def checkpoint_input_norm(ckpt: dict[str, Any], path: str | Path) -> str:
     return value
 
 
+def checkpoint_lowpass(ckpt: dict[str, Any], path: str | Path) -> float:
+    """The Gaussian sigma these weights read small images through (conf ``lowpass``, ``cae.preprocess``; 0 where
+    the conf has none)."""
+    value = _conf_value(ckpt, "lowpass", 0.0)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= MAX_LOWPASS:
+        raise ConfigError(f"{path}: conf lowpass must be a number in [0, {MAX_LOWPASS:g}]; got {value!r}")
+    return float(value)
+
+
 def checkpoint_still_cos(ckpt: dict[str, Any], path: str | Path) -> float:
     """The raw-code cosine at which these weights say the camera stood still (conf ``still_cos``; ``STILL_COS``
     where it has none)."""
@@ -180,12 +193,16 @@ def checkpoint_whitening(ckpt: dict[str, Any], path: str | Path) -> Whitening | 
 
 
 def encoder_identity(encoder: torch.nn.Module) -> str:
-    """A 16-hex-digit hash of the encoder's parameters and its ``input_norm``: equal weights that read their input
-    alike give an equal identity (the paper's encoder, input_norm "none", hashes its parameters alone)."""
+    """A 16-hex-digit hash of the encoder's parameters, its ``input_norm`` and its ``lowpass``: equal weights that
+    read their input alike give an equal identity (the paper's encoder, input_norm "none" and no low-pass, hashes
+    its parameters alone)."""
     h = hashlib.sha256()
     norm = getattr(encoder, "input_norm", "none")
     if norm != "none":
         h.update(f"input_norm={norm}".encode())
+    lowpass = getattr(encoder, "lowpass", 0.0)
+    if lowpass:
+        h.update(f"lowpass={lowpass:g}".encode())
     for name, tensor in sorted(encoder.state_dict().items()):
         h.update(name.encode())
         h.update(tensor.detach().cpu().contiguous().numpy().tobytes())

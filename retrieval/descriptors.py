@@ -38,6 +38,12 @@ class GlobalDescriptor:
         self.identity = ""
         self.whitening = None  #: a ``cae.whitening.Whitening`` that came with the weights, if any
         self.still_cos = STILL_COS  #: cosine of two codes at or above which the camera stood still
+        self.lowpass = 0.0  #: the Gaussian sigma small images are read through (``cae.preprocess``; CAE: the weights')
+
+    def network_image(self, image: np.ndarray) -> np.ndarray:
+        """The frame as the network reads it, ``(256, 256, 3)`` uint8 RGB (``cae.preprocess.to_network_u8`` with
+        this descriptor's ``lowpass``): what ``__call__``'s ``network_image`` takes."""
+        return to_network_u8(image, lowpass=self.lowpass)
 
     def size_text(self) -> str:
         """What one frame's description holds, for tables (``"4096"``; MILD: ``"800 x 256 bits"``)."""
@@ -83,6 +89,7 @@ class CAEDescriptor(GlobalDescriptor):
         self.identity = getattr(self.encoder, "identity", "")
         self.whitening = getattr(self.encoder, "whitening", None)
         self.still_cos = getattr(self.encoder, "still_cos", STILL_COS)  # the weights' own
+        self.lowpass = getattr(self.encoder, "lowpass", 0.0)  # the weights' own
 
     def __call__(self, image: np.ndarray, features: Features | None = None,
                  network_image: np.ndarray | None = None) -> np.ndarray:
@@ -95,7 +102,7 @@ class CAEDescriptor(GlobalDescriptor):
     def encode_batch(self, images: list[np.ndarray]) -> list[np.ndarray]:
         """Batched forward passes on the network images ``LoopDetector.process`` would make (same codes, bit for
         bit: checked in the tests)."""
-        nets = [to_network_u8(to_uint8(image)) for image in images]
+        nets = [self.network_image(to_uint8(image)) for image in images]
         return list(encode_images(self.encoder, nets, half=self.conf["half"], prepared=True))
 
 

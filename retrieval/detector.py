@@ -43,7 +43,6 @@ from typing import Any, Callable, Iterable
 import numpy as np
 import torch
 
-from cae.preprocess import to_network_u8
 from cae.whitening import DEFAULT_DIM, DEFAULT_SHRINK
 from cae_lcd.core.checks import check_frame_id, check_intrinsics, check_pose, check_timestamp
 from cae_lcd.core.conf import Bool, Choice, ConfigError, Float, Int, check_conf, merge_conf
@@ -530,7 +529,7 @@ class LoopDetector:
         ms: dict[str, float] = {}
         t_start = t0 = time.perf_counter()
         image8, gray, prep = self._prepared_frame(fid, image)
-        net = to_network_u8(image8) if code is None else None  # the encoder's input
+        net = self.descriptor.network_image(image8) if code is None else None  # the encoder's input
         if self._jobs is not None and fid not in self._given and self._features_wanted:
             self._jobs.submit(fid, functools.partial(_own_features, prep), urgent=True)  # the worker starts now
         gate = self.gate(gray)

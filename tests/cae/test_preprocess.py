@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 import torch
 
-from cae.preprocess import preprocess
+from cae.preprocess import preprocess, to_network_u8
 from cae_lcd.core.errors import ImageError
 
 
@@ -76,6 +76,15 @@ class TestPreprocess:
         _check_net_input(x)
         # upsampled small frame stays close to the directly downsampled full frame
         assert (x - preprocess(grey)).abs().mean() < 0.05
+
+    def test_lowpass_blurs_only_an_image_brought_up(self, grey):
+        """``lowpass``: a Gaussian in the image's own pixels, then the same resize; only where both sides grow."""
+        small = cv2.resize(grey, (64, 32), interpolation=cv2.INTER_AREA)  # a Nordland-sized frame
+        ref = cv2.resize(cv2.GaussianBlur(small, (0, 0), 0.6), (256, 256), interpolation=cv2.INTER_LINEAR)
+        np.testing.assert_array_equal(to_network_u8(small, lowpass=0.6)[..., 0], ref)
+        assert (to_network_u8(small, lowpass=0.6) != to_network_u8(small)).any()
+        torch.testing.assert_close(preprocess(small, lowpass=0.6), preprocess([small], lowpass=0.6))
+        np.testing.assert_array_equal(to_network_u8(grey, lowpass=0.6), to_network_u8(grey))  # 620 px: not brought up
 
     def test_batch_of_mixed_sizes(self, grey):
         small = cv2.resize(grey, (160, 120))

@@ -22,6 +22,7 @@ import yaml
 import cae
 import cae.train as training
 from cae.model import ConvAutoencoder
+from cae.preprocess import to_network_u8
 from cae.train import conf_rules, default_conf, list_images, load_image_folder, main
 from cae.weights import load_checkpoint, save_checkpoint
 from cae_lcd.core.conf import ConfigError, check_conf, load_conf_file, merge_conf
@@ -499,6 +500,24 @@ class TestPlaceObjective:
         shipped_conf = load_checkpoint(cae.DEFAULT_WEIGHTS)["conf"]
         assert best["conf"]["still_cos"] == shipped_conf["still_cos"] < 0.999  # the init weights' own, carried
         assert best["conf"]["input_norm"] == shipped_conf["input_norm"] == "standardise"
+        assert best["conf"]["lowpass"] == shipped_conf["lowpass"] > 0  # read alike: a fine-tune's codes comparable
+
+    def test_small_images_are_read_through_the_low_pass_the_run_saves(self, sample_image, tmp_path):
+        """``lowpass``: the training images as the detector will read them with the weights saved (a 64x32 frame
+        blurred before it is brought up); None from a random start is 0."""
+        folder = tmp_path / "small"
+        folder.mkdir()
+        for i in range(4):
+            cv2.imwrite(str(folder / f"{i:06d}.png"), cv2.resize(sample_image(10 + i), (64, 32),
+                                                                 interpolation=cv2.INTER_AREA))
+        files = list_images(folder)
+        blurred, _ = load_image_folder(files, 0.6)
+        np.testing.assert_array_equal(blurred, np.stack([to_network_u8(read_image(f), 256, 0.6) for f in files]))
+        assert not np.array_equal(blurred, load_image_folder(files)[0])
+        main(folder, tmp_path / "lp", {**SMALL, "epochs": 1, "lowpass": 0.6})
+        assert load_checkpoint(tmp_path / "lp" / "best.pt")["conf"]["lowpass"] == 0.6
+        main(folder, tmp_path / "none", {**SMALL, "epochs": 1})
+        assert load_checkpoint(tmp_path / "none" / "best.pt")["conf"]["lowpass"] == 0.0
 
 
 @pytest.mark.parametrize("chunk", [2, 64])

@@ -1,13 +1,16 @@
 import re
 import socket
 
+import cv2
+import numpy as np
 import pytest
 import torch
 
 import cae
 from cae_lcd.core.conf import ConfigError
 from cae.model import ConvAutoencoder, Encoder
-from cae.preprocess import preprocess
+from cae.encode import encode_images
+from cae.preprocess import preprocess, to_network_u8
 from cae.weights import (DEFAULT_WEIGHTS, encoder_identity, load_autoencoder, load_checkpoint, load_encoder,
                          save_checkpoint)
 
@@ -46,7 +49,8 @@ class TestLoadEncoder:
         save_checkpoint(path, encoder, {"note": "encoder only"})
         ckpt = load_checkpoint(path)
         assert set(ckpt) >= {"format_version", "conf", "state_dict"}
-        assert ckpt["conf"] == {"note": "encoder only", "input_norm": encoder.input_norm}  # the encoder's own
+        assert ckpt["conf"] == {"note": "encoder only", "input_norm": encoder.input_norm,  # the encoder's own
+                                "lowpass": encoder.lowpass}
         enc2 = load_encoder(path, device="cpu")
         assert enc2.identity == encoder.identity
         with torch.no_grad():
@@ -137,9 +141,31 @@ class TestInputNormAndStillCos:
         other = Encoder("none")
         other.load_state_dict(encoder.state_dict())
         assert encoder_identity(other) != encoder_identity(encoder)
+        blurred = Encoder(encoder.input_norm)
+        blurred.load_state_dict(encoder.state_dict())
+        blurred.lowpass = encoder.lowpass + 0.5
+        assert encoder_identity(blurred) != encoder_identity(encoder)
+
+    def test_the_low_pass_is_the_checkpoints(self, tmp_path, encoder, sample_image):
+        """``lowpass`` comes from the checkpoint's conf (0 without one) and reaches every encoding of a small image."""
+        from cae.weights import RECONSTRUCTION_WEIGHTS
+
+        assert load_encoder(RECONSTRUCTION_WEIGHTS, device="cpu").lowpass == 0.0
+        path = tmp_path / "lp.pt"
+        torch.save({"format_version": 1, "conf": {"input_norm": encoder.input_norm, "lowpass": 1.5},
+                    "state_dict": encoder.state_dict()}, path)
+        blurred, plain = load_encoder(path, device="cpu"), load_encoder(path, device="cpu")
+        plain.lowpass = 0.0
+        assert blurred.lowpass == 1.5
+        small = cv2.resize(sample_image(10), (64, 32), interpolation=cv2.INTER_AREA)
+        want = encode_images(blurred, [to_network_u8(small, lowpass=1.5)], prepared=True)
+        np.testing.assert_array_equal(encode_images(blurred, [small]), want)
+        assert not np.array_equal(encode_images(blurred, [small]), encode_images(plain, [small]))
 
     @pytest.mark.parametrize("conf, match", [({"input_norm": "clahe"}, "input_norm must be one of"),
-                                             ({"still_cos": 1.5}, r"still_cos must be a number in \[0.9, 1\)")])
+                                             ({"still_cos": 1.5}, r"still_cos must be a number in \[0.9, 1\)"),
+                                             ({"lowpass": -1}, r"lowpass must be a number in \[0, 3\]"),
+                                             ({"lowpass": "yes"}, r"lowpass must be a number in \[0, 3\]")])
     def test_a_bad_value_is_named(self, tmp_path, encoder, conf, match):
         path = tmp_path / "bad.pt"
         torch.save({"format_version": 1, "conf": conf, "state_dict": encoder.state_dict()}, path)

@@ -548,6 +548,24 @@ class TestLazyFeatures:
                 det.process(images[1], 1, code=batch[1][:10])
             assert det.next_frame_id == 1  # refused: nothing changed
 
+    def test_a_small_frame_is_encoded_as_the_weights_read_it(self, encoder, nordland_codes):
+        """A 64x32 frame streamed through ``process`` is coded through the weights' ``lowpass`` (the shipped
+        weights': 0.6), as ``encode_batch`` and ``encode_images`` code it: one code a frame on every path."""
+        from retrieval.descriptors import create_descriptor
+        from tests.conftest import NORDLAND
+
+        from cae_lcd.core.images import read_image
+
+        assert encoder.lowpass > 0
+        d = create_descriptor({"name": "cae"}, encoder=encoder)
+        ids = list(nordland_codes)[:12]
+        with LoopDetector(descriptor=d) as det:
+            results = [det.process(read_image(NORDLAND / "images" / f"{i:06d}.png"), n) for n, i in enumerate(ids)]
+        coded = [(r.code, nordland_codes[i]) for r, i in zip(results, ids) if r.code is not None]
+        assert len(coded) >= 6
+        for mine, batch in coded:  # the stream's batch of one against the batches of two: float rounding apart
+            np.testing.assert_allclose(mine, batch, rtol=0, atol=2e-4)
+
     def test_calibrated_verify_gate_keeps_the_loops(self, tmp_path, cli_sample_run, sample_seq):
         """The calibrated run (lazy, gate on, codes and features from the calibration) against every candidate
         verified on every frame's features, with the same calibration: the same loops.csv."""
