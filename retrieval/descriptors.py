@@ -15,7 +15,6 @@ import torch
 from cae_lcd.core.conf import Bool, Registry, Text, configure
 from cae.encode import encode_images
 from cae.preprocess import to_network_u8
-from cae_lcd.core.images import to_uint8
 from cae.model import CODE_DIM
 from cae.weights import DEVICE_PATTERN, STILL_COS, load_encoder
 from verify.features import Features
@@ -102,7 +101,7 @@ class CAEDescriptor(GlobalDescriptor):
     def encode_batch(self, images: list[np.ndarray]) -> list[np.ndarray]:
         """Batched forward passes on the network images ``LoopDetector.process`` would make (same codes, bit for
         bit: checked in the tests)."""
-        nets = [self.network_image(to_uint8(image)) for image in images]
+        nets = [self.network_image(image) for image in images]  # to_network_u8 brings any dtype to uint8
         return list(encode_images(self.encoder, nets, half=self.conf["half"], prepared=True))
 
 

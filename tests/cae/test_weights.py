@@ -141,9 +141,8 @@ class TestInputNormAndStillCos:
         other = Encoder("none")
         other.load_state_dict(encoder.state_dict())
         assert encoder_identity(other) != encoder_identity(encoder)
-        blurred = Encoder(encoder.input_norm)
+        blurred = Encoder(encoder.input_norm, encoder.lowpass + 0.5)
         blurred.load_state_dict(encoder.state_dict())
-        blurred.lowpass = encoder.lowpass + 0.5
         assert encoder_identity(blurred) != encoder_identity(encoder)
 
     def test_the_low_pass_is_the_checkpoints(self, tmp_path, encoder, sample_image):

@@ -551,10 +551,9 @@ class TestLazyFeatures:
     def test_a_small_frame_is_encoded_as_the_weights_read_it(self, encoder, nordland_codes):
         """A 64x32 frame streamed through ``process`` is coded through the weights' ``lowpass`` (the shipped
         weights': 0.6), as ``encode_batch`` and ``encode_images`` code it: one code a frame on every path."""
+        from cae_lcd.core.images import read_image
         from retrieval.descriptors import create_descriptor
         from tests.conftest import NORDLAND
-
-        from cae_lcd.core.images import read_image
 
         assert encoder.lowpass > 0
         d = create_descriptor({"name": "cae"}, encoder=encoder)
