@@ -49,14 +49,19 @@ from .weights import (DEFAULT_WEIGHTS, DEVICE_PATTERN, STILL_COS, checkpoint_inp
                       checkpoint_still_cos, load_checkpoint, load_encoder, resolve_device, save_checkpoint)
 from .whitening import DEFAULT_DIM, DEFAULT_SHRINK, MIN_FIT_CODES, Whitening
 
-__all__ = ["default_conf", "conf_rules", "list_images", "load_image_folder", "sequence_order", "main"]
+__all__ = ["default_conf", "conf_rules", "RANDOM_START_LR", "FINE_TUNE_LR", "list_images", "load_image_folder", "sequence_order", "main"]
 
 log = logging.getLogger(__name__)
+
+RANDOM_START_LR = 1.0e-3  #: ``lr`` from a random start (the paper's)
+FINE_TUNE_LR = 3.0e-4  #: ``lr`` from init weights (``init``): moved less, they keep what they learned of conditions
+#                        the folder lacks (measured: BENCHMARKS.md, "Fine-tuning")
 
 default_conf: dict[str, Any] = {
     "epochs": 40,  # maximum number of epochs (the paper: 5000 on a GPU)
     "batch_size": 32,  # mini-batch size (paper: 32)
-    "lr": 1.0e-3,  # Adam learning rate (paper: 1e-3)
+    "lr": None,  # Adam learning rate; None = RANDOM_START_LR from a random start (the paper's 1e-3), FINE_TUNE_LR
+    #             from init weights (a fine-tune moves them less: measured, BENCHMARKS.md, training study)
     "val_fraction": 0.3,  # share of images held out for validation (paper: 30%)
     "seed": 0,  # seeds the split, the initialisation and the batch order
     "patience": 8,  # stop after this many epochs without a better validation loss; 0 = never stop early
@@ -106,7 +111,7 @@ default_conf: dict[str, Any] = {
 conf_rules: dict[str, Any] = {
     "epochs": Int(1),
     "batch_size": Int(1),
-    "lr": Float(0, lo_open=True),
+    "lr": Float(0, lo_open=True, optional=True),
     "val_fraction": Float(0, 1, lo_open=True, hi_open=True),
     "seed": Int(0),
     "patience": Int(0),
@@ -201,7 +206,7 @@ def _check_out(out: Path) -> None:
 def _prepare(images: str | Path | Sequence[str | Path], out: Path, conf: dict[str, Any] | None
              ) -> tuple[dict[str, Any], torch.device, list[str], list[Path]]:
     """Checks the conf, the device, the output path and the image folders; reads only the init weights' conf (for
-    ``lowpass``) and writes nothing.
+    ``lowpass``), resolves ``lr`` by ``init`` and writes nothing.
 
     Returns:
         The resolved conf, the device, the image folders and the image files to read (``max_images`` applied).
@@ -219,6 +224,8 @@ def _prepare(images: str | Path | Sequence[str | Path], out: Path, conf: dict[st
     init = _init_path(conf)  # a missing init file is named before anything is written
     if conf["lowpass"] is None:
         conf["lowpass"] = 0.0 if init is None else checkpoint_lowpass(load_checkpoint(init), init)
+    if conf["lr"] is None:
+        conf["lr"] = RANDOM_START_LR if init is None else FINE_TUNE_LR
     _check_out(out)
     folders = [str(images)] if isinstance(images, (str, Path)) else [str(f) for f in images]
     if not folders:

@@ -1,10 +1,10 @@
 """Views of a frame for training a code of places: the same place under another light, camera and framing.
 
 A view is a small viewpoint change (zoom-in crop, shift, small rotation: ``warp``) followed by a photometric change
-(``photometric``: gain, offset and gamma, a colour cast or grey, night-like darkening, blur or a low resolution
-brought back up, JPEG, then sensor noise, drawn as coarse as a sensor with fewer pixels than the network would give
-it: the noise of a 64x32 camera brought up to 256 px spans 4-8 network pixels, and pooling does not average it
-away). ``cae.train`` draws two views of one frame (or of two temporal neighbours) and pulls their codes together;
+(``photometric``: gain, offset and gamma, a colour cast or grey, night-like darkening, light that varies smoothly
+across the frame (``shade``), blur or a low resolution brought back up, JPEG, then sensor noise, drawn as coarse as
+a sensor with fewer pixels than the network would give it: the noise of a 64x32 camera brought up to 256 px spans
+4-8 network pixels, and pooling does not average it away). ``cae.train`` draws two views of one frame (or of two temporal neighbours) and pulls their codes together;
 the reconstruction target is the warped frame before its photometric change.
 
 Shapes: batches ``(B, 3, S, S)`` float in [0, 1] (the network input, any device); every draw comes from the numpy
@@ -36,12 +36,15 @@ default_views: dict[str, Any] = {
     "low_res": 0.35,  # probability that a view is shrunk to 16-96 px wide (aspect 1-2.5) and brought back up
     "blur": 0.3,  # probability of a Gaussian blur of 0.5-3 network pixels
     "jpeg": 0.25,  # probability of a JPEG round trip at quality 15-60
+    "shade": 0.5,  # probability of light that varies across the frame: a smooth gain (0.5-1.5) and offset (+-0.25)
+    #               drawn on a 2-4 cell grid and brought up (shadows, a sunlit or snow-covered ground, headlights)
 }
 #: allowed values of ``default_views`` (checked by ``cae.train.conf_rules``)
 view_rules: dict[str, tuple[float, float]] = {"crop": (0.0, 0.5), "rotate": (0.0, 45.0), "colour": (0.0, 0.9),
                                               "grey": (0.0, 1.0), "night": (0.0, 1.0), "noise": (0.0, 0.5),
                                               "grain": (1.0, 64.0),
-                                              "low_res": (0.0, 1.0), "blur": (0.0, 1.0), "jpeg": (0.0, 1.0)}
+                                              "low_res": (0.0, 1.0), "blur": (0.0, 1.0), "jpeg": (0.0, 1.0),
+                                              "shade": (0.0, 1.0)}
 
 
 def _per_image(rng: np.random.Generator, lo: float, hi: float, b: int, like: torch.Tensor,
@@ -99,7 +102,7 @@ def photometric(x: torch.Tensor, rng: np.random.Generator, strength: float, conf
         x: images.
         rng: the draws' generator.
         strength: gain and gamma in ``1 +- strength``, offset in ``+- strength / 2`` (``cae.train`` ``augment``).
-        conf: ``default_views`` keys (colour, grey, night, noise, low_res, blur, jpeg).
+        conf: ``default_views`` keys (colour, grey, night, shade, noise, grain, low_res, blur, jpeg).
     """
     b = len(x)
     if b == 0:
@@ -116,9 +119,29 @@ def photometric(x: torch.Tensor, rng: np.random.Generator, strength: float, conf
     dark = _per_image(rng, 0.15, 0.6, b, x) * x.clamp(1e-4, 1).pow(_per_image(rng, 1.2, 2.4, b, x)) \
         + _per_image(rng, 0.0, 0.05, b, x)
     x = torch.where(night, dark, x)
+    if conf["shade"]:
+        x = _shaded(x, rng, conf["shade"])
     x = torch.cat([_degrade(x[i:i + 1], rng, conf) for i in range(b)])
     sigma = _per_image(rng, 0, conf["noise"], b, x)
     return (x + sigma * _sensor_noise(rng, x, conf["grain"])).clamp(0, 1)
+
+
+def _shaded(x: torch.Tensor, rng: np.random.Generator, share: float) -> torch.Tensor:
+    """A share ``share`` of the images ``(B, C, S, S)`` under light that varies smoothly across the frame: each a
+    gain field in 0.5-1.5 and an offset field in +-0.25, drawn on a grid of 2-4 cells a side and brought up
+    bilinearly (the same field on every channel); the others unchanged. Clamped to [0, 1]."""
+    b, side = x.shape[0], x.shape[-1]
+    out = []
+    for i in range(b):
+        if rng.random() >= share:
+            out.append(x[i:i + 1])
+            continue
+        n = int(rng.integers(2, 5))
+        cells = torch.as_tensor(np.stack([rng.uniform(0.5, 1.5, (n, n)), rng.uniform(-0.25, 0.25, (n, n))]),
+                                dtype=x.dtype, device=x.device)[None]
+        gain, offset = F.interpolate(cells, size=(side, side), mode="bilinear", align_corners=True)[0]
+        out.append((x[i:i + 1] * gain + offset).clamp(0, 1))
+    return torch.cat(out) if out else x
 
 
 def _sensor_noise(rng: np.random.Generator, like: torch.Tensor, grain: float) -> torch.Tensor:

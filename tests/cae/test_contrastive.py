@@ -123,7 +123,8 @@ def test_sensor_noise_is_as_coarse_as_its_grain():
     neighbouring pixels share it (per network pixel, ``grain`` 1, they do not); empty in, empty out."""
     from cae.views import _sensor_noise, photometric
 
-    only_noise = {"colour": 0.0, "grey": 0.0, "night": 0.0, "noise": 0.1, "low_res": 0.0, "blur": 0.0, "jpeg": 0.0}
+    only_noise = {"colour": 0.0, "grey": 0.0, "night": 0.0, "noise": 0.1, "low_res": 0.0, "blur": 0.0, "jpeg": 0.0,
+                  "shade": 0.0}
     x = torch.full((8, 3, 64, 64), 0.5)
 
     def neighbour_corr(grain):
