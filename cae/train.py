@@ -49,19 +49,20 @@ from .weights import (DEFAULT_WEIGHTS, DEVICE_PATTERN, STILL_COS, checkpoint_inp
                       checkpoint_still_cos, load_checkpoint, load_encoder, resolve_device, save_checkpoint)
 from .whitening import DEFAULT_DIM, DEFAULT_SHRINK, MIN_FIT_CODES, Whitening
 
-__all__ = ["default_conf", "conf_rules", "RANDOM_START_LR", "FINE_TUNE_LR", "list_images", "load_image_folder", "sequence_order", "main"]
+__all__ = ["default_conf", "conf_rules", "RANDOM_START_LR", "FINE_TUNE_LR", "list_images", "load_image_folder",
+           "sequence_order", "main"]
 
 log = logging.getLogger(__name__)
 
 RANDOM_START_LR = 1.0e-3  #: ``lr`` from a random start (the paper's)
 FINE_TUNE_LR = 3.0e-4  #: ``lr`` from init weights (``init``): moved less, they keep what they learned of conditions
-#                        the folder lacks (measured: BENCHMARKS.md, "Fine-tuning")
+#                        the folder lacks (measured: BENCHMARKS.md, "Fine-tuning at a fine-tune's learning rate")
 
 default_conf: dict[str, Any] = {
     "epochs": 40,  # maximum number of epochs (the paper: 5000 on a GPU)
     "batch_size": 32,  # mini-batch size (paper: 32)
     "lr": None,  # Adam learning rate; None = RANDOM_START_LR from a random start (the paper's 1e-3), FINE_TUNE_LR
-    #             from init weights (a fine-tune moves them less: measured, BENCHMARKS.md, training study)
+    #             from init weights
     "val_fraction": 0.3,  # share of images held out for validation (paper: 30%)
     "seed": 0,  # seeds the split, the initialisation and the batch order
     "patience": 8,  # stop after this many epochs without a better validation loss; 0 = never stop early

@@ -4,8 +4,9 @@ A view is a small viewpoint change (zoom-in crop, shift, small rotation: ``warp`
 (``photometric``: gain, offset and gamma, a colour cast or grey, night-like darkening, light that varies smoothly
 across the frame (``shade``), blur or a low resolution brought back up, JPEG, then sensor noise, drawn as coarse as
 a sensor with fewer pixels than the network would give it: the noise of a 64x32 camera brought up to 256 px spans
-4-8 network pixels, and pooling does not average it away). ``cae.train`` draws two views of one frame (or of two temporal neighbours) and pulls their codes together;
-the reconstruction target is the warped frame before its photometric change.
+4-8 network pixels, and pooling does not average it away). ``cae.train`` draws two views of one frame (or of two
+temporal neighbours) and pulls their codes together; the reconstruction target is the warped frame before its
+photometric change.
 
 Shapes: batches ``(B, 3, S, S)`` float in [0, 1] (the network input, any device); every draw comes from the numpy
 generator passed in, so a seeded run is reproducible.
