@@ -115,8 +115,8 @@ from .decision import (AGREE, SPAN, TOL, Decision, EmpiricalTail, Horizon, Measu
 from .descriptors import GlobalDescriptor
 from .temporal import PAIR_CHUNK, CodeTable, NoFilter, SequenceFilter, TemporalFilter
 
-__all__ = ["Calibration", "TooFewFrames", "ThinnerNull", "CALIBRATION_FORMAT", "calibrate", "calibrated_features",
-           "run_needed", "calibration_frames", "far_side_scores", "camera_moved", "score_level"]
+__all__ = ["Calibration", "TooFewFrames", "CALIBRATION_FORMAT", "calibrate", "calibrated_features",
+           "run_needed", "windows_needed", "calibration_frames", "far_side_scores", "camera_moved", "score_level"]
 
 log = logging.getLogger(__name__)
 
@@ -376,15 +376,6 @@ class TooFewFrames(ConfigError):
     """The sequence is too short to calibrate on (``detect`` then falls back to the fixed policy, with a warning)."""
 
 
-class ThinnerNull(Exception):
-    """``calibrate`` stopped early: the null it would measure holds ``samples``, fewer than its ``at_least`` (a
-    stream's refit that would not replace the current calibration, ``retrieval.online``)."""
-
-    def __init__(self, samples: int) -> None:
-        super().__init__(f"the null would hold {samples} samples")
-        self.samples = samples
-
-
 # ------------------------------------------------------------------------------------------------- the calibration
 def calibration_frames(n_frames: int, window: int, length: int, max_frames: int) -> np.ndarray:
     """Frame indices the calibration reads: all of them, or contiguous blocks spread over a long sequence.
@@ -590,7 +581,7 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
               progress: bool = True, codes: dict[int, np.ndarray] | None = None,
               features: dict[int, Any] | None = None, ratios: dict[int, float] | None = None,
               local: Callable[[int], Any] | None = None, held_out: float = 0.0,
-              verified: dict[tuple[int, int], int] | None = None, at_least: int = 0) -> Calibration:
+              verified: dict[tuple[int, int], int] | None = None) -> Calibration:
     """Calibrates on a sequence's frames (see the module doc).
 
     Args:
@@ -615,14 +606,10 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
             whitening is not fitted on, the score path's nulls drawn from their far-side pairs only
             (``_out_of_sample``: a stream decides frames its whitening has not seen, ``retrieval.online``); 0: fitted
             on every frame, the nulls from every frame (a sequence calibrated before its run).
-        at_least: on the score path with ``held_out``, the samples its null must hold (a stream's current
-            calibration's, ``retrieval.online``): counted before the second whitening and the nulls are scored, and
-            fewer stop the fit there (``ThinnerNull``), as a fit measured to the end would be discarded.
 
     Raises:
         ConfigError: too few usable frames, or an exclusion window too short to hold null pairs (``TooFewFrames``
             also where ``held_out`` frames hold too few far-side pairs).
-        ThinnerNull: the score path's null would hold fewer samples than ``at_least``.
     """
     cc, window = conf["calibration"], conf["search"]["exclude_recent"]
     if window < 4:
@@ -656,9 +643,6 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
                  "inliers": n_keyframes * conf["search"]["k"] * SPAN}  # every run length 1..span counted
     shared += _inlier_path(cal, conf, images, null, table, K, progress, features, local, verified)
     if held_out and not cal.inlier_null:  # a stream on the score path: its nulls measured out of sample
-        samples = _score_null_size(ids, filt, window, moved, held_out) if at_least else None
-        if samples is not None and samples < at_least:
-            raise ThinnerNull(samples)
         null_table, apart = _out_of_sample(cal, conf["whitening"], descriptor, filt, ids, codes, moved, window,
                                            held_out, "the score path's null")
     else:
@@ -884,30 +868,29 @@ def _held_out_pairs(ids: np.ndarray, filt: TemporalFilter, window: int, moved: n
     return q[keep], r[keep]
 
 
-def _score_null_size(ids: np.ndarray, filt: TemporalFilter, window: int, moved: np.ndarray,
-                     held_out: float) -> int | None:
-    """The samples the score path's null measured out of sample will hold (``_out_of_sample``'s far-side pairs and
-    ``_reversed_lines``' lines: ``Calibration.score_null["samples"]``), counted before anything is whitened or
-    scored; None where ``_out_of_sample`` will refuse (fewer than ``MIN_NULL_PAIRS`` far-side pairs held out)."""
-    q, _ = _held_out_pairs(ids, filt, window, moved, _held_out_cut(moved, held_out))
-    if len(q) < MIN_NULL_PAIRS:
-        return None
-    far, _ = _reversed_pairs(ids, filt, window, moved, int(q.min()))
-    return len(q) + (0 if far is None else len(far))
-
-
-def _windows_needed(cal: Calibration, filt: TemporalFilter) -> str:
-    """The shortest run of windows on one line, each above every far-side pair, that the score path accepts (a
-    text)."""
+def windows_needed(cal: Calibration, filt: TemporalFilter) -> int | None:
+    """The shortest run of windows on one line, each above every far-side pair, that the score path accepts; 1
+    where one window decides (no fused windows with ``filt``), None where no run of up to its span is accepted."""
     spans = cal.score_spans(filt)
     if spans is None:
-        return "one window decides (no fused windows with this temporal filter)"
+        return 1
     top = spans.tail.max_evidence
     for m in range(1, spans.span + 1):
         if -(math.log10(spans.tests) + fused_log10_sf(m, m * top, spans.measured[m - 1])) >= cal.accept_at:
-            return f"a run of {m} windows of {spans.window} frames on one line, each above every far-side pair " \
-                   f"(> {spans.tail.x[-1]:.4f})"
-    return f"no run of up to {spans.span} windows: the far-side sample is too small for the run's tests"
+            return m
+    return None
+
+
+def _windows_needed(cal: Calibration, filt: TemporalFilter) -> str:
+    """``windows_needed`` as the notes say it."""
+    spans = cal.score_spans(filt)
+    if spans is None:
+        return "one window decides (no fused windows with this temporal filter)"
+    m = windows_needed(cal, filt)
+    if m is None:
+        return f"no run of up to {spans.span} windows: the far-side sample is too small for the run's tests"
+    return f"a run of {m} windows of {spans.window} frames on one line, each above every far-side pair " \
+           f"(> {spans.tail.x[-1]:.4f})"
 
 
 def _extract_side_by_side(fconf: dict[str, Any], images: dict[int, np.ndarray], fids: list[int]) -> dict[int, Any]:

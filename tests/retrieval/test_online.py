@@ -18,7 +18,7 @@ from cae_lcd.evaluation.metrics import precision_recall
 from retrieval.calibrate import _Verify
 from retrieval.detect import calibrate_sequence
 from retrieval.detector import LoopDetector
-from retrieval.online import WARM_UP
+from retrieval.online import WARM_UP, _null_size
 
 WINDOW = 20  # the sample's revisit starts 50 frames in: a window of 20 leaves a warm-up (40 frames) before it
 CONF = {"search": {"exclude_recent": WINDOW}}
@@ -140,17 +140,46 @@ def test_warm_up_accepts_nothing(sample_seq, sample_image, encoder):
     assert all(at >= WARM_UP * 30 - 1 for at in found[True].values())  # online: nothing before the warm-up's end
 
 
-def test_a_refit_never_loosens_without_measured_evidence(online_run, encoder, caplog):
-    """A refit whose null holds fewer measured samples than the deciding one's is not adopted (one log line)."""
+@pytest.mark.parametrize("runs, adopted", [((2, 3), False), ((3, 3), True)], ids=["shorter run", "as long"])
+def test_a_refit_never_loosens_without_measured_evidence(online_run, encoder, caplog, monkeypatch, runs, adopted):
+    """A refit whose null holds fewer measured samples than the deciding one's is adopted only where a loop under it
+    still needs a run at least as long (``no_shorter_run``): the sample's refit against a deciding null made far
+    larger, the runs each asks (refit, current) set; refused, one log line and the current calibration kept."""
+    import retrieval.online as online
+
     state = copy.copy(online_run[2])  # the recorded stream; the pairs this refit verifies (features from the files,
     state.verified = {}  # no K) kept apart from the stream's own
     current = state.calibration
-    state.calibration.inlier_null = {**current.inlier_null, "samples": 1e9}  # the deciding null: far larger
+    state.calibration = dataclasses.replace(current, inlier_null={**current.inlier_null, "samples": 1e9})
+    deciding = state.calibration
+    monkeypatch.setattr(online, "run_needed", lambda cal, window: runs[1] if cal is deciding else runs[0])
     det = LoopDetector(CONF, encoder=encoder)  # its descriptor and features for the refit
     with caplog.at_level(logging.INFO, logger="retrieval.online"):
         refit = state.fit(det.descriptor, None, _features_from(state, det))
-    assert refit is None and state.calibration is current
-    assert any("never loosens" in r.getMessage() for r in caplog.records)
+    assert (refit is not None) == adopted
+    assert any("never loosens" in r.getMessage() for r in caplog.records) != adopted
+    assert refit is None or _null_size(refit) < 1e9  # adopted on the run, with fewer samples
+
+
+def test_no_shorter_run_reads_the_run_each_calibration_asks(online_run, kitti_64x32, encoder):
+    """``no_shorter_run`` on real calibrations: a calibration against itself (as long); against one whose null is cut
+    to a tenth (fewer decades a pair: no run of up to its span is accepted, the longest) it is shorter, the other way
+    round not; across the paths (the sample's inliers, KITTI 90 at 64x32's score path) never."""
+    from retrieval.calibrate import run_needed
+    from retrieval.detector import resolve_conf
+    from retrieval.online import no_shorter_run
+
+    conf = resolve_conf(CONF)
+    cal = online_run[2].calibration
+    hard = cal.samples["hard_inliers"]
+    thin = dataclasses.replace(cal, samples={**cal.samples, "hard_inliers": hard[:max(len(hard) // 10, 1)]},
+                               inlier_null={**cal.inlier_null, "samples": max(len(hard) // 10, 1)})
+    assert no_shorter_run(cal, cal, conf)
+    assert run_needed(cal, WINDOW) == 5 and run_needed(thin, WINDOW) is None  # measured: no run accepted at all
+    assert no_shorter_run(thin, cal, conf) and not no_shorter_run(cal, thin, conf)
+    score = calibrate_sequence(_Frames(kitti_64x32("90")), {}, progress=False)
+    assert score.path == "score" and no_shorter_run(score, score, resolve_conf({}))
+    assert not no_shorter_run(score, cal, conf) and not no_shorter_run(cal, score, conf)
 
 
 def test_a_refit_verifies_no_pair_twice(online_run, sample_seq, encoder, monkeypatch):
@@ -320,35 +349,6 @@ def test_a_carried_score_path_calibration_gives_way_to_the_streams_own(kitti_64x
     assert own is not carried and own.score_null.get("held_out")
     assert own.score_null["samples"] < carried.score_null["samples"]  # fewer samples, yet drawn where it decides
     assert not any("never loosens" in r.getMessage() for r in caplog.records)
-
-
-def test_a_refit_that_would_not_be_kept_stops_where_its_null_is_counted(kitti_64x32, encoder):
-    """On the score path a stream's refit is kept only where its null holds at least the current one's samples; those
-    are counted before anything is whitened or scored (``calibrate``'s ``at_least``): a fit asked for one sample more
-    than it measures stops (``ThinnerNull``, with the count the whole fit measures), one asked for as many is made
-    whole, the same calibration as without the bar."""
-    from retrieval.calibrate import ThinnerNull, calibrate
-    from retrieval.detector import resolve_conf
-    from retrieval.descriptors import create_descriptor
-    from retrieval.online import HELD_OUT
-    from retrieval.temporal import create_filter
-
-    conf = resolve_conf({})
-    descriptor = create_descriptor(conf["descriptor"], encoder=encoder)
-    frames = kitti_64x32("00")
-
-    def fit(at_least: int):
-        return calibrate(enumerate(frames), len(frames), conf, descriptor, create_filter(conf["temporal"]), None,
-                         False, held_out=HELD_OUT, at_least=at_least)
-
-    whole = fit(0)
-    samples = int(whole.score_null["samples"])
-    assert whole.path == "score" and whole.score_null.get("held_out") and samples > 1000
-    with pytest.raises(ThinnerNull) as stopped:
-        fit(samples + 1)
-    assert stopped.value.samples == samples
-    again = fit(samples)
-    assert again.thresholds() == whole.thresholds() and again.score_null == whole.score_null
 
 
 def _judged(det: LoopDetector, sample_image, frames, loops: dict) -> dict[int, list[tuple]]:
