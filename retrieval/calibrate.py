@@ -872,11 +872,14 @@ def windows_needed(cal: Calibration, filt: TemporalFilter) -> int | None:
     """The shortest run of windows on one line, each above every far-side pair, that the score path accepts; 1
     where one window decides (no fused windows with ``filt``), None where no run of up to its span is accepted."""
     spans = cal.score_spans(filt)
-    if spans is None:
-        return 1
+    return 1 if spans is None else _shortest_run(spans, cal.accept_at)
+
+
+def _shortest_run(spans: ScoreSpans, accept_at: float) -> int | None:
+    """``windows_needed`` on the score path's fused windows ``spans``."""
     top = spans.tail.max_evidence
     for m in range(1, spans.span + 1):
-        if -(math.log10(spans.tests) + fused_log10_sf(m, m * top, spans.measured[m - 1])) >= cal.accept_at:
+        if -(math.log10(spans.tests) + fused_log10_sf(m, m * top, spans.measured[m - 1])) >= accept_at:
             return m
     return None
 
@@ -886,7 +889,7 @@ def _windows_needed(cal: Calibration, filt: TemporalFilter) -> str:
     spans = cal.score_spans(filt)
     if spans is None:
         return "one window decides (no fused windows with this temporal filter)"
-    m = windows_needed(cal, filt)
+    m = _shortest_run(spans, cal.accept_at)
     if m is None:
         return f"no run of up to {spans.span} windows: the far-side sample is too small for the run's tests"
     return f"a run of {m} windows of {spans.window} frames on one line, each above every far-side pair " \
