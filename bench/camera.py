@@ -60,6 +60,17 @@ def _row(label: str, name: str, m: dict[str, Any]) -> list[str]:
             f"{m['precision']:.3f} / {m['recall']:.3f}", f"{m['ms_total']:.1f}"]
 
 
+CHOSEN = ("gate", "codes", "accept")  #: the calibration notes shown per sequence (``summary.json``, default row)
+
+
+def _chosen(name: str, summary: dict[str, Any]) -> list[str]:
+    """A row of what the stream's own calibration chose at the end of a default run: its notes ``CHOSEN``, as
+    written."""
+    notes = (summary.get("calibration") or {}).get("notes") or []
+    said = {key: next((n.split(": ", 1)[1] for n in notes if n.startswith(key + ": ")), "n/a") for key in CHOSEN}
+    return [name, *(said[key] for key in CHOSEN)]
+
+
 def main(data: Path, run_dir: Path, out: Path | None, weights: str | None = None) -> dict[str, Any]:
     """Runs every step on every sequence; returns the metrics and writes the table into ``out``."""
     sequences = {"KITTI 90 (1241x376)": data / "kitti" / "sequences" / "90",
@@ -68,7 +79,7 @@ def main(data: Path, run_dir: Path, out: Path | None, weights: str | None = None
                  "sample at 64x32": shrunk_sample(run_dir / "sample64", (64, 32))}
     base = {"descriptor": {"weights": weights}} if weights else {}
     t0 = time.perf_counter()
-    rows, res = [], {}
+    rows, res, chosen = [], {}, []
     for name, seq in sequences.items():
         truth = ground_truth_pairs(seq)
         for i, (label, conf) in enumerate(STEPS.items()):
@@ -77,15 +88,19 @@ def main(data: Path, run_dir: Path, out: Path | None, weights: str | None = None
             summary = detect_run(seq, run_dir / f"{seq.name}_{i}", run_conf)
             res[(name, label)] = m = method_metrics(summary["out"], run_conf, truth)
             rows.append(_row(label, name, m))
+        chosen.append(_chosen(name, summary))  # the last step: the default
     no_loop = {}
     for name in ("00", "07"):
         summary = detect_run(data / "kitti" / "sequences" / name, run_dir / f"noloop_{name}", base)
         no_loop[name] = summary["loops"]
+        chosen.append(_chosen(f"KITTI {name} (no revisit)", summary))
     table = md_table(["sequence", "code and stages", "Recall@1", "max recall @ 100% P",
                       "precision / recall (calibrated)", "ms/frame"], rows)
     body = ("### Any camera, any season: what each stage adds (`python -m bench.camera`)\n\n" + table
             + f"\n\nDefault config on KITTI 00 / 07 (no revisit): {no_loop['00']} / {no_loop['07']} loops. "
-            f"Weights: {weights or 'shipped'}. Total {time.perf_counter() - t0:.0f} s.")
+            f"Weights: {weights or 'shipped'}. Total {time.perf_counter() - t0:.0f} s.\n\n"
+            "What the last refit of each default run chose (its `summary.json`, "
+            "`calibration.notes`, as written):\n\n" + md_table(["sequence", *CHOSEN], chosen))
     if out is not None:
         write_section(out, body, "camera")
     log.info("\n%s", body)

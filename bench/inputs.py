@@ -61,8 +61,9 @@ def _table(r: dict) -> str:
         f"| ROS 2 bag (sqlite3, mono8 `sensor_msgs/Image`, read lazily) | {r['frames']} | {r['bag_mb']} MB | "
         f"{r['precision']:.3f} | {r['recall']:.3f} ({r['true_positives']}/{r['positives']}) | {r['loops']} | "
         f"{r['ms_per_frame']} | {r['detect_wall_s']} s |", "",
-        "Default config; without CameraInfo the geometric check uses the fundamental matrix. Measured under load "
-        f"(load average {r['load_avg_1min']} on this machine's cores) unless re-measured.",
+        "Default config; without CameraInfo the geometric check uses the fundamental matrix. Detect wall: the whole "
+        f"run, the bag read lazily and the stream's own calibration included. 1-minute load average {r['load_avg_1min']} "
+        f"at the end of the run, {os.cpu_count()} cores (timings under load are not comparable).",
     ])
 
 

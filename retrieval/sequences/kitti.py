@@ -103,7 +103,7 @@ def _metadata(seq: Sequence, camera: str) -> Sequence:
 
 def open_folder(root: Path, camera: str | None = None) -> Sequence:
     """Opens a KITTI sequence folder (``image_0/`` or ``image_2/``, ``calib.txt``, ``times.txt``, poses in
-    ``poses.txt`` or ``../../poses/NN.txt``, ``loops.txt``) or a plain folder of images.
+    ``poses.txt`` or ``../../poses/NN.txt``, ``loops.txt``) or a plain folder of images (and its ``loops.txt``).
 
     Args:
         root: the sequence folder.
@@ -123,6 +123,6 @@ def open_folder(root: Path, camera: str | None = None) -> Sequence:
         raise ConfigError(f"cannot list {folder}: {err.strerror or err}") from None
     if not frames:
         raise ConfigError(f"no images found in {folder}")
-    if cam is None:
-        return Sequence(root, frames)
+    if cam is None:  # a plain folder: only its own ``loops.txt`` (pairs of its frames) is read beside the images
+        return Sequence(root, frames, ground_truth=kitti_metadata_file(root, "loops"))
     return _metadata(Sequence(root, frames, kind="kitti"), cam)

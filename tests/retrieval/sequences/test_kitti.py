@@ -44,6 +44,8 @@ class TestOpenSequence:
         assert seq.kind == "folder" and len(seq) == 3
         assert [p.name for p in seq.frames] == ["000000.jpg", "000001.jpg", "000002.jpg"]
         assert seq.K is None and seq.timestamps is None and seq.poses is None and seq.ground_truth is None
+        (tmp_path / "loops.txt").write_text("2 0\n")  # its own ground truth: what ``cae-lcd evaluate RUN`` reads
+        assert open_sequence(tmp_path).ground_truth == tmp_path / "loops.txt"
 
     def test_metadata_of_wrong_length_ignored(self, tmp_path, copy_sample_frames, sample_dir, caplog):
         copy_sample_frames([0, 1, 2], tmp_path / "image_0")
