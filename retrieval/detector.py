@@ -353,6 +353,11 @@ class LoopDetector:
             and self.descriptor.searched_by == "cosine" else None
         self.places = create_places(self.descriptor, self.whitening, c, stream_fit)
         self.filter = create_filter(c["temporal"])
+        if c["calibration"]["enabled"] and self.filter.conf.get("length", 1) == 1:
+            log.warning("temporal filter of single frames (temporal.name: %s): a calibrated decision's promise "
+                        "(expected false loops over the run) is not certified without windows of several frames: "
+                        "adjacent frames of a look-alike stretch are not independent (BENCHMARKS.md, 'Single frames "
+                        "are not safe alone')", c["temporal"]["name"])
         self._verify = bool(self.calibration.inlier_null) if self.calibration is not None else c["policy"]["verify"]
         self._verify = self._verify and self._online is None  # online: nothing verified until calibrated
         self._min_inliers = c["policy"]["min_inliers"]

@@ -147,6 +147,13 @@ class TestLoopDetector:
             assert det.next_frame_id == 6
             assert det.process(sample_image(1)).frame_id == 6  # None: one past the previous frame
 
+    @pytest.mark.parametrize("temporal, warned", [({"name": "none"}, True), ({"length": 1}, True), ({}, False)])
+    def test_single_frame_decisions_are_said_to_be_uncertified(self, encoder, caplog, temporal, warned):
+        # measured (python -m bench.camera): the raw code deciding frame by frame accepts 39 false loops on Nordland
+        with caplog.at_level("WARNING", logger="retrieval.detector"):
+            LoopDetector({"temporal": temporal}, encoder=encoder).close()
+        assert ("not certified without windows of several frames" in caplog.text) is warned
+
     def test_gated_frame(self, encoder, tmp_path):
         grey = np.full((188, 620), 128, np.uint8)
         with LoopDetector(encoder=encoder, database=tmp_path / "kf.h5") as det:
