@@ -48,7 +48,7 @@ from retrieval.detector import LoopDetector
 from retrieval.run_folder import RunFolder
 from retrieval.sequences import open_sequence
 
-from .augment import darken, dusk
+from .augment import darken, dusk, narrower
 from .common import detect_run, md_table, study_parser
 
 __all__ = ["plain_folder", "dark_proxy_folder", "DARKER", "dusk_folder", "stress_folders", "stress_sets", "evaluate",
@@ -131,11 +131,13 @@ def dark_proxy_folder(dst: Path, frames90: list[Path], seed: int = 0, **darkness
     return plain_folder(dst, frames90, (160, 120), lambda image: darken(image, rng, **darkness), len(frames90) // 2)
 
 
-def dusk_folder(dst: Path, frames90: list[Path], seed: int = 0) -> Path:
+def dusk_folder(dst: Path, frames90: list[Path], seed: int = 0, lens: float | None = None) -> Path:
     """KITTI 90 at full size (plain folder) with its second pass turned from day to dusk by ``bench.augment.dusk``
-    (one generator seeded ``seed``): the learned-code study's third set (issue 28)."""
+    (one generator seeded ``seed``) and, with ``lens``, then seen through a narrower lens (``bench.augment.narrower``:
+    the centre ``lens`` of each side): the learned-code study's KITTI sets at full size (issue 28)."""
     rng = np.random.default_rng(seed)
-    return plain_folder(dst, frames90, None, lambda image: dusk(image, rng), len(frames90) // 2)
+    change = (lambda image: dusk(image, rng)) if lens is None else (lambda image: narrower(dusk(image, rng), lens))
+    return plain_folder(dst, frames90, None, change, len(frames90) // 2)
 
 
 def stress_sets(data: Path, run_dir: Path) -> dict[str, tuple[Path, np.ndarray | None]]:

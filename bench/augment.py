@@ -16,7 +16,7 @@ import numpy as np
 
 from cae_lcd.core.images import image_entries, read_image
 
-__all__ = ["shared_frames", "augment", "augmented_frames", "darken", "dusk"]
+__all__ = ["shared_frames", "augment", "augmented_frames", "darken", "dusk", "narrower", "coarse"]
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "datasets"  #: the real data sets
 
@@ -92,6 +92,15 @@ def dusk(image: np.ndarray, rng: np.random.Generator, scale: float = 0.45, gamma
     x = cv2.GaussianBlur(x, (0, 0), blur_sigma)
     x = np.clip(x + rng.normal(0.0, noise_sigma, x.shape).astype(np.float32), 0, 1)
     return (x * 255 + 0.5).astype(np.uint8)
+
+
+def narrower(image: np.ndarray, share: float = 0.8) -> np.ndarray:
+    """A camera with a narrower lens at the same spot: the centre ``share`` of each side brought back up to the
+    frame's size (OpenCV's ``INTER_AREA``), a 1 / ``share`` zoom. ``(H, W[, C])`` uint8 in and out."""
+    h, w = image.shape[:2]
+    ch, cw = int(round(h * share)), int(round(w * share))
+    y, x = (h - ch) // 2, (w - cw) // 2
+    return cv2.resize(image[y:y + ch, x:x + cw], (w, h), interpolation=cv2.INTER_AREA)
 
 
 def coarse(image: np.ndarray, factor: int = 2) -> np.ndarray:

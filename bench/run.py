@@ -16,8 +16,8 @@ Sections (``--sections``; all but ``training`` by default):
 - ``training``: "does the learned code earn its place?": shipped weights vs the same network at random init vs a
   64x48 thumbnail vs the shipped weights fine-tuned on Nordland's summer half (unlabeled), single-frame Recall@1/@10
   and the detector's precision/recall, on Nordland summer -> winter, KITTI 90 at 160x120 with a dark, noisy second
-  pass and KITTI 90 with a dusk second pass (own section of BENCHMARKS.md; fine-tunes for a few minutes, so it is
-  not in the default run).
+  pass and KITTI 90 with a dusk second pass, also through a narrower lens (own section of BENCHMARKS.md; fine-tunes
+  for a few minutes, so it is not in the default run).
 
 The tables go between ``<!-- bench:begin -->`` and ``<!-- bench:end -->`` (training: ``bench:training``) of the
 output file; everything outside the markers is kept. Run folders go under ``runs/bench/``. ``--quick`` uses tiny
@@ -288,10 +288,14 @@ def _quick_study_sets(d: _Data) -> list[Any]:
     return [StudySet("quick (16 sample frames)", d.loop, 8, read_loop_pairs(d.loop / "loops.txt"), d.train_src)]
 
 
+LENS = 0.8  #: the narrower lens of the training study's last set: the centre share of each side (a 1.25x zoom)
+
+
 def _study_sets(run_dir: Path, d: _Data) -> list[Any]:
     """Nordland summer -> winter (fine-tuned on a folder of links to the summer half), the same with its winter
     frames darkened (``bench.augment.darken``) and at half their resolution (``bench.augment.coarse``), KITTI 90 at
-    160x120 with a dark, noisy second pass, and KITTI 90 at full size with a dusk second pass."""
+    160x120 with a dark, noisy second pass, and KITTI 90 at full size with a dusk second pass, also seen through a
+    narrower lens (``LENS``: another camera than the one that mapped)."""
     from .aliasing import dark_proxy_folder, dusk_folder, plain_folder
     from .augment import coarse, darken
     from .methods import StudySet
@@ -318,7 +322,9 @@ def _study_sets(run_dir: Path, d: _Data) -> list[Any]:
             StudySet("KITTI 90 at 160x120, second pass dark and noisy",
                      dark_proxy_folder(run_dir / "study_k90_160_dark", frames90), len(frames90) // 2, truth90),
             StudySet("KITTI 90 (1241x376), second pass at dusk", dusk_folder(run_dir / "study_k90_dusk", frames90),
-                     len(frames90) // 2, truth90)]
+                     len(frames90) // 2, truth90),
+            StudySet(f"KITTI 90 (1241x376), second pass at dusk through a narrower lens (centre {LENS:.0%})",
+                     dusk_folder(run_dir / "study_k90_dusk_lens", frames90, lens=LENS), len(frames90) // 2, truth90)]
 
 
 #: the section steps, in the order they run (methods' table waits for false-loops' column; see ``main``)

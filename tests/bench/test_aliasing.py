@@ -44,6 +44,37 @@ def test_dark_proxy_darkens_the_second_pass_only(tmp_path):
     assert abs(float(darken(flat, rng).mean()) - 255 * 0.38) < 2  # 0.35 * 1 ** 1.8 + 0.03
 
 
+def test_the_narrower_lens_is_the_frames_centre_brought_back_up(tmp_path):
+    """The training study's lens set (issue 28): the second pass at dusk, then its centre 80 % of each side brought
+    back to full size; the first pass untouched."""
+    import cv2
+    import numpy as np
+    import pytest
+
+    from bench.aliasing import dusk_folder
+    from bench.augment import narrower
+    from retrieval.sequences import open_sequence
+    from tests.conftest import KITTI_SEQUENCES
+
+    if not (KITTI_SEQUENCES / "90").is_dir():
+        pytest.skip("shared KITTI data not found")
+    frames = list(open_sequence(KITTI_SEQUENCES / "90").frames)[98:102]
+    source = cv2.imread(str(frames[0]), cv2.IMREAD_UNCHANGED)
+    zoomed = narrower(source)
+    assert zoomed.shape == source.shape
+    # shrunk back by 0.8 it is the source's centre window (a few grey levels of resampling), not a window beside it
+    h, w = source.shape
+    ch, cw, y, x = round(0.8 * h), round(0.8 * w), (h - round(0.8 * h)) // 2, (w - round(0.8 * w)) // 2
+    back = cv2.resize(zoomed, (cw, ch), interpolation=cv2.INTER_AREA).astype(float)
+    centre = np.abs(back - source[y:y + ch, x:x + cw]).mean()
+    beside = np.abs(back - source[y:y + ch, x + 8:x + 8 + cw]).mean()
+    assert centre < 4 < 2 * centre < beside
+    plain, lens = dusk_folder(tmp_path / "p", frames), dusk_folder(tmp_path / "l", frames, lens=0.8)
+    read = lambda d, i: cv2.imread(str(d / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED)  # noqa: E731
+    assert np.array_equal(read(plain, 0), read(lens, 0)) and np.array_equal(read(lens, 0), source)
+    assert not np.array_equal(read(plain, 3), read(lens, 3))
+
+
 def test_the_darker_proxy_leaves_too_few_keypoints_to_verify(tmp_path):
     """``DARKER``: the second pass of KITTI 90 at 160x120 keeps fewer SIFT keypoints a frame than verification needs
     (``calibration.min_features``), the first pass several times more (the proxy for the held-out night walk)."""
