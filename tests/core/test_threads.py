@@ -143,7 +143,8 @@ def test_release_free_memory_returns_freed_pages():
                              text=True).stdout.split()
         return int(out[-2]), int(out[-1])
 
-    assert run("no") == (0, 0)  # freed, yet resident: the hole below a live block stays
+    released, mib = run("no")  # freed, yet resident: the hole below a live block stays (within a page or so of
+    assert released == 0 and abs(mib) < 16  # the interpreter's own: it read -1 MiB once, rounded down)
     released, mib = run("trim")
     assert released == 1 and mib > 150
 

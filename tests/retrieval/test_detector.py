@@ -629,3 +629,33 @@ class TestStreamStore:
             memory = [det.process(sample_image(i), i) for i in range(70)]
         assert [[c.as_row() for c in r.candidates] for r in stored] == \
             [[c.as_row() for c in r.candidates] for r in memory]
+
+
+class TestWhereAVisitEnds:
+    def test_the_last_frame_is_placed_by_its_own_pair_not_the_line_past_the_visit(self, kitti_sequences, tmp_path,
+                                                                                     encoder):
+        """KITTI 90 at 64x32 (the score path) with its second pass seen through a narrower lens (its centre 80 %
+        brought back up: a camera that sees a frame ahead): the second pass's line sits one frame ahead of the first
+        pass's, and at the first pass's end it runs on into frame 100, the second pass's own start. Streamed through
+        the API, every loop must be true; the last frame's was 199 on 100 (its own pair at a whitened cosine of
+        -0.21, its window's nine other pairs good) before the frame's own pair placed it among equally confident
+        lines one frame apart (``retrieval.detector._placed``)."""
+        import cv2
+
+        from bench.augment import narrower
+        from retrieval.sequences import open_sequence
+
+        seq = open_sequence(kitti_sequences / "90")
+        truth = {tuple(sorted(p)) for p in read_loop_pairs(kitti_sequences / "90" / "loops.txt").tolist()}
+        loops = []
+        with LoopDetector(encoder=encoder) as det:
+            for i in range(len(seq)):
+                image = seq.read_frame(i)[0]
+                image = narrower(image) if i >= len(seq) // 2 else image
+                result = det.process(cv2.resize(image, (64, 32), interpolation=cv2.INTER_AREA), i)
+                loops += [(f, cd.frame_id) for f, cd in result.confirmed]
+                loops += [(i, result.loop.frame_id)] if result.loop is not None else []
+        false = [pair for pair in loops if tuple(sorted(pair)) not in truth]
+        assert not false, false
+        assert len({q for q, _ in loops}) >= 95  # measured: 100 (every query), 199 on 99
+        assert (199, 99) in loops
