@@ -88,7 +88,8 @@ def main(data: Path, run_dir: Path, out: Path | None, weights: str | None = None
             summary = detect_run(seq, run_dir / f"{seq.name}_{i}", run_conf)
             res[(name, label)] = m = method_metrics(summary["out"], run_conf, truth)
             rows.append(_row(label, name, m))
-        chosen.append(_chosen(name, summary))  # the last step: the default
+            if not conf:  # the default step
+                chosen.append(_chosen(name, summary))
     no_loop = {}
     for name in ("00", "07"):
         summary = detect_run(data / "kitti" / "sequences" / name, run_dir / f"noloop_{name}", base)

@@ -282,12 +282,10 @@ class FrameResult:
 def _placed(best: tuple[Candidate, Any], passing: list[tuple[Candidate, Any]]) -> tuple[Candidate, Any]:
     """The calibrated loop among equals: ``best`` (the most confident, then most inliers, then the best window) or,
     where a keyframe one frame from it is as confident with as many inliers, the one whose own pair with the query
-    is most alike (``score``). Evidence fused over a window saturates on a strong revisit, and the lines one frame
-    apart read nearly the same earlier frames: their windows do not say which frame the query is at, its own pair
-    does. Where the reference's stretch ends (a visit joined to the next one, or the end of the map) the line runs on
-    into an unrelated keyframe whose window still reads nine good pairs: a camera with a narrower lens sees one frame
-    ahead, and KITTI 90 at 64x32 took its last frame 199 onto frame 100, the second visit's start, with a whitened
-    cosine of -0.21 (frame 99: 0.72)."""
+    is most alike (``score``). Evidence fused over a window saturates on a strong revisit, and lines one frame apart
+    read nearly the same earlier frames: their windows do not say which frame the query is at, its own pair does.
+    Where the reference's visit ends (joined to the next one) a line can run on into an unrelated keyframe whose
+    window still reads the good pairs before it (``tests/retrieval/test_detector.py::TestWhereAVisitEnds``)."""
     cand = best[0]
     near = [pair for pair in passing if abs(pair[0].frame_id - cand.frame_id) <= 1
             and pair[0].confidence == cand.confidence and pair[0].inliers == cand.inliers]
