@@ -60,6 +60,7 @@ from .calibrate import Calibration, calibrated_features
 from .descriptors import DESCRIPTORS, GlobalDescriptor, create_descriptor
 from .feature_jobs import FeatureJobs, grey_copy, read_grey_copy
 from .index import INDEXES
+from .localise import Localiser
 from .online import DRIFT_Z, OnlineCalibration, Seen
 from .places import create_places
 from .temporal import FILTERS, PAIR_CHUNK, CodeTable, SimilaritySource, create_filter
@@ -75,6 +76,7 @@ LATE_BATCH = 256  #: pairs verified late at a refit at a time (``LoopDetector._v
 #: (``LoopDetector(kept_geometries=...)``, the oldest dropped first), so that a loop's edge reuses its check
 #: (``LoopDetector.verified_geometry``): ~6 kB a pair (its inliers' points), ~25 MB at most; KITTI 90 checks 200
 KEPT_GEOMETRIES = 4096
+ADJACENT_SCAN = 8  #: ids ``LoopDetector._adjacent`` looks through for the next keyframe (gated frames skipped)
 REPLAY_COPY_BYTES = 64 << 20  #: a refit's replay copies the keyframes' codes up to this size (``_replay_source``)
 STAGES = ("gate", "encode", "features", "search", "filter", "verify", "insert", "total")  #: keys of ``FrameResult.ms``
 
@@ -104,6 +106,10 @@ default_conf: dict[str, Any] = {
         "verify_min_z": 3.0,  # calibrated: a candidate whose temporal and single-frame scores are both under the
         #                       far-side null's median + this many sigmas (no evidence beyond chance) is not
         #                       verified: a frame with no other candidate needs no local features; None: verify all
+        "localise_steps": 16,  # keyframes an accepted loop's walk along the map verifies at most, toward where the
+        #                        matched features' scale change says the query stands (``retrieval.localise``: a
+        #                        revisit at another speed accepts keyframes metres behind); 0: the loop names the
+        #                        keyframe accepted
     },
     "features": {"name": "sift"},  # local features by registry name and their options
     "matcher": {"name": "ratio"},  # descriptor matcher by registry name and its options
@@ -178,7 +184,8 @@ default_conf: dict[str, Any] = {
 #: type and range of the detector's own sections (the units' sections are checked with their own ``conf_rules``)
 conf_rules: dict[str, Any] = {
     "search": {"k": Int(1, 10_000), "exclude_recent": Int(0), "exclude_recent_s": Float(0, optional=True),
-               "min_score": Float(-1, 1), "verify_min_z": Float(-100, 100, optional=True)},
+               "min_score": Float(-1, 1), "verify_min_z": Float(-100, 100, optional=True),
+               "localise_steps": Int(0, 1000)},
     "policy": {"verify": Bool(), "min_matches": Int(0), "min_inliers": Int(0),
                "min_seq_score": Float(-1e9, 1e9, optional=True), "check_all": Bool(),
                "still_cos": Float(0, 1, lo_open=True, optional=True)},
@@ -399,6 +406,8 @@ class LoopDetector:
         self._pool = BesideExecutor(thread_name_prefix="verify") \
             if c["runtime"]["verify_worker"] and (self._verify or online) else None
         self._wanted = False  # whether the previous frame's query needed its local features
+        self._localiser = Localiser(self._verify_pair, self._features_of, max_steps=c["search"]["localise_steps"]) \
+            if c["search"]["localise_steps"] else None  # an accepted loop named where the query is (the floor: _decide)
         #: ``prefetch_features``' frames: id -> (the image given, as uint8, grey, its prepared image once)
         self._ahead: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, Callable[[], Any]]] = {}
         self._delayed: dict[int, tuple[int, float]] = {}  # online: delayed loops reported, {frame: (keyframe, conf)}
@@ -596,6 +605,8 @@ class LoopDetector:
             for cand, value in zip(candidates, fused):
                 cand.confidence = float(max(value, -1e9))
         loop, best = self._decide(fid, candidates, checks)
+        if loop is not None and best is not None and feats is not None and self._localiser is not None:
+            loop, best = self._localise(fid, feats, loop, best, candidates, checks)
         if self.decision is not None:
             self.decision.note_loop(fid, None if loop is None else loop.frame_id,
                                     0.0 if loop is None else loop.confidence)
@@ -997,7 +1008,7 @@ class LoopDetector:
             dec.commit(q, refs, counted)
             out += [(f, cd) for f, cd in found if not self._online.reported(f)]
             self._online.mark([f for f, _ in found])
-        return sorted({f: cd for f, cd in out}.items())
+        return self._walked_late(sorted({f: cd for f, cd in out}.items()))
 
     def pair_scores(self, query_id: int, ref_id: int) -> tuple[float, float]:
         """``(score, seq_score)`` of keyframes ``query_id`` and ``ref_id`` in the current code space: their entries'
@@ -1110,7 +1121,7 @@ class LoopDetector:
                                        self._confirm.confirm(self.decision, fid, loop.frame_id, self._counted(loop),
                                                              self.places.source)]
         self._confirm.add(fid, {cd.frame_id: (cd.confidence, cd) for cd in candidates}, loop is not None)
-        return out
+        return self._walked_late(out)
 
     def confirmed_loops(self, rows: Iterable[tuple[int, np.ndarray, int]]) -> dict[int, tuple[int, float]]:
         """``{frame_id: (keyframe, confidence)}``: the delayed loops (``FrameResult.confirmed``, with the accepting
@@ -1125,7 +1136,8 @@ class LoopDetector:
         out: dict[int, tuple[int, float]] = {}
         for fid, cands, loop in rows:
             out.update(self._replay(decision, confirm, fid, cands, loop))
-        return out
+        return {q: (cd.frame_id, cd.confidence) for q, cd in
+                self._walked_late([(q, Candidate(r, 0.0, confidence=c)) for q, (r, c) in sorted(out.items())])}
 
     def _replay(self, decision: Decision, confirm: Confirmations | None, fid: int, rows: np.ndarray,
                 loop: int) -> dict[int, tuple[int, float]]:
@@ -1195,6 +1207,92 @@ class LoopDetector:
         key = (lambda pair: (pair[0].inliers, pair[0].matches, pair[0].score)) if self._verify else \
             (lambda pair: (pair[0].seq_score, pair[0].inliers, pair[0].score))
         return max(passing, key=key)
+
+    def _localise(self, fid: int, feats: Features, loop: Candidate, check: Verification,
+                  candidates: list[Candidate], checks: list[Verification | None]
+                  ) -> tuple[Candidate | None, Verification | None]:
+        """The accepted ``loop`` walked to the keyframe the query is at (``retrieval.localise``): the named one gets
+        the loop's confidence; the others the walk verified are added to ``candidates`` and ``checks`` (their
+        evidence counts for the frames after, as any verified candidate's; no hypothesis of their own: confidence
+        -1e9). Where the walk names none (the query's place is not among the keyframes it may match) there is no
+        loop, and every candidate that passed is vetoed (-1e9, as a too recent one: a replay of the stored rows
+        decides the same). Returns the loop and its check (``loop``, ``check`` where the query is at it), or
+        ``(None, None)``."""
+        known = {cd.frame_id: ch for cd, ch in zip(candidates, checks) if ch is not None}
+        src = self.places.source
+        ref, walked = self._localiser.walk(feats, loop.frame_id, check, functools.partial(self._adjacent, before=fid),
+                                           self._admissible(fid), known)
+        if ref == loop.frame_id:
+            return loop, check
+        by_id = {cd.frame_id: i for i, cd in enumerate(candidates)}
+        for r, got in walked:
+            if r not in by_id:
+                score, seq_score = self._pair_scores(fid, r, src)
+                by_id[r] = len(candidates)
+                candidates.append(Candidate(r, score, got.matches, got.inliers, seq_score, -1e9))
+                checks.append(got)
+        if ref is None:
+            for cd in candidates:
+                if cd.confidence >= loop.confidence:
+                    cd.confidence = -1e9
+            log.debug("frame %d: loop to keyframe %d refused: its place lies beyond the keyframes it may match "
+                      "(walked %s)", fid, loop.frame_id, [r for r, _ in walked])
+            return None, None
+        named, got = candidates[by_id[ref]], dict(walked)[ref]
+        named.matches, named.inliers = got.matches, got.inliers
+        named.confidence = max(named.confidence, loop.confidence)
+        self._keep_geometries(fid, [named], [got])
+        log.debug("frame %d: loop to keyframe %d walked to %d (%d -> %d inliers)", fid, loop.frame_id, ref,
+                  loop.inliers, named.inliers)
+        return named, got
+
+    def _walked_late(self, found: list[tuple[int, Candidate]]) -> list[tuple[int, Candidate]]:
+        """Delayed loops ``(frame, candidate)`` (a run's members, a refit's) walked as a frame's own loop is
+        (``_localise``), each pair verified again from the keyframes' features: a copy with the keyframe named, or
+        left out where none is. As is where the decision does not verify (the score path)."""
+        if self._localiser is None or self.decision is None or self.decision.pair_tail is None or not found:
+            return found
+        out = []
+        for q, cd in found:
+            feats = self._features_of(q)
+            check = self._verify_pair(feats, self._features_of(cd.frame_id))
+            ref, walked = self._localiser.walk(feats, cd.frame_id, check, functools.partial(self._adjacent, before=q),
+                                               self._admissible(q))
+            if ref is None:
+                log.debug("frame %d: delayed loop to keyframe %d refused: its place lies beyond the keyframes it may "
+                          "match", q, cd.frame_id)
+            elif ref == cd.frame_id:
+                out.append((q, cd))
+            else:
+                got = dict(walked)[ref]
+                score, seq_score = self._pair_scores(q, ref, self.places.source)
+                out.append((q, dataclasses.replace(cd, frame_id=ref, score=score, seq_score=seq_score,
+                                                   matches=got.matches, inliers=got.inliers)))
+        return out
+
+    def _admissible(self, query_id: int) -> Callable[[int], bool]:
+        """Whether frame ``query_id`` may match a keyframe: older than its horizon (``Decision.horizon``; else the
+        frame itself) and searchable."""
+        src = self.places.source
+        oldest = self.decision.horizon(query_id, src) \
+            if self.decision is not None and self.decision.horizon is not None else query_id
+        return lambda r: r < oldest and bool(src.searchable(np.array([r], np.int64))[0])
+
+    def _adjacent(self, ref: int, step: int, before: int) -> int | None:
+        """The keyframe next to ``ref`` in the direction ``step`` (+1, -1) with an id below ``before``, gated frames
+        skipped (``ADJACENT_SCAN`` ids at most); None where there is none."""
+        for k in range(1, ADJACENT_SCAN + 1):
+            r = ref + k * step
+            if r < 0 or r >= before:
+                return None
+            if r in self.places.source:
+                return r
+        return None
+
+    def _verify_pair(self, query: Features, ref: Features) -> Verification:
+        """One pair's check as the run's candidates get it (``policy.min_matches``, the inlier floor)."""
+        return self.verifier.verify(query, [ref], self.K, self.conf["policy"]["min_matches"], self._min_inliers,
+                                    True)[0]
 
     def _carried(self, fid: int, candidates: list[Candidate],
                  checks: list[Verification | None]) -> list[tuple[Candidate, Verification | None]]:
@@ -1287,7 +1385,7 @@ class _OnlineResume:
         rows = self.results[fid]
         det._online.record(fid, self.ratios[fid], self.raw.pop(fid), rows[:, 0], rows[:, 2], rows[:, 3],
                            self.loops[fid] >= 0)
-        found = [(q, Candidate(r, 0.0, confidence=c)) for q, (r, c) in self.confirmed.items()]
+        found = det._walked_late([(q, Candidate(r, 0.0, confidence=c)) for q, (r, c) in self.confirmed.items()])
         det._reported(fid, found + det._online_step())
 
     def _restore(self) -> None:

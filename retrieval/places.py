@@ -306,6 +306,10 @@ class RowTable:
             out[sel[hit]] = sims[pos[hit]]
         return out
 
+    def __contains__(self, frame_id: int) -> bool:
+        """In the latest query's row (the keyframes it was compared with)."""
+        return bool(self.searchable(np.array([frame_id], np.int64))[0])
+
     def searchable(self, refs: np.ndarray) -> np.ndarray:
         """In the latest query's row (admitted for it)."""
         refs = np.asarray(refs, np.int64)

@@ -22,10 +22,12 @@ from .features import Features
 from .geometry import GeometricVerifier, GeometryResult
 from .matching import match_ratio_many
 
-__all__ = ["NOT_CHECKED", "Verification", "Verifier", "RatioTestMatcher", "MATCHERS", "create_verifier"]
+__all__ = ["NOT_CHECKED", "Verification", "Verifier", "RatioTestMatcher", "MATCHERS", "create_verifier",
+           "scale_change", "MIN_SCALE_INLIERS"]
 
 
 NOT_CHECKED = -1  #: inlier count of a candidate whose geometry was not checked (it could not pass or win)
+MIN_SCALE_INLIERS = 8  #: inliers ``scale_change`` needs (fewer: no estimate, NaN)
 
 
 @dataclass
@@ -34,6 +36,30 @@ class Verification:
     inliers: int  #: geometric inliers (0 when geometry is off or fails; NOT_CHECKED when it did not run)
     geometry: GeometryResult = field(repr=False)
     pairs: np.ndarray = field(repr=False)  #: (matches, 2) int64 (query_index, candidate_index)
+
+
+def scale_change(query: Features, candidate: Features, check: Verification) -> float:
+    """How much larger the query sees what both frames see: the median over the check's geometric inliers of
+    ``log2(query scale / candidate scale)``, in octaves. Positive where the query is nearer the scene than the
+    candidate (a camera that moved on toward what it looks at; or a narrower lens), about 0 at the same viewpoint.
+
+    Args:
+        query: the query frame's features (``scales (N,)``).
+        candidate: the candidate's features.
+        check: their ``Verification`` (``pairs (M, 2)``, ``geometry.mask (M,)``).
+
+    Returns:
+        The median in octaves; NaN where fewer than ``MIN_SCALE_INLIERS`` inliers were found (or none checked).
+    """
+    mask = np.asarray(check.geometry.mask, bool)
+    if check.inliers < MIN_SCALE_INLIERS or len(mask) != len(check.pairs) or mask.sum() < MIN_SCALE_INLIERS:
+        return float("nan")
+    pairs = check.pairs[mask]
+    q, c = query.scales[pairs[:, 0]].astype(np.float64), candidate.scales[pairs[:, 1]].astype(np.float64)
+    ok = (q > 0) & (c > 0)
+    if ok.sum() < MIN_SCALE_INLIERS:
+        return float("nan")
+    return float(np.median(np.log2(q[ok] / c[ok])))
 
 
 class Verifier:

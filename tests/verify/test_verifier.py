@@ -9,7 +9,8 @@ import pytest
 from cae_lcd.core.conf import ConfigError
 from verify.features import Features
 from verify.geometry import GeometryResult
-from verify.verifier import NOT_CHECKED, MATCHERS, RatioTestMatcher, Verification, _checked_in_turn, create_verifier
+from verify.verifier import (NOT_CHECKED, MATCHERS, RatioTestMatcher, Verification, _checked_in_turn, create_verifier,
+                             scale_change)
 
 
 class TestRatioTestMatcher:
@@ -161,3 +162,29 @@ class TestMetricIsAPropertyOfTheFeatures:
             db.append(KeyframeRecord(0, np.zeros(8, np.float32), sift_features(5)))
             back = db.features(0)
         assert back.metric == "l2" and back.descriptors.dtype == np.float32
+
+
+class TestScaleChange:
+    """``scale_change``: the median of ``log2(query scale / candidate scale)`` over the geometric inliers. The bundled
+    sample's second pass (50-99) drives the first pass's road again; frame 57 stands at 7, 2.9 m past 6."""
+
+    def test_sign_says_which_frame_is_nearer_the_scene(self, sift_features, sample_K):
+        v, q = RatioTestMatcher(), sift_features(57)
+        behind, at, ahead = (scale_change(q, sift_features(r), v.verify(q, [sift_features(r)], sample_K)[0])
+                             for r in (5, 7, 9))
+        assert behind > 0.2 and ahead < -0.2  # measured: +0.39, -0.38
+        assert abs(at) < 0.15 and abs(at) < min(behind, -ahead)  # measured: +0.08
+
+    def test_is_the_median_over_the_inliers(self, sift_features, sample_K):
+        q, c = sift_features(57), sift_features(6)
+        check = RatioTestMatcher().verify(q, [c], sample_K)[0]
+        pairs = check.pairs[check.geometry.mask]
+        brute = np.median([np.log2(q.scales[i] / c.scales[j]) for i, j in pairs.tolist()])
+        assert check.inliers > 50 and scale_change(q, c, check) == pytest.approx(brute, abs=1e-9)
+
+    def test_too_few_inliers_or_none_checked_give_nan(self, sift_features, sample_K):
+        v, q = RatioTestMatcher(), sift_features(57)
+        unchecked = v.verify(q, [sift_features(30)], sample_K, min_matches=10_000)[0]
+        assert unchecked.inliers == NOT_CHECKED and np.isnan(scale_change(q, sift_features(30), unchecked))
+        empty = v.verify(q, [Features.empty()], sample_K)[0]
+        assert np.isnan(scale_change(q, Features.empty(), empty))

@@ -1,0 +1,97 @@
+"""A revisit at another speed (issue 27): each loop must name the place the query stands at.
+
+KITTI 90's first pass whole and its second pass taking every 2nd or 3rd frame (the road driven again 2x or 3x as
+fast), at full size (1241x376) and at 160x120, as plain folders (no calibration); `cae-lcd detect` with the default
+config, and the same without the walk that names where the query stands (`search.localise_steps: 0`,
+`retrieval.localise`). A loop is true where the ground truth (5 m on the ground plane) holds its pair; its
+distance is read from `poses/90.txt`.
+
+``python -m bench.revisit_speed [--out runs/bench/revisit_speed] [--no-write]``
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .common import REPO, md_table, work_study_cli
+
+log = logging.getLogger(__name__)
+
+STEPS = (2, 3)  #: the second pass takes every n-th frame
+SIZES = {"full size": None, "160x120": (160, 120)}
+VARIANTS = {"default (the walk)": {}, "without the walk (`search.localise_steps: 0`)": {"search": {"localise_steps": 0}}}
+
+
+def speed_folder(out: Path, step: int, size: tuple[int, int] | None) -> tuple[Path, list[int]]:
+    """KITTI 90's first pass (frames 0-99) and every ``step``-th frame of its second (100-199), resized to ``size``,
+    as a plain folder under ``out``; and each written frame's index in KITTI 90."""
+    from retrieval.sequences import open_sequence
+
+    from .aliasing import plain_folder
+
+    kitti = REPO.parent / "shared" / "datasets" / "kitti" / "sequences" / "90"
+    keep = [*range(100), *range(100, 200, step)]
+    frames = list(open_sequence(kitti).frames)
+    name = f"k90_{step}x_{'full' if size is None else f'{size[0]}x{size[1]}'}"
+    return plain_folder(out / name, [frames[i] for i in keep], size), keep
+
+
+def scored(run: Path, keep: list[int]) -> dict[str, Any]:
+    """Loops of a run folder in KITTI 90's frame numbers: how many, how many false, and the metres from each false
+    loop's query to its keyframe (``poses/90.txt``, ground plane x-z)."""
+    from cae_lcd.evaluation.ground_truth import read_loop_pairs
+    from retrieval.run_folder import RunFolder
+
+    kitti = REPO.parent / "shared" / "datasets" / "kitti" / "sequences" / "90"
+    truth = {tuple(sorted(p)) for p in read_loop_pairs(kitti / "loops.txt").tolist()}
+    poses = np.loadtxt(kitti.parents[1] / "poses" / "90.txt").reshape(-1, 3, 4)[:, [0, 2], 3]
+    loops = [(keep[q], keep[r]) for q, r in RunFolder(run).read_loops()[:, :2].astype(int).tolist()]
+    false = [p for p in loops if tuple(sorted(p)) not in truth]
+    off = [float(np.linalg.norm(poses[q] - poses[r])) for q, r in false]
+    second = set(keep[100:])
+    return {"loops": len(loops), "false": len(false), "off": off,
+            "queries": len({max(p) for p in truth if max(p) in second})}
+
+
+def main(out: str | Path, write: bool = True) -> dict[str, dict[str, dict[str, Any]]]:
+    """Runs every (set, variant); rewrites the ``revisit_speed`` section of BENCHMARKS.md when ``write``."""
+    from .common import detect_run
+    from .run import write_section
+
+    out = Path(out)
+    results: dict[str, dict[str, dict[str, Any]]] = {}
+    for step in STEPS:
+        for size_name, size in SIZES.items():
+            folder, keep = speed_folder(out, step, size)
+            label = f"second pass at {step}x, {size_name}"
+            results[label] = {}
+            for variant, conf in VARIANTS.items():
+                summary = detect_run(folder, out / f"{folder.name}_{len(results[label])}", conf)
+                res = scored(summary["out"], keep)
+                res["ms"] = summary["ms_per_frame"]["total"]["median"]
+                results[label][variant] = res
+                log.info("%s, %s: %s", label, variant, res)
+    body = ("### A revisit at another speed (`python -m bench.revisit_speed`, issue 27)\n\n"
+            + (__doc__ or "").split("\n\n")[1].replace("\n", " ").replace("``", "`") + "\n\n"
+            + md_table(["set", "queries with a true loop",
+                        *(f"{v}: loops / false (metres off)" for v in VARIANTS), *(f"{v}: ms/frame" for v in VARIANTS)],
+                       [[label, str(next(iter(row.values()))["queries"]),
+                         *(_cell(row[v]) for v in VARIANTS), *(f"{row[v]['ms']:.1f}" for v in VARIANTS)]
+                        for label, row in results.items()]) + "\n")
+    if write:
+        write_section(REPO / "BENCHMARKS.md", body, "revisit_speed")
+    return results
+
+
+def _cell(res: dict[str, Any]) -> str:
+    """``loops / false (metres off: min-max)``."""
+    off = f" ({min(res['off']):.0f}-{max(res['off']):.0f} m)" if res["off"] else ""
+    return f"{res['loops']} / {res['false']}{off}"
+
+
+if __name__ == "__main__":
+    work_study_cli(main, __doc__, "runs/bench/revisit_speed")

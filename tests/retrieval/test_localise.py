@@ -1,0 +1,77 @@
+"""``retrieval.localise``: an accepted loop's keyframe walked to where the query stands, on the bundled sample.
+
+The sample's first pass (frames 0-49) is the map, one frame every 2.9 m along a road; frame 57 of its second pass
+stands at keyframe 7 (237 inliers; 5: 31, 9: 71).
+"""
+
+import pytest
+
+from retrieval.localise import Localiser
+from verify.verifier import RatioTestMatcher
+
+QUERY, PLACE = 57, 7
+
+
+@pytest.fixture
+def walker(sift_features, sample_K):
+    """``(Localiser, adjacent, verified pairs)`` over the sample's first pass, counting the checks it asks for."""
+    matcher, asked = RatioTestMatcher(), []
+
+    def verify(a, b):
+        asked.append(1)
+        return matcher.verify(a, [b], sample_K)[0]
+
+    def adjacent(ref, step):
+        nxt = ref + step
+        return nxt if 0 <= nxt < 50 else None
+
+    return Localiser(verify, sift_features), adjacent, asked
+
+
+def _check(sift_features, sample_K, ref):
+    return RatioTestMatcher().verify(sift_features(QUERY), [sift_features(ref)], sample_K)[0]
+
+
+def test_a_keyframe_behind_the_query_is_walked_to_its_place(walker, sift_features, sample_K):
+    loc, adjacent, _ = walker
+    named, walked = loc.walk(sift_features(QUERY), 5, _check(sift_features, sample_K, 5), adjacent, lambda r: True)
+    assert named == PLACE
+    assert [r for r, _ in walked] == [6, 7, 8]  # 8: the scale change turned
+
+
+def test_a_keyframe_ahead_is_walked_back(walker, sift_features, sample_K):
+    loc, adjacent, _ = walker
+    named, _ = loc.walk(sift_features(QUERY), 9, _check(sift_features, sample_K, 9), adjacent, lambda r: True)
+    assert named == PLACE
+
+
+def test_a_loop_at_its_place_does_not_walk(walker, sift_features, sample_K):
+    loc, adjacent, asked = walker
+    named, walked = loc.walk(sift_features(QUERY), PLACE, _check(sift_features, sample_K, PLACE), adjacent,
+                             lambda r: True)
+    assert (named, walked) == (PLACE, [])
+    assert len(asked) == 1  # the map's step at 7, once
+    loc.walk(sift_features(QUERY), PLACE, _check(sift_features, sample_K, PLACE), adjacent, lambda r: True)
+    assert len(asked) == 1  # cached
+
+
+def test_a_place_among_keyframes_the_query_may_not_match_names_none(walker, sift_features, sample_K):
+    """A revisit faster than the map: the place lies inside the exclusion window; the accepted keyframe sees the
+    same scene from behind."""
+    loc, adjacent, _ = walker
+    named, walked = loc.walk(sift_features(QUERY), 5, _check(sift_features, sample_K, 5), adjacent, lambda r: r < 7)
+    assert named is None and [r for r, _ in walked] == [6]
+
+
+def test_walks_no_further_than_max_steps(sift_features, sample_K, walker):
+    _, adjacent, _ = walker
+    loc = Localiser(lambda a, b: RatioTestMatcher().verify(a, [b], sample_K)[0], sift_features, max_steps=1)
+    named, walked = loc.walk(sift_features(QUERY), 5, _check(sift_features, sample_K, 5), adjacent, lambda r: True)
+    assert named is None and len(walked) == 1
+
+
+def test_known_checks_are_not_repeated(walker, sift_features, sample_K):
+    loc, adjacent, asked = walker
+    known = {r: _check(sift_features, sample_K, r) for r in (6, 7, 8)}
+    named, _ = loc.walk(sift_features(QUERY), 5, _check(sift_features, sample_K, 5), adjacent, lambda r: True, known)
+    assert named == PLACE and len(asked) == 1  # the map's step only
