@@ -2,8 +2,9 @@
 
 KITTI 90's first pass whole and its second pass taking every 2nd or 3rd frame (the road driven again 2x or 3x as
 fast), at full size (1241x376) and at 160x120, as plain folders (no calibration); `cae-lcd detect` with the default
-config, and the same without the walk that names where the query stands (`search.localise_steps: 0`,
-`retrieval.localise`). A loop is true where the ground truth (5 m on the ground plane) holds its pair; its
+config, with the verified runs fused on lines at the map's speed only (`calibration.speeds: [1.0]`; the default
+fuses them at 1x, 2x and 3x, `retrieval.decision`), and without the walk that names where the query stands
+(`search.localise_steps: 0`, `retrieval.localise`). A loop is true where the ground truth (5 m on the ground plane) holds its pair; its
 distance is read from `poses/90.txt`.
 
 ``python -m bench.revisit_speed [--out runs/bench/revisit_speed] [--no-write]``
@@ -23,7 +24,9 @@ log = logging.getLogger(__name__)
 
 STEPS = (2, 3)  #: the second pass takes every n-th frame
 SIZES = {"full size": None, "160x120": (160, 120)}
-VARIANTS = {"default (the walk)": {}, "without the walk (`search.localise_steps: 0`)": {"search": {"localise_steps": 0}}}
+VARIANTS = {"default": {},
+            "runs at the map's speed only (`calibration.speeds: [1.0]`)": {"calibration": {"speeds": [1.0]}},
+            "without the walk (`search.localise_steps: 0`)": {"search": {"localise_steps": 0}}}
 
 
 def speed_folder(out: Path, step: int, size: tuple[int, int] | None) -> tuple[Path, list[int]]:

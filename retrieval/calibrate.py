@@ -52,7 +52,7 @@ Before a run, the calibration looks at the sequence itself (``cae-lcd calibrate 
    ``retrieval.decision`` turns them into the pair null (issue 27: the measured sample itself, every pair of the hard
    sequences and the random ones, ``calibration.null_pairs`` verified pairs in all: an empirical p-value that
    claims nothing past the sample, ``retrieval.decision.EmpiricalTail``; one pair then never decides alone, a loop
-   is a run of frames on one offset, fused over up to ``SPAN`` frames) and the fused-evidence tail measured
+   is a run of frames on one line, fused over up to ``SPAN`` frames) and the fused-evidence tail measured
    on the hard-negative sequences.
 4. **Which path decides**: where local features can verify (the median frame has at least ``min_features``
    keypoints), geometry decides, fused over consecutive frames: the *inlier path*. Where they are too few (a 64x32
@@ -277,7 +277,8 @@ class Calibration:
                         TailModel(f.get("u", 0.0), f.get("beta", 1 / _LN10)), self.tests.get("inliers", 1.0),
                         self.accept_at, bool(f.get("single", 0.0)), horizon, n.get("floor", 0.0),
                         int(f.get("span", SPAN)), int(f.get("tol", TOL)), spans=self.score_spans(filt),
-                        stops=Stops(f["still_cos"]) if "still_cos" in f else None)
+                        stops=Stops(f["still_cos"]) if "still_cos" in f else None,
+                        speeds=tuple(f.get("speeds", (1.0,))))
 
     def thresholds(self) -> dict[str, float | None]:
         """The smallest temporal score or inlier count that is accepted (None for the path that does not decide)."""
@@ -677,7 +678,7 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
 
 
 def run_needed(cal: Calibration, window: int) -> int | None:
-    """The shortest run of frames on one offset, each above every null pair (``samples["hard_inliers"]``), that the
+    """The shortest run of frames on one line, each above every null pair (``samples["hard_inliers"]``), that the
     calibration's fused decision accepts (``window``: ``search.exclude_recent``); None where no run of up to its
     ``span`` frames is accepted, or the calibration has no measured pair null (the score path, one made by hand)."""
     hard = cal.samples.get("hard_inliers")
@@ -698,7 +699,7 @@ def _run_needed(cal: Calibration, window: int) -> str:
     if m is None:
         return f"no pair alone and no run of up to {cal.decision(window).span} frames: verify more pairs " \
                "(calibration.null_pairs)"
-    return f"no pair alone; a run of {m} frames on one offset, each above every null pair " \
+    return f"no pair alone; a run of {m} frames on one line, each above every null pair " \
            f"(> {cal.samples['hard_inliers'].max():.0f})"
 
 
@@ -1069,7 +1070,7 @@ def _inlier_path(cal: Calibration, conf: dict[str, Any], images: dict[int, np.nd
     rand = np.array([s[0] for s in got["random"]], np.float64)
     pos = np.array([s[0] for s in got["positive"]], np.float64)
     cal.fused = {"measured": 1.0, "single": 0.0, "span": float(SPAN), "tol": float(TOL),
-                 "samples": float(len(hard_e))}
+                 "samples": float(len(hard_e)), "speeds": [float(v) for v in cc["speeds"]]}
     first = np.array([seq[0] for name in ("hard", "hard2") for seq in got[name]], np.float64)
     cal.samples.update({"random_inliers": rand, "positive_inliers": pos, "hard_fused": hard_e,
                         "positive_fused": pos_e, "retrieved_inliers": first})
@@ -1080,7 +1081,7 @@ def _inlier_path(cal: Calibration, conf: dict[str, Any], images: dict[int, np.nd
                      f"{window - max(1, window // 10)} frames back): {q(hard)}; "
                      f"positives (frames {gap} apart, {len(pos)}): {q(pos)}")
     cal.notes.append(f"pair evidence: the hard negatives' own empirical p-value, at most {tail.max_evidence:.1f} "
-                     f"decades a pair (no tail past the sample): a loop needs a run of frames on one offset; fused "
+                     f"decades a pair (no tail past the sample): a loop needs a run of frames on one line; fused "
                      f"evidence of up to {SPAN} frames (decades): hard-negative sequences median "
                      f"{np.median(hard_e):.1f}, max {hard_e.max():.1f}; positive sequences median "
                      f"{np.median(pos_e):.1f}")

@@ -8,16 +8,21 @@ verified as in the run), and what a loop looks like: the **positives** (a frame 
   issue 27: ``(#{samples >= x} + 1) / (n + 1)``, a valid p-value by exchangeability, no tail past the sample, so one
   pair claims at most ``log10(n + 1)`` decades; ``TailModel``, an exponential tail above the median, remains for
   calibrations made by hand). ``e`` is 0 at or below the null's median.
-- **Fused evidence** of a hypothesis ``(q, r)``: ``E = e(q, r) + sum`` over the ``span - 1`` frames processed before
-  ``q`` of the best ``e(q', r') - log10(2 tol + 1)`` among their verified candidates whose offset ``q' - r'`` is
-  within ``tol`` frames of ``q - r`` (the ``log10`` pays for choosing among the consistent ones).
+- **Fused evidence** of a hypothesis ``(q, r)`` on the line of speed ``v`` (keyframes the map advances per query
+  frame, one of ``speeds``: ``calibration.speeds``, 1x, 2x and 3x by default): ``E = e(q, r) + sum`` over the
+  ``span - 1`` frames processed before ``q`` of the best ``e(q', r') - log10(2 tol + 1)`` among their verified
+  candidates within ``tol`` keyframes of ``r - v (q - q')`` (the ``log10`` pays for choosing among the consistent
+  ones); the best line's. At ``v = 1`` that is an offset ``q' - r'`` within ``tol`` of ``q - r``; a revisit 3x as
+  fast drifts 2 frames a frame off it, so only the line of its own speed fuses its frames
+  (``bench.revisit_speed``: 1 of 34 such queries found on the map's line alone, 26 with the three).
 - **Its null** ``P_E``: for a run of ``m`` consecutive frames ending at the query (``m`` up to ``span``, every ``m``
   counted in the run's tests), the heavier of the Gamma(m) tail (independent pair evidence: every frame of the run
   counted, with or without support) and the tail measured on hard-negative *sequences* (the pairs ``(q - j, r - j)``
   behind each hard negative: look-alike streets look alike for several frames, and this sees it). The independence
   the Gamma tail assumes is what the stress sets check (``bench.aliasing``: KITTI 00 then its own frames mirrored, and
   00 then 07, frame after frame: 0 loops).
-- **One threshold**: ``confidence = -log10(tests * P_E(E))``; a loop needs ``confidence >= accept_at``
+- **One threshold**: ``confidence = -log10(tests * P_E(E))``, ``tests`` counting every line's speed (a run is
+  tested on each); a loop needs ``confidence >= accept_at``
   (``NFA <= expected_false_loops / 2``) and positive evidence of its own pair (geometry can always veto).
 - **Delayed loops** (``Confirmations``): a run of ``m`` frames accepted at frame ``t`` certifies its earlier
   members: each of ``t - m + 1 .. t - 1`` with evidence on the run's offset, not yet a loop and whose pair was
@@ -83,7 +88,7 @@ STOP_EDGE = 1  #: frames by which the reference's stop may begin after the loop'
 #   (``Decision.stop_carry``): where a camera slows to a stop, the first still frame is one frame uncertain either way
 #   (Nordland: the winter train still from 706, after its loop 705 -> 205; the summer one from 207)
 SPAN = 5  #: frames (inlier path) or windows (score path) one decision fuses at most, the query's and those before it
-#           (issue 27: a measured pair null caps what one frame claims; a run of frames on one offset decides)
+#           (issue 27: a measured pair null caps what one frame claims; a run of frames on one line decides)
 TOL = 2  #: frames the offset ``q - r`` may drift between fused frames
 UNSUPPORTED = -1e8  #: the confidence of an admissible pair with evidence of its own that no run supports yet (the
 #                      first frame of a revisit): below any ``accept_at``, above ``Confirmations.VETO``, so that the run
@@ -419,13 +424,18 @@ class Decision:
         min_support: frames with evidence a loop needs when not single.
         spans: the score path's fused windows (``ScoreSpans``), or None (the ``fallback`` confidences decide).
         stops: the "a stop is matched to a stop" rule (``Stops``), or None (not applied).
+        speeds: keyframes the map advances per query frame along a run's line (the temporal filter's
+            ``velocities``): a run is fused on the line of one of them, its choice counted in ``tests``.
     """
 
     def __init__(self, pair_tail: TailModel | EmpiricalTail | None, fused_tail: TailModel | MeasuredTail, tests: float,
                  accept_at: float, single: bool,
                  horizon: Horizon | None = None, floor: float = 0.0, span: int = SPAN, tol: int = TOL,
-                 min_support: int = 2, spans: ScoreSpans | None = None, stops: Stops | None = None) -> None:
-        self.pair_tail, self.fused_tail, self.tests, self.floor = pair_tail, fused_tail, float(tests), float(floor)
+                 min_support: int = 2, spans: ScoreSpans | None = None, stops: Stops | None = None,
+                 speeds: tuple[float, ...] = (1.0,)) -> None:
+        self.speeds = tuple(float(v) for v in speeds) or (1.0,)
+        self.pair_tail, self.fused_tail, self.floor = pair_tail, fused_tail, float(floor)
+        self.tests = float(tests) * (len(self.speeds) if pair_tail is not None else 1)  # a run tested on each line
         self.stops = stops
         self.accept_at, self.single, self.horizon, self.spans = accept_at, single, horizon, spans
         self.span, self.tol, self.min_support = span, tol, min_support
@@ -457,17 +467,28 @@ class Decision:
         the heavier of the Gamma(frames) and the measured sequence tails."""
         return fused_log10_sf(self.span if frames is None else frames, decades, self.fused_tail)
 
-    def support(self, query_id: int, ref: int) -> list[tuple[int, float]]:
-        """Evidence of the earlier fused frames for the hypothesis ``(query_id, ref)``: ``(frames back, decades)``
-        per frame with evidence beyond the choice among its consistent candidates."""
+    def support(self, query_id: int, ref: int, speed: float = 1.0) -> list[tuple[int, float]]:
+        """Evidence of the earlier fused frames for the hypothesis ``(query_id, ref)`` on the line of ``speed``
+        (frame ``q`` back ``d`` expects keyframe ``ref - speed * d``, ``tol`` frames either side): ``(frames back,
+        decades)`` per frame with evidence beyond the choice among its consistent candidates."""
         out, choice = [], math.log10(2 * self.tol + 1)
         for q, refs, ev in self._recent:
             if query_id - q >= self.span or not len(refs):
                 continue
-            ok = np.abs((q - refs) - (query_id - ref)) <= self.tol
+            ok = np.abs(refs - (ref - speed * (query_id - q))) <= self.tol
             if ok.any() and ev[ok].max() > choice:
                 out.append((query_id - q, float(ev[ok].max()) - choice))
         return out
+
+    def _best_line(self, query_id: int, ref: int, e0: float) -> tuple[float, int, float]:
+        """``(confidence, run length, speed)`` of the best run of ``(query_id, ref)`` among the lines of
+        ``speeds`` (``best_run`` on each line's ``support``; ``tests`` counts every line)."""
+        best = (-math.inf, 0, self.speeds[0])
+        for speed in self.speeds:
+            value, m = self.best_run(e0, self.support(query_id, ref, speed))
+            if value > best[0]:
+                best = (value, m, speed)
+        return best
 
     def fused(self, e0: float, more: list[tuple[int, float]]) -> float:
         """``-log10 NFA`` of the query's evidence ``e0`` fused with ``more`` (``support``): the best run of ``m``
@@ -500,14 +521,14 @@ class Decision:
         e0 = self.evidence(inliers)
         if self.pair_tail is None or e0 <= 0:
             return []
-        value, m = self.best_run(e0, self.support(query_id, ref))
+        value, m, speed = self._best_line(query_id, ref, e0)
         if value < self.accept_at:
             return []
         out, choice = [], math.log10(2 * self.tol + 1)
         for q, refs, ev in self._recent:
             if not 0 < query_id - q < m or not len(refs):
                 continue
-            ok = np.flatnonzero(np.abs((q - refs) - (query_id - ref)) <= self.tol)
+            ok = np.flatnonzero(np.abs(refs - (ref - speed * (query_id - q))) <= self.tol)
             if len(ok) and ev[ok].max() > choice:
                 out.append((int(q), int(refs[ok[np.argmax(ev[ok])]])))
         return out
@@ -564,7 +585,7 @@ class Decision:
             e0 = self.evidence(inl)
             if e0 <= 0:
                 continue
-            best = self.fused(e0, self.support(query_id, ref))
+            best = self._best_line(query_id, ref, e0)[0]
             if self.single:
                 best = max(best, base - self.pair_tail.log10_sf(inl))
             out[i] = max(best, UNSUPPORTED)  # evidence of its own: a later run may certify it (``Confirmations``)

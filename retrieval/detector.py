@@ -45,7 +45,7 @@ import torch
 
 from cae.whitening import DEFAULT_DIM, DEFAULT_SHRINK
 from cae_lcd.core.checks import check_frame_id, check_intrinsics, check_pose, check_timestamp
-from cae_lcd.core.conf import Bool, Choice, ConfigError, Float, Int, check_conf, merge_conf
+from cae_lcd.core.conf import Bool, Choice, ConfigError, Float, Floats, Int, check_conf, merge_conf
 from cae_lcd.core.errors import DatabaseError
 from cae_lcd.core.images import check_image, to_gray_u8, to_uint8
 from cae_lcd.core.threads import BesideExecutor, apply_thread_policy, side_by_side
@@ -128,6 +128,10 @@ default_conf: dict[str, Any] = {
         #                     pair null is their empirical p-value, so more pairs let one pair claim more)
         "min_features": 50,  # median keypoints per frame under which local verification is not used
         "min_inliers": 12,  # floor of the calibrated inlier threshold (a 7-point model always fits 7)
+        "speeds": [1.0, 2.0, 3.0],  # keyframes the map advances per query frame on the line of a verified run
+        #                            (retrieval.decision: a run is fused on the line of one speed, their choice
+        #                            counted in the tests): a revisit 2x or 3x as fast as the map is fused frame
+        #                            after frame; a slower one (to 0.5x) stays within a line's drift (TOL)
         "verification": "auto",  # "auto": used when features suffice; "on": always; "off": global + temporal only
         "max_frames": 2000,  # frames the calibration reads at most (blocks spread over longer sequences)
         "features_px": 384,  # calibrated: local features downscaled to this longer side (px) instead of
@@ -193,6 +197,7 @@ conf_rules: dict[str, Any] = {
                   "shrink": Float(0, 100), "skip_still": Bool(), "stream_fit": Int(32, optional=True)},
     "calibration": {"enabled": Bool(), "online": Bool(), "expected_false_loops": Float(0, 100, lo_open=True),
                     "null_pairs": Int(10, 100_000), "min_features": Int(0), "min_inliers": Int(8),
+                    "speeds": Floats(0.1, 10),
                     "verification": Choice("auto", "on", "off"), "max_frames": Int(100),
                     "features_px": Int(16, optional=True)},
     "runtime": {"threads": Int(1, 1024, optional=True), "lazy_features": Bool(), "feature_worker": Bool(),

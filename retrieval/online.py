@@ -47,7 +47,7 @@ of them read, blocks spread as ``calibration_frames`` chooses), so a refit encod
   as many measured samples (the verified hard-negative pairs on the inlier path, the far-side pairs drawn out of
   sample on the score path: a carried calibration's null, drawn in sample, counts none there) as the one it
   replaces, or, holding fewer, where a loop under it still needs a run at least as long (``no_shorter_run``: frames
-  on one offset, ``retrieval.calibrate.run_needed``; windows on one line, ``windows_needed``): its own promise
+  on one line, ``retrieval.calibrate.run_needed``; windows on one line, ``windows_needed``): its own promise
   (expected false loops over the run) rests on its own samples either way, and the run is the unit that promise is
   kept in; a thinner null that would accept a shorter run is refused and the current calibration kept (one log
   line). Its tests only grow. Why the run and not the bare count: once the fits read ``calibration.max_frames``
@@ -314,7 +314,7 @@ class OnlineCalibration:
 
 
 def no_shorter_run(new: Calibration, old: Calibration, conf: dict[str, Any]) -> bool:
-    """Whether a loop under ``new`` needs a run at least as long as under ``old`` (same path: frames on one offset on
+    """Whether a loop under ``new`` needs a run at least as long as under ``old`` (same path: frames on one line on
     the inlier path, ``run_needed``; windows on one line on the score path, ``windows_needed``; no run accepted
     counts as the longest); False across paths. ``conf``: the detector's resolved conf."""
     if new.path != old.path:

@@ -24,7 +24,15 @@ def small(tmp_path_factory):
     return seq, calibrate_sequence(open_sequence(seq), {}, progress=False)
 
 
-def _decision(cal, single: bool | None = None) -> Decision:
+#: a run on the map's speed only (``calibration.speeds: [1.0]``): the sample's weak three-frame revisit (80-82 on
+#: 29-31) reaches ``accept_at`` on one line; tested on three, each line pays log10(3) and it needs a fourth frame
+MAP_SPEED = (1.0,)
+
+
+def _decision(cal, single: bool | None = None, speeds: tuple[float, ...] | None = None) -> Decision:
+    if speeds is not None:
+        cal = copy.copy(cal)
+        cal.fused = {**cal.fused, "speeds": list(speeds)}
     dec = cal.decision(50)
     if single is not None:
         dec.single = single
@@ -113,7 +121,7 @@ class TestFusedEvidence:
 
     def test_weak_consistent_sequence_accepted(self, small):
         seq, cal = small
-        dec = _decision(cal)
+        dec = _decision(cal, speeds=MAP_SPEED)
         pairs = [(80 + j, 29 + j) for j in range(3)]  # a true revisit of the sample (loops.txt), frame after frame
         inl = self._inliers(seq, pairs)
         alone = [cal.inlier_confidence(x) for x in inl]
@@ -417,7 +425,7 @@ class TestConfirmations:
     def _run(cal, inl, pairs):
         from retrieval.decision import Confirmations
 
-        dec, conf = _decision(cal), Confirmations()
+        dec, conf = _decision(cal, speeds=MAP_SPEED), Confirmations()
         for (q, r), x in zip(pairs, inl):
             conf.add(q, {r: (0.0, f"c{q}")}, False)
             dec.commit(q, np.array([r]), np.array([x]))
@@ -452,7 +460,7 @@ class TestConfirmations:
         seq, cal = small
         pairs = [(80 + j, 29 + j) for j in range(3)]
         inl = TestFusedEvidence()._inliers(seq, pairs)
-        dec, conf = _decision(cal, single=False), Confirmations()
+        dec, conf = _decision(cal, single=False, speeds=MAP_SPEED), Confirmations()
         first = dec.confidences(80, np.array([29]), np.array([inl[0]]), _NoSource())[0]
         assert first == UNSUPPORTED < cal.accept_at  # not a loop alone, not vetoed
         for (q, r), x in zip(pairs[:-1], inl[:-1]):
@@ -557,3 +565,30 @@ class TestConfirmations:
         assert loops[51][0] == 1 and loops[51][1] >= summary["calibration"]["accept_at_confidence"]
         truth = {tuple(p) for p in read_loop_pairs(seq / "loops.txt").tolist()}
         assert all((q, r) in truth for q, (r, _) in loops.items())  # precision 1.000
+
+
+class TestRunsAtTheStreamsSpeed:
+    """A revisit three times as fast as the map: frame ``q - d`` of the run sits at keyframe ``r - 3 d``, its offset
+    drifting 2 frames a frame (``TOL`` holds one frame back only). Four frames of 20 inliers each (the sample's
+    hardest negative at 160x120 holds 18)."""
+
+    PAIRS = [(90 + j, 10 + 3 * j) for j in range(4)]
+
+    def _last(self, cal, speeds):
+        dec = _decision(cal, single=False, speeds=speeds)
+        for q, r in self.PAIRS[:-1]:
+            dec.commit(q, np.array([r]), np.array([20]))
+        q, r = self.PAIRS[-1]
+        return dec, dec.confidences(q, np.array([r]), np.array([20]), _NoSource())[0]
+
+    def test_fused_on_the_line_of_its_speed(self, small):
+        _, cal = small
+        assert self._last(cal, MAP_SPEED)[1] < cal.accept_at  # measured: 0.29 (two frames on one offset)
+        dec, value = self._last(cal, (1.0, 2.0, 3.0))
+        assert value >= cal.accept_at  # measured: 2.00, the line's choice counted (tests x 3)
+        assert dec.run_members(*self.PAIRS[-1], 20) == self.PAIRS[:-1]  # members on that line
+
+    def test_every_line_is_counted_in_the_tests(self, small):
+        _, cal = small
+        one, three = _decision(cal, speeds=MAP_SPEED), _decision(cal, speeds=(1.0, 2.0, 3.0))
+        assert three.tests == pytest.approx(3 * one.tests)

@@ -662,11 +662,12 @@ class TestWhereAVisitEnds:
 
 
 class TestARevisitAtAnotherSpeed:
-    """KITTI 90 with its second pass three times as fast (every third frame from 100): the first pass's keyframes
-    that the sequence filter's lines carry lag the query, and the pairs verify (13-76 inliers, 6-24 m behind, where
-    the place holds 110-226); toward the pass's end the place lies inside the exclusion window. Streamed through the
-    API, each loop must name the keyframe the query is at (``retrieval.localise``): without the walk 5 of 9 loops
-    were 6-24 m off."""
+    """KITTI 90 with its second pass three times as fast (every third frame from 100): runs of verified frames are
+    fused on lines at 1x, 2x and 3x the map's speed (``calibration.speeds``), and the first pass's keyframes that the
+    sequence filter's lines carry lag the query while their pairs verify (13-76 inliers, 6-24 m behind, where the
+    place holds 110-226); toward the pass's end the place lies inside the exclusion window. Streamed through the
+    API, each loop must name the keyframe the query is at (``retrieval.localise``): without the walk 6 of 31 loops
+    were 6-16 m off."""
 
     KEEP = (*range(100), *range(100, 200, 3))
 
@@ -686,8 +687,8 @@ class TestARevisitAtAnotherSpeed:
     def test_every_loop_names_the_place_the_query_is_at(self, kitti_sequences, encoder):
         loops, false = self.stream(kitti_sequences, encoder, 16)
         assert not false, false
-        assert loops  # measured: 115 on 46, walked from 40 (58 -> 205 inliers)
+        assert len({q for q, _ in loops}) >= 20  # measured: 26 of the 34 queries (at the map's speed only: 1)
 
     def test_without_the_walk_loops_lag(self, kitti_sequences, encoder):
         _, false = self.stream(kitti_sequences, encoder, 0)
-        assert len(false) >= 3, false  # measured: 181 on 75 ... 193 on 78
+        assert len(false) >= 3, false  # measured: 127 on 24, 145 on 40, 181 on 77 ... 190 on 80
