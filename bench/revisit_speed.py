@@ -4,8 +4,8 @@ KITTI 90's first pass whole and its second pass taking every 2nd or 3rd frame (t
 fast), at full size (1241x376) and at 160x120, as plain folders (no calibration); `cae-lcd detect` with the default
 config, with the verified runs fused on lines at the map's speed only (`calibration.speeds: [1.0]`; the default
 fuses them at 1x, 2x and 3x, `retrieval.decision`), and without the walk that names where the query stands
-(`search.localise_steps: 0`, `retrieval.localise`). A loop is true where the ground truth (5 m on the ground plane) holds its pair; its
-distance is read from `poses/90.txt`.
+(`search.localise_steps: 0`, `retrieval.localise`). A loop is true where the ground truth (5 m on the ground
+plane) holds its pair; its distance is read from `poses/90.txt`.
 
 ``python -m bench.revisit_speed [--out runs/bench/revisit_speed] [--no-write]``
 """

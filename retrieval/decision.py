@@ -89,7 +89,8 @@ STOP_EDGE = 1  #: frames by which the reference's stop may begin after the loop'
 #   (Nordland: the winter train still from 706, after its loop 705 -> 205; the summer one from 207)
 SPAN = 5  #: frames (inlier path) or windows (score path) one decision fuses at most, the query's and those before it
 #           (issue 27: a measured pair null caps what one frame claims; a run of frames on one line decides)
-TOL = 2  #: frames the offset ``q - r`` may drift between fused frames
+TOL = 2  #: keyframes a fused frame's match may lie off its run's line (at the map's speed: the offset ``q - r``
+#          drifting by up to this many frames)
 UNSUPPORTED = -1e8  #: the confidence of an admissible pair with evidence of its own that no run supports yet (the
 #                      first frame of a revisit): below any ``accept_at``, above ``Confirmations.VETO``, so that the run
 #                      its next frames complete certifies it (``Confirmations``)
@@ -424,8 +425,8 @@ class Decision:
         min_support: frames with evidence a loop needs when not single.
         spans: the score path's fused windows (``ScoreSpans``), or None (the ``fallback`` confidences decide).
         stops: the "a stop is matched to a stop" rule (``Stops``), or None (not applied).
-        speeds: keyframes the map advances per query frame along a run's line (the temporal filter's
-            ``velocities``): a run is fused on the line of one of them, its choice counted in ``tests``.
+        speeds: keyframes the map advances per query frame along a run's line (``calibration.speeds``): a run is
+            fused on the line of one of them, each counted in ``tests`` (on the inlier path).
     """
 
     def __init__(self, pair_tail: TailModel | EmpiricalTail | None, fused_tail: TailModel | MeasuredTail, tests: float,

@@ -15,8 +15,9 @@ included). Where the walk meets a keyframe the query may not match (too recent: 
 can lie inside the exclusion window) or the map's newest keyframe, or a pair too weak to read its scale change, or
 runs ``max_steps``, still heading on, the query's place is not found among the keyframes it may match: no keyframe is
 named (the detector refuses the loop). Walking back to the map's first keyframe names the best seen (nothing lies
-before it; a query through a wider lens reads as standing further back: its scale change never turns). A loop at its place (``|s| <= |m|``) costs the map's step, one check per keyframe, cached; where the map's
-camera did not move toward the scene (``|m| < MIN_STEP``: a stop, a sideways pan) nothing walks.
+before it; a query through a wider lens reads as standing further back: its scale change never turns). A loop at
+its place (``|s| <= |m|``) costs the map's step, one check per keyframe, cached; where the map's camera did not move
+toward the scene (``|m| < MIN_STEP``: a stop, a sideways pan) nothing walks.
 
 The detector supplies the map: ``adjacent(ref, d) -> int | None`` the next keyframe from ``ref`` in direction ``d``
 (+1 later, -1 earlier) or None, ``admissible(ref) -> bool`` whether the query may match it, ``features_of(ref) ->
@@ -91,8 +92,8 @@ class Localiser:
         Returns:
             The named keyframe (``ref`` where the query is at it or no better one was found; None where the walk
             met a keyframe the query may not match, the map's newest end or a pair too weak to read, or ran
-            ``max_steps``, still heading on: the query's place is not found among the keyframes it may match) and the ``(keyframe, Verification)`` pairs the
-            walk made (empty where it did not walk).
+            ``max_steps``, still heading on: the query's place is not found among the keyframes it may match) and
+            the ``(keyframe, Verification)`` pairs the walk made (empty where it did not walk).
         """
         known = known or {}
         s = scale_change(query, self._features_of(ref), check)
