@@ -154,6 +154,13 @@ class TestLoopDetector:
             LoopDetector({"temporal": temporal}, encoder=encoder).close()
         assert ("not certified without windows of several frames" in caplog.text) is warned
 
+    @pytest.mark.parametrize("velocities, warned", [([1.0, 2.0, 3.0], True), ([1.0, -1.0], False), ([1.0], False)])
+    def test_filter_lines_at_several_speeds_are_warned_of(self, encoder, caplog, velocities, warned):
+        # measured (bench.aliasing's KITTI 90 at 64x32, --lookahead, velocities [1, 2, 3]): precision 0.775
+        with caplog.at_level("WARNING", logger="retrieval.detector"):
+            LoopDetector({"temporal": {"velocities": velocities}}, encoder=encoder).close()
+        assert ("lines at several speeds" in caplog.text) is warned
+
     def test_gated_frame(self, encoder, tmp_path):
         grey = np.full((188, 620), 128, np.uint8)
         with LoopDetector(encoder=encoder, database=tmp_path / "kf.h5") as det:
