@@ -219,7 +219,9 @@ class TestFeatureStoreMode:
 
     def test_database_mode_memory_flat(self, tmp_path, sample_seq, sample_image, encoder):
         """RSS stays flat as keyframes stream into the database (issue 19 measured 5.5 MiB a frame on this path with
-        the store of a group per keyframe): three laps of the sample, features read back through a tiny cache."""
+        the store of a group per keyframe): three laps of the sample, features read back through a tiny cache. The
+        first lap verifies nothing (no revisit yet): the second warms the verification path (its buffers and the
+        verify worker's heap, 45-63 MiB in runs of this test), so the measure is the third lap's growth."""
         def rss_mib():
             return int(Path("/proc/self/statm").read_text().split()[1]) * 4096 / 2**20
 
@@ -232,7 +234,7 @@ class TestFeatureStoreMode:
                     det.process(sample_image(i), lap * n + i)
                 rss.append(rss_mib())
             assert len(det.db) == 3 * n
-        assert rss[2] - rss[0] < 48, rss  # 2 laps later: < 0.25 MiB a frame (measured: ~0.1)
+        assert rss[2] - rss[1] < 24, rss  # a lap of 100 frames: < 0.25 MiB a frame (measured: 0-1 MiB a lap)
 
     def test_database_mode_needs_a_database(self, encoder):
         with pytest.raises(ConfigError, match="needs a keyframe database"):
