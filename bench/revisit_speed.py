@@ -24,6 +24,7 @@ log = logging.getLogger(__name__)
 
 STEPS = (2, 3)  #: the second pass takes every n-th frame
 SIZES = {"full size": None, "160x120": (160, 120)}
+KITTI90 = REPO.parent / "shared" / "datasets" / "kitti" / "sequences" / "90"  #: the sequence and its ground truth
 VARIANTS = {"default": {},
             "runs at the map's speed only (`calibration.speeds: [1.0]`)": {"calibration": {"speeds": [1.0]}},
             "without the walk (`search.localise_steps: 0`)": {"search": {"localise_steps": 0}}}
@@ -36,9 +37,8 @@ def speed_folder(out: Path, step: int, size: tuple[int, int] | None) -> tuple[Pa
 
     from .aliasing import plain_folder
 
-    kitti = REPO.parent / "shared" / "datasets" / "kitti" / "sequences" / "90"
     keep = [*range(100), *range(100, 200, step)]
-    frames = list(open_sequence(kitti).frames)
+    frames = list(open_sequence(KITTI90).frames)
     name = f"k90_{step}x_{'full' if size is None else f'{size[0]}x{size[1]}'}"
     return plain_folder(out / name, [frames[i] for i in keep], size), keep
 
@@ -49,9 +49,8 @@ def scored(run: Path, keep: list[int]) -> dict[str, Any]:
     from cae_lcd.evaluation.ground_truth import read_loop_pairs
     from retrieval.run_folder import RunFolder
 
-    kitti = REPO.parent / "shared" / "datasets" / "kitti" / "sequences" / "90"
-    truth = {tuple(sorted(p)) for p in read_loop_pairs(kitti / "loops.txt").tolist()}
-    poses = np.loadtxt(kitti.parents[1] / "poses" / "90.txt").reshape(-1, 3, 4)[:, [0, 2], 3]
+    truth = {tuple(sorted(p)) for p in read_loop_pairs(KITTI90 / "loops.txt").tolist()}
+    poses = np.loadtxt(KITTI90.parents[1] / "poses" / "90.txt").reshape(-1, 3, 4)[:, [0, 2], 3]
     loops = [(keep[q], keep[r]) for q, r in RunFolder(run).read_loops()[:, :2].astype(int).tolist()]
     false = [p for p in loops if tuple(sorted(p)) not in truth]
     off = [float(np.linalg.norm(poses[q] - poses[r])) for q, r in false]

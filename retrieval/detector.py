@@ -1230,8 +1230,7 @@ class LoopDetector:
         ``(None, None)``."""
         known = {cd.frame_id: ch for cd, ch in zip(candidates, checks) if ch is not None}
         src = self.places.source
-        ref, walked = self._localiser.walk(feats, loop.frame_id, check, functools.partial(self._adjacent, before=fid),
-                                           self._admissible(fid), known)
+        ref, walked = self._walk(fid, feats, loop.frame_id, check, known)
         if ref == loop.frame_id:
             return loop, check
         by_id = {cd.frame_id: i for i, cd in enumerate(candidates)}
@@ -1242,9 +1241,10 @@ class LoopDetector:
                 candidates.append(Candidate(r, score, got.matches, got.inliers, seq_score, -1e9))
                 checks.append(got)
         if ref is None:
-            for cd in candidates:
-                if cd.confidence >= loop.confidence:
-                    cd.confidence = -1e9
+            passed = (lambda cd: cd.confidence >= self.calibration.accept_at) if self.calibration is not None \
+                else self._passes_policy
+            for cd in [cd for cd in candidates if passed(cd)]:
+                cd.confidence = -1e9
             log.debug("frame %d: loop to keyframe %d refused: its place lies beyond the keyframes it may match "
                       "(walked %s)", fid, loop.frame_id, [r for r, _ in walked])
             return None, None
@@ -1265,9 +1265,7 @@ class LoopDetector:
         out = []
         for q, cd in found:
             feats = self._features_of(q)
-            check = self._verify_pair(feats, self._features_of(cd.frame_id))
-            ref, walked = self._localiser.walk(feats, cd.frame_id, check, functools.partial(self._adjacent, before=q),
-                                               self._admissible(q))
+            ref, walked = self._walk(q, feats, cd.frame_id, self._verify_pair(feats, self._features_of(cd.frame_id)))
             if ref is None:
                 log.debug("frame %d: delayed loop to keyframe %d refused: its place lies beyond the keyframes it may "
                           "match", q, cd.frame_id)
@@ -1280,13 +1278,16 @@ class LoopDetector:
                                                    matches=got.matches, inliers=got.inliers)))
         return out
 
-    def _admissible(self, query_id: int) -> Callable[[int], bool]:
-        """Whether frame ``query_id`` may match a keyframe: older than its horizon (``Decision.horizon``; else the
-        frame itself) and searchable."""
+    def _walk(self, query_id: int, feats: Features, ref: int, check: Verification,
+              known: dict[int, Verification] | None = None) -> tuple[int | None, list[tuple[int, Verification]]]:
+        """``Localiser.walk`` of frame ``query_id`` (its features ``feats``) from keyframe ``ref`` (their ``check``)
+        over this map: the keyframes before the query, those it may match older than its horizon
+        (``Decision.horizon``; else the frame itself) and searchable."""
         src = self.places.source
         oldest = self.decision.horizon(query_id, src) \
             if self.decision is not None and self.decision.horizon is not None else query_id
-        return lambda r: r < oldest and bool(src.searchable(np.array([r], np.int64))[0])
+        return self._localiser.walk(feats, ref, check, functools.partial(self._adjacent, before=query_id),
+                                    lambda r: r < oldest and bool(src.searchable(np.array([r], np.int64))[0]), known)
 
     def _adjacent(self, ref: int, step: int, before: int) -> int | None:
         """The keyframe next to ``ref`` in the direction ``step`` (+1, -1) with an id below ``before``, gated frames

@@ -110,15 +110,15 @@ class Localiser:
                 return best, walked  # the map's first keyframe: nothing before it to name
             if nxt is None or not admissible(nxt):
                 return None, walked  # the place lies among keyframes the query may not match (too recent)
-            got = known.get(nxt)
+            feats, got = self._features_of(nxt), known.get(nxt)
             if got is None or got.inliers < 0:
-                got = self._verify(query, self._features_of(nxt))
+                got = self._verify(query, feats)
             walked.append((nxt, got))
             if got.inliers > most:
                 best, most = nxt, got.inliers
             if got.inliers < most - 2 * math.sqrt(most):  # fewer beyond the count's noise: past the place
                 return best, walked
-            s_next = scale_change(query, self._features_of(nxt), got)
+            s_next = scale_change(query, feats, got)
             if math.isnan(s_next):
                 return None, walked  # too few inliers to read which way: the place is not found
             if s_next * s <= 0:  # at the place: the scale change turned

@@ -51,10 +51,9 @@ def scale_change(query: Features, candidate: Features, check: Verification) -> f
     Returns:
         The median in octaves; NaN where fewer than ``MIN_SCALE_INLIERS`` inliers were found (or none checked).
     """
-    mask = np.asarray(check.geometry.mask, bool)
-    if check.inliers < MIN_SCALE_INLIERS or len(mask) != len(check.pairs) or mask.sum() < MIN_SCALE_INLIERS:
+    if check.inliers < MIN_SCALE_INLIERS:
         return float("nan")
-    pairs = check.pairs[mask]
+    pairs = check.pairs[np.asarray(check.geometry.mask, bool)]
     q, c = query.scales[pairs[:, 0]].astype(np.float64), candidate.scales[pairs[:, 1]].astype(np.float64)
     ok = (q > 0) & (c > 0)
     if ok.sum() < MIN_SCALE_INLIERS:
