@@ -39,7 +39,7 @@ from .calibrate import Calibration, TooFewFrames, calibrate, calibrated_features
 from .database import KeyframeDatabase
 from .descriptors import GlobalDescriptor, create_descriptor
 from .detector import KEPT_GEOMETRIES, STAGES, LoopDetector, resolve_conf
-from .edges import check_edge_frame, edge_features, loop_edges, metric_edges, serialised
+from .edges import PosesAhead, check_edge_frame, edge_features, loop_edges, metric_edges, serialised
 from .temporal import create_filter
 from .run_folder import FrameKeys, RunFolder
 from .sequences import Sequence, open_sequence
@@ -223,8 +223,15 @@ def default_out(seq: Sequence) -> Path:
 def _run_frames(det: LoopDetector, seq: Sequence, start: int, progress: bool,
                 codes: dict[int, np.ndarray] | None = None) -> list[dict[str, float]]:
     """Processes frames ``start..`` of ``seq`` (``codes``: raw codes already computed, popped as they are used;
-    the others are encoded ahead in a worker thread); returns the stage timings of the frames that ran."""
-    codes = {} if codes is None else codes
+    the others are encoded ahead in a worker thread; the loops' poses refined as they are found, for their edges:
+    ``retrieval.edges.PosesAhead``); returns the stage timings of the frames that ran."""
+    with PosesAhead(det.verified_geometry) as poses:
+        return _frames_through(det, seq, start, progress, {} if codes is None else codes, poses)
+
+
+def _frames_through(det: LoopDetector, seq: Sequence, start: int, progress: bool, codes: dict[int, np.ndarray],
+                    poses: PosesAhead) -> list[dict[str, float]]:
+    """``_run_frames``' loop over the frames."""
     timings: list[dict[str, float]] = []
     bar = progress_bar(range(start, len(seq)), desc=f"detect {seq.name}", unit="frame", disable=not progress,
                        initial=start, total=len(seq))
@@ -248,6 +255,8 @@ def _run_frames(det: LoopDetector, seq: Sequence, start: int, progress: bool,
                 image = err
             else:
                 timings.append(res.ms)
+                poses.add([(i, res.loop.frame_id)] if res.loop is not None else [])
+                poses.add((q, c.frame_id) for q, c in res.confirmed)
                 n_loops += (res.loop is not None) + len(res.confirmed)  # delayed loops too (each reported once)
                 bar.set_postfix(loops=n_loops, ms=f"{res.ms['total']:.0f}")
                 continue

@@ -54,7 +54,7 @@ from verify.verifier import create_verifier
 
 __all__ = ["LoopEdge", "loop_edges", "edge_errors", "rotation_to_quaternion", "ROTATION_SIGMA_1",
            "MODEL_VARIANCE", "g2o_order", "metric_edges", "LENGTH_SIGMA", "EDGE_FRAMES", "check_edge_frame",
-           "body_edges", "body_poses", "adjoint", "edge_features", "serialised", "REDO_RATIO"]
+           "body_edges", "body_poses", "adjoint", "edge_features", "serialised", "REDO_RATIO", "PosesAhead"]
 
 #: rotation standard deviation (radians) of one inlier, for an edge made without its residuals (no points kept):
 #: ``ROTATION_SIGMA_1 / sqrt(inliers)``, translation unobserved
@@ -257,6 +257,38 @@ def _edges_of(features: Callable[[int], Features], loops: list[tuple[int, int]],
         return list(map(edge, loops))
     with ThreadPoolExecutor(min(workers, len(loops)), thread_name_prefix="loop-edges") as pool:
         return list(pool.map(edge, loops))
+
+
+class PosesAhead:
+    """Refines the poses of a run's loops as the run finds them (``GeometryResult.refined``, most of an edge's cost),
+    on one worker thread beside the stream, so that ``loop_edges`` finds them made: the same poses (each pair's
+    refinement is deterministic), computed while the stream's own threads leave a core idle rather than after the
+    last frame. ``close`` (or leaving the ``with``) waits for the refinements under way.
+
+    Args:
+        verified: the run's own check of a ``(query, match)`` pair (``LoopDetector.verified_geometry``), None where it
+            kept none (that pair's edge is made by ``loop_edges``).
+    """
+
+    def __init__(self, verified: Callable[[int, int], GeometryResult | None]) -> None:
+        self._verified = verified
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="poses-ahead")
+
+    def add(self, pairs: Iterable[tuple[int, int]]) -> None:
+        """Starts refining the poses of the loops ``pairs`` (``(query, match)``)."""
+        for q, m in pairs:
+            geo = self._verified(q, m)
+            if geo is not None and geo.essential is not None:
+                self._pool.submit(getattr, geo, "refined")
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True)
+
+    def __enter__(self) -> "PosesAhead":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
 
 
 def serialised(features: Callable[[int], Features]) -> Callable[[int], Features]:

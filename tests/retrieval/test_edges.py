@@ -67,6 +67,53 @@ def test_a_pair_the_run_verified_is_not_verified_again(sift_features, sample_K):
         assert rotation < 0.5 and abs(e.inliers - a.inliers) <= max(5, 0.1 * a.inliers)
 
 
+def test_poses_refined_ahead_are_the_poses_made_after(sift_features, sample_K):
+    """``PosesAhead`` (``detect`` refines its loops' poses beside the stream): after ``close`` each kept check holds
+    its refined pose, the one a fresh check of the pair refines; a pair without a kept check is left alone."""
+    from retrieval.edges import PosesAhead
+    from verify.verifier import create_verifier
+
+    kept = {pair: create_verifier().verify(sift_features(pair[0]), [sift_features(pair[1])], sample_K)[0].geometry
+            for pair in PAIRS[:3]}
+    with PosesAhead(lambda q, m: kept.get((q, m))) as poses:
+        poses.add(PAIRS)
+    for pair, geo in kept.items():
+        assert "_kept_refined" in vars(geo)  # made ahead, not on the read below
+        fresh = create_verifier().verify(sift_features(pair[0]), [sift_features(pair[1])], sample_K)[0].geometry
+        np.testing.assert_array_equal(geo.refined[0], fresh.refined[0])
+
+
+def test_poses_refine_side_by_side(sift_features, sample_K):
+    """A check's refined pose is kept without a lock shared by every check (``functools.cached_property``'s before
+    Python 3.12 made two threads refine one pose at a time): two threads refining two pairs each compute at once."""
+    import threading
+
+    from verify import geometry
+    from verify.verifier import create_verifier
+
+    geos = [create_verifier().verify(sift_features(q), [sift_features(m)], sample_K)[0].geometry for q, m in PAIRS[:2]]
+    inside, both, met = [0], threading.Event(), []
+    refine = geometry.refined_pose
+
+    def counted(*args, **kwargs):
+        inside[0] += 1
+        if inside[0] == 2:
+            both.set()
+        met.append(both.wait(2))  # the first waits here until the second is inside too (False: it never came)
+        return refine(*args, **kwargs)
+
+    geometry.refined_pose = counted
+    try:
+        threads = [threading.Thread(target=getattr, args=(g, "refined")) for g in geos]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    finally:
+        geometry.refined_pose = refine
+    assert met == [True, True]
+
+
 def test_edges_side_by_side_are_the_edges_one_after_another(sample_seq, sample_K):
     """``loop_edges`` on two threads with ``edge_features`` (frames read again and extracted side by side) gives the
     edges one thread gives, in the same order; a frame that cannot be read takes the fallback's features."""
