@@ -263,7 +263,8 @@ class PosesAhead:
     """Refines the poses of a run's loops as the run finds them (``GeometryResult.refined``, most of an edge's cost),
     on one worker thread beside the stream, so that ``loop_edges`` finds them made: the same poses (each pair's
     refinement is deterministic), computed while the stream's own threads leave a core idle rather than after the
-    last frame. ``close`` (or leaving the ``with``) waits for the refinements under way.
+    last frame. ``close`` (or leaving the ``with``) waits for the refinements under way. A refinement that fails here
+    keeps nothing: ``loop_edges`` computes it again and meets the error itself.
 
     Args:
         verified: the run's own check of a ``(query, match)`` pair (``LoopDetector.verified_geometry``), None where it

@@ -34,6 +34,9 @@ _MIRROR_ITERS = math.ceil(math.log(1 - _MIRROR_CONFIDENCE) / math.log(1 - _MIRRO
 _MIRROR_METHOD = cv2.USAC_FAST
 
 
+_UNSET = object()  #: ``_kept``'s "not computed yet" (None is a value: no essential matrix, no pose)
+
+
 def _kept(fn: Callable[[Any], Any]) -> property:
     """A read-only property computed on first use and kept on the instance: ``functools.cached_property`` without its
     lock, which before Python 3.12 is one lock for every instance, so that loop edges refined on several threads
@@ -47,9 +50,6 @@ def _kept(fn: Callable[[Any], Any]) -> property:
         return self.__dict__.setdefault(key, fn(self)) if got is _UNSET else got
 
     return property(get)
-
-
-_UNSET = object()
 
 
 @dataclass
