@@ -166,9 +166,9 @@ class Calibration:
             under ``samples/``.
         features: the conf of the local features its inlier thresholds were calibrated on
             (``calibrated_features``); a run extracting other ones refuses it (empty: not recorded).
-        spans: the score path's fused windows, ``{"window": frames, "measured": 1.0, "span": windows}``: the fused
-            evidence of the far-side lines over 1..span windows is ``samples["score_fused"]`` ``(n, span)``
-            (``retrieval.decision.ScoreSpans``); empty = one window decides.
+        spans: the score path's fused windows, ``{"window": frames, "measured": 1.0, "span": windows, "speeds":
+            [the lines' speeds]}``: the fused evidence of the far-side lines over 1..span windows, the best speed's, is
+            ``samples["score_fused"]`` ``(n, span)`` (``retrieval.decision.ScoreSpans``); empty = one window decides.
         seconds: wall time of a fresh calibration, ``{"own": s, "shared": s}``: its own work (edge ratios, whitening,
             nulls, sampled verifications, fits) and the run's work it did ahead (reading and encoding every frame,
             local features the run reuses); empty for a loaded one (not saved).
@@ -263,7 +263,7 @@ class Calibration:
         fused = np.asarray(self.samples["score_fused"], np.float64).reshape(len(self.samples["score_null"]), -1)
         measured = [MeasuredTail(fused[np.isfinite(fused[:, j]), j]) for j in range(int(self.spans["span"]))]
         return ScoreSpans(filt.score, int(self.spans["window"]), self.empirical("score_null"), measured,
-                          self.tests["score"])
+                          self.tests["score"], tuple(self.spans.get("speeds", (1.0,))))
 
     def decision(self, exclude_recent: int, filt: TemporalFilter | None = None) -> Decision:
         """The run's fused decision (``retrieval.decision``): on the inlier path, and on the score path the fused
@@ -657,7 +657,7 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
         null_table, apart = table, _null_scores(ids, table, filt, window, moved, window // 2)  # far apart in moved
         apart = apart if len(apart) >= MIN_NULL_PAIRS else null  # frames too
     far = None if cal.inlier_null else _reversed_lines(ids, null_table, filt, window, moved, int(apart[:, 0].min()))
-    _score_path(cal, apart, filt, null_table, far)
+    _score_path(cal, apart, filt, null_table, far, tuple(conf["calibration"]["speeds"]))
     if null_table is not table:
         cal.score_null["held_out"] = float(held_out)
     _stretch(cal, ids, table, moved, descriptor.still_cos)
@@ -776,12 +776,13 @@ def camera_moved(codes: np.ndarray, still_cos: float = STILL_COS) -> np.ndarray:
 
 
 def _score_path(cal: Calibration, null: np.ndarray, filt: TemporalFilter, table: CodeTable,
-                far: tuple[np.ndarray, CodeTable] | None = None) -> None:
+                far: tuple[np.ndarray, CodeTable] | None = None, speeds: tuple[float, ...] = (1.0,)) -> None:
     """The score path's nulls, measured (module doc, item 3): the far-side pairs' temporal scores as they are (an
     ``EmpiricalTail``: no p-value below ``1 / (n + 1)``) and, with a filter whose score is the run's (sequence,
     none), the fused evidence of the same pairs' lines over 1..``SPAN`` windows (``retrieval.decision.ScoreSpans``),
-    measured per span; the run's tests counted at every span. ``far``: the long-range reversed lines and their
-    table (``_reversed_lines``), which join both nulls. ``score_null``'s median and sigma (90th percentile) only
+    measured per span on the line of each pair at the best of ``speeds`` (the decision's statistic); the run's tests
+    counted at every span and speed. ``far``: the long-range reversed lines and their table (``_reversed_lines``),
+    which join both nulls. ``score_null``'s median and sigma (90th percentile) only
     describe the far-side pairs (the detector's "above chance" gate for verification); no Gaussian tail decides."""
     parts = [(null, table)] + ([far] if far is not None and len(far[0]) else [])
     scores = np.concatenate([rows[:, 2] for rows, _ in parts])
@@ -799,19 +800,20 @@ def _score_path(cal: Calibration, null: np.ndarray, filt: TemporalFilter, table:
     if not isinstance(filt, (SequenceFilter, NoFilter)):
         return
     window = int(filt.conf.get("length", 1))
-    spans = ScoreSpans(filt.score, window, tail, [MeasuredTail(np.zeros(0))] * SPAN, 1.0)
-    fused = np.vstack([spans.fused(spans.windows(rows[:, 0], rows[:, 1], t)) for rows, t in parts])
+    spans = ScoreSpans(filt.score, window, tail, [MeasuredTail(np.zeros(0))] * SPAN, 1.0, speeds)
+    fused = np.vstack([spans.fused_best(rows[:, 0], rows[:, 1], t) for rows, t in parts])
     cal.samples["score_fused"] = fused
-    cal.spans = {"window": float(window), "measured": 1.0, "span": float(SPAN)}
-    cal.tests["score"] *= SPAN
+    cal.spans = {"window": float(window), "measured": 1.0, "span": float(SPAN), "speeds": [float(v) for v in speeds]}
+    cal.tests["score"] *= SPAN * len(speeds)
     top = [f"{j + 1} window{'s' if j else ''}: max {np.nanmax(fused[:, j]) if np.isfinite(fused[:, j]).any() else 0:.1f}"
            f" of {int(np.isfinite(fused[:, j]).sum())}" for j in range(SPAN)]
     cal.notes.append(
-        f"score path: a loop is a run of up to {SPAN} consecutive windows of {window} frames on a line, every window "
+        f"score path: a loop is a run of up to {SPAN} consecutive windows of {window} frames on a line (at "
+        f"{', '.join(f'{v:g}x' for v in speeds)} the map's speed), every window "
         f"at least {AGREE:g} decade (above the one-window null's 90th percentile), their evidence summed and read "
         "from the heavier of the Gamma tail (windows of disjoint frames taken as independent) and the fused evidence "
-        f"measured on the far-side lines (decades; {', '.join(top)}); {cal.tests['score']:.3g} tests, every span "
-        "counted")
+        f"measured on the far-side lines, the best speed's (decades; {', '.join(top)}); {cal.tests['score']:.3g} "
+        "tests, every span and speed counted")
 
 
 def _out_of_sample(cal: Calibration, wconf: dict[str, Any], descriptor: GlobalDescriptor, filt: TemporalFilter,

@@ -35,7 +35,9 @@ verified as in the run), and what a loop looks like: the **positives** (a frame 
   would be accepted alone and no hard negative is); elsewhere a loop needs evidence from ``min_support`` frames.
 - **The score path fuses too** (``ScoreSpans``, where local features are too few to verify; issue 27: measured, not
   extrapolated): the temporal score of a hypothesis is the mean similarity along a line of ``length`` frames (a
-  window). One window's evidence is its empirical p-value among the far-side pairs' window scores (``EmpiricalTail``,
+  window), on lines at one of ``speeds`` (window ``j`` of a line at speed ``v`` through ``(q, r)``: ``(q - j length,
+  r - v j length)``, the filter's own lines scaled by ``v``), the best speed's taken, its null measured the same way
+  and every speed counted among the tests. One window's evidence is its empirical p-value among the far-side pairs' window scores (``EmpiricalTail``,
   at most ``log10(n + 1)`` decades: no Gaussian tail past the sample). ``m`` consecutive windows on the same line
   (``m`` up to ``span``) fuse: every window must agree (at least ``AGREE`` decades: one weak, missing or contrary
   window vetoes the longer spans), their evidence is summed, and its null is the heavier of the Gamma(m) tail
@@ -224,40 +226,45 @@ def fused_log10_sf(frames: int, decades: float, measured: "MeasuredTail | TailMo
 
 class ScoreSpans:
     """The score path's fused evidence (see the module doc): ``score(q, r)`` over up to ``len(measured)`` consecutive
-    windows of ``window`` frames on the line through ``(q, r)``, every window's evidence read from the measured
-    null of one window (``tail``: an ``EmpiricalTail``, so one window claims at most ``log10(n + 1)`` decades) and
-    the sum over ``m`` windows from ``fused_log10_sf`` with the tail measured on far-side lines of ``m`` windows.
+    windows of ``window`` frames on the line through ``(q, r)`` at one of ``speeds`` (keyframes the map advances per
+    query frame: window ``j`` of a line at speed ``v`` is ``(q - j window, r - v j window)``, each window scored on
+    lines at ``v`` times the filter's own velocities), every window's evidence read from the measured null of one
+    window (``tail``: an ``EmpiricalTail``, so one window claims at most ``log10(n + 1)`` decades) and the sum over
+    ``m`` windows from ``fused_log10_sf`` with the tail measured on far-side lines of ``m`` windows (the best of the
+    speeds, as the decision takes it).
 
     Args:
-        score: the temporal filter's pair score, ``(queries (n,), refs (n,), source) -> (n,)``.
+        score: the temporal filter's pair score, ``(queries (n,), refs (n,), source, speed) -> (n,)``.
         window: frames one score covers (the filter's ``length``).
         tail: the null of one window's score (``EmpiricalTail`` of the far-side pairs' scores).
         measured: ``[MeasuredTail]``, one per number of windows fused ``m = 1..span``: the fused evidence of the
-            far-side lines of ``m`` windows.
-        tests: hypotheses the run tests (every span counted).
+            far-side lines of ``m`` windows, the best of the speeds.
+        tests: hypotheses the run tests (every span and speed counted).
+        speeds: the lines' speeds (``calibration.speeds``).
     """
 
     def __init__(self, score: Any, window: int, tail: "EmpiricalTail", measured: list["MeasuredTail"],
-                 tests: float) -> None:
+                 tests: float, speeds: tuple[float, ...] = (1.0,)) -> None:
         self.score, self.window, self.tail, self.tests = score, int(window), tail, float(tests)
         self.measured = list(measured)
+        self.speeds = tuple(float(v) for v in speeds)
 
     @property
     def span(self) -> int:
         """Windows fused at most."""
         return len(self.measured)
 
-    def windows(self, queries: np.ndarray, refs: np.ndarray, source: Any) -> np.ndarray:
-        """``(n, span)``: the score of each pair's window ``j`` (the pair moved back ``j * window`` frames on its
-        line); NaN where an earlier window's pair lies before the first frame (missing terms inside a window count 0,
-        as in the filter's own score)."""
+    def windows(self, queries: np.ndarray, refs: np.ndarray, source: Any, speed: float = 1.0) -> np.ndarray:
+        """``(n, span)``: the score of each pair's window ``j`` (the pair moved back ``j * window`` query frames on its
+        line at ``speed``); NaN where an earlier window's pair lies before the first frame (missing terms inside a
+        window count 0, as in the filter's own score)."""
         shift = np.arange(self.span, dtype=np.int64) * self.window  # every window of every pair, one call
         qj = (np.asarray(queries, np.int64)[:, None] - shift).ravel()
-        rj = (np.asarray(refs, np.int64)[:, None] - shift).ravel()
+        rj = (np.asarray(refs, np.int64)[:, None] - np.rint(speed * shift).astype(np.int64)).ravel()
         out = np.full(len(qj), np.nan)
         ok = rj >= 0
         if ok.any():
-            out[ok] = self.score(qj[ok], rj[ok], source)
+            out[ok] = self.score(qj[ok], rj[ok], source, speed)
         return out.reshape(-1, self.span)
 
     def fused(self, win: np.ndarray) -> np.ndarray:
@@ -269,66 +276,91 @@ class ScoreSpans:
         agree = np.cumprod(ev >= AGREE, axis=1).astype(bool)
         return np.where(np.isnan(win), np.nan, np.where(agree, np.cumsum(ev, axis=1), 0.0))
 
-    def span_confidences(self, queries: np.ndarray, refs: np.ndarray, source: Any) -> np.ndarray:
-        """``(n, span)`` ``-log10 NFA`` of each pair over 1..span windows (``-inf`` where that span does not agree)."""
-        fused = self.fused(self.windows(queries, refs, source))
-        out = np.full(fused.shape, -math.inf)
-        for j, measured in enumerate(self.measured):
-            for i in np.flatnonzero(np.nan_to_num(fused[:, j]) > 0):
-                out[i, j] = -(math.log10(self.tests) + fused_log10_sf(j + 1, fused[i, j], measured))
+    def fused_best(self, queries: np.ndarray, refs: np.ndarray, source: Any) -> np.ndarray:
+        """``(n, span)``: ``fused`` of each pair's line at the speed where it is largest (NaN only where it is NaN at
+        every speed): the statistic the decision takes, so the one whose null the calibration measures."""
+        out = self.fused(self.windows(queries, refs, source, self.speeds[0]))
+        for v in self.speeds[1:]:
+            out = np.fmax(out, self.fused(self.windows(queries, refs, source, v)))
         return out
 
-    def localised(self, queries: np.ndarray, refs: np.ndarray, source: Any) -> np.ndarray:
+    def _by_speed(self, queries: np.ndarray, refs: np.ndarray, source: Any) -> tuple[np.ndarray, np.ndarray]:
+        """``((n, span) -log10 NFA of each pair over 1..span windows on its best line, (n,) that line's speed)``
+        (``-inf`` where no span agrees at any speed; the first speed there)."""
+        best, speed = None, np.full(len(queries), self.speeds[0])
+        for v in self.speeds:
+            fused = self.fused(self.windows(queries, refs, source, v))
+            conf = np.full(fused.shape, -math.inf)
+            for j, measured in enumerate(self.measured):
+                for i in np.flatnonzero(np.nan_to_num(fused[:, j]) > 0):
+                    conf[i, j] = -(math.log10(self.tests) + fused_log10_sf(j + 1, fused[i, j], measured))
+            if best is None:
+                best = conf
+                continue
+            better = conf.max(axis=1, initial=-math.inf) > best.max(axis=1, initial=-math.inf)
+            best[better], speed[better] = conf[better], v
+        return best, speed
+
+    def span_confidences(self, queries: np.ndarray, refs: np.ndarray, source: Any) -> np.ndarray:
+        """``(n, span)`` ``-log10 NFA`` of each pair over 1..span windows on its best line (``-inf`` where that span
+        does not agree)."""
+        return self._by_speed(queries, refs, source)[0]
+
+    def localised(self, queries: np.ndarray, refs: np.ndarray, source: Any, speed: float = 1.0) -> np.ndarray:
         """``(n,)`` bool: whether the query's own window on each pair's line is not beaten by more than ``LOCALISE``
         decades on a nearby line (the reference moved by up to ``window // 2`` frames): evidence carried by the earlier
         windows does not say which frame the query is at, its own window does (a line a few frames off the true one
         still reads the true one's earlier windows)."""
-        return self._localised(self.nearby_evidence(queries, refs, source))
+        return self._localised(self.nearby_evidence(queries, refs, source, speed))
 
     def _localised(self, ev: np.ndarray) -> np.ndarray:
         """``localised`` from ``nearby_evidence``'s ``(n, window // 2 * 2 + 1)``."""
         return ev[:, self.window // 2] >= ev.max(axis=1, initial=0.0) - LOCALISE
 
-    def on_line(self, queries: np.ndarray, refs: np.ndarray, source: Any) -> np.ndarray:
+    def on_line(self, queries: np.ndarray, refs: np.ndarray, source: Any, speed: float = 1.0) -> np.ndarray:
         """``(n,)`` bool: whether a run's member ``(queries[i], refs[i])`` lies on the run's line: its own window is
         ``localised`` and no line more than one frame off (the confirmation's slack) beats it at all (a frame just
         before a revisit's start has one pair of evidence on the line; a line a few frames off often reads as much)."""
-        ev, mid = self.nearby_evidence(queries, refs, source), self.window // 2
+        ev, mid = self.nearby_evidence(queries, refs, source, speed), self.window // 2
         far = ev[:, np.abs(np.arange(ev.shape[1]) - mid) > 1]  # lines 2 or more frames off (none: a short window)
         return self._localised(ev) & (ev[:, mid] >= far.max(axis=1, initial=0.0))
 
-    def nearby_evidence(self, queries: np.ndarray, refs: np.ndarray, source: Any) -> np.ndarray:
-        """``(n, 2 * (window // 2) + 1)``: the evidence (decades) of the query's own window on each line through
-        ``(queries[i], refs[i] + d)``, ``d = -window // 2 .. window // 2`` (column ``window // 2``: the pair's own
-        line; 0 where the reference would lie before the first frame)."""
+    def nearby_evidence(self, queries: np.ndarray, refs: np.ndarray, source: Any, speed: float = 1.0) -> np.ndarray:
+        """``(n, 2 * (window // 2) + 1)``: the evidence (decades) of the query's own window on each line at ``speed``
+        through ``(queries[i], refs[i] + d)``, ``d = -window // 2 .. window // 2`` (column ``window // 2``: the pair's
+        own line; 0 where the reference would lie before the first frame)."""
         queries, refs = np.asarray(queries, np.int64), np.asarray(refs, np.int64)
         near = np.arange(-(self.window // 2), self.window // 2 + 1, dtype=np.int64)
         qs, rs = np.repeat(queries, len(near)), (refs[:, None] + near[None, :]).ravel()
         ok = rs >= 0
         scores = np.full(len(rs), -np.inf)
         if ok.any():
-            scores[ok] = self.score(qs[ok], rs[ok], source)
+            scores[ok] = self.score(qs[ok], rs[ok], source, speed)
         return -self.tail.log10_sfs(scores).reshape(len(queries), len(near))
 
     def confidences(self, queries: np.ndarray, refs: np.ndarray, source: Any,
                     accept_at: float = -math.inf) -> np.ndarray:
-        """``(n,)`` ``-log10 NFA`` of each pair: the best span's (``-inf`` where no span agrees, or where it reaches
-        ``accept_at`` and the line is not ``localised``: checked only there, as only there it decides)."""
-        by_span = self.span_confidences(queries, refs, source)
+        """``(n,)`` ``-log10 NFA`` of each pair: the best span's on its best line (``-inf`` where no span agrees, or
+        where it reaches ``accept_at`` and the line is not ``localised``: checked only there, as only there it
+        decides)."""
+        by_span, speed = self._by_speed(queries, refs, source)
         if not by_span.size:
             return np.full(len(by_span), -math.inf)
         best = by_span.max(axis=1)
         check = np.flatnonzero(best >= accept_at)
-        if len(check):
-            queries, refs = np.asarray(queries, np.int64), np.asarray(refs, np.int64)
-            best[check[~self.localised(queries[check], refs[check], source)]] = -math.inf
+        queries, refs = np.asarray(queries, np.int64), np.asarray(refs, np.int64)
+        for v in np.unique(speed[check]):
+            at = check[speed[check] == v]
+            best[at[~self.localised(queries[at], refs[at], source, float(v))]] = -math.inf
         return best
 
-    def best_run(self, query_id: int, ref: int, source: Any) -> tuple[float, int]:
-        """The confidence of ``(query_id, ref)`` and the frames its best span covers (``m * window``; 0: none)."""
-        by_span = self.span_confidences(np.array([query_id], np.int64), np.array([ref], np.int64), source)[0]
-        j = int(np.argmax(by_span))
-        return float(by_span[j]), (j + 1) * self.window if np.isfinite(by_span[j]) else 0
+    def best_run(self, query_id: int, ref: int, source: Any) -> tuple[float, int, float]:
+        """The confidence of ``(query_id, ref)``, the query frames its best span covers (``m * window``; 0: none)
+        and its line's speed."""
+        by_span, speed = self._by_speed(np.array([query_id], np.int64), np.array([ref], np.int64), source)
+        j = int(np.argmax(by_span[0]))
+        return (float(by_span[0, j]), (j + 1) * self.window if np.isfinite(by_span[0, j]) else 0,
+                float(speed[0]))
 
 
 class Horizon:
@@ -536,27 +568,30 @@ class Decision:
 
     def _window_members(self, query_id: int, ref: int, source: Any) -> list[tuple[int, int]]:
         """The score path's ``run_members``: the frames of the accepted span (``ScoreSpans.best_run``: ``m`` windows,
-        ``m * window`` frames on the line ``query_id - ref``) whose own window is localised on it, each with its
-        keyframe on that line (one frame off at most); empty where the run does not reach ``accept_at`` or the score
-        path does not fuse (``source``: the code store the windows are scored on)."""
+        ``m * window`` query frames on the line through ``(query_id, ref)`` at its speed ``v``: frame ``q`` expects
+        keyframe ``ref - v (query_id - q)``) whose own window is localised on it, each with its keyframe on that line
+        (one frame off at most); empty where the run does not reach ``accept_at`` or the score path does not fuse
+        (``source``: the code store the windows are scored on)."""
         if self.spans is None or source is None:
             return []
-        value, frames = self.spans.best_run(query_id, ref, source)
+        value, frames, speed = self.spans.best_run(query_id, ref, source)
         if value < self.accept_at:
             return []
-        out, offset = [], query_id - ref
+        out, expected = [], []
         for q, refs, _ in self._recent:
             if not 0 < query_id - q < frames or not len(refs):
                 continue
-            off = np.abs((q - refs) - offset)
+            at = int(round(ref - speed * (query_id - q)))
+            off = np.abs(refs - at)
             if off.min() <= 1:
                 out.append((int(q), int(refs[int(np.argmin(off))])))
+                expected.append(at)
         if not out:
             return out
         # a member whose own window a line nearby beats does not lie on the run: the frame just before a revisit's
         # start reads only its own pair on the run's line (KITTI 90's frame 99 on frame 0, the revisit from 100 on)
         qs = np.array([q for q, _ in out], np.int64)
-        return [m for m, ok in zip(out, self.spans.on_line(qs, qs - offset, source)) if ok]
+        return [m for m, ok in zip(out, self.spans.on_line(qs, np.array(expected, np.int64), source, speed)) if ok]
 
     def confidences(self, query_id: int, refs: np.ndarray, inliers: np.ndarray, source: Any,
                     fallback: np.ndarray | None = None) -> np.ndarray:

@@ -128,10 +128,12 @@ default_conf: dict[str, Any] = {
         #                     pair null is their empirical p-value, so more pairs let one pair claim more)
         "min_features": 50,  # median keypoints per frame under which local verification is not used
         "min_inliers": 12,  # floor of the calibrated inlier threshold (a 7-point model always fits 7)
-        "speeds": [1.0, 2.0, 3.0],  # keyframes the map advances per query frame on the line of a verified run
+        "speeds": [1.0, 2.0, 3.0],  # keyframes the map advances per query frame on the line of a run
         #                            (retrieval.decision: a run is fused on the line of one speed, their choice
         #                            counted in the tests): a revisit 2x or 3x as fast as the map is fused frame
-        #                            after frame; a slower one (to 0.5x) stays within a line's drift (TOL)
+        #                            after frame (verified runs: a speed between them, or a slower one to 0.5x,
+        #                            stays within a line's drift, TOL; the score path's windows need the speed
+        #                            itself: 1.25x-1.75x and 2.5x are not found there)
         "verification": "auto",  # "auto": used when features suffice; "on": always; "off": global + temporal only
         "max_frames": 2000,  # frames the calibration reads at most (blocks spread over longer sequences)
         "features_px": 384,  # calibrated: local features downscaled to this longer side (px) instead of
@@ -386,8 +388,8 @@ class LoopDetector:
         if c["calibration"]["enabled"] and len([v for v in self.filter.conf.get("velocities", [1.0]) if v > 0]) > 1:
             log.warning("temporal filter lines at several speeds (temporal.velocities: %s): where local features are "
                         "too few to verify (the score path, a 64x32 camera) its windows are not placed within half a "
-                        "window of the query's frame (KITTI 90 at 64x32 with [1, 2, 3]: precision 0.775); verified "
-                        "runs take their speeds from calibration.speeds", self.filter.conf["velocities"])
+                        "window of the query's frame (KITTI 90 at 64x32 with [1, 2, 3]: precision 0.775); runs take "
+                        "their speeds from calibration.speeds", self.filter.conf["velocities"])
         self._verify = bool(self.calibration.inlier_null) if self.calibration is not None else c["policy"]["verify"]
         self._verify = self._verify and self._online is None  # online: nothing verified until calibrated
         self._min_inliers = c["policy"]["min_inliers"]

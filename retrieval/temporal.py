@@ -22,7 +22,8 @@ The interface, shapes included::
 
     filt.update(query_id, candidate_ids (m,) int64, source) -> (hypothesis_ids (h,) int64, scores (h,) float32)
     filt.commit(query_id, kept_ids (j,) int64)     # the hypotheses the caller kept (carried to later frames)
-    filt.score(query_ids (n,), ref_ids (n,), source) -> (n,) float32   # any pairs (the calibration's null)
+    filt.score(query_ids (n,), ref_ids (n,), source, speed=1.0) -> (n,) float32   # any pairs (the calibration's null);
+                                                                             # speed: the lines' velocities scaled
 
 ``source`` is a ``SimilaritySource`` (``CodeTable``: normalised codes by frame id): ``pairs(queries (n,), refs (n,)) -> (n,) float32`` similarities of stored
 frames (NaN where a frame is not stored) and ``searchable(refs (n,)) -> (n,) bool``. Hypotheses come back best
@@ -178,8 +179,12 @@ class TemporalFilter:
     def reset(self) -> None:
         """Forgets the recent history (e.g. after a gap in the stream)."""
 
-    def score(self, query_ids: np.ndarray, ref_ids: np.ndarray, source: SimilaritySource) -> np.ndarray:
-        """The filter's score of given ``(query, keyframe)`` pairs, ``(n,)`` -> ``(n,)`` (calibration uses it)."""
+    def score(self, query_ids: np.ndarray, ref_ids: np.ndarray, source: SimilaritySource,
+              speed: float = 1.0) -> np.ndarray:
+        """The filter's score of given ``(query, keyframe)`` pairs, ``(n,)`` -> ``(n,)`` (calibration uses it), on
+        lines at ``speed`` times the filter's own velocities (a revisit that many times as fast as the map: the score
+        path's lines at ``calibration.speeds``, ``retrieval.decision.ScoreSpans``); a filter without lines ignores
+        it."""
         raise NotImplementedError
 
 
@@ -197,7 +202,8 @@ class NoFilter(TemporalFilter):
         ids = np.asarray(candidate_ids, np.int64).reshape(-1)
         return _ranked(ids, self.score(np.full(len(ids), query_id), ids, source))
 
-    def score(self, query_ids: np.ndarray, ref_ids: np.ndarray, source: SimilaritySource) -> np.ndarray:
+    def score(self, query_ids: np.ndarray, ref_ids: np.ndarray, source: SimilaritySource,
+              speed: float = 1.0) -> np.ndarray:
         return np.nan_to_num(source.pairs(np.asarray(query_ids, np.int64), np.asarray(ref_ids, np.int64)), nan=0.0)
 
 
@@ -210,7 +216,7 @@ class SequenceFilter(TemporalFilter):
         "length": 10,  # frames in a sequence match (the query and the length - 1 before it)
         "velocities": [1.0],  # map frames advanced per query frame, one hypothesis line each (-1: reverse revisit);
         #                      several positive ones cost the score path its precision (KITTI 90 at 64x32, [1, 2,
-        #                      3]: 0.775; the detector warns): verified runs take theirs from calibration.speeds
+        #                      3]: 0.775; the detector warns): runs take theirs from calibration.speeds
         "max_hypotheses": 64,  # hypotheses kept per query, best first
     }
     conf_rules: dict[str, Any] = {"length": Int(1, 1000), "velocities": Floats(-10, 10),
@@ -241,8 +247,9 @@ class SequenceFilter(TemporalFilter):
     def commit(self, query_id: int, kept_ids: np.ndarray) -> None:
         self._recent.append((int(query_id), np.asarray(kept_ids, np.int64).reshape(-1).copy()))
 
-    def score(self, query_ids: np.ndarray, ref_ids: np.ndarray, source: SimilaritySource) -> np.ndarray:
-        """``max over v of (1/length) * sum_i sim(q - i, round(r - v*i))``; unknown terms count 0."""
+    def score(self, query_ids: np.ndarray, ref_ids: np.ndarray, source: SimilaritySource,
+              speed: float = 1.0) -> np.ndarray:
+        """``max over v of (1/length) * sum_i sim(q - i, round(r - speed*v*i))``; unknown terms count 0."""
         q = np.asarray(query_ids, np.int64).reshape(-1, 1)
         r = np.asarray(ref_ids, np.int64).reshape(-1, 1)
         if len(q) == 0:
@@ -250,7 +257,7 @@ class SequenceFilter(TemporalFilter):
         best = np.full(len(q), -np.inf)
         qs = (q - self._steps.astype(np.int64)).ravel()  # the query and the frames before it, for every pair
         for v in self.conf["velocities"]:
-            rs = np.rint(r - v * self._steps).astype(np.int64).ravel()
+            rs = np.rint(r - speed * v * self._steps).astype(np.int64).ravel()
             sims = np.full(len(qs), np.nan, np.float32)
             ok = (qs >= 0) & (rs >= 0) & (rs < qs)
             sims[ok] = source.pairs(qs[ok], rs[ok])
@@ -320,7 +327,8 @@ class BayesFilter(TemporalFilter):
         ranked_ids, ranked = _ranked(ids, np.where(peak, _window(self._post, w, np.sum), self._post))
         return ranked_ids[: self.conf["max_hypotheses"]], ranked[: self.conf["max_hypotheses"]]
 
-    def score(self, query_ids: np.ndarray, ref_ids: np.ndarray, source: SimilaritySource) -> np.ndarray:
+    def score(self, query_ids: np.ndarray, ref_ids: np.ndarray, source: SimilaritySource,
+              speed: float = 1.0) -> np.ndarray:
         """The similarity itself: a posterior depends on the whole history, not on one pair."""
         return np.nan_to_num(source.pairs(np.asarray(query_ids, np.int64), np.asarray(ref_ids, np.int64)), nan=0.0)
 

@@ -301,7 +301,7 @@ class TestScoreSpans:
     def _spans(values: dict[int, float], n: int = 9999):
         from retrieval.decision import EmpiricalTail, MeasuredTail, ScoreSpans
 
-        def score(q, r, source):  # the filter's window score, by the window's query
+        def score(q, r, source, speed=1.0):  # the filter's window score, by the window's query
             return np.array([values.get(int(x), 0.0) for x in q], np.float64)
 
         null = EmpiricalTail(np.linspace(-0.1, 0.1, n))  # n null window scores: at most log10(n + 1) = 4 decades each
@@ -324,6 +324,29 @@ class TestScoreSpans:
         win = spans.windows(np.array([300]), np.array([15]), None)  # the third window's pair would be (280, -5)
         assert not np.isnan(win[0, :2]).any() and np.isnan(win[0, 2])
 
+    def test_windows_on_a_faster_line_fuse_at_its_speed(self):
+        """A revisit twice as fast as the map: its windows lie on the line through ``(300, 100)`` at 2x (the earlier
+        windows end at keyframes 80 and 60, each scored on lines at twice the filter's velocities); at the map's speed
+        only the query's own window reads (keyframes 90 and 80 do not), and one window cannot accept."""
+        from retrieval.decision import EmpiricalTail, MeasuredTail, ScoreSpans
+
+        on_line = {(300, 100, 2.0), (290, 80, 2.0), (280, 60, 2.0)}
+
+        def score(q, r, source, speed=1.0):  # 0.35 on the 2x line's windows, scored at 2x; the null's median else
+            return np.array([0.35 if (int(a), int(b), speed) in on_line else 0.0 for a, b in zip(q, r)], np.float64)
+
+        def spans(speeds):
+            return ScoreSpans(score, 10, EmpiricalTail(np.linspace(-0.1, 0.1, 9999)), [MeasuredTail(np.zeros(0))] * 3,
+                              1e4 * len(speeds), speeds)
+
+        accept_at, q, r = -math.log10(0.05), np.array([300]), np.array([100])
+        assert spans((1.0,)).confidences(q, r, None)[0] < accept_at
+        both = spans((1.0, 2.0))
+        assert both.confidences(q, r, None)[0] >= accept_at
+        value, frames, speed = both.best_run(300, 100, None)
+        assert value >= accept_at and frames == 30 and speed == 2.0
+        assert np.isfinite(both.fused_best(q, r, None)).all() and both.fused_best(q, r, None)[0, 2] > 0
+
     def test_a_member_beaten_by_a_line_more_than_a_frame_off_is_not_on_the_run(self):
         """A member's own window on the run's line (99 -> 0) against the lines nearby: 1.25 decades where a line 5
         frames off reads 1.71 is within ``LOCALISE`` (localised) but not on the line (measured with KITTI 90 at 64x32
@@ -332,7 +355,7 @@ class TestScoreSpans:
         from retrieval.decision import EmpiricalTail, ScoreSpans
 
         def spans(values):
-            def score(q, r, source):  # the window score by its (query, reference)
+            def score(q, r, source, speed=1.0):  # the window score by its (query, reference)
                 return np.array([values.get((int(a), int(b)), 0.0) for a, b in zip(q, r)], np.float64)
             return ScoreSpans(score, 10, EmpiricalTail(np.linspace(-0.1, 0.1, 9999)), [], 1e4)
 

@@ -5,6 +5,7 @@ import csv
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -706,3 +707,35 @@ class TestARevisitAtAnotherSpeed:
     def test_without_the_walk_loops_lag(self, kitti_sequences, encoder):
         _, false = self.stream(kitti_sequences, encoder, 0)
         assert len(false) >= 3, false  # measured: 127 on 24, 145 on 40, 181 on 77 ... 190 on 80
+
+
+class TestAFasterRevisitOnTheScorePath:
+    """KITTI 90 at 64x32 (too few keypoints to verify: the score path decides) with its second pass twice as fast
+    (every second frame from 100): its windows lie on a line at 2x the map's speed, which the score path fuses at
+    ``calibration.speeds`` (``retrieval.decision.ScoreSpans``); at the map's speed only, nothing is found."""
+
+    KEEP = (*range(100), *range(100, 200, 2))
+
+    def stream(self, kitti_sequences, encoder, speeds):
+        from retrieval.sequences import open_sequence
+
+        seq = open_sequence(kitti_sequences / "90")
+        loops = []
+        with LoopDetector({"calibration": {"speeds": speeds}}, encoder=encoder) as det:
+            for i, src in enumerate(self.KEEP):
+                image = cv2.resize(seq.read_frame(src)[0], (64, 32), interpolation=cv2.INTER_AREA)
+                result = det.process(image, i)
+                loops += [(self.KEEP[f], self.KEEP[cd.frame_id]) for f, cd in result.confirmed]
+                loops += [(src, self.KEEP[result.loop.frame_id])] if result.loop is not None else []
+            assert not det.deciding_calibration.inlier_null  # the score path decided
+        truth = {tuple(sorted(p)) for p in read_loop_pairs(kitti_sequences / "90" / "loops.txt").tolist()}
+        return loops, [pair for pair in loops if tuple(sorted(pair)) not in truth]
+
+    def test_a_revisit_twice_as_fast_is_found(self, kitti_sequences, encoder):
+        loops, false = self.stream(kitti_sequences, encoder, [1.0, 2.0, 3.0])
+        assert not false, false
+        assert len({q for q, _ in loops}) >= 35  # measured (detect): 49 of the 50 queries
+
+    def test_at_the_maps_speed_only_it_is_not(self, kitti_sequences, encoder):
+        loops, _ = self.stream(kitti_sequences, encoder, [1.0])
+        assert not loops
