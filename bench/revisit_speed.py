@@ -1,11 +1,12 @@
 """A revisit at another speed (issue 27): each loop must name the place the query stands at.
 
 KITTI 90's first pass whole and its second pass taking every 2nd or 3rd frame (the road driven again 2x or 3x as
-fast), at full size (1241x376), at 160x120 and at 64x32 (too few keypoints to verify: the score path decides, on the
-sequence filter's lines at the map's speed only), as plain folders (no calibration); `cae-lcd detect` with the default
-config, with the verified runs fused on lines at the map's speed only (`calibration.speeds: [1.0]`; the default
-fuses them at 1x, 2x and 3x, `retrieval.decision`), and without the walk that names where the query stands
-(`search.localise_steps: 0`, `retrieval.localise`). A loop is true where the ground truth (5 m on the ground
+fast), at full size (1241x376), at 160x120 and at 64x32 (too few keypoints to verify: the score path decides, on
+lines at the map's speed by default), as plain folders (no calibration); `cae-lcd detect` with the default config,
+with the verified runs fused on lines at the map's speed only (`calibration.speeds: [1.0]`; the default fuses them
+at 1x, 2x and 3x, `retrieval.decision`), without the walk that names where the query stands
+(`search.localise_steps: 0`, `retrieval.localise`), and with the score path's windows on lines at 1x, 2x and 3x
+(`calibration.score_speeds: [1, 2, 3]`; the verified paths do not read it). A loop is true where the ground truth (5 m on the ground
 plane) holds its pair; its distance is read from `poses/90.txt`.
 
 ``python -m bench.revisit_speed [--out runs/bench/revisit_speed] [--no-write]``
@@ -28,7 +29,9 @@ SIZES = {"full size": None, "160x120": (160, 120), "64x32 (score path)": (64, 32
 KITTI90 = REPO.parent / "shared" / "datasets" / "kitti" / "sequences" / "90"  #: the sequence and its ground truth
 VARIANTS = {"default": {},
             "runs at the map's speed only (`calibration.speeds: [1.0]`)": {"calibration": {"speeds": [1.0]}},
-            "without the walk (`search.localise_steps: 0`)": {"search": {"localise_steps": 0}}}
+            "without the walk (`search.localise_steps: 0`)": {"search": {"localise_steps": 0}},
+            "score path at 1x, 2x, 3x (`calibration.score_speeds: [1, 2, 3]`)":
+                {"calibration": {"score_speeds": [1.0, 2.0, 3.0]}}}
 
 
 def speed_folder(out: Path, step: int, size: tuple[int, int] | None) -> tuple[Path, list[int]]:

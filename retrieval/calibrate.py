@@ -657,7 +657,7 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
         null_table, apart = table, _null_scores(ids, table, filt, window, moved, window // 2)  # far apart in moved
         apart = apart if len(apart) >= MIN_NULL_PAIRS else null  # frames too
     far = None if cal.inlier_null else _reversed_lines(ids, null_table, filt, window, moved, int(apart[:, 0].min()))
-    _score_path(cal, apart, filt, null_table, far, tuple(conf["calibration"]["speeds"]))
+    _score_path(cal, apart, filt, null_table, far, tuple(conf["calibration"]["score_speeds"]))
     if null_table is not table:
         cal.score_null["held_out"] = float(held_out)
     _stretch(cal, ids, table, moved, descriptor.still_cos)

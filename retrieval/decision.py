@@ -35,9 +35,9 @@ verified as in the run), and what a loop looks like: the **positives** (a frame 
   would be accepted alone and no hard negative is); elsewhere a loop needs evidence from ``min_support`` frames.
 - **The score path fuses too** (``ScoreSpans``, where local features are too few to verify; issue 27: measured, not
   extrapolated): the temporal score of a hypothesis is the mean similarity along a line of ``length`` frames (a
-  window), on lines at one of ``speeds`` (window ``j`` of a line at speed ``v`` through ``(q, r)``: ``(q - j length,
-  r - v j length)``, the filter's own lines scaled by ``v``), the best speed's taken, its null measured the same way
-  and every speed counted among the tests. One window's evidence is its empirical p-value among the far-side pairs' window scores (``EmpiricalTail``,
+  window), on lines at one of ``speeds`` (``calibration.score_speeds``, the map's speed by default; window ``j`` of a
+  line at speed ``v`` through ``(q, r)``: ``(q - j length, r - v j length)``, the filter's own lines scaled by ``v``),
+  the best speed's taken, its null measured the same way and every speed counted among the tests. One window's evidence is its empirical p-value among the far-side pairs' window scores (``EmpiricalTail``,
   at most ``log10(n + 1)`` decades: no Gaussian tail past the sample). ``m`` consecutive windows on the same line
   (``m`` up to ``span``) fuse: every window must agree (at least ``AGREE`` decades: one weak, missing or contrary
   window vetoes the longer spans), their evidence is summed, and its null is the heavier of the Gamma(m) tail
@@ -240,7 +240,7 @@ class ScoreSpans:
         measured: ``[MeasuredTail]``, one per number of windows fused ``m = 1..span``: the fused evidence of the
             far-side lines of ``m`` windows, the best of the speeds.
         tests: hypotheses the run tests (every span and speed counted).
-        speeds: the lines' speeds (``calibration.speeds``).
+        speeds: the lines' speeds (``calibration.score_speeds``).
     """
 
     def __init__(self, score: Any, window: int, tail: "EmpiricalTail", measured: list["MeasuredTail"],

@@ -183,7 +183,7 @@ class TemporalFilter:
               speed: float = 1.0) -> np.ndarray:
         """The filter's score of given ``(query, keyframe)`` pairs, ``(n,)`` -> ``(n,)`` (calibration uses it), on
         lines at ``speed`` times the filter's own velocities (a revisit that many times as fast as the map: the score
-        path's lines at ``calibration.speeds``, ``retrieval.decision.ScoreSpans``); a filter without lines ignores
+        path's lines at ``calibration.score_speeds``, ``retrieval.decision.ScoreSpans``); a filter without lines ignores
         it."""
         raise NotImplementedError
 
@@ -216,7 +216,8 @@ class SequenceFilter(TemporalFilter):
         "length": 10,  # frames in a sequence match (the query and the length - 1 before it)
         "velocities": [1.0],  # map frames advanced per query frame, one hypothesis line each (-1: reverse revisit);
         #                      several positive ones cost the score path its precision (KITTI 90 at 64x32, [1, 2,
-        #                      3]: 0.775; the detector warns): runs take theirs from calibration.speeds
+        #                      3]: 0.775; the detector warns): runs take theirs from calibration.speeds and
+        #                      calibration.score_speeds
         "max_hypotheses": 64,  # hypotheses kept per query, best first
     }
     conf_rules: dict[str, Any] = {"length": Int(1, 1000), "velocities": Floats(-10, 10),

@@ -711,8 +711,9 @@ class TestARevisitAtAnotherSpeed:
 
 class TestAFasterRevisitOnTheScorePath:
     """KITTI 90 at 64x32 (too few keypoints to verify: the score path decides) with its second pass twice as fast
-    (every second frame from 100): its windows lie on a line at 2x the map's speed, which the score path fuses at
-    ``calibration.speeds`` (``retrieval.decision.ScoreSpans``); at the map's speed only, nothing is found."""
+    (every second frame from 100): its windows lie on a line at 2x the map's speed, which the score path fuses where
+    ``calibration.score_speeds`` holds it (``retrieval.decision.ScoreSpans``); at the map's speed only (the default),
+    nothing is found."""
 
     KEEP = (*range(100), *range(100, 200, 2))
 
@@ -721,7 +722,7 @@ class TestAFasterRevisitOnTheScorePath:
 
         seq = open_sequence(kitti_sequences / "90")
         loops = []
-        with LoopDetector({"calibration": {"speeds": speeds}}, encoder=encoder) as det:
+        with LoopDetector({"calibration": {"score_speeds": speeds}}, encoder=encoder) as det:
             for i, src in enumerate(self.KEEP):
                 image = cv2.resize(seq.read_frame(src)[0], (64, 32), interpolation=cv2.INTER_AREA)
                 result = det.process(image, i)
