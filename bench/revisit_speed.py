@@ -6,8 +6,8 @@ lines at the map's speed by default), as plain folders (no calibration); `cae-lc
 with the verified runs fused on lines at the map's speed only (`calibration.speeds: [1.0]`; the default fuses them
 at 1x, 2x and 3x, `retrieval.decision`), without the walk that names where the query stands
 (`search.localise_steps: 0`, `retrieval.localise`), and with the score path's windows on lines at 1x, 2x and 3x
-(`calibration.score_speeds: [1, 2, 3]`; the verified paths do not read it). A loop is true where the ground truth (5 m on the ground
-plane) holds its pair; its distance is read from `poses/90.txt`.
+(`calibration.score_speeds: [1, 2, 3]`; the verified paths do not read it). A loop is true where the ground truth
+(5 m on the ground plane) holds its pair; its distance is read from `poses/90.txt`.
 
 ``python -m bench.revisit_speed [--out runs/bench/revisit_speed] [--no-write]``
 """

@@ -37,8 +37,9 @@ verified as in the run), and what a loop looks like: the **positives** (a frame 
   extrapolated): the temporal score of a hypothesis is the mean similarity along a line of ``length`` frames (a
   window), on lines at one of ``speeds`` (``calibration.score_speeds``, the map's speed by default; window ``j`` of a
   line at speed ``v`` through ``(q, r)``: ``(q - j length, r - v j length)``, the filter's own lines scaled by ``v``),
-  the best speed's taken, its null measured the same way and every speed counted among the tests. One window's evidence is its empirical p-value among the far-side pairs' window scores (``EmpiricalTail``,
-  at most ``log10(n + 1)`` decades: no Gaussian tail past the sample). ``m`` consecutive windows on the same line
+  the best speed's taken, its null measured the same way and every speed counted among the tests. One window's
+  evidence is its empirical p-value among the far-side pairs' window scores (``EmpiricalTail``, at most
+  ``log10(n + 1)`` decades: no Gaussian tail past the sample). ``m`` consecutive windows on the same line
   (``m`` up to ``span``) fuse: every window must agree (at least ``AGREE`` decades: one weak, missing or contrary
   window vetoes the longer spans), their evidence is summed, and its null is the heavier of the Gamma(m) tail
   (disjoint windows taken as independent) and the fused evidence measured on the far-side lines of ``m`` windows
