@@ -255,8 +255,8 @@ def _frames_through(det: LoopDetector, seq: Sequence, start: int, progress: bool
                 image = err
             else:
                 timings.append(res.ms)
-                poses.add([(i, res.loop.frame_id)] if res.loop is not None else [])
-                poses.add((q, c.frame_id) for q, c in res.confirmed)
+                poses.add([*([(i, res.loop.frame_id)] if res.loop is not None else []),
+                           *((q, c.frame_id) for q, c in res.confirmed)])
                 n_loops += (res.loop is not None) + len(res.confirmed)  # delayed loops too (each reported once)
                 bar.set_postfix(loops=n_loops, ms=f"{res.ms['total']:.0f}")
                 continue

@@ -83,7 +83,7 @@ def test_poses_refined_ahead_are_the_poses_made_after(sift_features, sample_K):
         np.testing.assert_array_equal(geo.refined[0], fresh.refined[0])
 
 
-def test_poses_refine_side_by_side(sift_features, sample_K):
+def test_poses_refine_side_by_side(sift_features, sample_K, monkeypatch):
     """A check's refined pose is kept without a lock shared by every check (``functools.cached_property``'s before
     Python 3.12 made two threads refine one pose at a time): two threads refining two pairs each compute at once."""
     import threading
@@ -102,15 +102,12 @@ def test_poses_refine_side_by_side(sift_features, sample_K):
         met.append(both.wait(2))  # the first waits here until the second is inside too (False: it never came)
         return refine(*args, **kwargs)
 
-    geometry.refined_pose = counted
-    try:
-        threads = [threading.Thread(target=getattr, args=(g, "refined")) for g in geos]
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join()
-    finally:
-        geometry.refined_pose = refine
+    monkeypatch.setattr(geometry, "refined_pose", counted)
+    threads = [threading.Thread(target=getattr, args=(g, "refined")) for g in geos]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
     assert met == [True, True]
 
 
