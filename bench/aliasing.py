@@ -122,13 +122,15 @@ def paused_folder(dst: Path, sources: list[Path], size: tuple[int, int], seed: i
 DARKER = {"scale": 0.2, "noise_sigma": 0.03, "blur_sigma": 1.2}
 
 
-def dark_proxy_folder(dst: Path, frames90: list[Path], seed: int = 0, **darkness: float) -> Path:
-    """KITTI 90 shrunk to 160x120 (INTER_AREA, plain folder) with its second pass (the last half of the frames)
-    made dark and noisy by ``bench.augment.darken`` (one generator seeded ``seed``; ``darkness``: its arguments,
-    e.g. ``DARKER``): a change of light where retrieval still finds the place. The proxy of issues 27 and 28 for the
-    held-out night and indoor sets."""
+def dark_proxy_folder(dst: Path, frames90: list[Path], seed: int = 0, second: int | None = None,
+                      **darkness: float) -> Path:
+    """KITTI 90 shrunk to 160x120 (INTER_AREA, plain folder) with its second pass (from frame ``second``; None: the
+    last half of the frames) made dark and noisy by ``bench.augment.darken`` (one generator seeded ``seed``;
+    ``darkness``: its arguments, e.g. ``DARKER``): a change of light where retrieval still finds the place. The
+    proxy of issues 27 and 28 for the held-out night and indoor sets."""
     rng = np.random.default_rng(seed)
-    return plain_folder(dst, frames90, (160, 120), lambda image: darken(image, rng, **darkness), len(frames90) // 2)
+    return plain_folder(dst, frames90, (160, 120), lambda image: darken(image, rng, **darkness),
+                        len(frames90) // 2 if second is None else second)
 
 
 def dusk_folder(dst: Path, frames90: list[Path], seed: int = 0, lens: float | None = None) -> Path:
@@ -154,6 +156,9 @@ def stress_sets(data: Path, run_dir: Path) -> dict[str, tuple[Path, np.ndarray |
                                                            truth90),
         "KITTI 90 at 160x120, second pass darker (too few keypoints to verify)": (
             dark_proxy_folder(run_dir / "k90_160_darker", frames90, **DARKER), truth90),
+        "the same, its first 190 frames (no fit after the night begins but the stream's own)": (
+            dark_proxy_folder(run_dir / "k90_160_darker_190", frames90[:190], second=100, **DARKER),
+            truth90[truth90.max(axis=1) < 190]),
         "KITTI 00 (no revisit)": (kitti / "00", None),
         "KITTI 07 (no revisit)": (kitti / "07", None),
         "Nordland summer -> winter (64x32)": (data / "nordland", read_loop_pairs(data / "nordland" / "loops.txt")),

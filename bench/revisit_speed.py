@@ -1,7 +1,7 @@
 """A revisit at another speed (issue 27): each loop must name the place the query stands at.
 
-KITTI 90's first pass whole and its second pass taking every 2nd or 3rd frame (the road driven again 2x or 3x as
-fast), at full size (1241x376), at 160x120 and at 64x32 (too few keypoints to verify: the score path decides, on
+KITTI 90's first pass whole and its second pass taking frames 1.15, 2 or 3 apart (frame `100 + round(v k)`: the
+road driven again 1.15x, 2x or 3x as fast), at full size (1241x376), at 160x120 and at 64x32 (too few keypoints to verify: the score path decides, on
 lines at the map's speed by default), as plain folders (no calibration); `cae-lcd detect` with the default config,
 with the verified runs fused on lines at the map's speed only (`calibration.speeds: [1.0]`; the default fuses them
 at 1x, 2x and 3x, `retrieval.decision`), without the walk that names where the query stands
@@ -24,7 +24,7 @@ from .common import REPO, md_table, work_study_cli
 
 log = logging.getLogger(__name__)
 
-STEPS = (2, 3)  #: the second pass takes every n-th frame
+SPEEDS = (1.15, 2.0, 3.0)  #: the second pass takes frame ``100 + round(v k)``: driven again ``v`` times as fast
 SIZES = {"full size": None, "160x120": (160, 120), "64x32 (score path)": (64, 32)}
 KITTI90 = REPO.parent / "shared" / "datasets" / "kitti" / "sequences" / "90"  #: the sequence and its ground truth
 VARIANTS = {"default": {},
@@ -34,16 +34,18 @@ VARIANTS = {"default": {},
                 {"calibration": {"score_speeds": [1.0, 2.0, 3.0]}}}
 
 
-def speed_folder(out: Path, step: int, size: tuple[int, int] | None) -> tuple[Path, list[int]]:
-    """KITTI 90's first pass (frames 0-99) and every ``step``-th frame of its second (100-199), resized to ``size``,
-    as a plain folder under ``out``; and each written frame's index in KITTI 90."""
+def speed_folder(out: Path, speed: float, size: tuple[int, int] | None) -> tuple[Path, list[int]]:
+    """KITTI 90's first pass (frames 0-99) and its second (100-199) at ``speed`` times the first's (frames
+    ``100 + round(speed k)``), resized to ``size``, as a plain folder under ``out``; and each written frame's index in
+    KITTI 90."""
     from retrieval.sequences import open_sequence
 
     from .aliasing import plain_folder
 
-    keep = [*range(100), *range(100, 200, step)]
+    keep = [*range(100), *sorted({100 + round(speed * k) for k in range(int(100 / speed) + 1)
+                                  if 100 + round(speed * k) < 200})]
     frames = list(open_sequence(KITTI90).frames)
-    name = f"k90_{step}x_{'full' if size is None else f'{size[0]}x{size[1]}'}"
+    name = f"k90_{speed:g}x_{'full' if size is None else f'{size[0]}x{size[1]}'}"
     return plain_folder(out / name, [frames[i] for i in keep], size), keep
 
 
@@ -70,10 +72,10 @@ def main(out: str | Path, write: bool = True) -> dict[str, dict[str, dict[str, A
 
     out = Path(out)
     results: dict[str, dict[str, dict[str, Any]]] = {}
-    for step in STEPS:
+    for speed in SPEEDS:
         for size_name, size in SIZES.items():
-            folder, keep = speed_folder(out, step, size)
-            label = f"second pass at {step}x, {size_name}"
+            folder, keep = speed_folder(out, speed, size)
+            label = f"second pass at {speed:g}x, {size_name}"
             results[label] = {}
             for variant, conf in VARIANTS.items():
                 summary = detect_run(folder, out / f"{folder.name}_{len(results[label])}", conf)

@@ -57,7 +57,9 @@ Before a run, the calibration looks at the sequence itself (``cae-lcd calibrate 
 4. **Which path decides**: where local features can verify (the median frame has at least ``min_features``
    keypoints), geometry decides, fused over consecutive frames: the *inlier path*. Where they are too few (a 64x32
    camera), verification is switched off and the summary says so: loops then rest on the normalised code plus
-   temporal consistency, the *score path*.
+   temporal consistency, the *score path*. A stream (``retrieval.online``) asks it of the frames it decides next,
+   its newest ones (``newest_keypoints``): a revisit at night after a day's map has a day's keypoints in most of
+   the frames a fit reads and too few to verify in the frames the stream is deciding.
 5. **The threshold**, a-contrario: a candidate is accepted when the expected number of false loops at its strength
    over the whole run, ``NFA = tests * P_null(>= value)``, is at most ``expected_false_loops / 2`` (the score path
    tests every query against every keyframe, at every span of fused windows; the inlier path tests ``k``
@@ -582,7 +584,8 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
               progress: bool = True, codes: dict[int, np.ndarray] | None = None,
               features: dict[int, Any] | None = None, ratios: dict[int, float] | None = None,
               local: Callable[[int], Any] | None = None, held_out: float = 0.0,
-              verified: dict[tuple[int, int], int] | None = None) -> Calibration:
+              verified: dict[tuple[int, int], int] | None = None,
+              newest_keypoints: float | None = None) -> Calibration:
     """Calibrates on a sequence's frames (see the module doc).
 
     Args:
@@ -607,6 +610,9 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
             whitening is not fitted on, the score path's nulls drawn from their far-side pairs only
             (``_out_of_sample``: a stream decides frames its whitening has not seen, ``retrieval.online``); 0: fitted
             on every frame, the nulls from every frame (a sequence calibrated before its run).
+        newest_keypoints: the median keypoints a frame of the frames the run decides next (a stream's newest ones,
+            ``retrieval.online``); where given, it says which path decides (at least ``calibration.min_features``:
+            the inlier path) instead of the frames read; None: the frames read say it.
 
     Raises:
         ConfigError: too few usable frames, or an exclusion window too short to hold null pairs (``TooFewFrames``
@@ -642,7 +648,7 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
     n_keyframes = max(len(ids) * n_frames / max(len(images), 1), 2.0)
     cal.tests = {"score": max(n_keyframes, (n_keyframes - window) ** 2 / 2),  # every query against every keyframe
                  "inliers": n_keyframes * conf["search"]["k"] * SPAN}  # every run length 1..span counted
-    shared += _inlier_path(cal, conf, images, null, table, K, progress, features, local, verified)
+    shared += _inlier_path(cal, conf, images, null, table, K, progress, features, local, verified, newest_keypoints)
     if held_out and not cal.inlier_null:  # a stream on the score path: its nulls measured out of sample
         null_table, apart = _out_of_sample(cal, conf["whitening"], descriptor, filt, ids, codes, moved, window,
                                            held_out, "the score path's null")
@@ -1035,9 +1041,10 @@ def _fused_samples(seqs: list[list[int]], decision: Decision) -> np.ndarray:
 def _inlier_path(cal: Calibration, conf: dict[str, Any], images: dict[int, np.ndarray], null: np.ndarray,
                  table: CodeTable, K: np.ndarray | None, progress: bool, feats: dict[int, Any] | None = None,
                  local: Callable[[int], Any] | None = None,
-                 verified: dict[tuple[int, int], int] | None = None) -> float:
+                 verified: dict[tuple[int, int], int] | None = None, newest_keypoints: float | None = None) -> float:
     """Hard negatives, random pairs and positives verified (those in ``verified`` not again); the pair tail, the
-    fused tail, whether one pair may decide alone; or verification switched off where local features are too few.
+    fused tail, whether one pair may decide alone; or verification switched off where local features are too few
+    (in the median frame of the random pairs', or ``newest_keypoints``: of the frames the run decides next).
     The local features extracted go into ``feats`` (for the run to reuse; ``local(frame_id)`` gives them where the
     frames' images are not given); returns the seconds spent extracting them."""
     cc = conf["calibration"]
@@ -1054,9 +1061,12 @@ def _inlier_path(cal: Calibration, conf: dict[str, Any], images: dict[int, np.nd
     # features enough to verify? Looked at first on every query's random pair (its two frames)
     verify.prefetch(f for name, pairs in plan if name == "random" for pair in pairs for f in pair)
     median_kp = float(np.median(verify.keypoints()))
-    if cc["verification"] == "auto" and median_kp < cc["min_features"]:
-        cal.notes.append(f"verification: off, local features too few to verify (median {median_kp:.0f} keypoints "
-                         f"per frame < calibration.min_features {cc['min_features']}); loops rest on the normalised "
+    deciding = median_kp if newest_keypoints is None else float(newest_keypoints)
+    if cc["verification"] == "auto" and deciding < cc["min_features"]:
+        whose = "per frame" if newest_keypoints is None else \
+            f"in the stream's newest frames, {median_kp:.0f} in the frames read"
+        cal.notes.append(f"verification: off, local features too few to verify (median {deciding:.0f} keypoints "
+                         f"{whose} < calibration.min_features {cc['min_features']}); loops rest on the normalised "
                          "code and temporal consistency")
         return 0.0  # features the run will not use: not the run's work
     got = _samples(plan, verify, progress)

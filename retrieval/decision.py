@@ -48,7 +48,9 @@ verified as in the run), and what a loop looks like: the **positives** (a frame 
   than ``m`` independent such windows would under the Gamma tail (and no more than its measured null shows where
   that is heavier); where the sample cannot certify the run's tests in one window, a loop needs several windows
   above every far-side pair (the calibration notes say how many). The line must say *where* the query is: its own
-  window is not beaten by more than ``LOCALISE`` decades on a line up to ``length // 2`` frames off (``localised``),
+  window is not beaten on a line up to ``length // 2`` frames off by more than ``LOCALISE`` decades, nor by more
+  than ``LOCAL_SPREAD`` null spreads of raw score (a strong revisit saturates every nearby window's evidence; a
+  revisit a little faster than the line drifts off it) (``localised``),
   and the stop rule holds on the query's frame and the one before (``Stops.line_admissible``). An accepted run
   certifies its earlier frames on the line (``Confirmations``, ``reach = span * length`` frames).
 - **Too recent** (``Horizon``): a keyframe is not a loop while every stored frame between it and the query still
@@ -84,7 +86,7 @@ import numpy as np
 
 __all__ = ["TailModel", "EmpiricalTail", "MeasuredTail", "gamma_log10_sf", "gaussian_log10_sf", "fused_log10_sf",
            "Horizon", "Stops", "Confirmations", "ScoreSpans", "Decision", "SPAN", "TOL", "GAP", "UNSUPPORTED", "AGREE",
-           "LOCALISE"]
+           "LOCALISE", "LOCAL_SPREAD"]
 
 LN10 = math.log(10.0)
 STOP_EDGE = 1  #: frames by which the reference's stop may begin after the loop's keyframe and still carry the query's
@@ -101,6 +103,12 @@ GAP = 3  #: dissimilar frames in a row that end the stretch the query is still i
 MAX_BACK = 2000  #: frames the horizon looks back at most
 LOCALISE = 1.0  #: decades by which a nearby line (reference within ``window // 2`` frames) may beat the query's own
 #                 window before the score path refuses the line as not localised (``ScoreSpans.localised``)
+LOCAL_SPREAD = 2.0  #: null spreads (the far-side window scores' 90th percentile above their median) by which a nearby
+#   line's own window may beat the pair's in raw score before the score path refuses the pair as not localised
+#   (``ScoreSpans.localised``): where a revisit is strong every nearby window saturates the null's evidence, and
+#   only the raw scores still say where the query is (KITTI 90 at 64x32, its second pass at 1.15x the map's speed:
+#   a run of windows on the map's line through a keyframe 4 frames behind the query's own window, which read 0.32
+#   there and 0.91 two frames on; 9 loops 5-6 m off before, none now)
 AGREE = 1.0  #: decades a score-path window needs to agree (its own p-value <= 0.1: above the null's 90th percentile);
 #              a weaker window vetoes the longer spans (earlier windows cannot carry a query whose own is noise)
 
@@ -248,6 +256,8 @@ class ScoreSpans:
                  tests: float, speeds: tuple[float, ...] = (1.0,)) -> None:
         self.score, self.window, self.tail, self.tests = score, int(window), tail, float(tests)
         self.measured = list(measured)
+        #: the null's spread: its 90th percentile above its median (raw window score; ``LOCAL_SPREAD``)
+        self.spread = float(np.quantile(tail.x, 0.9) - tail.u) if len(tail.x) else 0.0
         self.speeds = tuple(float(v) for v in speeds)
 
     @property
@@ -308,28 +318,36 @@ class ScoreSpans:
         return self._by_speed(queries, refs, source)[0]
 
     def localised(self, queries: np.ndarray, refs: np.ndarray, source: Any, speed: float = 1.0) -> np.ndarray:
-        """``(n,)`` bool: whether the query's own window on each pair's line is not beaten by more than ``LOCALISE``
-        decades on a nearby line (the reference moved by up to ``window // 2`` frames): evidence carried by the earlier
-        windows does not say which frame the query is at, its own window does (a line a few frames off the true one
-        still reads the true one's earlier windows)."""
-        return self._localised(self.nearby_evidence(queries, refs, source, speed))
+        """``(n,)`` bool: whether the query's own window on each pair's line is not beaten on a nearby line (the
+        reference moved by up to ``window // 2`` frames) by more than ``LOCALISE`` decades of evidence, nor by more
+        than ``LOCAL_SPREAD`` null spreads of raw score: evidence carried by the earlier windows does not say which
+        frame the query is at, its own window does (a line a few frames off the true one still reads the true one's
+        earlier windows, and a revisit faster than the line drifts off it window by window)."""
+        return self._localised(self.nearby_scores(queries, refs, source, speed))
 
-    def _localised(self, ev: np.ndarray) -> np.ndarray:
-        """``localised`` from ``nearby_evidence``'s ``(n, window // 2 * 2 + 1)``."""
-        return ev[:, self.window // 2] >= ev.max(axis=1, initial=0.0) - LOCALISE
+    def _localised(self, scores: np.ndarray) -> np.ndarray:
+        """``localised`` from ``nearby_scores``' ``(n, window // 2 * 2 + 1)``."""
+        ev, mid = self._evidence(scores), self.window // 2
+        return (ev[:, mid] >= ev.max(axis=1, initial=0.0) - LOCALISE) & \
+            (scores[:, mid] >= scores.max(axis=1, initial=-np.inf) - LOCAL_SPREAD * self.spread)
+
+    def _evidence(self, scores: np.ndarray) -> np.ndarray:
+        """The evidence (decades) of window scores of any shape, from the one-window null (``tail``)."""
+        return -self.tail.log10_sfs(scores.ravel()).reshape(scores.shape)
 
     def on_line(self, queries: np.ndarray, refs: np.ndarray, source: Any, speed: float = 1.0) -> np.ndarray:
         """``(n,)`` bool: whether a run's member ``(queries[i], refs[i])`` lies on the run's line: its own window is
         ``localised`` and no line more than one frame off (the confirmation's slack) beats it at all (a frame just
         before a revisit's start has one pair of evidence on the line; a line a few frames off often reads as much)."""
-        ev, mid = self.nearby_evidence(queries, refs, source, speed), self.window // 2
+        scores, mid = self.nearby_scores(queries, refs, source, speed), self.window // 2
+        ev = self._evidence(scores)
         far = ev[:, np.abs(np.arange(ev.shape[1]) - mid) > 1]  # lines 2 or more frames off (none: a short window)
-        return self._localised(ev) & (ev[:, mid] >= far.max(axis=1, initial=0.0))
+        return self._localised(scores) & (ev[:, mid] >= far.max(axis=1, initial=0.0))
 
-    def nearby_evidence(self, queries: np.ndarray, refs: np.ndarray, source: Any, speed: float = 1.0) -> np.ndarray:
-        """``(n, 2 * (window // 2) + 1)``: the evidence (decades) of the query's own window on each line at ``speed``
-        through ``(queries[i], refs[i] + d)``, ``d = -window // 2 .. window // 2`` (column ``window // 2``: the pair's
-        own line; 0 where the reference would lie before the first frame)."""
+    def nearby_scores(self, queries: np.ndarray, refs: np.ndarray, source: Any, speed: float = 1.0) -> np.ndarray:
+        """``(n, 2 * (window // 2) + 1)``: the query's own window score on each line at ``speed`` through
+        ``(queries[i], refs[i] + d)``, ``d = -window // 2 .. window // 2`` (column ``window // 2``: the pair's own
+        line; ``-inf`` where the reference would lie before the first frame)."""
         queries, refs = np.asarray(queries, np.int64), np.asarray(refs, np.int64)
         near = np.arange(-(self.window // 2), self.window // 2 + 1, dtype=np.int64)
         qs, rs = np.repeat(queries, len(near)), (refs[:, None] + near[None, :]).ravel()
@@ -337,7 +355,7 @@ class ScoreSpans:
         scores = np.full(len(rs), -np.inf)
         if ok.any():
             scores[ok] = self.score(qs[ok], rs[ok], source, speed)
-        return -self.tail.log10_sfs(scores).reshape(len(queries), len(near))
+        return scores.reshape(len(queries), len(near))
 
     def confidences(self, queries: np.ndarray, refs: np.ndarray, source: Any,
                     accept_at: float = -math.inf) -> np.ndarray:

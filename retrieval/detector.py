@@ -942,12 +942,17 @@ class LoopDetector:
     def _online_step(self) -> list[tuple[int, Candidate]]:
         """The stream's own calibration (``retrieval.online``), after a keyframe is stored: at the end of the warm-up
         a carried calibration is checked, else fitted; at doublings refitted; between them checked against the
-        newest frames and refitted where they drifted. Returns the loops a new decision finds late."""
+        newest frames and refitted where they drifted, or where the inlier path cannot verify them (too few keypoints:
+        ``OnlineCalibration.unverifiable``). Returns the loops a new decision finds late."""
         on = self._online
         step = on.due()
         if step is None:
             return []
-        if step == "check" or on.unchecked:
+        unverifiable = on.unverifiable(self.keyframe_features) if step == "check" and not on.unchecked else None
+        if unverifiable is not None:
+            log.info("online calibration at %d keyframes: the newest frames cannot be verified (median %.0f keypoints "
+                     "< calibration.min_features): refit on them now", len(on.seen), unverifiable)
+        elif step == "check" or on.unchecked:
             carried, on.unchecked = on.unchecked, False
             # a prior is checked on the whole warm-up
             z = on.drift(self.places.source, self.filter, self.descriptor.still_cos, 0 if carried else None)

@@ -368,6 +368,26 @@ class TestScoreSpans:
         assert spans({(99, 0): at(1.25), (99, 1): at(1.71)}).on_line(q, r, None)[0]
         assert not spans({(99, 0): 0.0, (99, 1): at(1.71)}).on_line(q, r, None)[0]  # beaten by more than LOCALISE
 
+    def test_a_line_beaten_in_raw_score_by_a_line_nearby_is_not_localised(self):
+        """A revisit 1.15x as fast as the map on the map's line (KITTI 90 at 64x32, measured: query 171 on the line
+        through 79, its own window 0.32 there and 0.91 two frames on, the truth 4 frames on): both windows lie above
+        every null sample, so their evidence is equal (saturated), but the raw scores say the query is not at 79. A
+        line nearby within ``LOCAL_SPREAD`` null spreads (the null's 90th percentile above its median: 0.08 here) is
+        no reason to refuse."""
+        from retrieval.decision import LOCAL_SPREAD, EmpiricalTail, ScoreSpans
+
+        def spans(values):
+            def score(q, r, source, speed=1.0):
+                return np.array([values.get((int(a), int(b)), 0.0) for a, b in zip(q, r)], np.float64)
+            return ScoreSpans(score, 10, EmpiricalTail(np.linspace(-0.1, 0.1, 9999)), [], 1e4)
+
+        q, r = np.array([171]), np.array([79])
+        drifted = spans({(171, 79): 0.32, (171, 81): 0.91})
+        assert drifted.spread == pytest.approx(0.08, abs=1e-3)
+        assert not drifted.localised(q, r, None)[0] and not drifted.on_line(q, r, None)[0]
+        near = 0.32 + LOCAL_SPREAD * 0.08 - 0.01
+        assert spans({(171, 79): 0.32, (171, 81): near}).localised(q, r, None)[0]
+
     @staticmethod
     def _nordland(nordland_codes):
         """``(calibration, null rows, code table, filter)``: the score path calibrated on the real Nordland frames of
