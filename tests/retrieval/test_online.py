@@ -321,22 +321,25 @@ def test_the_score_path_online_finds_a_real_revisit(kitti_64x32, kitti_sequences
     assert pr.precision == 1.0 and pr.recall >= 0.9
 
 
+@pytest.mark.parametrize("speed, found", [(1.1, 0.5), (1.15, 0.0)])
 def test_a_revisit_faster_than_the_map_on_the_score_path_gives_no_loop_off_its_place(kitti_64x32, kitti_sequences,
-                                                                                      encoder):
-    """KITTI 90 at 64x32, its second pass at 1.15x the first's speed (every frame ``100 + round(1.15 k)``): the
-    score path's lines run at the map's speed, and a run of windows on the line through a keyframe some frames
+                                                                                      encoder, speed, found):
+    """KITTI 90 at 64x32, its second pass ``speed`` times as fast as the first (frames ``100 + round(speed k)``):
+    the score path's lines run at the map's speed, and a run of windows on the line through a keyframe some frames
     behind the query reads the revisit as well as the line through its place. Measured before the raw-score
-    localisation (``retrieval.decision.LOCAL_SPREAD``): 75 loops, 9 of them 5-6 m off (outside the ground truth);
-    now none is reported off its place."""
+    localisation (``retrieval.decision.LOCAL_SPREAD``): at 1.15x 75 loops, 9 of them 5-6 m off (outside the ground
+    truth); now none off its place (and none at all at 1.15x: the lines drift too far), and at 1.1x 77 of 91 queries
+    found."""
     frames = kitti_64x32("90")
-    keep = [*range(100), *sorted({100 + round(1.15 * k) for k in range(87) if 100 + round(1.15 * k) < 200})]
+    second = sorted({100 + round(speed * k) for k in range(100) if 100 + round(speed * k) < 200})
+    keep = [*range(100), *second]
     with LoopDetector(None, encoder=encoder) as det:
         loops = stream(det, lambda i: frames[keep[i]], range(len(keep)))
         assert det.calibration.path == "score"
     truth = {tuple(p) for p in read_loop_pairs(kitti_sequences / "90" / "loops.txt").tolist()}
     off = [(keep[q], keep[r]) for q, (r, _) in loops.items() if (keep[q], keep[r]) not in truth
            and (keep[r], keep[q]) not in truth]
-    assert off == []
+    assert off == [] and len(loops) >= found * len(second)
 
 
 @pytest.fixture(scope="module")
