@@ -59,9 +59,13 @@ Before a run, the calibration looks at the sequence itself (``cae-lcd calibrate 
    camera), verification is switched off and the summary says so: loops then rest on the normalised code plus
    temporal consistency, the *score path*. A stream (``retrieval.online``) asks it of the frames it decides next,
    its newest ones (``newest_keypoints``): a revisit at night after a day's map has a day's keypoints in most of
-   the frames a fit reads and too few to verify in the frames the stream is deciding.
+   the frames a fit reads and too few to verify in the frames the stream is deciding. On a stream's inlier path the
+   score path decides beside it (``SCORE_BESIDE_INLIERS``, its nulls drawn out of sample as where it decides alone):
+   keypoints enough in number need not verify (a night frame's keypoints of noise), and each path keeps its own
+   promise (``expected_false_loops / 2`` each, item 5).
 5. **The threshold**, a-contrario: a candidate is accepted when the expected number of false loops at its strength
-   over the whole run, ``NFA = tests * P_null(>= value)``, is at most ``expected_false_loops / 2`` (the score path
+   over the whole run, ``NFA = tests * P_null(>= value)``, is at most ``expected_false_loops / 2`` on its path (two
+   paths deciding side by side: at most ``expected_false_loops`` in all; the score path
    tests every query against every keyframe, at every span of fused windows; the inlier path tests ``k``
    candidates per query). The
    ``confidence`` of a candidate is ``-log10 NFA`` (the larger the surer); it is what ``loops.csv`` ranks by.
@@ -129,6 +133,9 @@ CALIBRATION_FORMAT = 4  #: ``format_version`` of calibration.h5 (3: the local fe
 #: KITTI 90, every query's positives were 0.6 of the calibration's 2.0 CPU seconds)
 POSITIVE_EVERY = 8
 MIN_NULL_PAIRS = 20  #: far-side pairs a null (or a level read from them) needs at least
+SCORE_BESIDE_INLIERS = True  #: a stream's fit on the inlier path lets the score path's fused windows decide beside it
+#   (``Decision``'s ``both``: each path on its own budget), its nulls measured out of sample as where it decides alone:
+#   a revisit whose frames keep keypoints but do not verify (night noise) is still found from its code and sequence
 REVERSED_LINES = 20_000  #: the score path's long-range lines (``_reversed_lines``) drawn at most, seeded: a random
 #   sample of every pair far enough apart where there are more (a stream of 2000 frames holds ~1.5 million). Nordland
 #   streamed: 0 (before) recall 0.900, 13.4 ms a frame; 20,000: 0.922, 15.1 ms; 100,000: 0.930, 19.6 ms
@@ -269,7 +276,8 @@ class Calibration:
 
     def decision(self, exclude_recent: int, filt: TemporalFilter | None = None) -> Decision:
         """The run's fused decision (``retrieval.decision``): on the inlier path, and on the score path the fused
-        windows scored by ``filt`` (the run's temporal filter); with the trajectory's "too recent" rule
+        windows scored by ``filt`` (the run's temporal filter), the windows deciding beside the inlier path too where
+        their nulls were measured out of sample (``SCORE_BESIDE_INLIERS``); with the trajectory's "too recent" rule
         (``exclude_recent`` frames as its floor)."""
         n, f = self.inlier_null, self.fused
         horizon = Horizon(f["stretch_cos"], exclude_recent) if "stretch_cos" in f else None
@@ -280,7 +288,8 @@ class Calibration:
                         self.accept_at, bool(f.get("single", 0.0)), horizon, n.get("floor", 0.0),
                         int(f.get("span", SPAN)), int(f.get("tol", TOL)), spans=self.score_spans(filt),
                         stops=Stops(f["still_cos"]) if "still_cos" in f else None,
-                        speeds=tuple(f.get("speeds", (1.0,))))
+                        speeds=tuple(f.get("speeds", (1.0,))),
+                        both=SCORE_BESIDE_INLIERS and bool(self.score_null.get("held_out")))
 
     def thresholds(self) -> dict[str, float | None]:
         """The smallest temporal score or inlier count that is accepted (None for the path that does not decide)."""
@@ -649,21 +658,30 @@ def calibrate(frames: Iterable[tuple[int, np.ndarray]], n_frames: int, conf: dic
     cal.tests = {"score": max(n_keyframes, (n_keyframes - window) ** 2 / 2),  # every query against every keyframe
                  "inliers": n_keyframes * conf["search"]["k"] * SPAN}  # every run length 1..span counted
     shared += _inlier_path(cal, conf, images, null, table, K, progress, features, local, verified, newest_keypoints)
-    if held_out and not cal.inlier_null:  # a stream on the score path: its nulls measured out of sample
-        null_table, apart = _out_of_sample(cal, conf["whitening"], descriptor, filt, ids, codes, moved, window,
-                                           held_out, "the score path's null")
-    else:
-        if held_out:  # a stream on the inlier path: the level its drift checks read, measured out of sample too
-            try:
-                cal.samples["held_out_far_side"] = _out_of_sample(
-                    cal, conf["whitening"], descriptor, filt, ids, codes, moved, window, held_out,
-                    "the level the stream's drift checks compare its newest frames with")[1][:, 2]
-            except TooFewFrames:  # too few newest frames: the checks read the in-sample level (``adopt``)
-                pass
-        null_table, apart = table, _null_scores(ids, table, filt, window, moved, window // 2)  # far apart in moved
-        apart = apart if len(apart) >= MIN_NULL_PAIRS else null  # frames too
-    far = None if cal.inlier_null else _reversed_lines(ids, null_table, filt, window, moved, int(apart[:, 0].min()))
-    _score_path(cal, apart, filt, null_table, far, tuple(conf["calibration"]["score_speeds"]))
+    null_table, apart = table, None
+    if held_out:  # a stream: it decides frames its whitening was not fitted on, the score path's nulls drawn there
+        try:  # (on the inlier path too, where the score path decides beside it: ``Decision``'s ``both``)
+            null_table, apart = _out_of_sample(
+                cal, conf["whitening"], descriptor, filt, ids, codes, moved, window, held_out,
+                "the score path's null" + (" (it decides beside the inlier path) and the level the stream's drift "
+                                           "checks compare its newest frames with" if cal.inlier_null else ""))
+        except TooFewFrames:
+            if not cal.inlier_null:
+                raise  # the score path alone: nothing may decide on an in-sample null
+        if cal.inlier_null and apart is not None:
+            cal.samples["held_out_far_side"] = apart[:, 2]
+    # in sample (far apart in moved frames too): the nulls of a sequence calibrated before its run, or of a stream
+    # too short to hold frames out (its score path then does not decide); on the inlier path also the level of the
+    # run's "above chance" gate, which candidates it verifies (the frames' own, as before the score path decided there)
+    in_sample = None
+    if apart is None or cal.inlier_null:
+        in_sample = _null_scores(ids, table, filt, window, moved, window // 2)
+        in_sample = in_sample if len(in_sample) >= MIN_NULL_PAIRS else null
+    apart = in_sample if apart is None else apart
+    far = None if cal.inlier_null and null_table is table else \
+        _reversed_lines(ids, null_table, filt, window, moved, int(apart[:, 0].min()))
+    _score_path(cal, apart, filt, null_table, far, tuple(conf["calibration"]["score_speeds"]),
+                None if in_sample is None or in_sample is apart else in_sample[:, 2])
     if null_table is not table:
         cal.score_null["held_out"] = float(held_out)
     _stretch(cal, ids, table, moved, descriptor.still_cos)
@@ -782,25 +800,31 @@ def camera_moved(codes: np.ndarray, still_cos: float = STILL_COS) -> np.ndarray:
 
 
 def _score_path(cal: Calibration, null: np.ndarray, filt: TemporalFilter, table: CodeTable,
-                far: tuple[np.ndarray, CodeTable] | None = None, speeds: tuple[float, ...] = (1.0,)) -> None:
+                far: tuple[np.ndarray, CodeTable] | None = None, speeds: tuple[float, ...] = (1.0,),
+                level: np.ndarray | None = None) -> None:
     """The score path's nulls, measured (module doc, item 3): the far-side pairs' temporal scores as they are (an
     ``EmpiricalTail``: no p-value below ``1 / (n + 1)``) and, with a filter whose score is the run's (sequence,
     none), the fused evidence of the same pairs' lines over 1..``SPAN`` windows (``retrieval.decision.ScoreSpans``),
     measured per span on the line of each pair at the best of ``speeds`` (the decision's statistic); the run's tests
     counted at every span and speed. ``far``: the long-range reversed lines and their table (``_reversed_lines``),
     which join both nulls. ``score_null``'s median and sigma (90th percentile) only
-    describe the far-side pairs (the detector's "above chance" gate for verification); no Gaussian tail decides."""
+    describe the far-side pairs (the detector's "above chance" gate for verification; ``level``: other far-side
+    scores they describe instead, the inlier path's own frames); no Gaussian tail decides."""
     parts = [(null, table)] + ([far] if far is not None and len(far[0]) else [])
     scores = np.concatenate([rows[:, 2] for rows, _ in parts])
-    (q50, sigma), q90 = score_level(null[:, 2]), _tail_fit(null[:, 2])[1]
+    described = null[:, 2] if level is None else np.asarray(level, np.float64)
+    (q50, sigma), q90 = score_level(described), _tail_fit(described)[1]
     tail = EmpiricalTail(scores)
     cal.score_null = {"median": q50, "sigma": sigma, "samples": float(len(scores)), "empirical": 1.0}
     cal.samples["score_null"] = scores
     longer = "" if len(parts) == 1 else (
         f" and {len(far[0])} reversed lines between frames far apart (max {far[0][:, 2].max():.4f}; "
         f"{int((far[0][:, 2] > null[:, 2].max()).sum())} above every far-side pair)")
-    cal.notes.append(f"score null: {len(null)} far-side pairs, median {q50:.4f}, 90th percentile {q90:.4f}, max "
-                     f"{null[:, 2].max():.4f}{longer}: one window's empirical p-value, at most "
+    own = "" if level is None else f" (the frames' own, in sample: median {q50:.4f}, 90th percentile {q90:.4f})"
+    null_q50, null_q90 = score_level(null[:, 2])[0], _tail_fit(null[:, 2])[1]
+    cal.notes.append(f"score null: {len(null)} far-side pairs, median {null_q50:.4f}, 90th percentile "
+                     f"{null_q90:.4f}, max "
+                     f"{null[:, 2].max():.4f}{longer}{own}: one window's empirical p-value, at most "
                      f"{tail.max_evidence:.1f} decades (no tail past the sample); {cal.tests['score']:.3g} pairs "
                      "tested in the run")
     if not isinstance(filt, (SequenceFilter, NoFilter)):

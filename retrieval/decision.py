@@ -33,8 +33,9 @@ verified as in the run), and what a loop looks like: the **positives** (a frame 
   past a revisit's start reads the revisit's windows, not the frame before it) is reported.
 - **Whether one pair may decide alone**: only where geometry separates on this sequence (the median positive pair
   would be accepted alone and no hard negative is); elsewhere a loop needs evidence from ``min_support`` frames.
-- **The score path fuses too** (``ScoreSpans``, where local features are too few to verify; issue 27: measured, not
-  extrapolated): the temporal score of a hypothesis is the mean similarity along a line of ``length`` frames (a
+- **The score path fuses too** (``ScoreSpans``, where local features are too few to verify, and on a stream's
+  inlier path beside it, ``both``: a candidate's confidence the larger of the two paths', each on its own budget;
+  issue 27: measured, not extrapolated): the temporal score of a hypothesis is the mean similarity along a line of ``length`` frames (a
   window), on lines at one of ``speeds`` (``calibration.score_speeds``, the map's speed by default; window ``j`` of a
   line at speed ``v`` through ``(q, r)``: ``(q - j length, r - v j length)``, the filter's own lines scaled by ``v``),
   the best speed's taken, its null measured the same way and every speed counted among the tests. One window's
@@ -478,14 +479,20 @@ class Decision:
         stops: the "a stop is matched to a stop" rule (``Stops``), or None (not applied).
         speeds: keyframes the map advances per query frame along a run's line (``calibration.speeds``): a run is
             fused on the line of one of them, each counted in ``tests`` (on the inlier path).
+        both: on the inlier path, the score path's fused windows (``spans``) decide beside it: a candidate's
+            confidence is the larger of the two paths', each path's promise kept on its own budget
+            (``expected_false_loops / 2`` each; ``Calibration.decision`` sets it where the score path's nulls were
+            measured out of sample, a stream's fit). Where a frame's local features do not verify its revisit
+            (a night frame with keypoints of noise), its code and its sequence still decide.
     """
 
     def __init__(self, pair_tail: TailModel | EmpiricalTail | None, fused_tail: TailModel | MeasuredTail, tests: float,
                  accept_at: float, single: bool,
                  horizon: Horizon | None = None, floor: float = 0.0, span: int = SPAN, tol: int = TOL,
                  min_support: int = 2, spans: ScoreSpans | None = None, stops: Stops | None = None,
-                 speeds: tuple[float, ...] = (1.0,)) -> None:
+                 speeds: tuple[float, ...] = (1.0,), both: bool = False) -> None:
         self.speeds = tuple(float(v) for v in speeds) or (1.0,)
+        self.both = bool(both) and pair_tail is not None and spans is not None
         self.pair_tail, self.fused_tail, self.floor = pair_tail, fused_tail, float(floor)
         self.tests = float(tests) * (len(self.speeds) if pair_tail is not None else 1)  # a run tested on each line
         self.stops = stops
@@ -499,8 +506,14 @@ class Decision:
     @property
     def reach(self) -> int:
         """Frames one accepted run covers at most, the query's included: ``span`` frames on the inlier path,
-        ``span`` windows of ``spans.window`` frames on the score path (what ``Confirmations`` keeps)."""
-        return self.span * self.spans.window if self.pair_tail is None and self.spans is not None else self.span
+        ``span`` windows of ``spans.window`` frames on the score path, and where it decides beside the inlier path
+        (``both``; what ``Confirmations`` keeps)."""
+        return self.span * self.spans.window if self._windowed else self.span
+
+    @property
+    def _windowed(self) -> bool:
+        """Whether the score path's fused windows decide (alone, or beside the inlier path: ``both``)."""
+        return self.spans is not None and (self.pair_tail is None or self.both)
 
     @property
     def confirms(self) -> bool:
@@ -524,8 +537,10 @@ class Decision:
         (frame ``q`` back ``d`` expects keyframe ``ref - speed * d``, ``tol`` frames either side): ``(frames back,
         decades)`` per frame with evidence beyond the choice among its consistent candidates."""
         out, choice = [], math.log10(2 * self.tol + 1)
-        for q, refs, ev in self._recent:
-            if query_id - q >= self.span or not len(refs):
+        for q, refs, ev in reversed(self._recent):  # newest first (the score path's windows may keep more frames)
+            if query_id - q >= self.span:
+                break
+            if not len(refs):
                 continue
             ok = np.abs(refs - (ref - speed * (query_id - q))) <= self.tol
             if ok.any() and ev[ok].max() > choice:
@@ -567,11 +582,12 @@ class Decision:
         """The earlier frames of the accepted run of ``(query_id, ref)`` (``inliers``: the pair's counted inliers):
         ``(q', r')`` for each frame ``q'`` of the best run (``best_run``) with evidence on its offset, ``r'`` its most
         evident consistent keyframe; empty where the run alone does not reach ``accept_at`` (a pair accepted alone,
-        ``single``, certifies no other frame). Call before ``commit(query_id, ...)``."""
+        ``single``, certifies no other frame); on the score path the windows' (``window_members``). Call before
+        ``commit(query_id, ...)``."""
         if self.pair_tail is None:
-            return self._window_members(query_id, ref, source)
+            return self.window_members(query_id, ref, source)
         e0 = self.evidence(inliers)
-        if self.pair_tail is None or e0 <= 0:
+        if e0 <= 0:
             return []
         value, m, speed = self._best_line(query_id, ref, e0)
         if value < self.accept_at:
@@ -585,13 +601,13 @@ class Decision:
                 out.append((int(q), int(refs[ok[np.argmax(ev[ok])]])))
         return out
 
-    def _window_members(self, query_id: int, ref: int, source: Any) -> list[tuple[int, int]]:
+    def window_members(self, query_id: int, ref: int, source: Any) -> list[tuple[int, int]]:
         """The score path's ``run_members``: the frames of the accepted span (``ScoreSpans.best_run``: ``m`` windows,
         ``m * window`` query frames on the line through ``(query_id, ref)`` at its speed ``v``: frame ``q`` expects
         keyframe ``ref - v (query_id - q)``) whose own window is localised on it, each with its keyframe on that line
         (one frame off at most); empty where the run does not reach ``accept_at`` or the score path does not fuse
         (``source``: the code store the windows are scored on)."""
-        if self.spans is None or source is None:
+        if not self._windowed or source is None:
             return []
         value, frames, speed = self.spans.best_run(query_id, ref, source)
         if value < self.accept_at:
@@ -623,19 +639,22 @@ class Decision:
         out = np.full(len(refs), -math.inf)
         oldest = self.horizon(query_id, source) if self.horizon is not None and len(refs) else None
         base = -math.log10(self.tests)
-        # score path: the query's frame and the one before on each line (a query that has just left a stop reads that
-        # stop in its window: matched only where the reference's stop, one frame back, was as long)
-        back = 2 if self.pair_tail is None and self.spans is not None else 1
-        allowed = self.stops.line_admissible(query_id, refs, back, source) \
-            if self.stops is not None and len(refs) else None
-        scored = self.pair_tail is None and self.spans is not None and len(refs)
-        fused = self.spans.confidences(np.full(len(refs), query_id, np.int64), np.asarray(refs, np.int64), source,
-                                       self.accept_at) if scored else fallback
+        # the score path's lines: the query's frame and the one before on each (a query that has just left a stop
+        # reads that stop in its window: matched only where the reference's stop, one frame back, was as long)
+        stops = self.stops is not None and len(refs)
+        allowed = self.stops.line_admissible(query_id, refs, 1, source) \
+            if stops and (self.pair_tail is not None or self.spans is None) else None
+        allowed_w = self.stops.line_admissible(query_id, refs, 2, source) if stops and self._windowed else None
+        windows = self.spans.confidences(np.full(len(refs), query_id, np.int64), np.asarray(refs, np.int64), source,
+                                         self.accept_at) if self._windowed and len(refs) else None
+        if self.pair_tail is None and windows is None:
+            windows, allowed_w = fallback, allowed  # the calibrated temporal-score confidences: the pair's own stop
         for i, (ref, inl) in enumerate(zip(np.asarray(refs).tolist(), np.asarray(inliers).tolist())):
-            if (oldest is not None and ref >= oldest) or (allowed is not None and not allowed[i]):
+            if oldest is not None and ref >= oldest:
                 continue
-            if self.pair_tail is None:
-                out[i] = -math.inf if fused is None else float(fused[i])
+            if windows is not None and (allowed_w is None or allowed_w[i]):
+                out[i] = float(windows[i])
+            if self.pair_tail is None or (allowed is not None and not allowed[i]):
                 continue
             e0 = self.evidence(inl)
             if e0 <= 0:
@@ -643,7 +662,7 @@ class Decision:
             best = self._best_line(query_id, ref, e0)[0]
             if self.single:
                 best = max(best, base - self.pair_tail.log10_sf(inl))
-            out[i] = max(best, UNSUPPORTED)  # evidence of its own: a later run may certify it (``Confirmations``)
+            out[i] = max(out[i], best, UNSUPPORTED)  # evidence of its own: a later run may certify it
         return out
 
     def fresh(self) -> "Decision":
@@ -726,12 +745,13 @@ class Confirmations:
         """``[(q', payload)]``: the members of the run of ``(query_id, ref)``, accepted now, that were not loops; each
         marked a loop (reported once); ``source``: the code store (the score path's windows). Call before
         ``decision.commit(query_id, ...)``."""
-        members = dict(decision.run_members(query_id, ref, inliers, source))
-        near = (0, -1, 1) if decision.pair_tail is None else (0,)  # the score path's line: one frame off at most
+        verified = dict(decision.run_members(query_id, ref, inliers, source)) if decision.pair_tail is not None \
+            else {}
+        windows = dict(decision.window_members(query_id, ref, source))
         out = []
         for q, kept, looped in self._frames:
-            r = members.get(q)
-            pick = None if r is None else next((r + d for d in near if r + d in kept), None)
+            r, near = (verified[q], (0,)) if q in verified else (windows.get(q), (0, -1, 1))  # the score path's line:
+            pick = None if r is None else next((r + d for d in near if r + d in kept), None)  # one frame off at most
             if pick is not None and not looped[0]:
                 looped[0] = True
                 out.append((q, kept[pick]))

@@ -52,6 +52,12 @@ of them read, blocks spread as ``calibration_frames`` chooses), so a refit encod
   0.882 / 0.914 (carried from its summer half: 0.882); 0 loops on 00 then 07 at 64x32. Before, the score path
   decided online only from a carried calibration (``SCORE_PATH_DECIDES`` off: recall 0.000 on both); with it on and
   the nulls in sample, a Gaussian score null gave Nordland 22 false loops of 490 and the 64x32 stress set 89.
+- **Beside the inlier path, the score path decides too** (``retrieval.calibrate.SCORE_BESIDE_INLIERS``): a fit on
+  the inlier path draws the score path's nulls out of sample as above (they are also the level the drift checks
+  read), and the decision accepts a run of windows as it would on the score path alone, each path on its own budget.
+  Keypoints enough in number need not verify: KITTI 90 at 160x120 with its second pass dark under heavy noise
+  (``bench.aliasing.NOISIER``) keeps the inlier path (keypoints of noise) and found none of its revisit on it; now
+  precision 1.000, recall 0.980, and every other set as before.
 - **A refit never loosens without measured evidence**: it replaces the calibration where its null holds at least
   as many measured samples (the verified hard-negative pairs on the inlier path, the far-side pairs drawn out of
   sample on the score path: a carried calibration's null, drawn in sample, counts none there) as the one it

@@ -534,14 +534,20 @@ class TestConfirmations:
         (verified pairs) only the member itself counts."""
         from retrieval.decision import Confirmations
 
-        class Line:  # the score path's accepted run (``Decision.run_members`` on its line)
+        class Line:  # the score path's accepted run (``Decision.window_members`` on its line)
             pair_tail = None
+
+            def window_members(self, query_id, ref, source):
+                return [(808, 308), (809, 309)]
+
+        class Verified:  # the inlier path's (``Decision.run_members``), its windows not deciding beside it
+            pair_tail = object()
 
             def run_members(self, query_id, ref, inliers, source):
                 return [(808, 308), (809, 309)]
 
-        class Verified(Line):
-            pair_tail = object()
+            def window_members(self, query_id, ref, source):
+                return []
 
         for decision, want in ((Line(), [(809, "c809")]), (Verified(), [])):
             conf = Confirmations()
@@ -608,6 +614,41 @@ class TestConfirmations:
         assert loops[51][0] == 1 and loops[51][1] >= summary["calibration"]["accept_at_confidence"]
         truth = {tuple(p) for p in read_loop_pairs(seq / "loops.txt").tolist()}
         assert all((q, r) in truth for q, (r, _) in loops.items())  # precision 1.000
+
+
+class TestBothPaths:
+    """On a stream's inlier path the score path's fused windows decide beside it (``Decision``'s ``both``): a frame
+    whose candidates do not verify (keypoints of night noise) is still found from its code and its sequence."""
+
+    @staticmethod
+    def _decision(both: bool) -> Decision:
+        from retrieval.decision import EmpiricalTail, MeasuredTail, ScoreSpans
+
+        windows = {(300, 100): 0.35, (290, 90): 0.35, (280, 80): 0.35}  # three agreeing windows on one line
+
+        def score(q, r, source, speed=1.0):
+            return np.array([windows.get((int(a), int(b)), 0.0) for a, b in zip(q, r)], np.float64)
+
+        spans = ScoreSpans(score, 10, EmpiricalTail(np.linspace(-0.1, 0.1, 9999)), [MeasuredTail(np.zeros(0))] * 3,
+                           1e4)
+        pairs = EmpiricalTail(np.arange(100) % 10)  # hard negatives of 0-9 inliers
+        return Decision(pairs, MeasuredTail(np.zeros(0)), 1e4, -math.log10(0.05), False, floor=12, spans=spans,
+                        both=both)
+
+    def test_unverified_windows_decide_beside_the_inlier_path(self):
+        accept_at = -math.log10(0.05)
+        assert self._decision(True).confidences(300, np.array([100]), np.array([-1]), None)[0] >= accept_at
+        assert self._decision(False).confidences(300, np.array([100]), np.array([-1]), None)[0] == -math.inf
+        assert self._decision(True).reach == SPAN * 10  # an accepted run of windows certifies its frames
+
+    def test_a_calibration_fitted_on_a_stream_lets_both_decide(self, small):
+        _, cal = small
+        assert not cal.decision(50).both  # calibrated before its run: the score path's nulls drawn in sample
+        from retrieval.temporal import create_filter
+
+        held = copy.copy(cal)
+        held.score_null = {**cal.score_null, "held_out": 0.25}  # a stream's fit: drawn out of sample
+        assert held.decision(50, create_filter({})).both
 
 
 class TestRunsAtTheStreamsSpeed:
