@@ -641,6 +641,18 @@ class TestBothPaths:
         assert self._decision(False).confidences(300, np.array([100]), np.array([-1]), None)[0] == -math.inf
         assert self._decision(True).reach == SPAN * 10  # an accepted run of windows certifies its frames
 
+    def test_where_geometry_accepts_a_candidate_it_says_which(self):
+        """KITTI 90's narrower-lens revisit (measured with the thumbnail and random weights): its last frame's window
+        line through keyframe 100, the joint of the two passes, outscored keyframe 99, verified with 64 inliers; the
+        windows decide only a frame the inlier path does not."""
+        dec = self._decision(True)
+        dec.tests, dec.single = 1.0, True  # one verified pair may decide alone here
+        accept_at = -math.log10(0.05)
+        verified = dec.confidences(300, np.array([99, 100]), np.array([64, -1]), None)
+        assert verified[0] >= accept_at and verified[1] == -math.inf
+        unverified = dec.confidences(300, np.array([99, 100]), np.array([5, -1]), None)
+        assert unverified[0] == -math.inf and unverified[1] >= accept_at
+
     def test_a_calibration_fitted_on_a_stream_lets_both_decide(self, small):
         _, cal = small
         assert not cal.decision(50).both  # calibrated before its run: the score path's nulls drawn in sample
