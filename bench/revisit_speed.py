@@ -1,13 +1,13 @@
 """A revisit at another speed (issue 27): each loop must name the place the query stands at.
 
-KITTI 90's first pass whole and its second pass taking frames 1.15, 2 or 3 apart (frame `100 + round(v k)`: the
-road driven again 1.15x, 2x or 3x as fast), at full size (1241x376), at 160x120 and at 64x32 (too few keypoints to verify: the score path decides, on
-lines at the map's speed by default), as plain folders (no calibration); `cae-lcd detect` with the default config,
-with the verified runs fused on lines at the map's speed only (`calibration.speeds: [1.0]`; the default fuses them
-at 1x, 2x and 3x, `retrieval.decision`), without the walk that names where the query stands
+KITTI 90's first pass whole and its second pass taking frames 1.15, 2 or 3 apart (frame `100 + round(v k)`: the road
+driven again 1.15x, 2x or 3x as fast), at full size (1241x376), at 160x120 and at 64x32 (too few keypoints to verify:
+the score path decides, on lines at the map's speed by default), as plain folders (no calibration); `cae-lcd detect`
+with the default config, with the verified runs fused on lines at the map's speed only (`calibration.speeds: [1.0]`; the
+default fuses them at 1x, 2x and 3x, `retrieval.decision`), without the walk that names where the query stands
 (`search.localise_steps: 0`, `retrieval.localise`), and with the score path's windows on lines at 1x, 2x and 3x
-(`calibration.score_speeds: [1, 2, 3]`; the verified paths do not read it). A loop is true where the ground truth
-(5 m on the ground plane) holds its pair; its distance is read from `poses/90.txt`.
+(`calibration.score_speeds: [1, 2, 3]`; the verified paths do not read it). A loop is true where the ground truth (5 m
+on the ground plane) holds its pair; its distance is read from `poses/90.txt`.
 
 ``python -m bench.revisit_speed [--out runs/bench/revisit_speed] [--no-write]``
 """

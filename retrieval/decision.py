@@ -33,27 +33,26 @@ verified as in the run), and what a loop looks like: the **positives** (a frame 
   past a revisit's start reads the revisit's windows, not the frame before it) is reported.
 - **Whether one pair may decide alone**: only where geometry separates on this sequence (the median positive pair
   would be accepted alone and no hard negative is); elsewhere a loop needs evidence from ``min_support`` frames.
-- **The score path fuses too** (``ScoreSpans``, where local features are too few to verify, and on a stream's
-  inlier path beside it, ``both``: a candidate's confidence the larger of the two paths', each on its own budget;
-  issue 27: measured, not extrapolated): the temporal score of a hypothesis is the mean similarity along a line of ``length`` frames (a
-  window), on lines at one of ``speeds`` (``calibration.score_speeds``, the map's speed by default; window ``j`` of a
-  line at speed ``v`` through ``(q, r)``: ``(q - j length, r - v j length)``, the filter's own lines scaled by ``v``),
-  the best speed's taken, its null measured the same way and every speed counted among the tests. One window's
-  evidence is its empirical p-value among the far-side pairs' window scores (``EmpiricalTail``, at most
-  ``log10(n + 1)`` decades: no Gaussian tail past the sample). ``m`` consecutive windows on the same line
-  (``m`` up to ``span``) fuse: every window must agree (at least ``AGREE`` decades: one weak, missing or contrary
-  window vetoes the longer spans), their evidence is summed, and its null is the heavier of the Gamma(m) tail
-  (disjoint windows taken as independent) and the fused evidence measured on the far-side lines of ``m`` windows
-  (``fused_log10_sf``, the inlier path's rule). The run's tests count every span; the confidence is the best span's.
-  **The promise**: no window claims below ``1 / (n + 1)`` of its sample, and a run of ``m`` windows claims no more
-  than ``m`` independent such windows would under the Gamma tail (and no more than its measured null shows where
-  that is heavier); where the sample cannot certify the run's tests in one window, a loop needs several windows
-  above every far-side pair (the calibration notes say how many). The line must say *where* the query is: its own
-  window is not beaten on a line up to ``length // 2`` frames off by more than ``LOCALISE`` decades, nor by more
-  than ``LOCAL_SPREAD`` null spreads of raw score (a strong revisit saturates every nearby window's evidence; a
-  revisit a little faster than the line drifts off it) (``localised``),
-  and the stop rule holds on the query's frame and the one before (``Stops.line_admissible``). An accepted run
-  certifies its earlier frames on the line (``Confirmations``, ``reach = span * length`` frames).
+- **The score path fuses too** (``ScoreSpans``, where local features are too few to verify, and on a stream's inlier
+  path beside it, ``both``: a candidate's confidence the larger of the two paths', each on its own budget; issue 27:
+  measured, not extrapolated): the temporal score of a hypothesis is the mean similarity along a line of ``length``
+  frames (a window), on lines at one of ``speeds`` (``calibration.score_speeds``, the map's speed by default; window
+  ``j`` of a line at speed ``v`` through ``(q, r)``: ``(q - j length, r - v j length)``, the filter's own lines scaled
+  by ``v``), the best speed's taken, its null measured the same way and every speed counted among the tests. One
+  window's evidence is its empirical p-value among the far-side pairs' window scores (``EmpiricalTail``, at most
+  ``log10(n + 1)`` decades: no Gaussian tail past the sample). ``m`` consecutive windows on the same line (``m`` up to
+  ``span``) fuse: every window must agree (at least ``AGREE`` decades: one weak, missing or contrary window vetoes the
+  longer spans), their evidence is summed, and its null is the heavier of the Gamma(m) tail (disjoint windows taken as
+  independent) and the fused evidence measured on the far-side lines of ``m`` windows (``fused_log10_sf``, the inlier
+  path's rule). The run's tests count every span; the confidence is the best span's. **The promise**: no window claims
+  below ``1 / (n + 1)`` of its sample, and a run of ``m`` windows claims no more than ``m`` independent such windows
+  would under the Gamma tail (and no more than its measured null shows where that is heavier); where the sample cannot
+  certify the run's tests in one window, a loop needs several windows above every far-side pair (the calibration notes
+  say how many). The line must say *where* the query is: its own window is not beaten on a line up to ``length // 2``
+  frames off by more than ``LOCALISE`` decades, nor by more than ``LOCAL_SPREAD`` null spreads of raw score (a strong
+  revisit saturates every nearby window's evidence; a revisit a little faster than the line drifts off it)
+  (``localised``), and the stop rule holds on the query's frame and the one before (``Stops.line_admissible``). An
+  accepted run certifies its earlier frames on the line (``Confirmations``, ``reach = span * length`` frames).
 - **Too recent** (``Horizon``): a keyframe is not a loop while every stored frame between it and the query still
   looks like the query (cosine at least ``stretch_cos``, the adjacent frames' 10th percentile, with at most
   ``gap - 1`` dissimilar frames in a row): a slow robot stays in a place longer, a fast one leaves it sooner; the

@@ -58,19 +58,18 @@ of them read, blocks spread as ``calibration_frames`` chooses), so a refit encod
   Keypoints enough in number need not verify: KITTI 90 at 160x120 with its second pass dark under heavy noise
   (``bench.aliasing.NOISIER``) keeps the inlier path (keypoints of noise) and found none of its revisit on it; now
   precision 1.000, recall 0.980, and every other set as before.
-- **A refit never loosens without measured evidence**: it replaces the calibration where its null holds at least
-  as many measured samples (the verified hard-negative pairs on the inlier path, the far-side pairs drawn out of
-  sample on the score path: a carried calibration's null, drawn in sample, counts none there) as the one it
-  replaces (on the same path), or, holding fewer, where a loop under it still needs a run at least as long
-  (``no_shorter_run``: frames on one line, ``retrieval.calibrate.run_needed``; windows on one line, ``windows_needed``): its own promise
-  (expected false loops over the run) rests on its own samples either way, and the run is the unit that promise is
-  kept in; a thinner null that would accept a shorter run is refused and the current calibration kept (one log
-  line). Its tests only grow. Why the run and not the bare count: once the fits read ``calibration.max_frames``
-  frames their nulls hover around one size, and a refit refused for holding 0.1-4 % fewer samples kept a decision
-  fitted 60 frames into a new season for 150 frames (Nordland's winter at half resolution with a snapshot of step 4's
-  training: each window above 0.778 from 560 to 710 keyframes, recall 0.854; with the run rule 0.902; Nordland
-  streamed 0.960 -> 0.982, carried from its summer half 0.960 -> 0.982, precision 1.000 and no loop on any stress set
-  either way, ``python -m bench.aliasing``).
+- **A refit never loosens without measured evidence**: it replaces the calibration where its null holds at least as many
+  measured samples (the verified hard-negative pairs on the inlier path, the far-side pairs drawn out of sample on the
+  score path: a carried calibration's null, drawn in sample, counts none there) as the one it replaces (on the same
+  path), or, holding fewer, where a loop under it still needs a run at least as long (``no_shorter_run``: frames on one
+  line, ``retrieval.calibrate.run_needed``; windows on one line, ``windows_needed``): its own promise (expected false
+  loops over the run) rests on its own samples either way, and the run is the unit that promise is kept in; a thinner
+  null that would accept a shorter run is refused and the current calibration kept (one log line). Its tests only grow.
+  Why the run and not the bare count: once the fits read ``calibration.max_frames`` frames their nulls hover around one
+  size, and a refit refused for holding 0.1-4 % fewer samples kept a decision fitted 60 frames into a new season for 150
+  frames (Nordland's winter at half resolution with a snapshot of step 4's training: each window above 0.778 from 560 to
+  710 keyframes, recall 0.854; with the run rule 0.902; Nordland streamed 0.960 -> 0.982, carried from its summer half
+  0.960 -> 0.982, precision 1.000 and no loop on any stress set either way, ``python -m bench.aliasing``).
 - **Loops found late**: after a refit the frames recorded since the start (the newest ``calibration.max_frames`` of
   them in a longer stream: the refit's cost stays bounded, older frames keep their decisions) are decided again
   under the new decision (their candidates' scores recomputed in the new code space; the candidates not verified
