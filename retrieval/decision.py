@@ -323,11 +323,12 @@ class ScoreSpans:
         than ``LOCAL_SPREAD`` null spreads of raw score: evidence carried by the earlier windows does not say which
         frame the query is at, its own window does (a line a few frames off the true one still reads the true one's
         earlier windows, and a revisit faster than the line drifts off it window by window)."""
-        return self._localised(self.nearby_scores(queries, refs, source, speed))
+        scores = self.nearby_scores(queries, refs, source, speed)
+        return self._localised(scores, self._evidence(scores))
 
-    def _localised(self, scores: np.ndarray) -> np.ndarray:
-        """``localised`` from ``nearby_scores``' ``(n, window // 2 * 2 + 1)``."""
-        ev, mid = self._evidence(scores), self.window // 2
+    def _localised(self, scores: np.ndarray, ev: np.ndarray) -> np.ndarray:
+        """``localised`` from ``nearby_scores``' ``(n, window // 2 * 2 + 1)`` and their evidence."""
+        mid = self.window // 2
         return (ev[:, mid] >= ev.max(axis=1, initial=0.0) - LOCALISE) & \
             (scores[:, mid] >= scores.max(axis=1, initial=-np.inf) - LOCAL_SPREAD * self.spread)
 
@@ -342,7 +343,7 @@ class ScoreSpans:
         scores, mid = self.nearby_scores(queries, refs, source, speed), self.window // 2
         ev = self._evidence(scores)
         far = ev[:, np.abs(np.arange(ev.shape[1]) - mid) > 1]  # lines 2 or more frames off (none: a short window)
-        return self._localised(scores) & (ev[:, mid] >= far.max(axis=1, initial=0.0))
+        return self._localised(scores, ev) & (ev[:, mid] >= far.max(axis=1, initial=0.0))
 
     def nearby_scores(self, queries: np.ndarray, refs: np.ndarray, source: Any, speed: float = 1.0) -> np.ndarray:
         """``(n, 2 * (window // 2) + 1)``: the query's own window score on each line at ``speed`` through

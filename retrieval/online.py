@@ -273,17 +273,12 @@ class OnlineCalibration:
             return 0.0
         return float((np.median(scores) - self.level[0]) / max(self.level[1], 1e-6))
 
-    def newest_verified(self) -> list[int]:
-        """The frames among the newest half window (the frames ``drift`` reads) whose candidates were verified: their
-        local features were extracted as they came (``newest_keypoints``)."""
-        hold = max(self.window // 2, 1)
-        return [s.frame_id for s in self.seen[-hold:] if len(s.inliers) and int(s.inliers.max()) >= 0]
-
     def newest_keypoints(self, local: Callable[[int], Any]) -> float | None:
-        """The median keypoints of ``newest_verified``'s frames (``local(frame_id)``: their local features), the
+        """The median keypoints of the frames among the newest half window (the frames ``drift`` reads) whose
+        candidates were verified (their local features extracted as they came; ``local(frame_id)`` gives them): the
         frames the stream decides next stand for; None where fewer than ``MIN_VERIFIED`` of them were verified (a
         stretch with no revisit verifies little: it says nothing then)."""
-        fids = self.newest_verified()
+        fids = [s.frame_id for s in self.seen[-max(self.window // 2, 1):] if len(s.inliers) and s.inliers.max() >= 0]
         if len(fids) < MIN_VERIFIED:
             return None
         return float(np.median([len(local(f)) for f in fids]))
