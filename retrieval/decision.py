@@ -70,8 +70,9 @@ verified as in the run), and what a loop looks like: the **positives** (a frame 
   arrival's confidence; nothing new is claimed; the keyframe after the loop's is kept among the frame's hypotheses
   whatever its rank, ``Decision.carry_to``: a stop's frames all look alike).
 
-Shapes: ``Decision.confidences(query_id, refs (m,) int64, inliers (m,) int64, source) -> (m,) float64``;
-``Decision.commit(query_id, refs (m,), inliers (m,))``.
+Shapes: ``Decision.code_terms(query_id, refs (m,) int64, source) -> CodeTerms`` (what the codes alone say, read
+before the candidates are verified); ``Decision.confidences(query_id, refs (m,) int64, inliers (m,) int64, source,
+terms=None) -> (m,) float64``; ``Decision.commit(query_id, refs (m,), inliers (m,))``.
 """
 
 from __future__ import annotations
@@ -80,12 +81,12 @@ import copy
 import math
 from collections import deque
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
 __all__ = ["TailModel", "EmpiricalTail", "MeasuredTail", "gamma_log10_sf", "gaussian_log10_sf", "fused_log10_sf",
-           "Horizon", "Stops", "Confirmations", "ScoreSpans", "Decision", "SPAN", "TOL", "GAP", "UNSUPPORTED", "AGREE",
+           "Horizon", "Stops", "Confirmations", "ScoreSpans", "CodeTerms", "Decision", "SPAN", "TOL", "GAP", "UNSUPPORTED", "AGREE",
            "LOCALISE", "LOCAL_SPREAD"]
 
 LN10 = math.log(10.0)
@@ -459,6 +460,15 @@ class Stops:
         return self.lengths(refs, source) >= stop
 
 
+class CodeTerms(NamedTuple):
+    """What a frame's decision reads from the codes alone (``Decision.code_terms``), for its ``m`` candidates."""
+
+    oldest: int | None  #: the horizon: keyframes from this id on are too recent (None: no horizon)
+    allowed: np.ndarray | None  #: ``(m,)`` bool, the pair's own line admissible at a stop (None: no stops)
+    allowed_w: np.ndarray | None  #: ``(m,)`` bool, the windows' line admissible at a stop (None: no windows)
+    windows: np.ndarray | None  #: ``(m,)`` the score path's fused windows' confidence (None: not windowed)
+
+
 class Decision:
     """The streaming decision of one run (see the module doc).
 
@@ -628,25 +638,35 @@ class Decision:
         qs = np.array([q for q, _ in out], np.int64)
         return [m for m, ok in zip(out, self.spans.on_line(qs, np.array(expected, np.int64), source, speed)) if ok]
 
-    def confidences(self, query_id: int, refs: np.ndarray, inliers: np.ndarray, source: Any,
-                    fallback: np.ndarray | None = None) -> np.ndarray:
-        """``-log10 NFA`` of each candidate ``(query_id, refs[i])`` with ``inliers[i]`` (-1: not verified);
-        ``-inf`` where it has no evidence of its own, is too recent, or is a still query's keyframe where the
-        reference did not stand still as long (``stops``); ``UNSUPPORTED`` where it has evidence of its own but no
-        run of frames reaches ``min_support`` yet. Score path (no ``pair_tail``): the fused
-        windows' confidence (``spans``), else ``fallback`` (the calibrated temporal-score confidences, ``(m,)``),
-        where the keyframe is not too recent."""
-        out = np.full(len(refs), -math.inf)
+    def code_terms(self, query_id: int, refs: np.ndarray, source: Any) -> "CodeTerms":
+        """What ``confidences`` reads from the codes alone for candidates ``refs`` ``(m,)`` of ``query_id`` (the
+        horizon, the stops' admissible lines, the score path's windows): computable before the candidates are
+        verified, the same values after (the detector computes them while the worker extracts the query's local
+        features)."""
+        refs = np.asarray(refs, np.int64)
         oldest = self.horizon(query_id, source) if self.horizon is not None and len(refs) else None
-        base = -math.log10(self.tests)
         # the score path's lines: the query's frame and the one before on each (a query that has just left a stop
         # reads that stop in its window: matched only where the reference's stop, one frame back, was as long)
         stops = self.stops is not None and len(refs)
         allowed = self.stops.line_admissible(query_id, refs, 1, source) \
             if stops and (self.pair_tail is not None or self.spans is None) else None
         allowed_w = self.stops.line_admissible(query_id, refs, 2, source) if stops and self._windowed else None
-        windows = self.spans.confidences(np.full(len(refs), query_id, np.int64), np.asarray(refs, np.int64), source,
-                                         self.accept_at) if self._windowed and len(refs) else None
+        windows = self.spans.confidences(np.full(len(refs), query_id, np.int64), refs, source, self.accept_at) \
+            if self._windowed and len(refs) else None
+        return CodeTerms(oldest, allowed, allowed_w, windows)
+
+    def confidences(self, query_id: int, refs: np.ndarray, inliers: np.ndarray, source: Any,
+                    fallback: np.ndarray | None = None, terms: "CodeTerms | None" = None) -> np.ndarray:
+        """``-log10 NFA`` of each candidate ``(query_id, refs[i])`` with ``inliers[i]`` (-1: not verified);
+        ``-inf`` where it has no evidence of its own, is too recent, or is a still query's keyframe where the
+        reference did not stand still as long (``stops``); ``UNSUPPORTED`` where it has evidence of its own but no
+        run of frames reaches ``min_support`` yet. Score path (no ``pair_tail``): the fused
+        windows' confidence (``spans``), else ``fallback`` (the calibrated temporal-score confidences, ``(m,)``),
+        where the keyframe is not too recent. ``terms``: ``code_terms`` of the same candidates, when computed
+        before."""
+        out = np.full(len(refs), -math.inf)
+        base = -math.log10(self.tests)
+        oldest, allowed, allowed_w, windows = terms if terms is not None else self.code_terms(query_id, refs, source)
         if self.pair_tail is None and windows is None:
             windows, allowed_w = fallback, allowed  # the calibrated temporal-score confidences: the pair's own stop
         by_windows = np.full(len(refs), -math.inf)

@@ -573,9 +573,10 @@ class LoopDetector:
         ms: dict[str, float] = {}
         t_start = t0 = time.perf_counter()
         image8, gray, prep = self._prepared_frame(fid, image)
-        net = self.descriptor.network_image(image8) if code is None else None  # the encoder's input
         if self._jobs is not None and fid not in self._given and self._features_wanted:
-            self._jobs.submit(fid, functools.partial(_own_features, prep), urgent=True)  # the worker starts now
+            # the worker starts now, first: its extraction is the longer of the two that run side by side
+            self._jobs.submit(fid, functools.partial(_own_features, prep), urgent=True)
+        net = self.descriptor.network_image(image8) if code is None else None  # the encoder's input
         gate = self.gate(gray)
         ms["gate"] = (time.perf_counter() - t0) * 1e3
         if not gate.passed:
@@ -605,6 +606,9 @@ class LoopDetector:
         """Verifies the hypotheses, decides (the loop, its check, the delayed loops it confirms: ``_confirmed``), and
         stores the keyframe (database first, then memory)."""
         t0, f0 = time.perf_counter(), ms["features"]
+        refs = np.array([cd.frame_id for cd in candidates], np.int64)
+        # what the decision reads from the codes alone: first, beside the worker extracting the query's features
+        terms = self.decision.code_terms(fid, refs, self.places.source) if self.decision is not None else None
         feats, checks = self._check(fid, feats, prep, candidates, ms)
         self._keep_geometries(fid, candidates, checks)
         if feats is None:
@@ -616,9 +620,9 @@ class LoopDetector:
                 cand.inliers = -1
             cand.confidence = self._confidence(cand)
         if self.decision is not None:
-            fused = self.decision.confidences(fid, np.array([cd.frame_id for cd in candidates], np.int64),
-                                              np.array([self._counted(cd) for cd in candidates], np.int64),
-                                              self.places.source, np.array([cd.confidence for cd in candidates]))
+            fused = self.decision.confidences(fid, refs, np.array([self._counted(cd) for cd in candidates], np.int64),
+                                              self.places.source, np.array([cd.confidence for cd in candidates]),
+                                              terms)
             for cand, value in zip(candidates, fused):
                 cand.confidence = float(max(value, -1e9))
         loop, best = self._decide(fid, candidates, checks)

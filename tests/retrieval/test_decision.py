@@ -220,6 +220,19 @@ class TestStops:
         assert dec.confidences(730, np.array([240]), np.array([-1]), table, fallback)[0] == 10.0
         assert dec.confidences(744, np.array([240]), np.array([-1]), table, fallback)[0] == -math.inf
 
+    def test_code_terms_computed_before_decide_the_same(self, table):
+        """The detector reads a frame's code terms (``Decision.code_terms``) before its candidates are verified, beside
+        the worker extracting its features: the confidences from them are those computed in one go, and they are the
+        terms read (another frame's would decide otherwise)."""
+        dec = Decision(None, TailModel(0.0, 1.0), 1.0, 1.0, False, stops=self._stops())
+        refs, unverified, fallback = np.array([240, 250, 242]), np.full(3, -1), np.full(3, 10.0)
+        for q in (730, 744, 755):
+            terms = dec.code_terms(q, refs, table)
+            assert np.array_equal(dec.confidences(q, refs, unverified, table, fallback, terms),
+                                  dec.confidences(q, refs, unverified, table, fallback))
+        other = dec.confidences(730, refs, unverified, table, fallback, dec.code_terms(744, refs, table))
+        assert not np.array_equal(other, dec.confidences(730, refs, unverified, table, fallback))
+
     def test_a_stop_carries_the_loop_of_its_arrival(self, table):
         """Winter 730 stands still in the station after 729 closed a loop to summer 230: the loop is carried to its
         candidate in the summer stop nearest after 230 (the query has not moved), with 729's confidence; to nothing
