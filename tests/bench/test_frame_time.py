@@ -36,7 +36,15 @@ def test_write_section_replaces_its_own_part(tmp_path):
 
 
 def test_yardstick_and_neighbour(sample_image):
-    assert sift_yardstick([sample_image(0), sample_image(1)]) > 0
+    import cv2
+
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(2)
+    try:
+        assert sift_yardstick([sample_image(0), sample_image(1)]) > 0  # on one core, whatever the policy before
+        assert cv2.getNumThreads() == 2  # the policy as it was
+    finally:
+        cv2.setNumThreads(before)
     with busy_neighbour() as proc:
         assert proc.poll() is None  # running
     assert proc.poll() is not None  # stopped
