@@ -5,8 +5,8 @@ before this change, quiet and beside a busy neighbour, all side by side in one r
 (``--api-only [--rounds 2] [--calibration PATH] [--calibration-512 PATH]``: the API passes alone, interleaved; with
 a calibration made on 512-px SIFT also the passes at 512 px, ``BEFORE_RUNS``):
 
-1. quiet: one SIFT extraction at 512 px on one core on every frame (the yardstick); ``cae-lcd detect`` with this code and with
-   the code at ``--before`` (a ``git archive`` of that revision, run from a temporary folder), each in a fresh
+1. quiet: one SIFT extraction at 512 px on one core on every frame (the yardstick); ``cae-lcd detect`` with this
+   code and with the code at ``--before`` (a ``git archive`` of that revision, run from a temporary folder), each in a fresh
    process (peak RSS is that process's own); the one-frame-at-a-time Python API (``LoopDetector.process``, the
    run's calibration, frames read beforehand): with the worker threads (``runtime.feature_worker`` and
    ``runtime.verify_worker``, the defaults) and without either, back to back and fed at the sequence's camera rate
@@ -260,8 +260,8 @@ def report(res: dict[str, Any]) -> str:
     lines = [f"- Sequence {res['sequence']} ({q['new']['frames']} frames, full resolution), default config, "
              f"{res['system']['cores']} cores ({res['system']['cpu']}), load average at the start "
              f"{res['system']['load_avg']}; every figure in this table comes from the same run.",
-             f"- Yardstick: one SIFT extraction at 512 px on one core, median {q['sift_ms']:.1f} ms quiet, {b['sift_ms']:.1f} ms "
-             "beside the neighbour.",
+             f"- Yardstick: one SIFT extraction at 512 px on one core, median {q['sift_ms']:.1f} ms quiet, "
+             f"{b['sift_ms']:.1f} ms beside the neighbour.",
              "- One frame at a time through the Python API (`LoopDetector.process`, the run's calibration, frames "
              "already in memory): " + "; ".join(
                  f"{name}: median {a['median']:.1f} ms (first half of the frames {a['first_half']:.1f}, second half, "

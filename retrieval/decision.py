@@ -86,8 +86,8 @@ from typing import Any, NamedTuple
 import numpy as np
 
 __all__ = ["TailModel", "EmpiricalTail", "MeasuredTail", "gamma_log10_sf", "gaussian_log10_sf", "fused_log10_sf",
-           "Horizon", "Stops", "Confirmations", "ScoreSpans", "CodeTerms", "Decision", "SPAN", "TOL", "GAP", "UNSUPPORTED", "AGREE",
-           "LOCALISE", "LOCAL_SPREAD"]
+           "Horizon", "Stops", "Confirmations", "ScoreSpans", "CodeTerms", "Decision", "SPAN", "TOL", "GAP",
+           "UNSUPPORTED", "AGREE", "LOCALISE", "LOCAL_SPREAD"]
 
 LN10 = math.log(10.0)
 STOP_EDGE = 1  #: frames by which the reference's stop may begin after the loop's keyframe and still carry the query's
