@@ -8,9 +8,10 @@ a calibration made on 512-px SIFT also the passes at 512 px, ``BEFORE_RUNS``):
 1. quiet: one SIFT extraction at 512 px on one core on every frame (the yardstick); ``cae-lcd detect`` with this
    code and with the code at ``--before`` (a ``git archive`` of that revision, run from a temporary folder), each
    in a fresh process (peak RSS is that process's own); the one-frame-at-a-time Python API
-   (``LoopDetector.process``, the run's calibration, frames read beforehand): with the worker threads (``runtime.feature_worker`` and
-   ``runtime.verify_worker``, the defaults) and without either, back to back and fed at the sequence's camera rate
-   (the latency a SLAM system sees: the next frame comes when its timestamp says, gaps capped at 1 s);
+   (``LoopDetector.process``, the run's calibration, frames read beforehand): with the worker threads
+   (``runtime.feature_worker`` and ``runtime.verify_worker``, the defaults) and without either, back to back and fed
+   at the sequence's camera rate (the latency a SLAM system sees: the next frame comes when its timestamp says, gaps
+   capped at 1 s);
 2. beside a busy neighbour (a process multiplying matrices with 2 torch threads, as a SLAM system's threads
    would): the yardstick and ``detect`` again (``--before-under-load`` also runs the old code there: slow).
 
