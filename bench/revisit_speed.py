@@ -1,13 +1,14 @@
 """A revisit at another speed (issue 27): each loop must name the place the query stands at.
 
-KITTI 90's first pass whole and its second pass taking frames 1.15, 2 or 3 apart (frame `100 + round(v k)`: the road
-driven again 1.15x, 2x or 3x as fast), at full size (1241x376), at 160x120 and at 64x32 (too few keypoints to verify:
-the score path decides, on lines at the map's speed by default), as plain folders (no calibration); `cae-lcd detect`
-with the default config, with the verified runs fused on lines at the map's speed only (`calibration.speeds: [1.0]`; the
-default fuses them at 1x, 2x and 3x, `retrieval.decision`), without the walk that names where the query stands
-(`search.localise_steps: 0`, `retrieval.localise`), and with the score path's windows on lines at 1x, 2x and 3x
-(`calibration.score_speeds: [1, 2, 3]`; the verified paths do not read it). A loop is true where the ground truth (5 m
-on the ground plane) holds its pair; its distance is read from `poses/90.txt`.
+KITTI 90's first pass whole and its second pass taking frames 1.15, 1.25, 2 or 3 apart (frame `100 + round(v k)`: the
+road driven again 1.15x, 1.25x, 2x or 3x as fast), at full size (1241x376), at 160x120 and at 64x32 (too few keypoints
+to verify: the score path decides, on lines at the map's speed and 15 % either side by default), as plain folders (no
+calibration); `cae-lcd detect` with the default config, with the verified runs fused on lines at the map's speed only
+(`calibration.speeds: [1.0]`; the default fuses them at 1x, 2x and 3x, `retrieval.decision`), without the walk that
+names where the query stands (`search.localise_steps: 0`, `retrieval.localise`), and with the score path's windows on
+lines at the map's speed only (`calibration.score_speeds: [1.0]`, the default before) and at 1x, 2x and 3x
+(`calibration.score_speeds: [1, 2, 3]`; the verified paths read neither). A loop is true where the ground truth (5 m on
+the ground plane) holds its pair; its distance is read from `poses/90.txt`.
 
 ``python -m bench.revisit_speed [--out runs/bench/revisit_speed] [--no-write]``
 """
@@ -24,12 +25,14 @@ from .common import REPO, md_table, work_study_cli
 
 log = logging.getLogger(__name__)
 
-SPEEDS = (1.15, 2.0, 3.0)  #: the second pass takes frame ``100 + round(v k)``: driven again ``v`` times as fast
+SPEEDS = (1.15, 1.25, 2.0, 3.0)  #: the second pass takes frame ``100 + round(v k)``: driven again ``v`` times as fast
 SIZES = {"full size": None, "160x120": (160, 120), "64x32 (score path)": (64, 32)}
 KITTI90 = REPO.parent / "shared" / "datasets" / "kitti" / "sequences" / "90"  #: the sequence and its ground truth
 VARIANTS = {"default": {},
             "runs at the map's speed only (`calibration.speeds: [1.0]`)": {"calibration": {"speeds": [1.0]}},
             "without the walk (`search.localise_steps: 0`)": {"search": {"localise_steps": 0}},
+            "score path at the map's speed only (`calibration.score_speeds: [1.0]`)":
+                {"calibration": {"score_speeds": [1.0]}},
             "score path at 1x, 2x, 3x (`calibration.score_speeds: [1, 2, 3]`)":
                 {"calibration": {"score_speeds": [1.0, 2.0, 3.0]}}}
 

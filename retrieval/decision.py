@@ -36,9 +36,9 @@ verified as in the run), and what a loop looks like: the **positives** (a frame 
 - **The score path fuses too** (``ScoreSpans``, where local features are too few to verify, and on a stream's inlier
   path beside it, ``both``: a candidate's confidence the larger of the two paths', each on its own budget; issue 27:
   measured, not extrapolated): the temporal score of a hypothesis is the mean similarity along a line of ``length``
-  frames (a window), on lines at one of ``speeds`` (``calibration.score_speeds``, the map's speed by default; window
-  ``j`` of a line at speed ``v`` through ``(q, r)``: ``(q - j length, r - v j length)``, the filter's own lines scaled
-  by ``v``), the best speed's taken, its null measured the same way and every speed counted among the tests. One
+  frames (a window), on lines at one of ``speeds`` (``calibration.score_speeds``, the map's and 15 % either side by
+  default; window ``j`` of a line at speed ``v`` through ``(q, r)``: ``(q - j length, r - v j length)``, the filter's
+  own lines scaled by ``v``), the best speed's taken, its null measured the same way and every speed counted among the tests. One
   window's evidence is its empirical p-value among the far-side pairs' window scores (``EmpiricalTail``, at most
   ``log10(n + 1)`` decades: no Gaussian tail past the sample). ``m`` consecutive windows on the same line (``m`` up to
   ``span``) fuse: every window must agree (at least ``AGREE`` decades: one weak, missing or contrary window vetoes the
@@ -84,6 +84,8 @@ from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import numpy as np
+
+from .temporal import PAIR_CHUNK
 
 __all__ = ["TailModel", "EmpiricalTail", "MeasuredTail", "gamma_log10_sf", "gaussian_log10_sf", "fused_log10_sf",
            "Horizon", "Stops", "Confirmations", "ScoreSpans", "CodeTerms", "Decision", "SPAN", "TOL", "GAP",
@@ -643,7 +645,32 @@ class Decision:
         horizon, the stops' admissible lines, the score path's windows): computable before the candidates are
         verified, the same values after (the detector computes them while the worker extracts the query's local
         features)."""
-        refs = np.asarray(refs, np.int64)
+        return self.code_terms_many(np.array([query_id], np.int64), [refs], source)[0]
+
+    def code_terms_many(self, query_ids: np.ndarray, refs: list[np.ndarray], source: Any) -> list["CodeTerms"]:
+        """``code_terms`` of frames ``query_ids`` ``(n,)``, each with its candidates ``refs[i]`` (a replay's frames):
+        the score path's windows of many frames scored together, ``PAIR_CHUNK // span`` pairs a call (the same
+        values as frame by frame: every pair's windows are scored on their own)."""
+        refs = [np.asarray(r, np.int64).reshape(-1) for r in refs]
+        windows = None
+        if self._windowed:
+            qs = np.repeat(np.asarray(query_ids, np.int64), [len(r) for r in refs])
+            rs = np.concatenate(refs) if refs else np.zeros(0, np.int64)
+            step = max(1, PAIR_CHUNK // max(self.spans.span, 1))
+            windows = np.concatenate([np.zeros(0)] + [
+                self.spans.confidences(qs[lo:lo + step], rs[lo:lo + step], source, self.accept_at)
+                for lo in range(0, len(rs), step)])
+        out, lo = [], 0
+        for query_id, r in zip(np.asarray(query_ids).tolist(), refs):
+            hi = lo + len(r)
+            out.append(CodeTerms(*self._stop_terms(query_id, r, source),
+                                 windows[lo:hi] if windows is not None and len(r) else None))
+            lo = hi
+        return out
+
+    def _stop_terms(self, query_id: int, refs: np.ndarray, source: Any
+                    ) -> tuple[int | None, np.ndarray | None, np.ndarray | None]:
+        """``code_terms``' horizon and the stops' admissible lines (the pair's own, the windows')."""
         oldest = self.horizon(query_id, source) if self.horizon is not None and len(refs) else None
         # the score path's lines: the query's frame and the one before on each (a query that has just left a stop
         # reads that stop in its window: matched only where the reference's stop, one frame back, was as long)
@@ -651,9 +678,7 @@ class Decision:
         allowed = self.stops.line_admissible(query_id, refs, 1, source) \
             if stops and (self.pair_tail is not None or self.spans is None) else None
         allowed_w = self.stops.line_admissible(query_id, refs, 2, source) if stops and self._windowed else None
-        windows = self.spans.confidences(np.full(len(refs), query_id, np.int64), refs, source, self.accept_at) \
-            if self._windowed and len(refs) else None
-        return CodeTerms(oldest, allowed, allowed_w, windows)
+        return oldest, allowed, allowed_w
 
     def confidences(self, query_id: int, refs: np.ndarray, inliers: np.ndarray, source: Any,
                     fallback: np.ndarray | None = None, terms: "CodeTerms | None" = None) -> np.ndarray:

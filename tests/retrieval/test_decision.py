@@ -233,6 +233,25 @@ class TestStops:
         other = dec.confidences(730, refs, unverified, table, fallback, dec.code_terms(744, refs, table))
         assert not np.array_equal(other, dec.confidences(730, refs, unverified, table, fallback))
 
+    def test_code_terms_of_many_frames_are_each_frames_own(self, table):
+        """A replay reads the code terms of its recorded frames together (``Decision.code_terms_many``: the score
+        path's windows in calls of ``PAIR_CHUNK // span`` pairs): each frame's are those it reads alone, on Nordland's
+        real winter frames against summer keyframes at three line speeds, over more than one call."""
+        from retrieval.decision import EmpiricalTail, MeasuredTail, ScoreSpans
+        from retrieval.temporal import PAIR_CHUNK, create_filter
+
+        spans = ScoreSpans(create_filter({}).score, 10, EmpiricalTail(np.linspace(0.0, 0.5, 999)),
+                           [MeasuredTail(np.zeros(0))] * 3, 1e4, (0.87, 1.0, 1.15))
+        dec = Decision(None, TailModel(0.0, 1.0), 1e4, 1.0, False, stops=self._stops(), spans=spans)
+        queries = np.arange(700, 760, dtype=np.int64)
+        refs = [np.arange(q - 506, q - 494, dtype=np.int64) for q in queries]  # 12 summer keyframes around its place
+        assert sum(map(len, refs)) > PAIR_CHUNK // spans.span  # more than one call
+        many = dec.code_terms_many(queries, refs, table)
+        for q, r, terms in zip(queries.tolist(), refs, many):
+            alone = dec.code_terms(q, r, table)
+            assert np.array_equal(terms.windows, alone.windows) and np.array_equal(terms.allowed_w, alone.allowed_w)
+        assert np.isfinite(np.concatenate([t.windows for t in many])).any()  # windows that decide
+
     def test_a_stop_carries_the_loop_of_its_arrival(self, table):
         """Winter 730 stands still in the station after 729 closed a loop to summer 230: the loop is carried to its
         candidate in the summer stop nearest after 230 (the query has not moved), with 729's confidence; to nothing
