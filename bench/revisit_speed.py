@@ -1,12 +1,13 @@
 """A revisit at another speed (issue 27): each loop must name the place the query stands at.
 
 KITTI 90's first pass whole and its second pass taking frames 1.15, 1.25, 2 or 3 apart (frame `100 + round(v k)`: the
-road driven again 1.15x, 1.25x, 2x or 3x as fast), at full size (1241x376), at 160x120 and at 64x32 (too few keypoints
-to verify: the score path decides, on lines at the map's speed and 15 % either side by default), as plain folders (no
+road driven again 1.15x, 1.25x, 2x or 3x as fast), at full size (1241x376), at 160x120, at 64x32 (too few keypoints to
+verify: the score path decides, on lines at the map's speed by default) and at 160x120 with the second pass made darker
+(`bench.aliasing.DARKER`: a night revisit whose frames cannot be verified, the score path decides), as plain folders (no
 calibration); `cae-lcd detect` with the default config, with the verified runs fused on lines at the map's speed only
 (`calibration.speeds: [1.0]`; the default fuses them at 1x, 2x and 3x, `retrieval.decision`), without the walk that
 names where the query stands (`search.localise_steps: 0`, `retrieval.localise`), and with the score path's windows on
-lines at the map's speed only (`calibration.score_speeds: [1.0]`, the default before) and at 1x, 2x and 3x
+lines at 0.87x, 1x and 1.15x (`calibration.score_speeds: [0.87, 1, 1.15]`) and at 1x, 2x and 3x
 (`calibration.score_speeds: [1, 2, 3]`; the verified paths read neither). A loop is true where the ground truth (5 m on
 the ground plane) holds its pair; its distance is read from `poses/90.txt`.
 
@@ -26,30 +27,36 @@ from .common import REPO, md_table, work_study_cli
 log = logging.getLogger(__name__)
 
 SPEEDS = (1.15, 1.25, 2.0, 3.0)  #: the second pass takes frame ``100 + round(v k)``: driven again ``v`` times as fast
-SIZES = {"full size": None, "160x120": (160, 120), "64x32 (score path)": (64, 32)}
+SIZES = {  #: name -> (size, whether the second pass is made darker: ``bench.aliasing.DARKER``, too few keypoints)
+    "full size": (None, False), "160x120": ((160, 120), False), "64x32 (score path)": ((64, 32), False),
+    "160x120, second pass darker (score path: a night)": ((160, 120), True)}
 KITTI90 = REPO.parent / "shared" / "datasets" / "kitti" / "sequences" / "90"  #: the sequence and its ground truth
 VARIANTS = {"default": {},
             "runs at the map's speed only (`calibration.speeds: [1.0]`)": {"calibration": {"speeds": [1.0]}},
             "without the walk (`search.localise_steps: 0`)": {"search": {"localise_steps": 0}},
-            "score path at the map's speed only (`calibration.score_speeds: [1.0]`)":
-                {"calibration": {"score_speeds": [1.0]}},
+            "score path at 0.87x, 1x, 1.15x (`calibration.score_speeds: [0.87, 1, 1.15]`)":
+                {"calibration": {"score_speeds": [0.87, 1.0, 1.15]}},
             "score path at 1x, 2x, 3x (`calibration.score_speeds: [1, 2, 3]`)":
                 {"calibration": {"score_speeds": [1.0, 2.0, 3.0]}}}
 
 
-def speed_folder(out: Path, speed: float, size: tuple[int, int] | None) -> tuple[Path, list[int]]:
+def speed_folder(out: Path, speed: float, size: tuple[int, int] | None,
+                 darker: bool = False) -> tuple[Path, list[int]]:
     """KITTI 90's first pass (frames 0-99) and its second (100-199) at ``speed`` times the first's (frames
-    ``100 + round(speed k)``), resized to ``size``, as a plain folder under ``out``; and each written frame's index in
-    KITTI 90."""
+    ``100 + round(speed k)``), resized to ``size``, the second pass made darker (``bench.aliasing.DARKER``, seed 0)
+    where asked, as a plain folder under ``out``; and each written frame's index in KITTI 90."""
     from retrieval.sequences import open_sequence
 
-    from .aliasing import plain_folder
+    from .aliasing import DARKER, plain_folder
+    from .augment import darken
 
     keep = [*range(100), *sorted({100 + round(speed * k) for k in range(int(100 / speed) + 1)
                                   if 100 + round(speed * k) < 200})]
     frames = list(open_sequence(KITTI90).frames)
-    name = f"k90_{speed:g}x_{'full' if size is None else f'{size[0]}x{size[1]}'}"
-    return plain_folder(out / name, [frames[i] for i in keep], size), keep
+    name = f"k90_{speed:g}x_{'full' if size is None else f'{size[0]}x{size[1]}'}{'_darker' if darker else ''}"
+    rng = np.random.default_rng(0)
+    transform = (lambda image: darken(image, rng, **DARKER)) if darker else None
+    return plain_folder(out / name, [frames[i] for i in keep], size, transform, 100), keep
 
 
 def scored(run: Path, keep: list[int]) -> dict[str, Any]:
@@ -76,8 +83,8 @@ def main(out: str | Path, write: bool = True) -> dict[str, dict[str, dict[str, A
     out = Path(out)
     results: dict[str, dict[str, dict[str, Any]]] = {}
     for speed in SPEEDS:
-        for size_name, size in SIZES.items():
-            folder, keep = speed_folder(out, speed, size)
+        for size_name, (size, darker) in SIZES.items():
+            folder, keep = speed_folder(out, speed, size, darker)
             label = f"second pass at {speed:g}x, {size_name}"
             results[label] = {}
             for variant, conf in VARIANTS.items():

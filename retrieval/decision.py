@@ -36,9 +36,9 @@ verified as in the run), and what a loop looks like: the **positives** (a frame 
 - **The score path fuses too** (``ScoreSpans``, where local features are too few to verify, and on a stream's inlier
   path beside it, ``both``: a candidate's confidence the larger of the two paths', each on its own budget; issue 27:
   measured, not extrapolated): the temporal score of a hypothesis is the mean similarity along a line of ``length``
-  frames (a window), on lines at one of ``speeds`` (``calibration.score_speeds``, the map's and 15 % either side by
-  default; window ``j`` of a line at speed ``v`` through ``(q, r)``: ``(q - j length, r - v j length)``, the filter's
-  own lines scaled by ``v``), the best speed's taken, its null measured the same way and every speed counted among the tests. One
+  frames (a window), on lines at one of ``speeds`` (``calibration.score_speeds``, the map's speed by default; window
+  ``j`` of a line at speed ``v`` through ``(q, r)``: ``(q - j length, r - v j length)``, the filter's own lines scaled
+  by ``v``), the best speed's taken, its null measured the same way and every speed counted among the tests. One
   window's evidence is its empirical p-value among the far-side pairs' window scores (``EmpiricalTail``, at most
   ``log10(n + 1)`` decades: no Gaussian tail past the sample). ``m`` consecutive windows on the same line (``m`` up to
   ``span``) fuse: every window must agree (at least ``AGREE`` decades: one weak, missing or contrary window vetoes the
