@@ -272,7 +272,7 @@ class Calibration:
         fused = np.asarray(self.samples["score_fused"], np.float64).reshape(len(self.samples["score_null"]), -1)
         measured = [MeasuredTail(fused[np.isfinite(fused[:, j]), j]) for j in range(int(self.spans["span"]))]
         return ScoreSpans(filt.score, int(self.spans["window"]), self.empirical("score_null"), measured,
-                          self.tests["score"], tuple(self.spans.get("speeds", (1.0,))))
+                          self.tests["score"], tuple(self.spans.get("speeds", (1.0,))), self.fused.get("still_cos"))
 
     def decision(self, exclude_recent: int, filt: TemporalFilter | None = None) -> Decision:
         """The run's fused decision (``retrieval.decision``): on the inlier path, and on the score path the fused

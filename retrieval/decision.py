@@ -36,14 +36,15 @@ verified as in the run), and what a loop looks like: the **positives** (a frame 
 - **The score path fuses too** (``ScoreSpans``, where local features are too few to verify, and on a stream's inlier
   path beside it, ``both``: a candidate's confidence the larger of the two paths', each on its own budget; issue 27:
   measured, not extrapolated): the temporal score of a hypothesis is the mean similarity along a line of ``length``
-  frames (a window), on lines at one of ``speeds`` (``calibration.score_speeds``, the map's speed by default; window
-  ``j`` of a line at speed ``v`` through ``(q, r)``: ``(q - j length, r - v j length)``, the filter's own lines scaled
-  by ``v``), the best speed's taken, its null measured the same way and every speed counted among the tests. One
-  window's evidence is its empirical p-value among the far-side pairs' window scores (``EmpiricalTail``, at most
-  ``log10(n + 1)`` decades: no Gaussian tail past the sample). ``m`` consecutive windows on the same line (``m`` up to
-  ``span``) fuse: every window must agree (at least ``AGREE`` decades: one weak, missing or contrary window vetoes the
-  longer spans), their evidence is summed, and its null is the heavier of the Gamma(m) tail (disjoint windows taken as
-  independent) and the fused evidence measured on the far-side lines of ``m`` windows (``fused_log10_sf``, the inlier
+  frames (a window), on lines at one of ``speeds`` (``calibration.score_speeds``, the map's and 15 % either side by
+  default; window ``j`` of a line at speed ``v`` through ``(q, r)``: ``(q - j length, r - v j length)``, the filter's
+  own lines scaled by ``v``; a window of a line at another speed than the map's with a still frame on either side does
+  not agree: a stop has no speed), the best speed's taken, its null measured the same way and every speed counted among
+  the tests. One window's evidence is its empirical p-value among the far-side pairs' window scores (``EmpiricalTail``,
+  at most ``log10(n + 1)`` decades: no Gaussian tail past the sample). ``m`` consecutive windows on the same line (``m``
+  up to ``span``) fuse: every window must agree (at least ``AGREE`` decades: one weak, missing or contrary window vetoes
+  the longer spans), their evidence is summed, and its null is the heavier of the Gamma(m) tail (disjoint windows taken
+  as independent) and the fused evidence measured on the far-side lines of ``m`` windows (``fused_log10_sf``, the inlier
   path's rule). The run's tests count every span; the confidence is the best span's. **The promise**: no window claims
   below ``1 / (n + 1)`` of its sample, and a run of ``m`` windows claims no more than ``m`` independent such windows
   would under the Gamma tail (and no more than its measured null shows where that is heavier); where the sample cannot
@@ -253,15 +254,20 @@ class ScoreSpans:
             far-side lines of ``m`` windows, the best of the speeds.
         tests: hypotheses the run tests (every span and speed counted).
         speeds: the lines' speeds (``calibration.score_speeds``).
+        still_cos: the similarity of a frame to the one before from which the camera stood still (``Stops``); a
+            window of a line at another speed than the map's with a still frame on either side does not agree (a
+            stop has no speed: a line at another speed reads the stop's frames at offsets the stop's length sets,
+            not the motion's). None: no such rule (the calibration's null: every line, the heavier).
     """
 
     def __init__(self, score: Any, window: int, tail: "EmpiricalTail", measured: list["MeasuredTail"],
-                 tests: float, speeds: tuple[float, ...] = (1.0,)) -> None:
+                 tests: float, speeds: tuple[float, ...] = (1.0,), still_cos: float | None = None) -> None:
         self.score, self.window, self.tail, self.tests = score, int(window), tail, float(tests)
         self.measured = list(measured)
         #: the null's spread: its 90th percentile above its median (raw window score; ``LOCAL_SPREAD``)
         self.spread = float(np.quantile(tail.x, 0.9) - tail.u) if len(tail.x) else 0.0
         self.speeds = tuple(float(v) for v in speeds)
+        self.still_cos = still_cos
 
     @property
     def span(self) -> int:
@@ -279,7 +285,21 @@ class ScoreSpans:
         ok = rj >= 0
         if ok.any():
             out[ok] = self.score(qj[ok], rj[ok], source, speed)
+            if speed != 1.0 and self.still_cos is not None:
+                out[np.flatnonzero(ok)[self._through_stop(qj[ok], rj[ok], source, speed)]] = -np.inf
         return out.reshape(-1, self.span)
+
+    def _through_stop(self, queries: np.ndarray, refs: np.ndarray, source: Any, speed: float) -> np.ndarray:
+        """``(n,)`` bool: whether the window of each ``(queries[i], refs[i])`` on its line at ``speed`` holds a still
+        frame (one as like the frame before as ``still_cos``) on either side."""
+        steps = np.arange(self.window, dtype=np.float64)
+        frames = np.concatenate([(queries[:, None] - steps.astype(np.int64)).ravel(),
+                                 np.rint(refs[:, None] - speed * steps).astype(np.int64).ravel()])
+        sims = np.full(len(frames), np.nan, np.float32)
+        ok = frames >= 1
+        sims[ok] = source.pairs(frames[ok], frames[ok] - 1)
+        still = np.nan_to_num(sims, nan=-np.inf) >= self.still_cos
+        return still.reshape(2, len(queries), self.window).any(axis=(0, 2))
 
     def fused(self, win: np.ndarray) -> np.ndarray:
         """``(n, span)``: the fused evidence (decades) of spans 1..span, the sum of the first ``m`` windows' evidence;

@@ -252,6 +252,25 @@ class TestStops:
             assert np.array_equal(terms.windows, alone.windows) and np.array_equal(terms.allowed_w, alone.allowed_w)
         assert np.isfinite(np.concatenate([t.windows for t in many])).any()  # windows that decide
 
+    def test_a_line_at_another_speed_through_a_stop_does_not_agree(self, table):
+        """A stop has no speed: a line at 0.87x through Nordland's winter station stop (706-745) reads the stop's
+        frames at offsets the stop's length sets (random weights, lines at 0.87x, 1x and 1.15x: 744-746 matched 239-241
+        and 749 243, 5-7 frames off). Its window does not agree where a still frame lies on either side; the window of
+        a moving query and keyframe does, and so does a line at the map's speed (the stops' own rule decides there)."""
+        from retrieval.decision import EmpiricalTail, MeasuredTail, ScoreSpans
+        from retrieval.temporal import create_filter
+
+        def spans(still_cos):
+            return ScoreSpans(create_filter({}).score, 10, EmpiricalTail(np.linspace(0.0, 0.5, 999)),
+                              [MeasuredTail(np.zeros(0))] * 3, 1e4, (0.87, 1.0, 1.15), still_cos)
+
+        q, r = np.array([744, 700]), np.array([239, 200])  # in both stops; moving, before them
+        ruled = spans(self._stops().cos)
+        assert ruled.windows(q, r, table, 0.87)[:, 0].tolist()[0] == -math.inf
+        assert np.isfinite(ruled.windows(q, r, table, 0.87)[1, 0])
+        assert np.isfinite(ruled.windows(q, r, table, 1.0)[:, 0]).all()
+        assert np.isfinite(spans(None).windows(q, r, table, 0.87)[:, 0]).all()
+
     def test_a_stop_carries_the_loop_of_its_arrival(self, table):
         """Winter 730 stands still in the station after 729 closed a loop to summer 230: the loop is carried to its
         candidate in the summer stop nearest after 230 (the query has not moved), with 729's confidence; to nothing

@@ -712,8 +712,8 @@ class TestARevisitAtAnotherSpeed:
 class TestAFasterRevisitOnTheScorePath:
     """KITTI 90 at 64x32 (too few keypoints to verify: the score path decides) with its second pass twice as fast
     (every second frame from 100): its windows lie on a line at 2x the map's speed, which the score path fuses where
-    ``calibration.score_speeds`` holds it (``retrieval.decision.ScoreSpans``); at the map's speed only (the default),
-    nothing is found."""
+    ``calibration.score_speeds`` holds it (``retrieval.decision.ScoreSpans``); at the map's speed only, nothing is
+    found."""
 
     KEEP = (*range(100), *range(100, 200, 2))
 
