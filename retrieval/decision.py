@@ -295,10 +295,11 @@ class ScoreSpans:
         steps = np.arange(self.window, dtype=np.float64)
         frames = np.concatenate([(queries[:, None] - steps.astype(np.int64)).ravel(),
                                  np.rint(refs[:, None] - speed * steps).astype(np.int64).ravel()])
-        sims = np.full(len(frames), np.nan, np.float32)
-        ok = frames >= 1
-        sims[ok] = source.pairs(frames[ok], frames[ok] - 1)
-        still = np.nan_to_num(sims, nan=-np.inf) >= self.still_cos
+        uniq, back = np.unique(frames, return_inverse=True)  # windows of nearby pairs share most of their frames
+        sims = np.full(len(uniq), np.nan, np.float32)
+        ok = uniq >= 1
+        sims[ok] = source.pairs(uniq[ok], uniq[ok] - 1)
+        still = (np.nan_to_num(sims, nan=-np.inf) >= self.still_cos)[back]
         return still.reshape(2, len(queries), self.window).any(axis=(0, 2))
 
     def fused(self, win: np.ndarray) -> np.ndarray:
