@@ -265,14 +265,15 @@ class Calibration:
             return -math.inf
         return -(math.log10(self.tests["inliers"]) + self.pair_tail().log10_sf(inliers))
 
-    def score_spans(self, filt: TemporalFilter | None) -> ScoreSpans | None:
-        """The score path's fused windows scored by the run's filter ``filt`` (None where not calibrated)."""
+    def score_spans(self, filt: TemporalFilter | None, stops: Stops | None = None) -> ScoreSpans | None:
+        """The score path's fused windows scored by the run's filter ``filt`` (None where not calibrated); ``stops``:
+        the run's (a line at another speed then reads no window through a stop: ``ScoreSpans``)."""
         if not self.spans or filt is None or "score_fused" not in self.samples:
             return None
         fused = np.asarray(self.samples["score_fused"], np.float64).reshape(len(self.samples["score_null"]), -1)
         measured = [MeasuredTail(fused[np.isfinite(fused[:, j]), j]) for j in range(int(self.spans["span"]))]
         return ScoreSpans(filt.score, int(self.spans["window"]), self.empirical("score_null"), measured,
-                          self.tests["score"], tuple(self.spans.get("speeds", (1.0,))), self.fused.get("still_cos"))
+                          self.tests["score"], tuple(self.spans.get("speeds", (1.0,))), stops)
 
     def decision(self, exclude_recent: int, filt: TemporalFilter | None = None) -> Decision:
         """The run's fused decision (``retrieval.decision``): on the inlier path, and on the score path the fused
@@ -282,12 +283,13 @@ class Calibration:
         n, f = self.inlier_null, self.fused
         horizon = Horizon(f["stretch_cos"], exclude_recent) if "stretch_cos" in f else None
         measured = f.get("measured") and "hard_fused" in self.samples
+        stops = Stops(f["still_cos"]) if "still_cos" in f else None
         return Decision(self.pair_tail(),
                         MeasuredTail(self.samples["hard_fused"]) if measured else
                         TailModel(f.get("u", 0.0), f.get("beta", 1 / _LN10)), self.tests.get("inliers", 1.0),
                         self.accept_at, bool(f.get("single", 0.0)), horizon, n.get("floor", 0.0),
-                        int(f.get("span", SPAN)), int(f.get("tol", TOL)), spans=self.score_spans(filt),
-                        stops=Stops(f["still_cos"]) if "still_cos" in f else None,
+                        int(f.get("span", SPAN)), int(f.get("tol", TOL)), spans=self.score_spans(filt, stops),
+                        stops=stops,
                         speeds=tuple(f.get("speeds", (1.0,))),
                         both=SCORE_BESIDE_INLIERS and bool(self.score_null.get("held_out")))
 

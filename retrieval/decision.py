@@ -254,20 +254,20 @@ class ScoreSpans:
             far-side lines of ``m`` windows, the best of the speeds.
         tests: hypotheses the run tests (every span and speed counted).
         speeds: the lines' speeds (``calibration.score_speeds``).
-        still_cos: the similarity of a frame to the one before from which the camera stood still (``Stops``); a
-            window of a line at another speed than the map's with a still frame on either side does not agree (a
-            stop has no speed: a line at another speed reads the stop's frames at offsets the stop's length sets,
-            not the motion's). None: no such rule (the calibration's null: every line, the heavier).
+        stops: the run's ``Stops``: a window of a line at another speed than the map's with a still frame on either
+            side does not agree (a stop has no speed: a line at another speed reads the stop's frames at offsets the
+            stop's length sets, not the motion's). None: no such rule (the calibration's null: every line, the
+            heavier).
     """
 
     def __init__(self, score: Any, window: int, tail: "EmpiricalTail", measured: list["MeasuredTail"],
-                 tests: float, speeds: tuple[float, ...] = (1.0,), still_cos: float | None = None) -> None:
+                 tests: float, speeds: tuple[float, ...] = (1.0,), stops: "Stops | None" = None) -> None:
         self.score, self.window, self.tail, self.tests = score, int(window), tail, float(tests)
         self.measured = list(measured)
         #: the null's spread: its 90th percentile above its median (raw window score; ``LOCAL_SPREAD``)
         self.spread = float(np.quantile(tail.x, 0.9) - tail.u) if len(tail.x) else 0.0
         self.speeds = tuple(float(v) for v in speeds)
-        self.still_cos = still_cos
+        self.stops = stops
 
     @property
     def span(self) -> int:
@@ -285,22 +285,18 @@ class ScoreSpans:
         ok = rj >= 0
         if ok.any():
             out[ok] = self.score(qj[ok], rj[ok], source, speed)
-            if speed != 1.0 and self.still_cos is not None:
+            if speed != 1.0 and self.stops is not None:
                 out[np.flatnonzero(ok)[self._through_stop(qj[ok], rj[ok], source, speed)]] = -np.inf
         return out.reshape(-1, self.span)
 
     def _through_stop(self, queries: np.ndarray, refs: np.ndarray, source: Any, speed: float) -> np.ndarray:
         """``(n,)`` bool: whether the window of each ``(queries[i], refs[i])`` on its line at ``speed`` holds a still
-        frame (one as like the frame before as ``still_cos``) on either side."""
+        frame (``Stops.still``) on either side."""
         steps = np.arange(self.window, dtype=np.float64)
         frames = np.concatenate([(queries[:, None] - steps.astype(np.int64)).ravel(),
                                  np.rint(refs[:, None] - speed * steps).astype(np.int64).ravel()])
         uniq, back = np.unique(frames, return_inverse=True)  # windows of nearby pairs share most of their frames
-        sims = np.full(len(uniq), np.nan, np.float32)
-        ok = uniq >= 1
-        sims[ok] = source.pairs(uniq[ok], uniq[ok] - 1)
-        still = (np.nan_to_num(sims, nan=-np.inf) >= self.still_cos)[back]
-        return still.reshape(2, len(queries), self.window).any(axis=(0, 2))
+        return self.stops.still(uniq, source)[back].reshape(2, len(queries), self.window).any(axis=(0, 2))
 
     def fused(self, win: np.ndarray) -> np.ndarray:
         """``(n, span)``: the fused evidence (decades) of spans 1..span, the sum of the first ``m`` windows' evidence;
@@ -457,9 +453,18 @@ class Stops:
             self._len[g] = n
         return self._len.get(frame, 0)
 
+    def still(self, frames: np.ndarray, source: Any) -> np.ndarray:
+        """``(n,)`` bool: whether each of ``frames`` ``(n,)`` is as like the stored frame before it as ``cos`` (the
+        camera stood still onto it; False where either is not stored, and for frame 0)."""
+        frames = np.asarray(frames, np.int64).reshape(-1)
+        sims = np.full(len(frames), -np.inf)  # compared in float64, as the frame-by-frame check was
+        ok = frames >= 1
+        if ok.any():
+            sims[ok] = np.nan_to_num(source.pairs(frames[ok], frames[ok] - 1).astype(np.float64), nan=-np.inf)
+        return sims >= self.cos
+
     def _still(self, frame: int, source: Any) -> bool:
-        sim = float(source.pairs(np.array([frame], np.int64), np.array([frame - 1], np.int64))[0])
-        return not math.isnan(sim) and sim >= self.cos
+        return bool(self.still(np.array([frame], np.int64), source)[0])
 
     def line_admissible(self, query_id: int, refs: np.ndarray, back: int, source: Any) -> np.ndarray:
         """``(m,)`` bool: ``admissible`` at every frame of each pair's line over ``back`` frames (``(query_id - j,

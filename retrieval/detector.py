@@ -138,7 +138,7 @@ default_conf: dict[str, Any] = {
         #                         frames at 1.25x is 2.5 frames off a 1x line): the map's pace and 15 % either
         #                         side (a walk or a drive again at another pace; KITTI 90 at 64x32, its second
         #                         pass at 1.15x: 0 -> 86 of 87 found, at 1.25x 61 of 80). A line at another speed
-        #                         does not read through a stop (``ScoreSpans``' ``still_cos``). Each speed is
+        #                         does not read through a stop (``ScoreSpans``' ``stops``). Each speed is
         #                         counted in the tests: weak codes lose recall at the map's speed (Nordland's
         #                         darkened winter 0.928 with [1.0] -> 0.902; slower lines cost more: [0.8, 1,
         #                         1.25] 0.754); [1.0, 2.0, 3.0] finds KITTI 90's second pass at 2x, 64x32 (49/50)

@@ -260,12 +260,12 @@ class TestStops:
         from retrieval.decision import EmpiricalTail, MeasuredTail, ScoreSpans
         from retrieval.temporal import create_filter
 
-        def spans(still_cos):
+        def spans(stops):
             return ScoreSpans(create_filter({}).score, 10, EmpiricalTail(np.linspace(0.0, 0.5, 999)),
-                              [MeasuredTail(np.zeros(0))] * 3, 1e4, (0.87, 1.0, 1.15), still_cos)
+                              [MeasuredTail(np.zeros(0))] * 3, 1e4, (0.87, 1.0, 1.15), stops)
 
         q, r = np.array([744, 700]), np.array([239, 200])  # in both stops; moving, before them
-        ruled = spans(self._stops().cos)
+        ruled = spans(self._stops())
         assert ruled.windows(q, r, table, 0.87)[:, 0].tolist()[0] == -math.inf
         assert np.isfinite(ruled.windows(q, r, table, 0.87)[1, 0])
         assert np.isfinite(ruled.windows(q, r, table, 1.0)[:, 0]).all()
