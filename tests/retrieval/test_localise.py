@@ -45,17 +45,23 @@ def test_a_keyframe_ahead_is_walked_back(walker, sift_features, sample_K):
     assert named == PLACE
 
 
-def test_a_loop_at_its_place_is_named_after_one_neighbour(walker, sift_features, sample_K):
-    """Within a step (0.08 octaves against the map's 0.22): the neighbour the scale change points to (8) holds fewer
-    inliers beyond their noise (145 against 237), so the other one is not checked."""
+def test_a_loop_at_its_place_does_not_walk(walker, sift_features, sample_K):
+    """0.08 octaves, under half the map's step (0.22), and 237 inliers, more than keyframes 7 and 8 share (102)."""
     loc, adjacent, asked = walker
     named, walked = loc.walk(sift_features(QUERY), PLACE, _check(sift_features, sample_K, PLACE), adjacent,
                              lambda r: True)
-    assert named == PLACE and [r for r, _ in walked] == [8]
-    assert len(asked) == 2  # the map's step at 7, and keyframe 8
-    loc.walk(sift_features(QUERY), PLACE, _check(sift_features, sample_K, PLACE), adjacent, lambda r: True,
-             dict(walked))
-    assert len(asked) == 2  # the step cached, keyframe 8 known
+    assert (named, walked) == (PLACE, [])
+    assert len(asked) == 1  # the map's step at 7, once
+    loc.walk(sift_features(QUERY), PLACE, _check(sift_features, sample_K, PLACE), adjacent, lambda r: True)
+    assert len(asked) == 1  # cached
+
+
+def test_a_neighbour_within_a_step_is_climbed_to_the_place(walker, sift_features, sample_K):
+    """Keyframe 8 (145 inliers, 2.9 m) reads -0.15 octaves, within the map's step (0.21) but past half of it: the
+    neighbour it points to (7, 237 inliers) is verified and named; 6 (85) holds fewer beyond their noise."""
+    loc, adjacent, _ = walker
+    named, walked = loc.walk(sift_features(QUERY), 8, _check(sift_features, sample_K, 8), adjacent, lambda r: True)
+    assert named == PLACE and [r for r, _ in walked] == [7, 6]
 
 
 def test_a_sparse_map_names_the_keyframe_nearest_the_query(sift_features, sample_K):
