@@ -25,10 +25,11 @@ moves toward what it sees).
   points to, then, unless that one holds fewer inliers beyond their noise, the other, moves to one that holds more,
   and goes on until neither neighbour does: the keyframe named holds the most inliers around it. On a dense map it
   names the accepted keyframe or the next (KITTI 90, keyframes 1.6 m apart: the same loops, one named a keyframe
-  nearer, 74 checks more over its 100 loops, about 1 ms a frame); on a sparse one it is the difference between the place and a keyframe ahead of it: a revisit at a third
-  of the map's speed (KITTI 90's first pass taking every third frame, keyframes 4.7 m apart) named keyframes a step
-  or two ahead, 6-11 m off (18-28 inliers, against 153-172 at the place), whose scale change (0.12-0.38 octaves)
-  stayed within the map's step (``bench.revisit_speed``). A SLAM front end's keyframes are sparse by design.
+  nearer, 74 checks more over its 100 loops, about 1 ms a frame); on a sparse one it is the difference between the
+  place and a keyframe ahead of it: a revisit at a third of the map's speed (KITTI 90's first pass taking every
+  third frame, keyframes 4.7 m apart) named keyframes a step or two ahead, 6-11 m off (18-28 inliers, against
+  153-172 at the place), whose scale change (0.12-0.38 octaves) stayed within the map's step
+  (``bench.revisit_speed``). A SLAM front end's keyframes are sparse by design.
 
 The map's step is one check per keyframe, cached; where the map's camera did not move toward the scene
 (``|m| < MIN_STEP``: a stop, a sideways pan) nothing walks.
