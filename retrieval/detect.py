@@ -354,6 +354,35 @@ def _log_seconds(seconds: dict[str, float]) -> None:
              seconds["frames"])
 
 
+def _summary(seq: Sequence, run: RunFolder, resolved: dict[str, Any], cal: Calibration | None, frames: list[Any], *,
+             stride: int, processed: int, start: int, keyframes: int, loops: int, confirmed: int, edges: list[Any],
+             edge_frame: str, timings: list[dict[str, float]], seconds: dict[str, float]) -> dict[str, Any]:
+    """The run's ``summary.json`` (``main``'s return): the sequence, what this run processed, the loops and edges,
+    the stage timings and the calibration's notes (``frames``: the store's frame entries; the ground truth's poses
+    written into the run folder where the sequence's poses are its ground truth)."""
+    unreadable = [e.source for e in frames if e.kind == "unreadable"]
+    truth = seq.ground_truth
+    if truth is None and seq.poses_are_truth and seq.poses is not None:
+        truth = run.write_ground_truth_poses(seq.poses)
+    return {
+        "sequence": str(seq.root.resolve()), "frames": len(seq), "stride": stride, "processed_this_run": processed,
+        "resumed_at": start, "keyframes": keyframes, "gated_out": sum(e.kind == "gated" for e in frames),
+        "unreadable": len(unreadable), "unreadable_files": unreadable, "loops": loops, "confirmed": confirmed,
+        "loop_edges": len(edges), "metric_edges": sum(e.metric for e in edges), "edge_frame": edge_frame,
+        "ms_per_frame": stage_stats(timings), "seconds": seconds, "out": str(run.root),
+        "ground_truth_file": None if truth is None else str(truth),
+        "camera": None if seq.camera is None else {"source": seq.camera.source, "K": seq.camera.K.tolist(),
+                                                   "distortion_model": seq.camera.model,
+                                                   "distortion_coefficients": list(seq.camera.coefficients),
+                                                   "T_body_camera": None if seq.camera.T_body_camera is None
+                                                   else seq.camera.T_body_camera.tolist()},
+        "calibration": None if cal is None else {"notes": cal.notes, "accept_at_confidence": cal.accept_at,
+                                                 "thresholds": cal.thresholds(),
+                                                 "verification": bool(cal.inlier_null),
+                                                 "online": bool(resolved["calibration"]["online"])},
+    }
+
+
 def main(path: str | Path | Sequence | None = None, out: str | Path | None = None,
          conf: dict[str, Any] | None = None, camera: str | None = None, progress: bool = True,
          topic: str | None = None, stride: int = 1, intrinsics: str | None = None,
@@ -447,27 +476,8 @@ def main(path: str | Path | Sequence | None = None, out: str | Path | None = Non
         run.write_edges(edges, seq.poses, keys, T_body_camera)
         frames = det.db.frames()
         keyframes = len(det.db)
-    unreadable = [e.source for e in frames if e.kind == "unreadable"]
-    truth = seq.ground_truth
-    if truth is None and seq.poses_are_truth and seq.poses is not None:
-        truth = run.write_ground_truth_poses(seq.poses)
-    summary: dict[str, Any] = {
-        "sequence": str(seq.root.resolve()), "frames": len(seq), "stride": stride,
-        "processed_this_run": len(timings),
-        "resumed_at": start, "keyframes": keyframes, "gated_out": sum(e.kind == "gated" for e in frames),
-        "unreadable": len(unreadable), "unreadable_files": unreadable, "loops": len(loops), "confirmed": len(confirmed),
-        "loop_edges": len(edges), "metric_edges": sum(e.metric for e in edges), "edge_frame": edge_frame,
-        "ms_per_frame": stage_stats(timings), "seconds": seconds, "out": str(run.root),
-        "ground_truth_file": None if truth is None else str(truth),
-        "camera": None if seq.camera is None else {"source": seq.camera.source, "K": seq.camera.K.tolist(),
-                                                   "distortion_model": seq.camera.model,
-                                                   "distortion_coefficients": list(seq.camera.coefficients),
-                                                   "T_body_camera": None if seq.camera.T_body_camera is None
-                                                   else seq.camera.T_body_camera.tolist()},
-        "calibration": None if cal is None else {"notes": cal.notes, "accept_at_confidence": cal.accept_at,
-                                                 "thresholds": cal.thresholds(),
-                                                 "verification": bool(cal.inlier_null),
-                                                 "online": bool(resolved["calibration"]["online"])},
-    }
+    summary = _summary(seq, run, resolved, cal, frames, stride=stride, processed=len(timings), start=start,
+                       keyframes=keyframes, loops=len(loops), confirmed=len(confirmed), edges=edges,
+                       edge_frame=edge_frame, timings=timings, seconds=seconds)
     run.write_summary(summary)
     return summary

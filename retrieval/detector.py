@@ -63,7 +63,7 @@ from .index import INDEXES
 from .localise import Localiser
 from .online import DRIFT_Z, OnlineCalibration, Seen
 from .places import create_places
-from .temporal import FILTERS, PAIR_CHUNK, CodeTable, SimilaritySource, create_filter
+from .temporal import FILTERS, PAIR_CHUNK, CodeTable, SimilaritySource, TemporalFilter, create_filter
 
 __all__ = ["Candidate", "FrameResult", "LoopDetector", "weights_whitening", "STAGES", "default_conf", "conf_rules",
            "resolve_conf"]
@@ -314,6 +314,21 @@ def _placed(best: tuple[Candidate, Any], passing: list[tuple[Candidate, Any]]) -
     return max(near, key=lambda pair: (pair[0].score, pair[0].seq_score))
 
 
+def _warn_uncertified_filter(filt: TemporalFilter) -> None:
+    """Warns where a calibrated decision runs on a temporal filter whose promise it cannot certify: single frames,
+    or lines at several speeds."""
+    if filt.conf.get("length", 1) == 1:
+        log.warning("temporal filter of single frames (temporal.name: %s): a calibrated decision's promise "
+                    "(expected false loops over the run) is not certified without windows of several frames: "
+                    "adjacent frames of a look-alike stretch are not independent (BENCHMARKS.md, 'Single frames "
+                    "are not safe alone')", filt.conf.get("name", type(filt).__name__))
+    if len([v for v in filt.conf.get("velocities", [1.0]) if v > 0]) > 1:
+        log.warning("temporal filter lines at several speeds (temporal.velocities: %s): where local features are "
+                    "too few to verify (the score path, a 64x32 camera) its windows are not placed within half a "
+                    "window of the query's frame (KITTI 90 at 64x32 with [1, 2, 3]: precision 0.775); runs take "
+                    "their speeds from calibration.speeds and calibration.score_speeds", filt.conf["velocities"])
+
+
 class LoopDetector:
     """Appearance-based loop-closure detection, streaming.
 
@@ -388,29 +403,9 @@ class LoopDetector:
             and self.descriptor.searched_by == "cosine" else None
         self.places = create_places(self.descriptor, self.whitening, c, stream_fit)
         self.filter = create_filter(c["temporal"])
-        if c["calibration"]["enabled"] and self.filter.conf.get("length", 1) == 1:
-            log.warning("temporal filter of single frames (temporal.name: %s): a calibrated decision's promise "
-                        "(expected false loops over the run) is not certified without windows of several frames: "
-                        "adjacent frames of a look-alike stretch are not independent (BENCHMARKS.md, 'Single frames "
-                        "are not safe alone')", c["temporal"]["name"])
-        if c["calibration"]["enabled"] and len([v for v in self.filter.conf.get("velocities", [1.0]) if v > 0]) > 1:
-            log.warning("temporal filter lines at several speeds (temporal.velocities: %s): where local features are "
-                        "too few to verify (the score path, a 64x32 camera) its windows are not placed within half a "
-                        "window of the query's frame (KITTI 90 at 64x32 with [1, 2, 3]: precision 0.775); runs take "
-                        "their speeds from calibration.speeds and calibration.score_speeds",
-                        self.filter.conf["velocities"])
-        self._verify = bool(self.calibration.inlier_null) if self.calibration is not None else c["policy"]["verify"]
-        self._verify = self._verify and self._online is None  # online: nothing verified until calibrated
-        self._min_inliers = c["policy"]["min_inliers"]
-        self.decision = None  # calibrated: the fused decision and the "too recent" rule (retrieval.decision)
-        if self.calibration is not None:
-            self.decision = self.calibration.decision(c["search"]["exclude_recent"], self.filter)
-            self._min_inliers = int(self.decision.floor)  # weaker pairs still add fused evidence
-        self._confirm = Confirmations(self.decision.reach) \
-            if self.decision is not None and self.decision.confirms else None  # delayed loops
-        still = c["policy"]["still_cos"]  # uncalibrated: the stop a still camera has not left is too recent
-        self._still = Stops(still) \
-            if self.decision is None and still is not None and self.descriptor.searched_by == "cosine" else None
+        if c["calibration"]["enabled"]:
+            _warn_uncertified_filter(self.filter)
+        self._init_decision()
         apply_thread_policy(c["runtime"]["threads"])
         self._init_lazy(database is not None, frame_source, features)
         self._next_id = 0
@@ -421,14 +416,7 @@ class LoopDetector:
             identity = self.descriptor.identity + ("" if self.calibration is None else
                                                    " calibration " + self.calibration.identity())
             self.db = KeyframeDatabase(database, persisted, identity, c["runtime"]["flush_every"])
-        self._jobs = FeatureJobs(functools.partial(create_extractor, fconf), c["runtime"]["feature_cache"]) \
-            if c["runtime"]["feature_worker"] and (self._verify or online) and not self.descriptor.needs_features \
-            else None
-        self._pool = BesideExecutor(thread_name_prefix="verify") \
-            if c["runtime"]["verify_worker"] and (self._verify or online) else None
-        self._wanted = False  # whether the previous frame's query needed its local features
-        self._localiser = Localiser(self._verify_pair, self._features_of, max_steps=c["search"]["localise_steps"]) \
-            if c["search"]["localise_steps"] else None  # an accepted loop named where the query is (the floor: _decide)
+        self._init_workers(fconf, online)
         #: ``prefetch_features``' frames: id -> (the image given, as uint8, grey, its prepared image once)
         self._ahead: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, Callable[[], Any]]] = {}
         self._delayed: dict[int, tuple[int, float]] = {}  # online: delayed loops reported, {frame: (keyframe, conf)}
@@ -441,6 +429,34 @@ class LoopDetector:
             except BaseException:
                 self.close()
                 raise
+
+    def _init_workers(self, fconf: dict[str, Any], online: bool) -> None:
+        """The threads beside the caller's (the feature worker extracting ``fconf``'s local features, the verify
+        worker), where anything is verified (or will be: ``online``), and the walk that names a loop's keyframe."""
+        c, verifies = self.conf, self._verify or online
+        self._jobs = FeatureJobs(functools.partial(create_extractor, fconf), c["runtime"]["feature_cache"]) \
+            if c["runtime"]["feature_worker"] and verifies and not self.descriptor.needs_features else None
+        self._pool = BesideExecutor(thread_name_prefix="verify") if c["runtime"]["verify_worker"] and verifies else None
+        self._wanted = False  # whether the previous frame's query needed its local features
+        self._localiser = Localiser(self._verify_pair, self._features_of, max_steps=c["search"]["localise_steps"]) \
+            if c["search"]["localise_steps"] else None  # an accepted loop named where the query is (the floor: _decide)
+
+    def _init_decision(self) -> None:
+        """What decides: whether candidates are verified, the inlier floor, the calibrated decision and its delayed
+        loops (``retrieval.decision``), or, uncalibrated, the stop rule."""
+        c = self.conf
+        self._verify = bool(self.calibration.inlier_null) if self.calibration is not None else c["policy"]["verify"]
+        self._verify = self._verify and self._online is None  # online: nothing verified until calibrated
+        self._min_inliers = c["policy"]["min_inliers"]
+        self.decision = None  # calibrated: the fused decision and the "too recent" rule (retrieval.decision)
+        if self.calibration is not None:
+            self.decision = self.calibration.decision(c["search"]["exclude_recent"], self.filter)
+            self._min_inliers = int(self.decision.floor)  # weaker pairs still add fused evidence
+        self._confirm = Confirmations(self.decision.reach) \
+            if self.decision is not None and self.decision.confirms else None  # delayed loops
+        still = c["policy"]["still_cos"]  # uncalibrated: the stop a still camera has not left is too recent
+        self._still = Stops(still) \
+            if self.decision is None and still is not None and self.descriptor.searched_by == "cosine" else None
 
     def _init_lazy(self, has_database: bool, frame_source: Callable[[int], np.ndarray] | None,
                    features: dict[int, Features] | None) -> None:
@@ -639,27 +655,7 @@ class LoopDetector:
         ms["verify"] = (time.perf_counter() - t0) * 1e3 - (ms["features"] - f0)  # late extraction not counted
 
         t0 = time.perf_counter()
-        if self.db is not None:  # first: if the disk refuses it, the in-memory state has not moved either
-            rows = np.array([cd.as_row() for cd in candidates], np.float64).reshape(-1, len(CANDIDATE_ROW))
-            stored = feats if feats is not None and self._store_features else self._no_features()
-            self.db.append(KeyframeRecord(fid, self.places.stored(entry) if self._online is None else code, stored,
-                                          ts, pose34, source, edge_ratio, rows, -1 if loop is None else loop.frame_id,
-                                          fingerprint, prep()[2] if self._keep_image and feats is None else b""))
-        self.places.insert(fid, entry, ts)
-        self.filter.commit(fid, np.array([cd.frame_id for cd in candidates], np.int64))
-        if self.decision is not None:
-            self.decision.commit(fid, np.array([cd.frame_id for cd in candidates], np.int64),
-                                 np.array([self._counted(cd) for cd in candidates], np.int64))
-        if feats is not None:
-            self.features[fid] = feats  # after the database has it: database mode may read it back from there
-        else:  # not kept: extracted (again) if a query needs it (frame_source, the stored copy, or one kept here)
-            self._unextracted.add(fid)
-            if feats is not None:
-                self._cache_late(fid, feats)
-            elif self._frame_source is None and not self._keep_image:
-                small, scale, _ = prep()
-                self._copies[fid] = grey_copy(small, scale)
-        self._next_id = fid + 1
+        self._insert(fid, edge_ratio, feats, code, entry, prep, candidates, loop, ts, pose34, source, fingerprint)
         ms["insert"] = (time.perf_counter() - t0) * 1e3
         if self._online is not None:
             t0 = time.perf_counter()
@@ -674,6 +670,33 @@ class LoopDetector:
             self._reported(fid, confirmed)
             ms["calibrate"] = (time.perf_counter() - t0) * 1e3
         return loop, best, confirmed
+
+    def _insert(self, fid: int, edge_ratio: float, feats: Features | None, code: np.ndarray, entry: np.ndarray,
+                prep: Callable[[], tuple[np.ndarray, float, bytes]], candidates: list[Candidate],
+                loop: Candidate | None, ts: float | None, pose34: np.ndarray | None, source: str,
+                fingerprint: str) -> None:
+        """Stores the decided keyframe: the database first (if the disk refuses it, the in-memory state has not
+        moved either), then the place memory, the filter's and the decision's state, and its local features (kept,
+        or how to extract them again)."""
+        if self.db is not None:
+            rows = np.array([cd.as_row() for cd in candidates], np.float64).reshape(-1, len(CANDIDATE_ROW))
+            stored = feats if feats is not None and self._store_features else self._no_features()
+            self.db.append(KeyframeRecord(fid, self.places.stored(entry) if self._online is None else code, stored,
+                                          ts, pose34, source, edge_ratio, rows, -1 if loop is None else loop.frame_id,
+                                          fingerprint, prep()[2] if self._keep_image and feats is None else b""))
+        self.places.insert(fid, entry, ts)
+        refs = np.array([cd.frame_id for cd in candidates], np.int64)
+        self.filter.commit(fid, refs)
+        if self.decision is not None:
+            self.decision.commit(fid, refs, np.array([self._counted(cd) for cd in candidates], np.int64))
+        if feats is not None:
+            self.features[fid] = feats  # after the database has it: database mode may read it back from there
+        else:  # not kept: extracted (again) if a query needs it (frame_source, the stored copy, or one kept here)
+            self._unextracted.add(fid)
+            if self._frame_source is None and not self._keep_image:
+                small, scale, _ = prep()
+                self._copies[fid] = grey_copy(small, scale)
+        self._next_id = fid + 1
 
     def _describe_and_search(self, image: np.ndarray, gray: np.ndarray,
                              prep: Callable[[], tuple[np.ndarray, float, bytes]], net: np.ndarray | None, fid: int,
