@@ -100,3 +100,27 @@ def test_known_checks_are_not_repeated(walker, sift_features, sample_K):
     known = {r: _check(sift_features, sample_K, r) for r in (6, 7, 8)}
     named, _ = loc.walk(sift_features(QUERY), 5, _check(sift_features, sample_K, 5), adjacent, lambda r: True, known)
     assert named == PLACE and len(asked) == 1  # the map's step only
+
+
+def test_a_candidate_that_cannot_hold_more_is_not_verified(sift_features, sample_K):
+    """Climbing from 6 to 9 on the sparse map, 12 is a candidate whose check did not run: its matches (no more than
+    9's inliers) bound its inliers, so it is not verified."""
+    import dataclasses
+
+    asked = []
+
+    def verify(a, b):
+        asked.append(1)
+        return RatioTestMatcher().verify(a, [b], sample_K)[0]
+
+    def adjacent(ref, step):
+        nxt = ref + 3 * step
+        return nxt if 0 <= nxt < 50 else None
+
+    unchecked = dataclasses.replace(verify(sift_features(59), sift_features(12)), inliers=-1)
+    asked.clear()
+    loc = Localiser(verify, sift_features)
+    check = RatioTestMatcher().verify(sift_features(59), [sift_features(6)], sample_K)[0]
+    named, walked = loc.walk(sift_features(59), 6, check, adjacent, lambda r: True, {12: unchecked})
+    assert named == 9 and [r for r, _ in walked] == [9]
+    assert len(asked) == 2  # the map's step at 6, and keyframe 9
