@@ -18,7 +18,7 @@ def test_a_slower_revisit_is_a_sparse_map_then_elsewhere_then_the_second_pass(tm
     assert keep == first + [-1] * ELSEWHERE + list(range(100, 200))
     assert len(list(folder.glob("*.png"))) == len(keep)
     assert cv2.imread(str(folder / f"{len(first):06d}.png"), cv2.IMREAD_UNCHANGED).shape == (32, 64)
-    faster, keep = speed_folder(tmp_path, 2.0, (64, 32))
+    _, keep = speed_folder(tmp_path, 2.0, (64, 32))
     assert keep == list(range(100)) + list(range(100, 200, 2))
 
 
