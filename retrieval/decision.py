@@ -268,6 +268,16 @@ class ScoreSpans:
         self.spread = float(np.quantile(tail.x, 0.9) - tail.u) if len(tail.x) else 0.0
         self.speeds = tuple(float(v) for v in speeds)
         self.stops = stops
+        #: ``_by_speed``'s rows since the last ``keep_rows`` (``(query, ref) -> ((span,) confidences, speed)``) and
+        #: the code store they were read from: ``best_run`` reads a frame's accepted pair there (its candidates were
+        #: scored by ``Decision.code_terms`` a moment before, on the same codes) instead of scoring it again
+        self._rows: dict[tuple[int, int], tuple[np.ndarray, float]] = {}
+        self._rows_source: Any = None
+
+    def keep_rows(self, source: Any) -> None:
+        """Forgets the rows kept so far and keeps those ``_by_speed`` computes on ``source`` from now on (a frame's
+        candidates, or a replay's frames: ``Decision.code_terms_many``)."""
+        self._rows, self._rows_source = {}, source
 
     @property
     def span(self) -> int:
@@ -330,6 +340,9 @@ class ScoreSpans:
                 continue
             better = conf.max(axis=1, initial=-math.inf) > best.max(axis=1, initial=-math.inf)
             best[better], speed[better] = conf[better], v
+        if source is self._rows_source and source is not None:
+            self._rows.update(zip(zip(np.asarray(queries).tolist(), np.asarray(refs).tolist()),
+                                  zip(best.copy(), speed.tolist())))
         return best, speed
 
     def span_confidences(self, queries: np.ndarray, refs: np.ndarray, source: Any) -> np.ndarray:
@@ -396,11 +409,15 @@ class ScoreSpans:
 
     def best_run(self, query_id: int, ref: int, source: Any) -> tuple[float, int, float]:
         """The confidence of ``(query_id, ref)``, the query frames its best span covers (``m * window``; 0: none)
-        and its line's speed."""
-        by_span, speed = self._by_speed(np.array([query_id], np.int64), np.array([ref], np.int64), source)
-        j = int(np.argmax(by_span[0]))
-        return (float(by_span[0, j]), (j + 1) * self.window if np.isfinite(by_span[0, j]) else 0,
-                float(speed[0]))
+        and its line's speed (read from the rows kept since ``keep_rows`` where the pair is among them: the same
+        values, ``_by_speed``'s rows do not depend on the pairs scored beside them)."""
+        kept = self._rows.get((int(query_id), int(ref))) if source is self._rows_source else None
+        if kept is None:
+            by_span, speed = self._by_speed(np.array([query_id], np.int64), np.array([ref], np.int64), source)
+            kept = by_span[0], float(speed[0])
+        row, speed_kept = kept
+        j = int(np.argmax(row))
+        return float(row[j]), (j + 1) * self.window if np.isfinite(row[j]) else 0, float(speed_kept)
 
 
 class Horizon:
@@ -680,6 +697,7 @@ class Decision:
         refs = [np.asarray(r, np.int64).reshape(-1) for r in refs]
         windows = None
         if self._windowed:
+            self.spans.keep_rows(source)
             qs = np.repeat(np.asarray(query_ids, np.int64), [len(r) for r in refs])
             rs = np.concatenate(refs) if refs else np.zeros(0, np.int64)
             step = max(1, PAIR_CHUNK // max(self.spans.span, 1))

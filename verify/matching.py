@@ -10,13 +10,17 @@ Returned matches are ``(M, 2)`` int64 arrays of ``(query_index, candidate_index)
 from __future__ import annotations
 
 import logging
+import threading
 import time
+import weakref
+from collections import OrderedDict
 from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch
 
-__all__ = ["pairwise_sq_l2", "pairwise_hamming", "match_ratio", "match_ratio_many", "EMPTY_MATCHES"]
+__all__ = ["pairwise_sq_l2", "pairwise_hamming", "match_ratio", "match_ratio_many", "ByteForms", "EMPTY_MATCHES",
+           "FORMS_KEPT"]
 
 log = logging.getLogger(__name__)
 
@@ -93,15 +97,6 @@ def _bytes(x: np.ndarray) -> np.ndarray | None:
     return u if np.array_equal(u, x) else None
 
 
-def _byte_sets(xq: np.ndarray, xbs: Sequence[np.ndarray]) -> tuple[np.ndarray, list[np.ndarray | None]] | None:
-    """The query and the candidates as uint8 (None for an empty candidate), or None where one is not bytes."""
-    query = _bytes(xq)
-    cands = [None if len(xb) == 0 else _bytes(xb) for xb in xbs]
-    if query is None or any(c is None and len(xb) for c, xb in zip(cands, xbs)):
-        return None
-    return query, cands
-
-
 class _ByteDistances:
     """Squared L2 distances of byte descriptors from 8-bit products (``torch._int_mm``: int8 in, int32 out), the same
     values as the float32 GEMM bit for bit: every term is an integer under 2**24, which float32 holds exactly.
@@ -117,8 +112,74 @@ class _ByteDistances:
 
     def to(self, other: "_ByteDistances") -> np.ndarray:
         """``(Nq, Nb)`` float32 squared distances from this set (the query) to ``other``."""
+        return self.exact_to(other).float().numpy()
+
+    def exact_to(self, other: "_ByteDistances") -> torch.Tensor:
+        """``(Nq, Nb)`` int32 squared distances from this set (the query) to ``other`` (``to``'s values)."""
         d = torch._int_mm(self.shifted, other.shifted.T).mul_(-2)
-        return d.add_(self.row[:, None]).add_(other.column[None, :]).float().numpy()
+        return d.add_(self.row[:, None]).add_(other.column[None, :])
+
+
+def _ratio_from_exact(d: torch.Tensor, ratio: float, mutual: bool) -> np.ndarray:
+    """``_ratio_from_distances`` on an ``(Nq, Nb)`` int32 block of squared distances (``_ByteDistances.exact_to``;
+    modified in place): the same matches, read in the integers (the first nearest neighbour among equals, as numpy's
+    ``argmin``; the ratio compared in float32, which holds these integers exactly), without the float copy of the
+    block (a frame's matching 0.5 -> 0.4 ms a pair)."""
+    nq, nb = d.shape
+    if nq == 0 or nb == 0:
+        return EMPTY_MATCHES
+    rows = np.arange(nq)
+    best, nn1 = d.min(dim=1)
+    keep = d.argmin(dim=0)[nn1].numpy() == rows if mutual else np.ones(nq, bool)
+    if nb > 1:  # with one candidate feature there is no second neighbour and the ratio test cannot reject
+        d.scatter_(1, nn1[:, None], torch.iinfo(torch.int32).max)
+        second = d.min(dim=1).values.numpy().astype(np.float32)
+        keep &= best.numpy().astype(np.float32) < (ratio * ratio) * second
+    nn1 = nn1.numpy()
+    q = rows[keep]
+    return np.stack([q, nn1[keep]], axis=1).astype(np.int64) if len(q) else EMPTY_MATCHES
+
+
+FORMS_KEPT = 32  #: descriptor sets ``ByteForms`` keeps the 8-bit form of (~70 kB each at 500 SIFT features)
+
+
+class ByteForms:
+    """The 8-bit forms (``_ByteDistances``) of the descriptor sets matched lately, known by the array itself (least
+    recently used dropped; thread-safe): a keyframe's descriptors are matched against query after query, and a
+    calibration's frames against several others, and each form costs as much to make as a quarter of a pair's
+    matching. An array is held by a weak reference (a form is never taken for another array that reuses a dropped
+    one's id); descriptors are not modified in place once extracted (``Features``).
+
+    Args:
+        keep: forms kept at most.
+    """
+
+    def __init__(self, keep: int = FORMS_KEPT) -> None:
+        self.keep = int(keep)
+        self._forms: OrderedDict[int, tuple[weakref.ref, _ByteDistances | None]] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def __call__(self, x: np.ndarray) -> "_ByteDistances | None":
+        """The 8-bit form of ``(N, D)`` descriptors, None where they are not bytes (``_bytes``)."""
+        key = id(x)
+        with self._lock:
+            got = self._forms.get(key)
+            if got is not None and got[0]() is x:
+                self._forms.move_to_end(key)
+                return got[1]
+        form = _form(x)
+        with self._lock:
+            self._forms[key] = (weakref.ref(x), form)
+            self._forms.move_to_end(key)
+            while len(self._forms) > self.keep:
+                self._forms.popitem(last=False)
+        return form
+
+
+def _form(x: np.ndarray) -> "_ByteDistances | None":
+    """``x``'s 8-bit form, None where it is not bytes."""
+    b = _bytes(x)
+    return None if b is None else _ByteDistances(b)
 
 
 _BYTES_FASTER: bool | None = None  #: whether 8-bit products beat float32 here (timed once a process: both exact)
@@ -152,12 +213,13 @@ def _seconds(fn: Callable[[], Any]) -> float:
 
 
 def match_ratio_many(xq: np.ndarray, xbs: Sequence[np.ndarray], ratio: float = 0.8, mutual: bool = False,
-                     metric: str = "l2") -> list[np.ndarray]:
+                     metric: str = "l2", forms: ByteForms | None = None) -> list[np.ndarray]:
     """Matches one query against several candidates (the per-frame fast path).
 
     Same result as ``[match_ratio(xq, xb, ...) for xb in xbs]``: one fused GEMM per candidate (torch) instead of
     several full-size numpy temporaries; for byte descriptors (SIFT's), exact 8-bit products where this machine runs
-    them faster (``_bytes_faster``; measured in BENCHMARKS.md).
+    them faster (``_bytes_faster``; measured in BENCHMARKS.md), their 8-bit forms taken from ``forms`` where given
+    (``ByteForms``: made once for a set matched again), else made here.
 
     Returns:
         One ``(M_i, 2)`` int64 array per candidate.
@@ -166,11 +228,12 @@ def match_ratio_many(xq: np.ndarray, xbs: Sequence[np.ndarray], ratio: float = 0
         return [EMPTY_MATCHES for _ in xbs]
     if metric == "hamming":
         return [match_ratio(xq, xb, ratio, mutual, metric) for xb in xbs]
-    byte_sets = _byte_sets(xq, xbs) if _bytes_faster() else None
-    if byte_sets is not None:
-        query = _ByteDistances(byte_sets[0])
-        return [EMPTY_MATCHES if c is None else _ratio_from_distances(query.to(_ByteDistances(c)), ratio, mutual,
-                                                                      squared=True) for c in byte_sets[1]]
+    if _bytes_faster():
+        form = forms or _form
+        query, cands = form(xq), [None if len(xb) == 0 else form(xb) for xb in xbs]
+        if query is not None and all(c is not None or len(xb) == 0 for c, xb in zip(cands, xbs)):
+            return [EMPTY_MATCHES if c is None else _ratio_from_exact(query.exact_to(c), ratio, mutual)
+                    for c in cands]
     # The GEMM runs in torch, whose thread pool the encoder already uses: numpy's OpenBLAS threads would spin
     # against it on a small machine (measured 8x slower on 2 cores).
     q = torch.from_numpy(np.ascontiguousarray(xq, np.float32))

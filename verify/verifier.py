@@ -20,7 +20,7 @@ from cae_lcd.core.threads import in_turn
 
 from .features import Features
 from .geometry import GeometricVerifier, GeometryResult
-from .matching import match_ratio_many
+from .matching import ByteForms, match_ratio_many
 
 __all__ = ["NOT_CHECKED", "Verification", "Verifier", "RatioTestMatcher", "MATCHERS", "create_verifier",
            "scale_change", "MIN_SCALE_INLIERS"]
@@ -176,12 +176,16 @@ class RatioTestMatcher(Verifier):
     }
     conf_rules: dict[str, Any] = {"ratio": Float(0, 1, lo_open=True), "mutual": Bool()}
 
+    def __init__(self, conf: dict[str, Any] | None = None, geometry: dict[str, Any] | None = None) -> None:
+        super().__init__(conf, geometry)
+        self._forms = ByteForms()  # the 8-bit forms of the descriptors matched lately (keyframes matched again)
+
     def match_many(self, query: Features, candidates: Sequence[Features]) -> list[np.ndarray]:
         for cand in candidates:
             if cand.metric != query.metric:
                 raise ConfigError(f"cannot match {query.metric} descriptors against {cand.metric} ones")
         return match_ratio_many(query.descriptors, [c.descriptors for c in candidates], self.conf["ratio"],
-                                self.conf["mutual"], query.metric)
+                                self.conf["mutual"], query.metric, self._forms)
 
 
 def create_verifier(matcher: dict[str, Any] | None = None, geometry: dict[str, Any] | None = None) -> Verifier:

@@ -154,19 +154,50 @@ class TestByteProducts:
 
         monkeypatch.setattr(matching, "_BYTES_FASTER", faster)
         used = []
-        monkeypatch.setattr(matching._ByteDistances, "to", lambda self, other, to=matching._ByteDistances.to:
-                            used.append(1) or to(self, other))
-        cands = [descs[5], descs[30].astype(np.uint8), descs[54][:0], descs[54]]
-        for mutual in (False, True):
-            for m, xb in zip(match_ratio_many(descs[55], cands, mutual=mutual), cands):
-                np.testing.assert_array_equal(m, match_ratio(descs[55], xb, mutual=mutual))
-        assert len(used) == (2 * sum(len(xb) > 0 for xb in cands) if faster else 0)  # one product a candidate
+        monkeypatch.setattr(matching._ByteDistances, "exact_to", lambda self, other,
+                            to=matching._ByteDistances.exact_to: used.append(1) or to(self, other))
+        # the last two hold the same features twice (ties: the first nearest neighbour among equals, as numpy's)
+        cands = [descs[5], descs[30].astype(np.uint8), descs[54][:0], descs[54], np.vstack([descs[5], descs[5][:40]]),
+                 np.vstack([descs[30][:40], descs[30]])]
+        for query in (descs[55], np.vstack([descs[55], descs[55][:40]])):  # ties on the query's side too
+            for mutual in (False, True):
+                for m, xb in zip(match_ratio_many(query, cands, mutual=mutual), cands):
+                    np.testing.assert_array_equal(m, match_ratio(query, xb, mutual=mutual))
+        assert len(used) == (4 * sum(len(xb) > 0 for xb in cands) if faster else 0)  # one product a candidate
 
     def test_descriptors_that_are_not_bytes_take_the_float_product(self, descs, monkeypatch):
         import verify.matching as matching
 
         monkeypatch.setattr(matching, "_BYTES_FASTER", True)
-        monkeypatch.setattr(matching._ByteDistances, "to", lambda *_: pytest.fail("not bytes: no 8-bit product"))
+        monkeypatch.setattr(matching._ByteDistances, "exact_to", lambda *_: pytest.fail("not bytes: no 8-bit product"))
         for cands in ([descs[5] + 0.5], [descs[5] * 2.0], [descs[5] - 1.0]):  # a fraction, over 255, under 0
             m = match_ratio_many(descs[55], cands)[0]
             np.testing.assert_array_equal(m, match_ratio(descs[55], cands[0]))
+
+
+@pytest.mark.skipif(not hasattr(__import__("torch"), "_int_mm"), reason="this torch has no 8-bit product")
+class TestByteForms:
+    """A verifier keeps the 8-bit forms of the descriptors it matched lately: the same matches, each form made once."""
+
+    def test_the_same_matches_each_form_made_once(self, descs, monkeypatch):
+        import verify.matching as matching
+
+        monkeypatch.setattr(matching, "_BYTES_FASTER", True)
+        made = []
+        monkeypatch.setattr(matching, "_form", lambda x, form=matching._form: made.append(id(x)) or form(x))
+        forms = matching.ByteForms(keep=3)
+        query, cands = descs[55], [descs[5].astype(np.uint8), descs[30].astype(np.uint8)]
+        for _ in range(2):
+            for m, xb in zip(match_ratio_many(query, cands, forms=forms), cands):
+                np.testing.assert_array_equal(m, match_ratio(query, xb))
+        assert len(made) == 3  # the query and both candidates, once each
+        copy = cands[0].copy()  # equal values, another array: its own form
+        np.testing.assert_array_equal(match_ratio_many(query, [copy], forms=forms)[0], match_ratio(query, copy))
+        assert len(made) == 4 and len(forms._forms) == 3  # the least recently used dropped
+
+    def test_not_bytes_takes_the_float_product(self, descs):
+        from verify.matching import ByteForms
+
+        forms = ByteForms()
+        xb = descs[5] + 0.5
+        np.testing.assert_array_equal(match_ratio_many(descs[55], [xb], forms=forms)[0], match_ratio(descs[55], xb))
