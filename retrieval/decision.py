@@ -688,34 +688,42 @@ class Decision:
         qs = np.array([q for q, _ in out], np.int64)
         return [m for m, ok in zip(out, self.spans.on_line(qs, np.array(expected, np.int64), source, speed)) if ok]
 
-    def code_terms(self, query_id: int, refs: np.ndarray, source: Any) -> "CodeTerms":
+    def code_terms(self, query_id: int, refs: np.ndarray, source: Any, windows: bool = True) -> "CodeTerms":
         """What ``confidences`` reads from the codes alone for candidates ``refs`` ``(m,)`` of ``query_id`` (the
         horizon, the stops' admissible lines, the score path's windows): computable before the candidates are
         verified, the same values after (the detector computes them while the worker extracts the query's local
-        features)."""
-        return self.code_terms_many(np.array([query_id], np.int64), [refs], source)[0]
+        features). ``windows`` False: beside the inlier path (``both``), the windows are left to ``confidences``,
+        which scores them only where the inlier path does not decide (the same confidences: where a verified run
+        reaches ``accept_at`` the windows are not read)."""
+        return self.code_terms_many(np.array([query_id], np.int64), [refs], source, windows)[0]
 
-    def code_terms_many(self, query_ids: np.ndarray, refs: list[np.ndarray], source: Any) -> list["CodeTerms"]:
+    def code_terms_many(self, query_ids: np.ndarray, refs: list[np.ndarray], source: Any,
+                        windows: bool = True) -> list["CodeTerms"]:
         """``code_terms`` of frames ``query_ids`` ``(n,)``, each with its candidates ``refs[i]`` (a replay's frames):
         the score path's windows of many frames scored together, ``PAIR_CHUNK // span`` pairs a call (the same
         values as frame by frame: every pair's windows are scored on their own)."""
         refs = [np.asarray(r, np.int64).reshape(-1) for r in refs]
-        windows = None
+        scored = None
         if self._windowed:
             self.spans.keep_rows(source)
+        if self._windowed and (windows or self.pair_tail is None):
             qs = np.repeat(np.asarray(query_ids, np.int64), [len(r) for r in refs])
-            rs = np.concatenate(refs) if refs else np.zeros(0, np.int64)
-            step = max(1, PAIR_CHUNK // max(self.spans.span, 1))
-            windows = np.concatenate([np.zeros(0)] + [
-                self.spans.confidences(qs[lo:lo + step], rs[lo:lo + step], source, self.accept_at)
-                for lo in range(0, len(rs), step)])
+            scored = self._window_confidences(qs, np.concatenate(refs) if refs else np.zeros(0, np.int64), source)
         out, lo = [], 0
         for query_id, r in zip(np.asarray(query_ids).tolist(), refs):
             hi = lo + len(r)
             out.append(CodeTerms(*self._stop_terms(query_id, r, source),
-                                 windows[lo:hi] if windows is not None and len(r) else None))
+                                 scored[lo:hi] if scored is not None and len(r) else None))
             lo = hi
         return out
+
+    def _window_confidences(self, queries: np.ndarray, refs: np.ndarray, source: Any) -> np.ndarray:
+        """``(n,)`` the score path's fused windows' confidence of each pair (``ScoreSpans.confidences``),
+        ``PAIR_CHUNK // span`` pairs a call."""
+        step = max(1, PAIR_CHUNK // max(self.spans.span, 1))
+        return np.concatenate([np.zeros(0)] + [
+            self.spans.confidences(queries[lo:lo + step], refs[lo:lo + step], source, self.accept_at)
+            for lo in range(0, len(refs), step)])
 
     def _stop_terms(self, query_id: int, refs: np.ndarray, source: Any
                     ) -> tuple[int | None, np.ndarray | None, np.ndarray | None]:
@@ -743,13 +751,10 @@ class Decision:
         oldest, allowed, allowed_w, windows = terms if terms is not None else self.code_terms(query_id, refs, source)
         if self.pair_tail is None and windows is None:
             windows, allowed_w = fallback, allowed  # the calibrated temporal-score confidences: the pair's own stop
-        by_windows = np.full(len(refs), -math.inf)
-        for i, (ref, inl) in enumerate(zip(np.asarray(refs).tolist(), np.asarray(inliers).tolist())):
-            if oldest is not None and ref >= oldest:
-                continue
-            if windows is not None and (allowed_w is None or allowed_w[i]):
-                by_windows[i] = float(windows[i])
-            if self.pair_tail is None or (allowed is not None and not allowed[i]):
+        refs = np.asarray(refs, np.int64)
+        recent = refs >= oldest if oldest is not None else np.zeros(len(refs), bool)
+        for i, (ref, inl) in enumerate(zip(refs.tolist(), np.asarray(inliers).tolist())):
+            if recent[i] or self.pair_tail is None or (allowed is not None and not allowed[i]):
                 continue
             e0 = self.evidence(inl)
             if e0 <= 0:
@@ -758,12 +763,18 @@ class Decision:
             if self.single:
                 best = max(best, base - self.pair_tail.log10_sf(inl))
             out[i] = max(best, UNSUPPORTED)  # evidence of its own: a later run may certify it (``Confirmations``)
-        if self.pair_tail is None:
-            return by_windows
         # beside the inlier path, the windows decide a frame the inlier path does not: where geometry accepts one of
         # its candidates, it says which (KITTI 90's narrower-lens revisit, its last frame 199: its window line through
         # 100, the joint of the two passes, read 2.30 unverified where keyframe 99 was verified, 64 inliers, 1.74)
-        return out if (out >= self.accept_at).any() else np.maximum(out, by_windows)
+        if self.pair_tail is not None and (out >= self.accept_at).any():
+            return out
+        if windows is None and self._windowed:  # left to here (``code_terms(windows=False)``): needed now
+            windows = self._window_confidences(np.full(len(refs), query_id, np.int64), refs, source)
+        by_windows = np.full(len(refs), -math.inf)
+        if windows is not None:
+            take = ~recent if allowed_w is None else ~recent & np.asarray(allowed_w, bool)
+            by_windows[take] = np.asarray(windows, np.float64)[take]
+        return by_windows if self.pair_tail is None else np.maximum(out, by_windows)
 
     def fresh(self) -> "Decision":
         """The same decision with no frame recorded yet (a replay of a run from its start)."""
@@ -845,14 +856,19 @@ class Confirmations:
         """``[(q', payload)]``: the members of the run of ``(query_id, ref)``, accepted now, that were not loops; each
         marked a loop (reported once); ``source``: the code store (the score path's windows). Call before
         ``decision.commit(query_id, ...)``."""
+        pending = [(q, kept, looped) for q, kept, looped in self._frames if not looped[0]]
+        if not pending:  # every frame the run could certify is a loop already: nothing to read
+            return []
         verified = dict(decision.run_members(query_id, ref, inliers, source)) if decision.pair_tail is not None \
             else {}
-        windows = dict(decision.window_members(query_id, ref, source))
+        # the score path's members only where a verified one does not name the frame (a run of loops: none)
+        windows = dict(decision.window_members(query_id, ref, source)) if any(q not in verified for q, _, _ in
+                                                                              pending) else {}
         out = []
-        for q, kept, looped in self._frames:
+        for q, kept, looped in pending:
             r, near = (verified[q], (0,)) if q in verified else (windows.get(q), (0, -1, 1))  # the score path's line:
             pick = None if r is None else next((r + d for d in near if r + d in kept), None)  # one frame off at most
-            if pick is not None and not looped[0]:
+            if pick is not None:
                 looped[0] = True
                 out.append((q, kept[pick]))
         return out

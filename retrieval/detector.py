@@ -628,7 +628,8 @@ class LoopDetector:
         t0, f0 = time.perf_counter(), ms["features"]
         refs = np.array([cd.frame_id for cd in candidates], np.int64)
         # what the decision reads from the codes alone: first, beside the worker extracting the query's features
-        terms = self.decision.code_terms(fid, refs, self.places.source) if self.decision is not None else None
+        terms = self.decision.code_terms(fid, refs, self.places.source, windows=False) \
+            if self.decision is not None else None
         feats, checks = self._check(fid, feats, prep, candidates, ms)
         self._keep_geometries(fid, candidates, checks)
         if feats is None:
