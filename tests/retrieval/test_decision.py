@@ -533,7 +533,11 @@ class TestConfirmations:
         q, r = pairs[-1]
         assert dec.confidences(q, np.array([r]), np.array([inl[-1]]), _NoSource())[0] >= cal.accept_at
         assert conf.confirm(dec, q, r, inl[-1]) == [(80, "c80"), (81, "c81")]
+        read = []
+        for name in ("run_members", "window_members"):
+            setattr(dec, name, lambda *a, name=name: read.append(name) or [])
         assert conf.confirm(dec, q, r, inl[-1]) == []  # reported once
+        assert not read  # every frame it could certify is a loop already: no member is read
 
     def test_refused_run_reports_nothing(self, small):
         seq, cal = small
