@@ -44,20 +44,22 @@ def pairwise_hamming(xq: np.ndarray, xb: np.ndarray) -> np.ndarray:
 
 
 def _ratio_from_distances(d: np.ndarray, ratio: float, mutual: bool, squared: bool) -> np.ndarray:
-    """Ratio test on one ``(Nq, Nb)`` distance block (the block is modified in place)."""
+    """Ratio test on one ``(Nq, Nb)`` distance block, float32 or the exact int32 squared distances of byte
+    descriptors (``_ByteDistances.exact_to``: numpy's integer reductions are several times faster than its float
+    ones; compared in float32, which holds those integers exactly). The block is modified in place."""
     nq, nb = d.shape
     if nq == 0 or nb == 0:
         return EMPTY_MATCHES
     rows = np.arange(nq)
     nn1 = d.argmin(axis=1)
-    best = d[rows, nn1].copy()
+    best = d[rows, nn1].astype(np.float32)
     if mutual:
         keep = d.argmin(axis=0)[nn1] == rows
     else:
         keep = np.ones(nq, bool)
     if nb > 1:  # with one candidate feature there is no second neighbour and the ratio test cannot reject
-        d[rows, nn1] = np.inf
-        second = d.min(axis=1)
+        d[rows, nn1] = np.inf if d.dtype.kind == "f" else np.iinfo(d.dtype).max
+        second = d.min(axis=1).astype(np.float32)
         keep &= best < (ratio * ratio if squared else ratio) * second
     q = rows[keep]
     return np.stack([q, nn1[keep]], axis=1).astype(np.int64) if len(q) else EMPTY_MATCHES
@@ -112,32 +114,12 @@ class _ByteDistances:
 
     def to(self, other: "_ByteDistances") -> np.ndarray:
         """``(Nq, Nb)`` float32 squared distances from this set (the query) to ``other``."""
-        return self.exact_to(other).float().numpy()
+        return self.exact_to(other).astype(np.float32)
 
-    def exact_to(self, other: "_ByteDistances") -> torch.Tensor:
+    def exact_to(self, other: "_ByteDistances") -> np.ndarray:
         """``(Nq, Nb)`` int32 squared distances from this set (the query) to ``other`` (``to``'s values)."""
         d = torch._int_mm(self.shifted, other.shifted.T).mul_(-2)
-        return d.add_(self.row[:, None]).add_(other.column[None, :])
-
-
-def _ratio_from_exact(d: torch.Tensor, ratio: float, mutual: bool) -> np.ndarray:
-    """``_ratio_from_distances`` on an ``(Nq, Nb)`` int32 block of squared distances (``_ByteDistances.exact_to``;
-    modified in place): the same matches, read in the integers (the first nearest neighbour among equals, as numpy's
-    ``argmin``; the ratio compared in float32, which holds these integers exactly), without the float copy of the
-    block (a frame's matching 0.5 -> 0.4 ms a pair)."""
-    nq, nb = d.shape
-    if nq == 0 or nb == 0:
-        return EMPTY_MATCHES
-    rows = np.arange(nq)
-    best, nn1 = d.min(dim=1)
-    keep = d.argmin(dim=0)[nn1].numpy() == rows if mutual else np.ones(nq, bool)
-    if nb > 1:  # with one candidate feature there is no second neighbour and the ratio test cannot reject
-        d.scatter_(1, nn1[:, None], torch.iinfo(torch.int32).max)
-        second = d.min(dim=1).values.numpy().astype(np.float32)
-        keep &= best.numpy().astype(np.float32) < (ratio * ratio) * second
-    nn1 = nn1.numpy()
-    q = rows[keep]
-    return np.stack([q, nn1[keep]], axis=1).astype(np.int64) if len(q) else EMPTY_MATCHES
+        return d.add_(self.row[:, None]).add_(other.column[None, :]).numpy()
 
 
 FORMS_KEPT = 32  #: descriptor sets ``ByteForms`` keeps the 8-bit form of (~70 kB each at 500 SIFT features)
@@ -197,7 +179,7 @@ def _bytes_faster() -> bool:
         except (AttributeError, RuntimeError):  # no 8-bit product in this torch build
             _BYTES_FASTER = False
             return False
-        products = (lambda: as_bytes.to(as_bytes), lambda: torch.addmm(as_float[:, 0], as_float, as_float.T))
+        products = (lambda: as_bytes.exact_to(as_bytes), lambda: torch.addmm(as_float[:, 0], as_float, as_float.T))
         products[1]()
         byte_s, float_s = np.min([[_seconds(product) for product in products] for _ in range(5)], axis=0)
         _BYTES_FASTER = bool(byte_s < float_s)
@@ -232,7 +214,7 @@ def match_ratio_many(xq: np.ndarray, xbs: Sequence[np.ndarray], ratio: float = 0
         form = forms or _form
         query, cands = form(xq), [None if len(xb) == 0 else form(xb) for xb in xbs]
         if query is not None and all(c is not None or len(xb) == 0 for c, xb in zip(cands, xbs)):
-            return [EMPTY_MATCHES if c is None else _ratio_from_exact(query.exact_to(c), ratio, mutual)
+            return [EMPTY_MATCHES if c is None else _ratio_from_distances(query.exact_to(c), ratio, mutual, True)
                     for c in cands]
     # The GEMM runs in torch, whose thread pool the encoder already uses: numpy's OpenBLAS threads would spin
     # against it on a small machine (measured 8x slower on 2 cores).
