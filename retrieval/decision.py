@@ -252,7 +252,7 @@ class ScoreSpans:
     speeds, as the decision takes it).
 
     Args:
-        score: the temporal filter's pair score, ``(queries (n,), refs (n,), source, speed) -> (n,)``.
+        score: the temporal filter's pair score, ``(queries (n,), refs (n,), source, speed: one or (n,)) -> (n,)``.
         window: frames one score covers (the filter's ``length``).
         tail: the null of one window's score (``EmpiricalTail`` of the far-side pairs' scores).
         measured: ``[MeasuredTail]``, one per number of windows fused ``m = 1..span``: the fused evidence of the
@@ -289,27 +289,33 @@ class ScoreSpans:
         """Windows fused at most."""
         return len(self.measured)
 
-    def windows(self, queries: np.ndarray, refs: np.ndarray, source: Any, speed: float = 1.0) -> np.ndarray:
+    def windows(self, queries: np.ndarray, refs: np.ndarray, source: Any,
+                speed: float | np.ndarray = 1.0) -> np.ndarray:
         """``(n, span)``: the score of each pair's window ``j`` (the pair moved back ``j * window`` query frames on its
-        line at ``speed``); NaN where an earlier window's pair lies before the first frame (missing terms inside a
-        window count 0, as in the filter's own score)."""
+        line at ``speed``: one for every pair, or ``(n,)`` one each, several speeds scored in one call); NaN where an
+        earlier window's pair lies before the first frame (missing terms inside a window count 0, as in the filter's
+        own score)."""
+        queries, refs = np.asarray(queries, np.int64), np.asarray(refs, np.int64)
+        speed = np.broadcast_to(np.asarray(speed, np.float64), queries.shape)
         shift = np.arange(self.span, dtype=np.int64) * self.window  # every window of every pair, one call
-        qj = (np.asarray(queries, np.int64)[:, None] - shift).ravel()
-        rj = (np.asarray(refs, np.int64)[:, None] - np.rint(speed * shift).astype(np.int64)).ravel()
+        qj = (queries[:, None] - shift).ravel()
+        rj = (refs[:, None] - np.rint(speed[:, None] * shift).astype(np.int64)).ravel()
+        vj = np.repeat(speed, self.span)
         out = np.full(len(qj), np.nan)
         ok = rj >= 0
         if ok.any():
-            out[ok] = self.score(qj[ok], rj[ok], source, speed)
-            if speed != 1.0 and self.stops is not None:
-                out[np.flatnonzero(ok)[self._through_stop(qj[ok], rj[ok], source, speed)]] = -np.inf
+            out[ok] = self.score(qj[ok], rj[ok], source, vj[ok])
+            moving = ok & (vj != 1.0)  # lines at another speed than the map's
+            if self.stops is not None and moving.any():
+                out[np.flatnonzero(moving)[self._through_stop(qj[moving], rj[moving], source, vj[moving])]] = -np.inf
         return out.reshape(-1, self.span)
 
-    def _through_stop(self, queries: np.ndarray, refs: np.ndarray, source: Any, speed: float) -> np.ndarray:
-        """``(n,)`` bool: whether the window of each ``(queries[i], refs[i])`` on its line at ``speed`` holds a still
-        frame (``Stops.still``) on either side."""
+    def _through_stop(self, queries: np.ndarray, refs: np.ndarray, source: Any, speed: np.ndarray) -> np.ndarray:
+        """``(n,)`` bool: whether the window of each ``(queries[i], refs[i])`` on its line at ``speed[i]`` holds a
+        still frame (``Stops.still``) on either side."""
         steps = np.arange(self.window, dtype=np.float64)
         frames = np.concatenate([(queries[:, None] - steps.astype(np.int64)).ravel(),
-                                 np.rint(refs[:, None] - speed * steps).astype(np.int64).ravel()])
+                                 np.rint(refs[:, None] - speed[:, None] * steps).astype(np.int64).ravel()])
         uniq, back = np.unique(frames, return_inverse=True)  # windows of nearby pairs share most of their frames
         return self.stops.still(uniq, source)[back].reshape(2, len(queries), self.window).any(axis=(0, 2))
 
@@ -333,9 +339,11 @@ class ScoreSpans:
     def _by_speed(self, queries: np.ndarray, refs: np.ndarray, source: Any) -> tuple[np.ndarray, np.ndarray]:
         """``((n, span) -log10 NFA of each pair over 1..span windows on its best line, (n,) that line's speed)``
         (``-inf`` where no span agrees at any speed; the first speed there)."""
-        best, speed = None, np.full(len(queries), self.speeds[0])
-        for v in self.speeds:
-            fused = self.fused(self.windows(queries, refs, source, v))
+        n, speeds = len(queries), np.asarray(self.speeds, np.float64)
+        best, speed = None, np.full(n, self.speeds[0])
+        every = self.windows(np.tile(queries, len(speeds)), np.tile(refs, len(speeds)), source, np.repeat(speeds, n))
+        for k, v in enumerate(self.speeds):  # every speed's windows scored in one call, read speed by speed
+            fused = self.fused(every[k * n:(k + 1) * n])
             conf = np.full(fused.shape, -math.inf)
             for j, measured in enumerate(self.measured):
                 for i in np.flatnonzero(np.nan_to_num(fused[:, j]) > 0):

@@ -24,6 +24,7 @@ The interface, shapes included::
     filt.commit(query_id, kept_ids (j,) int64)     # the hypotheses the caller kept (carried to later frames)
     filt.score(query_ids (n,), ref_ids (n,), source, speed=1.0) -> (n,) float32   # any pairs (the calibration's null);
                                                                              # speed: the lines' velocities scaled
+                                                                             # (one, or (n,) one a pair)
 
 ``source`` is a ``SimilaritySource`` (``CodeTable``: normalised codes by frame id): ``pairs(queries (n,), refs (n,)) -> (n,) float32`` similarities of stored
 frames (NaN where a frame is not stored) and ``searchable(refs (n,)) -> (n,) bool``. Hypotheses come back best
@@ -183,8 +184,8 @@ class TemporalFilter:
               speed: float = 1.0) -> np.ndarray:
         """The filter's score of given ``(query, keyframe)`` pairs, ``(n,)`` -> ``(n,)`` (calibration uses it), on
         lines at ``speed`` times the filter's own velocities (a revisit that many times as fast as the map: the score
-        path's lines at ``calibration.score_speeds``, ``retrieval.decision.ScoreSpans``); a filter without lines ignores
-        it."""
+        path's lines at ``calibration.score_speeds``, ``retrieval.decision.ScoreSpans``; one speed, or ``(n,)`` one a
+        pair, every speed's lines scored in one call); a filter without lines ignores it."""
         raise NotImplementedError
 
 
@@ -249,12 +250,14 @@ class SequenceFilter(TemporalFilter):
         self._recent.append((int(query_id), np.asarray(kept_ids, np.int64).reshape(-1).copy()))
 
     def score(self, query_ids: np.ndarray, ref_ids: np.ndarray, source: SimilaritySource,
-              speed: float = 1.0) -> np.ndarray:
-        """``max over v of (1/length) * sum_i sim(q - i, round(r - speed*v*i))``; unknown terms count 0."""
+              speed: float | np.ndarray = 1.0) -> np.ndarray:
+        """``max over v of (1/length) * sum_i sim(q - i, round(r - speed*v*i))``; unknown terms count 0; ``speed``
+        one for every pair or ``(n,)`` one each."""
         q = np.asarray(query_ids, np.int64).reshape(-1, 1)
         r = np.asarray(ref_ids, np.int64).reshape(-1, 1)
         if len(q) == 0:
             return np.zeros(0, np.float32)
+        speed = np.asarray(speed, np.float64).reshape(-1, 1) if np.ndim(speed) else speed
         best = np.full(len(q), -np.inf)
         qs = (q - self._steps.astype(np.int64)).ravel()  # the query and the frames before it, for every pair
         for v in self.conf["velocities"]:

@@ -370,6 +370,27 @@ class TestScoreSpans:
         fused = spans.fused(spans.windows(np.array([300]), np.array([100]), None))
         assert fused[0, 0] > 0 and (fused[0, 1:] == 0).all()
 
+    def test_windows_at_a_speed_each_equal_one_speed_a_call(self, nordland_codes):
+        """Every speed's windows scored in one call (a speed a pair, ``_by_speed``) are those of one call per speed,
+        bit for bit, the stops included (a line at another speed than the map's through a still frame does not
+        agree): on real Nordland codes, frames 150-259, where the summer train waits at a station (206-241)."""
+        from retrieval.decision import EmpiricalTail, MeasuredTail, ScoreSpans
+        from retrieval.temporal import CodeTable, SequenceFilter
+
+        table = CodeTable(4096)
+        for fid in range(150, 260):
+            code = nordland_codes[fid]
+            table.add(fid, code / np.linalg.norm(code))
+        spans = ScoreSpans(SequenceFilter({"length": 10}).score, 10, EmpiricalTail(np.zeros(9)),
+                           [MeasuredTail(np.zeros(0))] * 3, 1.0, (0.87, 1.0, 1.15), Stops(0.99))
+        q = np.arange(215, 260)
+        r = q - 40
+        speeds = np.array([0.87, 1.0, 1.15])
+        one_each = np.concatenate([spans.windows(q, r, table, v) for v in speeds])
+        together = spans.windows(np.tile(q, 3), np.tile(r, 3), table, np.repeat(speeds, len(q)))
+        np.testing.assert_array_equal(together, one_each)
+        assert np.isneginf(one_each).any() and np.isfinite(one_each).any()  # lines through the stop, and not
+
     def test_no_window_before_the_first_frame(self):
         spans = self._spans({300: 0.35, 290: 0.35, 280: 0.35})
         win = spans.windows(np.array([300]), np.array([15]), None)  # the third window's pair would be (280, -5)
@@ -384,7 +405,9 @@ class TestScoreSpans:
         on_line = {(300, 100, 2.0), (290, 80, 2.0), (280, 60, 2.0)}
 
         def score(q, r, source, speed=1.0):  # 0.35 on the 2x line's windows, scored at 2x; the null's median else
-            return np.array([0.35 if (int(a), int(b), speed) in on_line else 0.0 for a, b in zip(q, r)], np.float64)
+            speeds = np.broadcast_to(np.asarray(speed, np.float64), np.shape(q))  # one speed, or one a pair
+            return np.array([0.35 if (int(a), int(b), float(v)) in on_line else 0.0 for a, b, v in zip(q, r, speeds)],
+                            np.float64)
 
         def spans(speeds):
             return ScoreSpans(score, 10, EmpiricalTail(np.linspace(-0.1, 0.1, 9999)), [MeasuredTail(np.zeros(0))] * 3,

@@ -60,6 +60,17 @@ class TestSequenceFilter:
         # ref 2: only refs 2, 1, 0 exist -> 3 of 10 terms
         assert filt.score(np.array([15]), np.array([2]), MatrixSource(sims))[0] == pytest.approx(0.15)
 
+    def test_a_speed_for_each_pair_scores_as_one_speed_a_call(self):
+        """The score path scores every speed's lines in one call (``ScoreSpans._by_speed``): a speed a pair gives the
+        same scores, bit for bit, as one call per speed."""
+        sims = revisit_matrix(n=120, start=60, offset=50)
+        src, filt = MatrixSource(sims), SequenceFilter({"length": 7, "velocities": [1.0, 1.1]})
+        q, r = np.arange(60, 120), np.arange(60, 120) - 50
+        speeds = (0.87, 1.0, 1.15, 2.0)
+        one_each = np.concatenate([filt.score(q, r, src, v) for v in speeds])
+        together = filt.score(np.tile(q, len(speeds)), np.tile(r, len(speeds)), src, np.repeat(speeds, len(q)))
+        np.testing.assert_array_equal(together, one_each)
+
     def test_reverse_velocity(self):
         n = 40
         sims = np.zeros((n, n))
