@@ -10,8 +10,10 @@ One run of the default config (nothing tuned per data set) on:
 - **aliasing stress sets** (no revisit, so every loop reported is false): KITTI 00 followed by 07 as one sequence
   (full size and 160x120), and the hardest look-alike we can make from the shared data: KITTI 00 followed by its own
   frames mirrored left-right at 160x120 (the same textures, kerbs and cars on the other side: a different place
-  that looks alike, frame after frame, in order); and 00 then 07 at 64x32 with the camera pausing 15 frames at 4
-  places (``paused_folder``: a stop on one side of the score path's look-alike lines).
+  that looks alike, frame after frame, in order); look-alikes that recur ``RECUR`` frames apart, just past the
+  exclusion window, as a corridor's doors do (``recurring_folder``: stretches of 00 and 07, each followed by itself
+  mirrored; 160x120 and 64x32); and 00 then 07 at 64x32 with the camera pausing 15 frames at 4 places
+  (``paused_folder``: a stop on one side of the score path's look-alike lines).
 
 The offline rows are ``detect --lookahead`` (``LOOKAHEAD``: a calibration pass over the whole sequence, then its
 fixed decision). Beside each offline row, the online one (what ``detect`` runs by default): the same set streamed through the Python API from frame 0 with no
@@ -51,8 +53,8 @@ from retrieval.sequences import open_sequence
 from .augment import darken, dusk, narrower
 from .common import detect_run, md_table, study_parser
 
-__all__ = ["plain_folder", "dark_proxy_folder", "DARKER", "dusk_folder", "stress_folders", "stress_sets", "evaluate",
-           "aliasing_table", "stream_run", "carried_row", "online_table", "main"]
+__all__ = ["plain_folder", "dark_proxy_folder", "DARKER", "dusk_folder", "stress_folders", "recurring_folder", "RECUR",
+           "stress_sets", "evaluate", "aliasing_table", "stream_run", "carried_row", "online_table", "main"]
 
 log = logging.getLogger(__name__)
 
@@ -116,6 +118,29 @@ def paused_folder(dst: Path, sources: list[Path], size: tuple[int, int], seed: i
     return dst
 
 
+#: frames a look-alike of the recurring proxy (``recurring_folder``) comes after its original: a little more than the
+#: exclusion window (50), as the held-out corridor's look-alike stretches recur ~52 frames apart, past the 25-49
+#: frames back the nulls are drawn from (issue 27)
+RECUR = 52
+
+
+def recurring_folder(dst: Path, stretches: list[list[Path]], size: tuple[int, int]) -> Path:
+    """Each stretch of frames resized to ``size`` (w, h, INTER_AREA) and followed by itself mirrored left-right:
+    look-alikes that recur ``len(stretch)`` frames apart, none of them a revisit (a mirrored frame is the view of no
+    real place); a plain folder, reused when already built."""
+    total = 2 * sum(len(s) for s in stretches)
+    if dst.is_dir() and len(list(dst.glob("*.png"))) == total:
+        return dst
+    dst.mkdir(parents=True, exist_ok=True)
+    k = 0
+    for stretch in stretches:
+        frames = [cv2.resize(read_image(src), size, interpolation=cv2.INTER_AREA) for src in stretch]
+        for image in frames + [cv2.flip(image, 1) for image in frames]:
+            cv2.imwrite(str(dst / f"{k:06d}.png"), image)
+            k += 1
+    return dst
+
+
 #: ``bench.augment.darken``'s arguments for the darker night proxy (``dark_proxy_folder``): its second pass keeps a
 #: median of 17 SIFT keypoints a frame at 160x120 (86 with the defaults, 190 in daylight), too few to verify, while
 #: retrieval's Recall@10 stays 1.000: where the code and the sequence must carry the decision (issue 27)
@@ -153,6 +178,8 @@ def stress_sets(data: Path, run_dir: Path) -> dict[str, tuple[Path, np.ndarray |
     frames90 = list(open_sequence(kitti / "90").frames)
     truth90 = read_loop_pairs(kitti / "90" / "loops.txt")
     stress = stress_folders(kitti, run_dir)
+    k00, k07 = (list(open_sequence(kitti / n).frames) for n in ("00", "07"))
+    recurring = [k00[:RECUR], k07[:RECUR], k00[2 * RECUR:3 * RECUR], k07[2 * RECUR:3 * RECUR]]  # places apart
     return {
         "KITTI 90 (1241x376, intrinsics)": (kitti / "90", truth90),
         "KITTI 90 at 160x120 (plain folder)": (plain_folder(run_dir / "k90_160", frames90, (160, 120)), truth90),
@@ -173,6 +200,9 @@ def stress_sets(data: Path, run_dir: Path) -> dict[str, tuple[Path, np.ndarray |
         "stress: 00 then 07 at 160x120": (stress["00+07 @160x120"], None),
         "stress: 00 then 07 at 64x32 (score path)": (stress["00+07 @64x32"], None),
         "stress: 00 then 00 mirrored at 160x120": (stress["00+00 mirrored @160x120"], None),
+        "stress: look-alikes recurring 52 frames apart at 160x120 (stretches of 00 and 07, each then mirrored)": (
+            recurring_folder(run_dir / "recur_160", recurring, (160, 120)), None),
+        "stress: the same at 64x32 (score path)": (recurring_folder(run_dir / "recur_64", recurring, (64, 32)), None),
         "stress: 00 then 07 at 64x32, the camera pausing 4 times (score path)": (paused_folder(
             run_dir / "s0007_64_paused", [*open_sequence(kitti / "00").frames, *open_sequence(kitti / "07").frames],
             (64, 32)), None),

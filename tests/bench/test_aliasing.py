@@ -138,3 +138,22 @@ def test_the_paused_proxy_stands_still_where_it_says(tmp_path, monkeypatch):
     d = create_descriptor({"name": "cae"}, encoder=load_encoder())
     moved = camera_moved(np.stack(d.encode_batch(images)), d.still_cos)
     assert (~moved).sum() >= 3 and moved[:4].all() and moved[8:].all()
+
+
+def test_the_recurring_proxy_mirrors_each_stretch_after_itself(tmp_path):
+    """``recurring_folder``: each stretch, then the same frames mirrored left-right (look-alikes ``len(stretch)``
+    frames apart, none the same place)."""
+    import cv2
+    import numpy as np
+
+    from bench.aliasing import recurring_folder
+    from tests.conftest import SAMPLE_DIR
+
+    sources = sorted((SAMPLE_DIR / "image_0").glob("*.jpg"))
+    folder = recurring_folder(tmp_path / "r", [sources[:3], sources[40:43]], (64, 32))
+    images = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in sorted(folder.glob("*.png"))]
+    assert len(images) == 12 and all(im.shape == (32, 64) for im in images)
+    for start in (0, 6):
+        for k in range(3):
+            np.testing.assert_array_equal(images[start + 3 + k], cv2.flip(images[start + k], 1))
+    assert not np.array_equal(images[0], images[6])  # the second stretch is another place
