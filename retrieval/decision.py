@@ -753,7 +753,8 @@ class Decision:
         run of frames reaches ``min_support`` yet. Score path (no ``pair_tail``): the fused
         windows' confidence (``spans``), else ``fallback`` (the calibrated temporal-score confidences, ``(m,)``),
         where the keyframe is not too recent. ``terms``: ``code_terms`` of the same candidates, when computed
-        before."""
+        before (the score path's windows left out of them, ``windows=False``, are scored here where they are read:
+        beside the inlier path, only where no verified run reaches ``accept_at``)."""
         out = np.full(len(refs), -math.inf)
         base = -math.log10(self.tests)
         oldest, allowed, allowed_w, windows = terms if terms is not None else self.code_terms(query_id, refs, source)

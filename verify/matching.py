@@ -112,12 +112,8 @@ class _ByteDistances:
         self.column = (wide * wide).sum(1, dtype=torch.int32).add_(128 * 128 * x.shape[1])
         self.row = self.column - 2 * 128 * 128 * x.shape[1]
 
-    def to(self, other: "_ByteDistances") -> np.ndarray:
-        """``(Nq, Nb)`` float32 squared distances from this set (the query) to ``other``."""
-        return self.exact_to(other).astype(np.float32)
-
     def exact_to(self, other: "_ByteDistances") -> np.ndarray:
-        """``(Nq, Nb)`` int32 squared distances from this set (the query) to ``other`` (``to``'s values)."""
+        """``(Nq, Nb)`` int32 squared distances from this set (the query) to ``other`` (the float32 GEMM's values)."""
         d = torch._int_mm(self.shifted, other.shifted.T).mul_(-2)
         return d.add_(self.row[:, None]).add_(other.column[None, :]).numpy()
 
@@ -175,7 +171,7 @@ def _bytes_faster() -> bool:
         x = np.random.default_rng(0).integers(0, 256, (400, 128), dtype=np.uint8)
         as_bytes, as_float = _ByteDistances(x), torch.from_numpy(x.astype(np.float32))
         try:
-            as_bytes.to(as_bytes)
+            as_bytes.exact_to(as_bytes)
         except (AttributeError, RuntimeError):  # no 8-bit product in this torch build
             _BYTES_FASTER = False
             return False

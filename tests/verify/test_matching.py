@@ -144,9 +144,9 @@ class TestByteProducts:
 
         extremes = np.array([[0] * 128, [255] * 128, [0, 255] * 64], np.uint8)
         for xq, xb in [(descs[55], descs[5]), (descs[5], descs[30]), (extremes, extremes), (extremes, descs[54])]:
-            fast = _ByteDistances(xq.astype(np.uint8)).to(_ByteDistances(xb.astype(np.uint8)))
-            assert fast.dtype == np.float32
-            np.testing.assert_array_equal(fast, pairwise_sq_l2(xq, xb))
+            fast = _ByteDistances(xq.astype(np.uint8)).exact_to(_ByteDistances(xb.astype(np.uint8)))
+            assert fast.dtype == np.int32
+            np.testing.assert_array_equal(fast.astype(np.float32), pairwise_sq_l2(xq, xb))
 
     @pytest.mark.parametrize("faster", [True, False], ids=["bytes", "float32"])
     def test_either_product_gives_the_brute_force_matches(self, descs, monkeypatch, faster):
