@@ -5,8 +5,9 @@ A change meant to be faster and nothing else (a cache, a batched call, another r
 as it was. This streams a sequence folder through ``LoopDetector.process`` from frame 0 (the default conf, the stream
 calibrating itself) and writes, for each frame, its loop and that loop's confidence, the delayed loops it reports and
 every candidate's matches, inliers, confidence and sequence score, floats by ``repr`` (every digit): run it with
-each version of the code (``PYTHONPATH`` or a worktree), then compare the two files (``cmp``). Also logs the mean and
-median ms a frame.
+each version of the code on the path (``PYTHONPATH=<a checkout> python bench/same_frames.py FOLDER OUT.json``: the
+script imports the detector from there), then compare the two files (``cmp``). Also logs the mean and median ms a
+frame.
 """
 
 from __future__ import annotations
