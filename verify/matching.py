@@ -207,7 +207,7 @@ def match_ratio_many(xq: np.ndarray, xbs: Sequence[np.ndarray], ratio: float = 0
     if metric == "hamming":
         return [match_ratio(xq, xb, ratio, mutual, metric) for xb in xbs]
     if _bytes_faster():
-        form = forms or _form
+        form = forms if forms is not None else _form
         query, cands = form(xq), [None if len(xb) == 0 else form(xb) for xb in xbs]
         if query is not None and all(c is not None or len(xb) == 0 for c, xb in zip(cands, xbs)):
             return [EMPTY_MATCHES if c is None else _ratio_from_distances(query.exact_to(c), ratio, mutual, True)

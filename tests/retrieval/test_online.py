@@ -526,33 +526,31 @@ def test_a_delayed_loop_outside_the_stored_hypotheses_is_written():
     assert _with_confirmed(724, stored, 219, (218, 6.1), lambda q, r: (0.5, 0.37))[2] == 219  # a loop of its own
 
 
-def test_windows_left_to_the_decision_give_the_same_confidences(online_run):
+def test_windows_left_to_the_decision_give_the_same_confidences(online_run, monkeypatch):
     """Beside the inlier path, a frame's score-path windows are left to ``Decision.confidences`` (``code_terms(...,
     windows=False)``, as the detector asks), which scores them only where no verified run decides the frame: the
     same confidences as scoring them first, on every frame the stream recorded, and fewer windows scored."""
     _, _, state, _, det = online_run
     dec, src = det.decision, det.places.source
     assert dec.both
-    score = dec.spans.confidences
+    calls, score = [], dec.spans.confidences
+    monkeypatch.setattr(dec.spans, "confidences", lambda *a, **k: calls.append(1) or score(*a, **k))
     lazy_ones = decided = 0
     for seen in state.seen:
         counted_inliers = np.where(seen.matches >= det.conf["policy"]["min_matches"], seen.inliers, -1)
-        dec.spans.confidences = score
         eager = dec.confidences(seen.frame_id, seen.refs, counted_inliers, src,
                                 terms=dec.code_terms(seen.frame_id, seen.refs, src))
-        calls = []
-        dec.spans.confidences = lambda *a, **k: calls.append(1) or score(*a, **k)
+        calls.clear()
         lazy = dec.confidences(seen.frame_id, seen.refs, counted_inliers, src,
                                terms=dec.code_terms(seen.frame_id, seen.refs, src, windows=False))
         np.testing.assert_array_equal(lazy, eager)
         verified_decides = len(seen.refs) and (lazy >= dec.accept_at).any() and not calls
         decided += bool(verified_decides)
         lazy_ones += bool(calls)
-    del dec.spans.confidences  # the class's own again
     assert decided and lazy_ones  # frames a verified run decided (no window scored) and frames the windows saw
 
 
-def test_an_accepted_pairs_windows_are_read_from_the_rows_its_frame_scored(online_run):
+def test_an_accepted_pairs_windows_are_read_from_the_rows_its_frame_scored(online_run, monkeypatch):
     """``ScoreSpans.best_run`` (a run's confirmation on the score path) reads a pair the frame's candidates were scored
     with (``Decision.code_terms``) from those rows: the same run, no window scored again."""
     _, _, state, _, det = online_run
@@ -560,11 +558,8 @@ def test_an_accepted_pairs_windows_are_read_from_the_rows_its_frame_scored(onlin
     seen = state.seen[-1]
     dec.code_terms(seen.frame_id, seen.refs, src)  # the rows of every candidate kept
     scored, score = [], spans.score
-    spans.score = lambda *a: scored.append(1) or score(*a)
-    try:
-        kept = [spans.best_run(seen.frame_id, int(r), src) for r in seen.refs]
-        assert not scored
-        spans.keep_rows(None)  # none kept: scored again
-        assert [spans.best_run(seen.frame_id, int(r), src) for r in seen.refs] == kept and scored
-    finally:
-        del spans.score
+    monkeypatch.setattr(spans, "score", lambda *a: scored.append(1) or score(*a))
+    kept = [spans.best_run(seen.frame_id, int(r), src) for r in seen.refs]
+    assert not scored
+    spans.keep_rows(None)  # none kept: scored again
+    assert [spans.best_run(seen.frame_id, int(r), src) for r in seen.refs] == kept and scored
