@@ -24,7 +24,7 @@ from torch import nn
 from cae_lcd.core.errors import ConfigError, ImageError
 
 __all__ = ["Encoder", "Decoder", "ConvAutoencoder", "INPUT_SIZE", "CODE_SHAPE", "CODE_DIM", "INPUT_NORMS",
-           "standardise"]
+           "standardise", "MaxPool2x2"]
 
 INPUT_SIZE = 256  #: side of the square network input, pixels
 CODE_SHAPE = (16, 16, 16)  #: (channels, height, width) of the bottleneck
@@ -43,6 +43,24 @@ def standardise(x: torch.Tensor) -> torch.Tensor:
     mean = torch.stack([image.mean() for image in x]).view(-1, 1, 1, 1)
     gain = 1.0 / (torch.stack([image.std() for image in x]).view(-1, 1, 1, 1) / _SPREAD + 1e-3)
     return torch.sub(x, mean).mul_(gain).add_(_MEAN).clamp_(0.0, 1.0)
+
+
+class MaxPool2x2(nn.Module):
+    """``nn.MaxPool2d(2)``, the same values faster where nothing is learned: ``(B, C, H, W) -> (B, C, H/2, W/2)``.
+
+    Without autograd, on the CPU, a channels-last input of even sides is pooled by two elementwise maxima (rows, then
+    columns: each output the largest of its four inputs, NaN kept, as ``max_pool2d`` gives), 0.26 ms against 0.71 for
+    the encoder's first pool (32 x 256 x 256, one core); anything else goes to ``F.max_pool2d`` (training's gradient
+    included). No parameters: a checkpoint's keys are those of ``nn.MaxPool2d``.
+    """
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        h, w = x.shape[-2:]
+        if torch.is_grad_enabled() or x.device.type != "cpu" or x.ndim != 4 or h % 2 or w % 2 \
+                or not x.is_contiguous(memory_format=torch.channels_last):
+            return F.max_pool2d(x, 2)
+        rows = torch.maximum(x[:, :, 0::2], x[:, :, 1::2])
+        return torch.maximum(rows[:, :, :, 0::2], rows[:, :, :, 1::2])
 
 
 def _init(module: nn.Module, std: float = 0.05) -> None:
@@ -81,7 +99,7 @@ class Encoder(nn.Module):
         for c_out in self.filters:
             # pooled before the ReLU: the same values (max and ReLU commute) with the ReLU on a quarter of them;
             # the checkpoint keys are the same (the convolutions stay at 0, 3, 6, 9)
-            layers += [nn.Conv2d(c_in, c_out, 3, padding=1), nn.MaxPool2d(2), nn.ReLU(inplace=True)]
+            layers += [nn.Conv2d(c_in, c_out, 3, padding=1), MaxPool2x2(), nn.ReLU(inplace=True)]
             c_in = c_out
         self.features = nn.Sequential(*layers)
         _init(self)

@@ -115,6 +115,7 @@ LOCAL_SPREAD = 2.0  #: null spreads (the far-side window scores' 90th percentile
 #   a run of windows on the map's line through a keyframe 4 frames behind the query's own window, which read 0.32
 #   there and 0.91 two frames on; 9 loops 5-6 m off before, none now)
 GAMMA_CACHE = 4096  #: ``gamma_log10_sf`` values kept (least recently used dropped)
+MOVING_KEPT = 4096  #: moving frames ``Stops`` remembers as such (the oldest forgotten first)
 AGREE = 1.0  #: decades a score-path window needs to agree (its own p-value <= 0.1: above the null's 90th percentile);
 #              a weaker window vetoes the longer spans (earlier windows cannot carry a query whose own is noise)
 
@@ -461,11 +462,15 @@ class Horizon:
 class Stops:
     """How long the camera has stood still at each stored frame: ``length(f)`` = the frames in a row up to ``f``
     whose code is unchanged from the frame before (cosine >= ``cos``; a frame not stored ends a stop). Memoised for
-    frames inside a stop only (most frames move: one lookup each), so the memory grows with the stops, not the run."""
+    frames inside a stop, and for the newest ``MOVING_KEPT`` frames found moving (a frame's stop is read by its own
+    decision, the next frames' and a replay's several times: Nordland's replays asked 25 000 times), so the memory
+    grows with the stops, not the run. The codes of a frame do not change in an instance's life (a refit's new code
+    space makes a new ``Decision``)."""
 
     def __init__(self, cos: float) -> None:
         self.cos = float(cos)
         self._len: dict[int, int] = {}
+        self._moving: dict[int, None] = {}  # frames found moving, oldest first (insertion order)
 
     def lengths(self, frames: np.ndarray, source: Any) -> np.ndarray:
         """``(n,)`` int64: the stop length at each of ``frames`` ``(n,)`` (0: the camera moved onto it)."""
@@ -494,7 +499,14 @@ class Stops:
         return sims >= self.cos
 
     def _still(self, frame: int, source: Any) -> bool:
-        return bool(self.still(np.array([frame], np.int64), source)[0])
+        if frame in self._moving:
+            return False
+        still = bool(self.still(np.array([frame], np.int64), source)[0])
+        if not still:
+            self._moving[frame] = None
+            if len(self._moving) > MOVING_KEPT:
+                del self._moving[next(iter(self._moving))]
+        return still
 
     def line_admissible(self, query_id: int, refs: np.ndarray, back: int, source: Any) -> np.ndarray:
         """``(m,)`` bool: ``admissible`` at every frame of each pair's line over ``back`` frames (``(query_id - j,

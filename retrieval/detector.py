@@ -1094,11 +1094,13 @@ class LoopDetector:
         """The keyframes' current codes copied into a table (``retrieval.temporal.CodeTable``, the same admission
         rule) where they take at most ``REPLAY_COPY_BYTES``, else the place memory's own source: a replay scores tens
         of thousands of pairs, each read from the index otherwise (Nordland streamed: 2.7 of its 4.4 s of replays),
-        with the same float32 products, so the same scores."""
+        with the same float32 products, so the same scores; each pair computed once (``memo``: the windows of
+        neighbouring frames share most of their pairs, Nordland's replays scored 12.1 million pairs, 1.9 million
+        distinct)."""
         src = self.places.source
         if len(src) * src.dim * 4 > REPLAY_COPY_BYTES:
             return src
-        table = CodeTable(src.dim, src.searchable)
+        table = CodeTable(src.dim, src.searchable, memo=True)
         for fid, code in zip(*src.items()):
             table.add(int(fid), code)
         return table

@@ -46,6 +46,7 @@ __all__ = ["SimilaritySource", "CodeTable", "TemporalFilter", "SequenceFilter", 
 PAIR_CHUNK = 2048  #: pairs a filter scores in one call where many are scored at once (a calibration's far-side
 #   lines, a refit's recorded frames): their similarities read in bulk, the memory bounded (a table without a Gram
 #   matrix gathers ``PAIR_CHUNK x length`` code pairs at once, about 40 MB at 256 dimensions)
+MEMO_DISTINCT = 64  #: pairs to compute from which a memoised ``CodeTable`` first finds the distinct ones
 GRAM_MAX = 4096  #: frames up to which ``CodeTable.fixed`` keeps every pair's similarity (64 MB at most)
 
 
@@ -65,10 +66,13 @@ class CodeTable:
         searchable: which keyframes the current query may match (None: every stored one).
         dtype: how the codes are kept: ``float16`` halves the memory and is exact for codes already rounded to
             float16 precision (``places.CodePlaces.entry``): similarities are computed in float32 either way.
+        memo: keep every pair's similarity once computed (an ``(n, n)`` float32 table, up to ``GRAM_MAX`` frames),
+            for a table that is scored many times and not added to meanwhile (a refit's replay: its windows read
+            each pair six times over): the same values, each computed once as an unmemoised table computes it.
     """
 
     def __init__(self, dim: int, searchable: Callable[[np.ndarray], np.ndarray] | None = None,
-                 dtype: type = np.float32) -> None:
+                 dtype: type = np.float32, memo: bool = False) -> None:
         self.dim = dim
         self._rows: dict[int, int] = {}
         self._codes = np.zeros((0, dim), dtype)
@@ -76,6 +80,8 @@ class CodeTable:
         self._n = 0
         self._ascending = True  # ids added in increasing order (a stream's): rows found by bisection (``_find``)
         self._gram: np.ndarray | None = None  # ``fixed``: every pair's similarity, ``(n, n)`` float32
+        self._memo_on = memo
+        self._memo: np.ndarray | None = None  # ``memo``: the pairs computed so far, ``(n, n)`` float32, NaN: not yet
         self._searchable = searchable
 
     @classmethod
@@ -93,7 +99,7 @@ class CodeTable:
         return table
 
     def add(self, frame_id: int, code: np.ndarray) -> None:
-        self._gram = None
+        self._gram = self._memo = None
         if self._n == len(self._codes):
             size = max(64, 2 * len(self._codes))
             grown = np.zeros((size, self.dim), self._codes.dtype)
@@ -126,7 +132,7 @@ class CodeTable:
     def remove_last(self, frame_id: int) -> None:
         """Undoes the last ``add`` (of ``frame_id``), e.g. when the database refused the frame."""
         if self._rows.get(int(frame_id)) == self._n - 1:
-            self._gram = None
+            self._gram = self._memo = None
             del self._rows[int(frame_id)]
             self._n -= 1
 
@@ -147,10 +153,33 @@ class CodeTable:
         ok = (rq >= 0) & (rr >= 0)
         if ok.any() and self._gram is not None:
             out[ok] = self._gram[rq[ok], rr[ok]]
+        elif ok.any() and self._memo_on and self._n <= GRAM_MAX:
+            out[ok] = self._memoised(rq[ok], rr[ok])
         elif ok.any():
-            a, b = (self._codes[r[ok]].astype(np.float32, copy=False) for r in (rq, rr))
-            out[ok] = np.einsum("ij,ij->i", a, b)
+            out[ok] = self._products(rq[ok], rr[ok])
         return out
+
+    def _products(self, rq: np.ndarray, rr: np.ndarray) -> np.ndarray:
+        """``(m,)`` float32 similarities of the rows ``rq (m,)`` and ``rr (m,)``, each pair's own product (its value
+        does not depend on the other pairs computed with it)."""
+        a, b = (self._codes[r].astype(np.float32, copy=False) for r in (rq, rr))
+        return np.einsum("ij,ij->i", a, b)
+
+    def _memoised(self, rq: np.ndarray, rr: np.ndarray) -> np.ndarray:
+        """``_products`` of the rows ``rq (m,)``, ``rr (m,)``, each distinct pair computed once in the table's life
+        (``memo``)."""
+        if self._memo is None:
+            self._memo = np.full((self._n, self._n), np.nan, np.float32)
+        got = self._memo[rq, rr]
+        todo = np.flatnonzero(np.isnan(got))
+        if len(todo) > MEMO_DISTINCT:  # many: each distinct pair once (a window's pairs repeat within a call)
+            key, back = np.unique(rq[todo] * self._n + rr[todo], return_inverse=True)
+            values = self._products(key // self._n, key % self._n)
+            self._memo[key // self._n, key % self._n] = values
+            got[todo] = values[back.reshape(-1)]
+        elif len(todo):  # a few: computed as they come
+            got[todo] = self._memo[rq[todo], rr[todo]] = self._products(rq[todo], rr[todo])
+        return got
 
     def searchable(self, refs: np.ndarray) -> np.ndarray:
         refs = np.asarray(refs, np.int64)

@@ -3,7 +3,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from cae.model import CODE_DIM, CODE_SHAPE, INPUT_SIZE, ConvAutoencoder, Decoder, Encoder
+from cae.model import CODE_DIM, CODE_SHAPE, INPUT_SIZE, ConvAutoencoder, Decoder, Encoder, MaxPool2x2
 from cae.preprocess import preprocess
 
 
@@ -83,6 +83,38 @@ class TestEncoder:
         assert abs(w.std().item() - 0.05) < 0.003
         assert abs(w.mean().item()) < 0.003
         assert all(torch.count_nonzero(c.bias) == 0 for c in convs)
+
+
+class TestMaxPool2x2:
+    @pytest.fixture(scope="class")
+    def maps(self, encoder, batch):
+        """The first block's conv output on real frames, channels-last ``(3, 32, 256, 256)``, one value NaN."""
+        with torch.no_grad():
+            x = encoder.features[0](encoder.network_input(batch)).contiguous(memory_format=torch.channels_last)
+        x[1, 5, 17, 40] = float("nan")
+        return x
+
+    def test_the_values_of_max_pool2d(self, maps):
+        with torch.inference_mode():
+            got = MaxPool2x2()(maps)
+        want = F.max_pool2d(maps, 2)
+        assert got.shape == want.shape == (3, 32, 128, 128)
+        assert torch.equal(got.nan_to_num(-7.0), want.nan_to_num(-7.0))  # bit for bit, the NaN where it was
+        assert torch.isnan(got[1, 5, 8, 20])
+        assert got.is_contiguous(memory_format=torch.channels_last)  # what the next conv reads fastest
+
+    @pytest.mark.parametrize("shape", [(1, 4, 7, 6), (1, 4, 6, 7), (2, 3, 5, 5)])
+    def test_odd_sides_pool_as_max_pool2d(self, shape):
+        x = torch.randn(shape).contiguous(memory_format=torch.channels_last)
+        with torch.inference_mode():
+            assert torch.equal(MaxPool2x2()(x), F.max_pool2d(x, 2))
+
+    def test_gradient_is_max_pool2d_s(self, maps):
+        x = maps[:1].nan_to_num(0.0).clone().requires_grad_(True)
+        MaxPool2x2()(x).sum().backward()
+        y = x.detach().clone().requires_grad_(True)
+        F.max_pool2d(y, 2).sum().backward()
+        assert torch.equal(x.grad, y.grad)  # training is unchanged: one input of each window gets the gradient
 
 
 class TestDecoder:

@@ -200,6 +200,22 @@ class TestStops:
         lengths = self._stops().lengths(np.array([206, 207, 240, 241, 242, 744]), table)
         assert lengths.tolist() == [0, 1, 34, 35, 0, 39]  # summer: arrives at 206, still 207-241; winter: 706-745
 
+    def test_moving_frames_are_read_once_the_newest_kept(self, table, monkeypatch):
+        """A frame found moving is remembered (its stop is asked for by its own decision, the frames after it and a
+        replay), the newest ``MOVING_KEPT`` of them: the same lengths, each moving frame's codes read once."""
+        import retrieval.decision as decision
+
+        monkeypatch.setattr(decision, "MOVING_KEPT", 2)
+        stops, asked = self._stops(), []
+        pairs = table.pairs
+        monkeypatch.setattr(table, "pairs", lambda q, r: asked.append(q.tolist()) or pairs(q, r))
+        frames = np.array([206, 242, 255, 206, 242])  # three moving frames, two asked again
+        assert stops.lengths(frames, table).tolist() == [0, 0, 0, 0, 0]
+        assert asked == [[206], [242], [255], [206], [242]]  # 206 forgotten (two kept), then 242 too
+        assert stops.lengths(np.array([255]), table).tolist() == [0] and len(asked) == 6
+        assert stops.lengths(np.array([242]), table).tolist() == [0] and len(asked) == 6  # kept: not read again
+        assert stops.lengths(np.array([241]), table).tolist() == [35]  # a stop's frames as before
+
     def test_a_still_query_matches_a_stop_as_long(self, table):
         stops = self._stops()
         assert stops.admissible(730, np.array([240, 250]), table).tolist() == [True, False]  # a stop, not a passage

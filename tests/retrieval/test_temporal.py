@@ -211,6 +211,35 @@ class TestCodeTable:
         fixed.add(30, codes[0])
         assert fixed._gram is None and fixed.pairs(np.array([30]), np.array([0]))[0] == pytest.approx(1.0, abs=1e-5)
 
+    def test_a_memoised_table_gives_each_pair_as_computed_alone(self, sample_frames, monkeypatch):
+        """``memo`` (a refit's replay table): every similarity bit for bit what an unmemoised table computes, NaN where
+        a frame is not stored, in calls of a few pairs and of many (repeated pairs: the distinct ones computed once),
+        each distinct pair's codes multiplied once in the table's life; adding a frame drops the memo."""
+        from cae_lcd.core.images import read_image
+        from retrieval.descriptors import create_descriptor
+
+        descriptor = create_descriptor({"name": "cae"})
+        ids = np.arange(0, 24, 3)
+        codes = np.stack([descriptor(read_image(p)) for p in sample_frames[:len(ids)]])
+        codes /= np.linalg.norm(codes, axis=1, keepdims=True)
+        memo, plain = CodeTable(codes.shape[1], memo=True), CodeTable(codes.shape[1])
+        for f, c in zip(ids.tolist(), codes):
+            memo.add(f, c)
+            plain.add(f, c)
+        computed = []
+        products = memo._products
+        monkeypatch.setattr(memo, "_products", lambda a, b: computed.append(len(a)) or products(a, b))
+        rng = np.random.default_rng(2)
+        asked = np.r_[ids, [1, 25]]  # stored frames, and two that are not
+        for n in (3, 500, 7, 500):  # a few (each computed as it comes), many (the distinct ones)
+            q, r = rng.choice(asked, n), rng.choice(asked, n)
+            got, want = memo.pairs(q, r), plain.pairs(q, r)
+            assert np.array_equal(got, want, equal_nan=True) and np.isnan(got).any()
+        assert sum(computed) <= 3 + len(ids) ** 2 and max(computed) > 1  # 1010 pairs asked, 64 distinct at most
+        memo.add(30, codes[0])
+        assert memo._memo is None and memo.pairs(np.array([30]), np.array([0]))[0] == plain.pairs(
+            np.array([0]), np.array([0]))[0]
+
     def test_float16_rows_give_the_same_similarities_at_half_the_memory(self, sample_frames):
         """Codes rounded to float16 (what ``CodePlaces.entry`` searches and stores) kept as float16: the same
         similarities as float32 rows, bit for bit, in half the bytes."""
