@@ -17,8 +17,8 @@ from cae_lcd.core.conf import Bool, Choice, ConfigError, Float, Floats, Int, con
 
 from .camera import COEFFICIENTS, DISTORTION_MODELS, undistort_points
 
-__all__ = ["GeometryResult", "GeometricVerifier", "pose_information", "sampson_residuals", "refine_pose",
-           "refined_pose"]
+__all__ = ["GeometryResult", "GeometricVerifier", "floor_iterations", "pose_information", "sampson_residuals",
+           "refine_pose", "refined_pose"]
 
 _METHODS = {"ransac": cv2.RANSAC, "lmeds": cv2.LMEDS, "magsac": cv2.USAC_MAGSAC, "usac": cv2.USAC_DEFAULT}
 
@@ -275,6 +275,28 @@ def refined_pose(E: np.ndarray, pts_q: np.ndarray, pts_c: np.ndarray, K: np.ndar
     return R, t
 
 
+def floor_iterations(floor: int, matches: int, confidence: float, cap: int) -> int:
+    """RANSAC's iterations for a pre-check that asks whether a pair of ``matches`` matches holds ``floor`` inliers:
+    those that draw, with probability ``confidence``, one 7-point sample (F's minimal one) of inliers only where
+    ``floor`` of the matches are (a pair holding more is found sooner), ``cap`` at most, at least 1; ``cap`` without a
+    floor. A pair of 15 matches asked for 12 needs 30 iterations, of 20 matches 244, of 30 4300. Look-alike pairs have
+    few matches (KITTI 90 streamed: three in four of a refit's null pairs 12-19, their pre-check 0.6 ms at
+    ``max_iters`` 2000, 0.05 so bounded), a revisit's hundreds, whose MAGSAC stops by itself in a few iterations.
+
+    Args:
+        floor: the inliers asked for (0: none, ``cap`` returned).
+        matches: the putative matches ``M``.
+        confidence: the probability of drawing an all-inlier sample, in (0, 1).
+        cap: the iterations at most (``max_iters``).
+    """
+    if floor <= 0 or matches <= 0:
+        return int(cap)
+    miss = 1.0 - min(floor / matches, 1.0) ** 7  # P(a 7-point sample holds an outlier)
+    if miss <= 0.0:
+        return 1
+    return int(min(cap, max(1, math.ceil(math.log(1.0 - confidence) / math.log(miss)))))
+
+
 class GeometricVerifier:
     """Estimates the two-view geometry of a match set with RANSAC and counts its inliers."""
 
@@ -283,7 +305,7 @@ class GeometricVerifier:
         "method": "ransac",  # robust estimator: "ransac", "magsac", "usac" or "lmeds"
         "threshold": 2.0,  # max epipolar distance of an inlier, pixels of the original image
         "confidence": 0.999,  # RANSAC confidence
-        "max_iters": 2000,  # RANSAC iteration cap
+        "max_iters": 2000,  # RANSAC iteration cap (a pre-check with an inlier floor: ``floor_iterations``, at most)
         "recover_pose": True,  # essential only: also decompose E into R and the unit translation t
         "prefilter": True,  # essential only: first a fast fundamental-matrix MAGSAC; E runs on its inliers only
         "reject_mirrored": True,  # a pair whose inliers fit a mirror (an orientation-reversing homography) has none:
@@ -334,7 +356,9 @@ class GeometricVerifier:
             K: ``(3, 3)`` intrinsics shared by both images, or None.
             min_inliers: with ``prefilter``, a pair whose fundamental-matrix inliers (by MAGSAC) are fewer than this
                 stops there and reports that count, with ``model`` saying so: the essential matrix cannot have more;
-                on the fundamental model MAGSAC's count stands for the configured estimator's under the floor.
+                on the fundamental model MAGSAC's count stands for the configured estimator's under the floor. The
+                pre-check then runs the iterations that find a pair holding this many inliers
+                (``floor_iterations``).
 
         Returns:
             ``GeometryResult``; with fewer matches than the model needs (5 for E, 8 for F) ``inliers == 0``.
@@ -353,13 +377,13 @@ class GeometricVerifier:
         c = self.conf
         method = _METHODS[c["method"]]
         if model == "fundamental":
-            pre = self._prefilter(a, b) if min_inliers and method != cv2.USAC_MAGSAC else None
+            pre = self._prefilter(a, b, min_inliers) if min_inliers and method != cv2.USAC_MAGSAC else None
             if pre is not None and pre.inliers < min_inliers:  # a pair that cannot reach it stops here
                 return pre
             full = self._fundamental(a, b, method)
             return self._unmirrored(full, a, b) if full is not None else GeometryResult(0, np.zeros(m, bool), model)
         subset = np.arange(m)
-        pre = self._prefilter(a, b)
+        pre = self._prefilter(a, b, min_inliers)
         if pre is not None:  # E's inliers are (up to the threshold's definition) a subset of the best F's
             if pre.inliers < max(min_inliers, 5):
                 return pre
@@ -407,19 +431,27 @@ class GeometricVerifier:
             return GeometryResult(0, np.zeros(len(a), bool), res.model)
         return res
 
-    def _prefilter(self, a: np.ndarray, b: np.ndarray) -> GeometryResult | None:
+    def _prefilter(self, a: np.ndarray, b: np.ndarray, floor: int = 0) -> GeometryResult | None:
         """The cheap pre-check (``prefilter``): F by MAGSAC, ~10x cheaper than a RANSAC that runs to ``max_iters``
         on a bad pair (the 5-point solver costs ~0.5 ms an iteration; F by RANSAC on a plain folder's full-size
-        frames made verification 2.5x dearer); None where it is off, the points are fewer than 8, or OpenCV's
-        MAGSAC finds no model to start from (it asserts on some degenerate point sets: the full check decides)."""
-        return self._fundamental(a, b, cv2.USAC_MAGSAC) if self.conf["prefilter"] and len(a) >= 8 else None
+        frames made verification 2.5x dearer), with a ``floor`` the iterations that would find a pair holding it
+        (``floor_iterations``); None where it is off, the points are fewer than 8, or OpenCV's MAGSAC finds no model
+        to start from (it asserts on some degenerate point sets: the full check decides)."""
+        if not self.conf["prefilter"] or len(a) < 8:
+            return None
+        c = self.conf
+        iters = floor_iterations(floor, len(a), c["confidence"], c["max_iters"])
+        return self._fundamental(a, b, cv2.USAC_MAGSAC, iters)
 
-    def _fundamental(self, a: np.ndarray, b: np.ndarray, method: int) -> GeometryResult | None:
-        """F by ``method`` on ``(M, 1, 2)`` points; None where OpenCV's estimator fails on the point set (its USAC
-        estimators assert on some real ones, ``tests/verify/test_geometry.py``'s ``MAGSAC_ASSERTS``)."""
+    def _fundamental(self, a: np.ndarray, b: np.ndarray, method: int, iters: int | None = None
+                     ) -> GeometryResult | None:
+        """F by ``method`` on ``(M, 1, 2)`` points (``iters``: the iteration cap, default ``max_iters``); None where
+        OpenCV's estimator fails on the point set (its USAC estimators assert on some real ones,
+        ``tests/verify/test_geometry.py``'s ``MAGSAC_ASSERTS``)."""
         c = self.conf
         try:
-            F, mask = cv2.findFundamentalMat(a, b, method, c["threshold"], c["confidence"], c["max_iters"])
+            F, mask = cv2.findFundamentalMat(a, b, method, c["threshold"], c["confidence"],
+                                             c["max_iters"] if iters is None else iters)
         except cv2.error:
             return None
         if F is None or mask is None:

@@ -6,7 +6,7 @@ import pytest
 
 from cae_lcd.core.conf import ConfigError
 from retrieval.sequences import read_kitti_poses
-from verify.geometry import GeometricVerifier, GeometryResult
+from verify.geometry import GeometricVerifier, GeometryResult, floor_iterations
 from verify.matching import match_ratio
 
 #: 58 ratio-test matches of two frames of KITTI 90 at 160x120 (a pair its calibration verified in ``bench.aliasing``), as
@@ -107,13 +107,41 @@ class TestGeometricVerifier:
         can is decided by the configured estimator, as without the pre-check."""
         methods: list[int] = []
         fundamental = GeometricVerifier._fundamental
-        monkeypatch.setattr(GeometricVerifier, "_fundamental",
-                            lambda self, a, b, method: methods.append(method) or fundamental(self, a, b, method))
+        monkeypatch.setattr(GeometricVerifier, "_fundamental", lambda self, a, b, method, *iters:
+                            methods.append(method) or fundamental(self, a, b, method, *iters))
         far = GeometricVerifier()(*pairs["far"], min_inliers=30)
         assert far.inliers < 30 and methods == [cv2.USAC_MAGSAC]
         true = GeometricVerifier()(*pairs["true"], min_inliers=30)
         assert methods[1:] == [cv2.USAC_MAGSAC, cv2.RANSAC]
         assert true.inliers == GeometricVerifier({"prefilter": False})(*pairs["true"], min_inliers=30).inliers
+
+    @pytest.mark.parametrize("K_known", [True, False])
+    def test_the_pre_check_runs_the_iterations_its_floor_needs(self, pairs, sample_K, monkeypatch, K_known):
+        """With a floor the pre-check runs ``floor_iterations`` (a look-alike pair's MAGSAC otherwise runs out
+        ``max_iters``); without one, ``max_iters``. A revisit keeps its count: its MAGSAC stops by itself sooner."""
+        K = sample_K if K_known else None
+        caps: list[int | None] = []
+        fundamental = GeometricVerifier._fundamental
+        monkeypatch.setattr(GeometricVerifier, "_fundamental",
+                            lambda self, a, b, method, iters=None: caps.append(iters) or fundamental(self, a, b, method,
+                                                                                                    iters))
+        far = GeometricVerifier()(*pairs["far"], K=K, min_inliers=12)
+        assert caps[0] == floor_iterations(12, len(pairs["far"][0]), 0.999, 2000) < 2000
+        assert far.inliers < 12 and far.model == "fundamental"
+        caps.clear()
+        GeometricVerifier()(*pairs["far"], K=sample_K)
+        assert caps == [2000]  # no floor
+        floored, free = (GeometricVerifier()(*pairs["true"], K=K, min_inliers=m) for m in (12, 0))
+        assert floored.inliers == free.inliers > 150
+
+    def test_floor_iterations_draw_one_clean_sample_at_the_confidence(self):
+        for floor, m in ((12, 15), (12, 20), (12, 26), (30, 60)):
+            n = floor_iterations(floor, m, 0.999, 10**6)
+            clean = (floor / m) ** 7
+            assert 1 - (1 - clean) ** n >= 0.999 > 1 - (1 - clean) ** (n - 1)  # the fewest that reach it
+        assert floor_iterations(12, 15, 0.999, 2000) == 30 and floor_iterations(12, 30, 0.999, 2000) == 2000
+        assert floor_iterations(0, 15, 0.999, 2000) == 2000  # no floor: the cap
+        assert floor_iterations(12, 12, 0.999, 2000) == floor_iterations(12, 5, 0.999, 2000) == 1  # all, or none
 
     @pytest.mark.parametrize("K_known", [True, False])
     def test_a_point_set_magsac_asserts_on_goes_to_the_full_check(self, sample_K, K_known):
