@@ -901,12 +901,11 @@ class LoopDetector:
                     self._jobs.submit(nxt, functools.partial(_copy_features, copy))
 
     def _queue_warm_up(self, fid: int, prep: Callable[[], tuple[np.ndarray, float, bytes]]) -> None:
-        """Queues in the worker the features of warm-up keyframe ``fid`` (not kept): from its grey copy, or, where
-        frames come again from a ``frame_source`` (``detect``), from the frame in hand (read once, not again at the
-        first fit)."""
-        if self._frame_source is None:
-            self._queue_copies([fid])
-        elif self._jobs is not None and fid in self._unextracted and fid not in self._late and fid not in self._jobs:
+        """Queues in the worker the features of warm-up keyframe ``fid`` (not kept), from the frame in hand: its
+        prepared image (``prep``), which its grey copy, where one is kept, gives back pixel for pixel (a lossless
+        one, ``grey_copy``: not decoded again), and which a ``frame_source`` (``detect``) would read again."""
+        if self._jobs is not None and fid in self._unextracted and fid not in self._late and fid not in self._given \
+                and fid not in self._jobs:
             self._jobs.submit(fid, functools.partial(_own_features, prep))
 
     def _copy_of(self, fid: int) -> bytes:
