@@ -280,8 +280,8 @@ def floor_iterations(floor: int, matches: int, confidence: float, cap: int) -> i
     those that draw, with probability ``confidence``, one 7-point sample (F's minimal one) of inliers only where
     ``floor`` of the matches are (a pair holding more is found sooner), ``cap`` at most, at least 1; ``cap`` without a
     floor. A pair of 15 matches asked for 12 needs 30 iterations, of 20 matches 244, of 30 4300. Look-alike pairs have
-    few matches (KITTI 90 streamed: three in four of a refit's null pairs 12-19, their pre-check 0.6 ms at
-    ``max_iters`` 2000, 0.05 so bounded), a revisit's hundreds, whose MAGSAC stops by itself in a few iterations.
+    few matches (KITTI 90 streamed: three in four of a refit's null pairs 12-19, their pre-check 0.55 ms at
+    ``max_iters`` 2000, 0.12 so bounded), a revisit's hundreds, whose MAGSAC stops by itself in a few iterations.
 
     Args:
         floor: the inliers asked for (0: none, ``cap`` returned).
