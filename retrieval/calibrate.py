@@ -224,9 +224,14 @@ class Calibration:
 
     def confidence(self, seq_score: float, inliers: int) -> float:
         """``-log10 NFA`` of a candidate on the deciding path (``-inf`` when it has no evidence there)."""
+        return float(self.confidences(np.array([seq_score], np.float64), np.array([inliers], np.int64))[0])
+
+    def confidences(self, seq_scores: np.ndarray, inliers: np.ndarray) -> np.ndarray:
+        """``confidence`` of ``m`` candidates at once: their temporal scores ``(m,)`` and inlier counts ``(m,)`` ->
+        ``(m,)`` float64, the same values (a refit's replay reads tens of thousands)."""
         if self.path == "inliers":
-            return self.inlier_confidence(inliers)
-        return self.score_confidence(seq_score)
+            return self.inlier_confidences(inliers)
+        return self.score_confidences(seq_scores)
 
     @property
     def accept_at(self) -> float:
@@ -237,12 +242,17 @@ class Calibration:
         """``-log10 NFA`` of one window's temporal score deciding alone (``-inf`` when the score path is off): the
         measured null's empirical p-value (``score_null["empirical"]``, what ``calibrate`` makes), else, for a
         calibration made by hand, a Gaussian through ``score_null``'s median and sigma."""
-        n = self.score_null
+        return float(self.score_confidences(np.array([score], np.float64))[0])
+
+    def score_confidences(self, scores: np.ndarray) -> np.ndarray:
+        """``score_confidence`` of each of ``scores`` ``(m,)`` -> ``(m,)`` float64."""
+        n, x = self.score_null, np.asarray(scores, np.float64).reshape(-1)
         if not n:
-            return -math.inf
+            return np.full(len(x), -math.inf)
         if n.get("empirical") and "score_null" in self.samples:
-            return -(math.log10(self.tests["score"]) + self.empirical("score_null").log10_sf(score))
-        return -(math.log10(self.tests["score"]) + gaussian_log10_sf((score - n["median"]) / n["sigma"]))
+            return -(math.log10(self.tests["score"]) + self.empirical("score_null").log10_sfs(x))
+        gauss = [gaussian_log10_sf((score - n["median"]) / n["sigma"]) for score in x.tolist()]
+        return -(math.log10(self.tests["score"]) + np.array(gauss, np.float64))
 
     def pair_tail(self) -> TailModel | EmpiricalTail | None:
         """The hard-negative inlier null one pair's evidence is read from: the measured sample itself
@@ -256,14 +266,20 @@ class Calibration:
         return TailModel(n["u"], n["beta"])
 
     def inlier_confidence(self, inliers: int) -> float:
-        """``-log10 NFA`` of one inlier count deciding alone (``-inf`` when verification is off or the check did not
-        run)."""
-        n = self.inlier_null
-        if not n or inliers < 0:
-            return -math.inf
-        if inliers < n["floor"]:
-            return -math.inf
-        return -(math.log10(self.tests["inliers"]) + self.pair_tail().log10_sf(inliers))
+        """``-log10 NFA`` of one inlier count deciding alone (``-inf`` when verification is off, the check did not
+        run, or the count is under the floor)."""
+        return float(self.inlier_confidences(np.array([inliers], np.int64))[0])
+
+    def inlier_confidences(self, inliers: np.ndarray) -> np.ndarray:
+        """``inlier_confidence`` of each of ``inliers`` ``(m,)`` -> ``(m,)`` float64."""
+        n, x = self.inlier_null, np.asarray(inliers, np.int64).reshape(-1)
+        out = np.full(len(x), -math.inf)
+        if not n:
+            return out
+        ok = (x >= 0) & (x >= n["floor"])
+        if ok.any():
+            out[ok] = -(math.log10(self.tests["inliers"]) + self.pair_tail().log10_sfs(x[ok].astype(np.float64)))
+        return out
 
     def score_spans(self, filt: TemporalFilter | None, stops: Stops | None = None) -> ScoreSpans | None:
         """The score path's fused windows scored by the run's filter ``filt`` (None where not calibrated); ``stops``:

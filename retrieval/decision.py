@@ -148,6 +148,11 @@ class TailModel:
             return 0.0
         return math.log10(0.5) - (x - self.u) / self.beta / LN10
 
+    def log10_sfs(self, x: np.ndarray) -> np.ndarray:
+        """``log10_sf`` of every value of ``x`` ``(m,)`` -> ``(m,)`` (the same operations, in float64)."""
+        x = np.asarray(x, np.float64)
+        return np.where(x <= self.u, 0.0, math.log10(0.5) - (x - self.u) / self.beta / LN10)
+
     def evidence(self, x: float) -> float:
         """``-log10 P(X >= x)``, >= 0."""
         return -self.log10_sf(x)

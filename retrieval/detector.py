@@ -639,7 +639,8 @@ class LoopDetector:
                 cand.matches, cand.inliers = check.matches, check.inliers
             else:
                 cand.inliers = -1
-            cand.confidence = self._confidence(cand)
+        for cand, own in zip(candidates, self._confidences(candidates)):
+            cand.confidence = own
         if self.decision is not None:
             fused = self.decision.confidences(fid, refs, np.array([self._counted(cd) for cd in candidates], np.int64),
                                               self.places.source, np.array([cd.confidence for cd in candidates]),
@@ -1047,8 +1048,8 @@ class LoopDetector:
             if carried:
                 cands, refs = cands + carried, np.r_[refs, [cd.frame_id for cd in carried]].astype(np.int64)
                 frame_terms = dec.code_terms(q, refs, src)
-            for cand in cands:
-                cand.confidence = self._confidence(cand)
+            for cand, own in zip(cands, self._confidences(cands)):
+                cand.confidence = own
             counted = np.array([self._counted(cd) for cd in cands], np.int64)
             fused = dec.confidences(q, refs, counted, src, np.array([cd.confidence for cd in cands]), frame_terms)
             for cand, value in zip(cands, fused):
@@ -1219,14 +1220,17 @@ class LoopDetector:
         """The inliers that count as evidence (-1 where the check did not run or the matches are too few)."""
         return cand.inliers if cand.matches >= self.conf["policy"]["min_matches"] else -1
 
-    def _confidence(self, cand: Candidate) -> float:
-        """Calibrated: ``-log10 NFA`` on the deciding path (``Calibration.path``); else the inlier count (the
-        temporal score when the policy does not verify)."""
+    def _confidences(self, cands: list[Candidate]) -> list[float]:
+        """Each candidate's own confidence: calibrated, ``-log10 NFA`` on the deciding path (``Calibration.path``;
+        -1e9 at least), every candidate's in one call; else the inlier count (the temporal score when the policy does
+        not verify)."""
         cal = self.calibration
         if cal is None:
-            return float(cand.inliers) if self._verify else cand.seq_score
-        inl = cand.inliers if cand.matches >= self.conf["policy"]["min_matches"] else -1
-        return float(max(cal.confidence(cand.seq_score, inl), -1e9))
+            return [float(cd.inliers) if self._verify else cd.seq_score for cd in cands]
+        floor = self.conf["policy"]["min_matches"]
+        inliers = np.array([cd.inliers if cd.matches >= floor else -1 for cd in cands], np.int64)
+        return np.maximum(cal.confidences(np.array([cd.seq_score for cd in cands], np.float64), inliers),
+                          -1e9).tolist()
 
     def _passes_policy(self, cand: Candidate) -> bool:
         """The uncalibrated acceptance rule (``policy``)."""

@@ -11,6 +11,7 @@ from cae_lcd.core.errors import ConfigError, DatabaseError
 from cae_lcd.evaluation.ground_truth import load_ground_truth
 from cae_lcd.evaluation.metrics import precision_recall
 from retrieval.calibrate import Calibration, calibrated_features, calibration_frames
+from retrieval.decision import gaussian_log10_sf
 from retrieval.detect import main as detect
 from retrieval.run_folder import RunFolder
 
@@ -81,6 +82,42 @@ class TestCalibrationMath:
             a, b = self.cal(verification), self.cal(verification)
             b.tests = {"score": 1e6, "inliers": 1e5}
             assert b.thresholds()[key] > a.thresholds()[key]
+
+    @pytest.mark.parametrize("verification", [False, True])
+    @pytest.mark.parametrize("empirical", [False, True])
+    def test_candidates_at_once_are_each_ones_own(self, verification, empirical):
+        """``Calibration.confidences`` (a frame's candidates, a replay's thousands, in one call) against
+        ``confidence`` one candidate at a time (the same values bit for bit) and against the rule written out (brute
+        force), on both paths, with the model tails (a calibration made by hand) and the measured ones; NaN scores,
+        unverified (-1) and under-the-floor counts."""
+        rng = np.random.default_rng(3)
+        cal = self.cal(verification)
+        if empirical:
+            cal.score_null["empirical"] = 1.0
+            cal.samples["score_null"] = rng.normal(0.0, 0.01, 999)
+            if verification:
+                cal.inlier_null["empirical"] = 1.0
+                cal.samples["hard_inliers"] = rng.integers(0, 30, 700).astype(np.float64)
+        scores = np.r_[rng.normal(0.0, 0.02, 200), np.nan, 0.5]
+        inliers = np.r_[rng.integers(-1, 60, 200), -1, 11]
+        one = [cal.confidence(s, i) for s, i in zip(scores.tolist(), inliers.tolist())]
+        assert np.array_equal(cal.confidences(scores, inliers), np.array(one), equal_nan=True)
+        assert np.isfinite(one).sum() > 50 and np.isinf(one).any() == verification  # both kinds of values
+
+        def log10_p(x: float, null: np.ndarray | None, model: float) -> float:  # the null's P(X >= x), as promised
+            if null is None:
+                return model
+            return 0.0 if np.isnan(x) or x <= np.median(null) else math.log10((np.sum(null >= x) + 1) / (len(null) + 1))
+
+        want = []
+        for s, i in zip(scores.tolist(), inliers.tolist()):
+            if verification:
+                model = 0.0 if i <= 10 else math.log10(0.5) - (i - 10.0) / 2.0 / math.log(10)
+                want.append(-math.inf if i < 12 else -(3.0 + log10_p(i, cal.samples.get("hard_inliers"), model)))
+            else:
+                want.append(-(4.0 + log10_p(s, cal.samples.get("score_null"), gaussian_log10_sf(s / 0.01))))
+        np.testing.assert_allclose(one, want, rtol=1e-9, atol=1e-9)  # NaN where the Gaussian reads a NaN score
+        assert cal.confidences(np.zeros(0), np.zeros(0, np.int64)).shape == (0,)
 
     def test_off_paths(self):
         cal = Calibration()
