@@ -1227,8 +1227,8 @@ class LoopDetector:
         cal = self.calibration
         if cal is None:
             return [float(cd.inliers) if self._verify else cd.seq_score for cd in cands]
-        floor = self.conf["policy"]["min_matches"]
-        inliers = np.array([cd.inliers if cd.matches >= floor else -1 for cd in cands], np.int64)
+        min_matches = self.conf["policy"]["min_matches"]
+        inliers = np.array([cd.inliers if cd.matches >= min_matches else -1 for cd in cands], np.int64)
         return np.maximum(cal.confidences(np.array([cd.seq_score for cd in cands], np.float64), inliers),
                           -1e9).tolist()
 
