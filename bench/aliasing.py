@@ -204,8 +204,7 @@ def stress_sets(data: Path, run_dir: Path) -> dict[str, tuple[Path, np.ndarray |
             recurring_folder(run_dir / "recur_160", recurring, (160, 120)), None),
         "stress: the same at 64x32 (score path)": (recurring_folder(run_dir / "recur_64", recurring, (64, 32)), None),
         "stress: 00 then 07 at 64x32, the camera pausing 4 times (score path)": (paused_folder(
-            run_dir / "s0007_64_paused", [*open_sequence(kitti / "00").frames, *open_sequence(kitti / "07").frames],
-            (64, 32)), None),
+            run_dir / "s0007_64_paused", [*k00, *k07], (64, 32)), None),
     }
 
 

@@ -1227,8 +1227,7 @@ class LoopDetector:
         cal = self.calibration
         if cal is None:
             return [float(cd.inliers) if self._verify else cd.seq_score for cd in cands]
-        min_matches = self.conf["policy"]["min_matches"]
-        inliers = np.array([cd.inliers if cd.matches >= min_matches else -1 for cd in cands], np.int64)
+        inliers = np.array([self._counted(cd) for cd in cands], np.int64)
         return np.maximum(cal.confidences(np.array([cd.seq_score for cd in cands], np.float64), inliers),
                           -1e9).tolist()
 
