@@ -144,12 +144,10 @@ class TailModel:
 
     def log10_sf(self, x: float) -> float:
         """``log10 P(X >= x)`` (0 at or below the median)."""
-        if x <= self.u:
-            return 0.0
-        return math.log10(0.5) - (x - self.u) / self.beta / LN10
+        return float(self.log10_sfs(np.array([x], np.float64))[0])
 
     def log10_sfs(self, x: np.ndarray) -> np.ndarray:
-        """``log10_sf`` of every value of ``x`` ``(m,)`` -> ``(m,)`` (the same operations, in float64)."""
+        """``log10_sf`` of every value of ``x`` ``(m,)`` -> ``(m,)``: an exponential tail above the median."""
         x = np.asarray(x, np.float64)
         return np.where(x <= self.u, 0.0, math.log10(0.5) - (x - self.u) / self.beta / LN10)
 

@@ -896,7 +896,7 @@ class LoopDetector:
         if self._jobs is None or self._frame_source is not None:
             return
         for nxt in fids:
-            if nxt in self._unextracted and nxt not in self._late and nxt not in self._given and nxt not in self._jobs:
+            if self._awaits_extraction(nxt):
                 copy = self._copy_of(nxt)
                 if copy:
                     self._jobs.submit(nxt, functools.partial(_copy_features, copy))
@@ -905,9 +905,13 @@ class LoopDetector:
         """Queues in the worker the features of warm-up keyframe ``fid`` (not kept), from the frame in hand: its
         prepared image (``prep``), which its grey copy, where one is kept, gives back pixel for pixel (a lossless
         one, ``grey_copy``: not decoded again), and which a ``frame_source`` (``detect``) would read again."""
-        if self._jobs is not None and fid in self._unextracted and fid not in self._late and fid not in self._given \
-                and fid not in self._jobs:
+        if self._jobs is not None and self._awaits_extraction(fid):
             self._jobs.submit(fid, functools.partial(_own_features, prep))
+
+    def _awaits_extraction(self, fid: int) -> bool:
+        """Whether keyframe ``fid``'s features are nowhere to be had yet: not kept, not cached, not given, not queued
+        (the worker, ``self._jobs``, must exist)."""
+        return fid in self._unextracted and fid not in self._late and fid not in self._given and fid not in self._jobs
 
     def _copy_of(self, fid: int) -> bytes:
         """A keyframe's grey copy (``grey_copy``): kept here, or read from the store; b"" when there is none."""
